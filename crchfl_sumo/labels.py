@@ -1,0 +1,31 @@
+"""The label schema: action vector and the 7 steer classes (the paper's digitizer and DAC).
+
+Action vector (throttle, steer, brake): throttle and brake in [0, 1], steer in
+[-1, 1], positive steer turns RIGHT, negative LEFT (the CRCHFL paper's CARLA
+convention; its left turn at a T-junction carries steer -0.275).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ACTION_NAMES = ("throttle", "steer", "brake")
+CAMERA_NAMES = ("CamH", "CamF", "CamL", "CamR")
+
+# Class k decodes to STEER_CLASS_VALUES[k] (the paper's reference implementation).
+STEER_CLASS_VALUES = np.array([0.0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425], dtype=np.float32)
+NUM_STEER_CLASSES = len(STEER_CLASS_VALUES)
+
+
+def digitize_steer(steer: np.ndarray | float) -> np.ndarray:
+    """Analogue steer -> class index of the nearest STEER_CLASS_VALUES (ties: lower index)."""
+    steer = np.asarray(steer, dtype=np.float32)
+    return np.abs(steer[..., None] - STEER_CLASS_VALUES).argmin(axis=-1).astype(np.int64)
+
+
+def steer_from_class(steer_class: np.ndarray | int) -> np.ndarray:
+    """The DAC: class index -> analogue steer value."""
+    steer_class = np.asarray(steer_class)
+    if steer_class.size and (steer_class.min() < 0 or steer_class.max() >= NUM_STEER_CLASSES):
+        raise ValueError(f"steer class out of range 0..{NUM_STEER_CLASSES - 1}")
+    return STEER_CLASS_VALUES[steer_class]

@@ -1,0 +1,30 @@
+import numpy as np
+import pytest
+
+from crchfl_sumo.labels import STEER_CLASS_VALUES, digitize_steer, steer_from_class
+
+
+def test_dac_values_are_the_papers():
+    assert steer_from_class(np.arange(7)).tolist() == pytest.approx(
+        [0.0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425]
+    )
+
+
+def test_digitizer_inverts_dac_on_every_class():
+    assert digitize_steer(steer_from_class(np.arange(7))).tolist() == list(range(7))
+
+
+def test_digitizer_picks_nearest_value():
+    # 0.2 is 0.075 from 0.125 and 0.075 from 0.275: tie goes to the lower index (class 1).
+    steer = np.array([0.06, 0.07, 0.2, 0.21, 1.0, -0.3, -1.0, -0.06])
+    assert digitize_steer(steer).tolist() == [0, 1, 1, 2, 3, 5, 6, 0]
+
+
+def test_dac_rejects_unknown_class():
+    with pytest.raises(ValueError):
+        steer_from_class(np.array([7]))
+
+
+def test_left_turn_value_is_negative_class():
+    assert STEER_CLASS_VALUES[digitize_steer(-0.275)] == pytest.approx(-0.275)
+    assert digitize_steer(-0.275) == 5
