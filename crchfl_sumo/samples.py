@@ -1,0 +1,97 @@
+"""Samples: the in-memory container of training examples (images, actions, steer classes).
+
+One sample is one time step of one vehicle: the four camera images (order
+``labels.CAMERA_NAMES`` = CamH, CamF, CamL, CamR; HWC RGB, uint8), the action
+vector (throttle, steer, brake) and the steer class (``labels.digitize_steer``).
+Images stay uint8 in memory (4x smaller than float32); the model normalises them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .labels import CAMERA_NAMES, NUM_STEER_CLASSES
+
+NUM_CAMERAS = len(CAMERA_NAMES)
+NUM_ACTIONS = 3
+
+
+@dataclass(frozen=True)
+class Samples:
+    """N samples as torch tensors on the CPU (or any one device).
+
+    images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N].
+    """
+
+    images: torch.Tensor
+    actions: torch.Tensor
+    steer_class: torch.Tensor
+
+    def __post_init__(self) -> None:
+        n = self.images.shape[0] if self.images.dim() else -1
+        if self.images.dtype != torch.uint8 or self.images.dim() != 5:
+            raise ValueError(f"images must be uint8 [N, 4, H, W, 3], got {self.images.dtype} {tuple(self.images.shape)}")
+        if self.images.shape[1] != NUM_CAMERAS or self.images.shape[4] != 3:
+            raise ValueError(f"images must be [N, {NUM_CAMERAS}, H, W, 3], got {tuple(self.images.shape)}")
+        if self.actions.dtype != torch.float32 or tuple(self.actions.shape) != (n, NUM_ACTIONS):
+            raise ValueError(f"actions must be float32 [{n}, 3], got {self.actions.dtype} {tuple(self.actions.shape)}")
+        if self.steer_class.dtype != torch.int64 or tuple(self.steer_class.shape) != (n,):
+            raise ValueError(
+                f"steer_class must be int64 [{n}], got {self.steer_class.dtype} {tuple(self.steer_class.shape)}"
+            )
+        if n and (int(self.steer_class.min()) < 0 or int(self.steer_class.max()) >= NUM_STEER_CLASSES):
+            raise ValueError(f"steer_class values must lie in 0..{NUM_STEER_CLASSES - 1}")
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def image_hw(self) -> tuple[int, int]:
+        """(height, width) of the camera images in pixels."""
+        return int(self.images.shape[2]), int(self.images.shape[3])
+
+    def subset(self, indices: Sequence[int] | np.ndarray | torch.Tensor | slice) -> Samples:
+        """The samples at ``indices`` (a slice gives views, an index list gives copies)."""
+        if not isinstance(indices, slice):
+            indices = torch.as_tensor(np.asarray(indices, dtype=np.int64))
+        return Samples(self.images[indices], self.actions[indices], self.steer_class[indices])
+
+    def to(self, device: torch.device | str) -> Samples:
+        """The same samples on ``device``."""
+        return Samples(self.images.to(device), self.actions.to(device), self.steer_class.to(device))
+
+    @staticmethod
+    def concat(parts: Sequence[Samples]) -> Samples:
+        """All samples of ``parts``, in order; parts must share the image size."""
+        if not parts:
+            raise ValueError("Samples.concat needs at least one part")
+        sizes = {p.image_hw for p in parts}
+        if len(sizes) > 1:
+            raise ValueError(f"Samples.concat: parts have different image sizes {sorted(sizes)}")
+        return Samples(
+            torch.cat([p.images for p in parts]),
+            torch.cat([p.actions for p in parts]),
+            torch.cat([p.steer_class for p in parts]),
+        )
+
+    @staticmethod
+    def from_numpy(images: np.ndarray, actions: np.ndarray, steer_class: np.ndarray) -> Samples:
+        """Build from numpy arrays (images are not copied when already uint8 and contiguous)."""
+        return Samples(
+            torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8)),
+            torch.from_numpy(np.ascontiguousarray(actions, dtype=np.float32)),
+            torch.from_numpy(np.ascontiguousarray(steer_class, dtype=np.int64)),
+        )
+
+    @staticmethod
+    def empty(height: int, width: int) -> Samples:
+        """Zero samples of the given image size."""
+        return Samples(
+            torch.zeros((0, NUM_CAMERAS, height, width, 3), dtype=torch.uint8),
+            torch.zeros((0, NUM_ACTIONS), dtype=torch.float32),
+            torch.zeros((0,), dtype=torch.int64),
+        )
