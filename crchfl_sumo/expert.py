@@ -1,0 +1,208 @@
+"""SUMO's own driving -> expert actions (throttle, steer, brake) per sample.
+
+SUMO moves vehicles along lanes; it has no pedals and no steering wheel. The
+expert turns a vehicle's recorded track into the actions a driver would have
+used to drive it:
+
+steer (pure pursuit over the FUTURE track, so the label leads the motion)
+    L      = max(lookahead_min_m, lookahead_time_s * speed)   look-ahead distance
+    P      = the point L metres further along the vehicle's own future track
+             (beyond the track's end: extrapolated along the last heading)
+    alpha  = bearing of P seen from the vehicle, minus its heading (CCW +)
+    kappa  = 2 sin(alpha) / |P - position|    curvature of the arc through P
+    delta  = atan(wheelbase_m * kappa)        bicycle-model wheel angle
+    steer  = clip(-delta / max_steer_angle, -1, 1)
+    Headings are CCW (frame.py), so a left turn has kappa > 0 and steer < 0:
+    the paper's convention, positive = right. A stopped vehicle is steered
+    the same way, at the path it will drive when it moves on.
+
+throttle / brake (from the acceleration SUMO applied, plus what holding speed costs)
+    a_cmd    = accel + resistance(speed)
+    resistance(v) = rolling_resistance * g + drag_per_mass_per_m * v^2   [m/s^2]
+    throttle = clip(a_cmd / max_accel, 0, 1)
+    brake    = clip(-a_cmd / max_decel, 0, 1)
+    Cruising at constant speed gives a small positive throttle, coasting
+    down gently gives neither pedal, and the two are never pressed together.
+    At a standstill (speed < stop_speed_mps and not accelerating away) the
+    driver holds the brake: brake = max(brake, hold_brake), throttle 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .errors import CrchflError
+from .frame import Frame
+from .labels import digitize_steer
+
+GRAVITY_MPS2 = 9.81
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    """Constants of the expert's label mapping (docs/dataset.md explains each choice).
+
+    lookahead_min_m, lookahead_time_s: L = max(lookahead_min_m, lookahead_time_s * speed).
+    wheelbase_m: bicycle-model wheelbase (a mid-size saloon, 2.9 m).
+    max_steer_angle_deg: wheel angle that maps to |steer| = 1. 40 deg is a real
+        car's lock and puts Town01's left turns (radius ~15 m) on the paper's
+        -0.275 class.
+    rolling_resistance: rolling-resistance coefficient (tyres on asphalt).
+    drag_per_mass_per_m: 0.5 * rho_air * Cd * A / mass [1/m] (1.2*0.3*2.2/2/1500).
+    stop_speed_mps: below this speed a vehicle counts as standing.
+    hold_brake: brake a driver holds at a standstill.
+    """
+
+    lookahead_min_m: float = 5.0
+    lookahead_time_s: float = 0.8
+    wheelbase_m: float = 2.9
+    max_steer_angle_deg: float = 40.0
+    rolling_resistance: float = 0.015
+    drag_per_mass_per_m: float = 2.64e-4
+    stop_speed_mps: float = 0.1
+    hold_brake: float = 0.9
+
+    def __post_init__(self) -> None:
+        positive = ("lookahead_min_m", "wheelbase_m", "max_steer_angle_deg", "stop_speed_mps")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise CrchflError(f"expert.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("lookahead_time_s", "rolling_resistance", "drag_per_mass_per_m"):
+            if getattr(self, name) < 0:
+                raise CrchflError(f"expert.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.hold_brake <= 1:
+            raise CrchflError(f"expert.hold_brake must lie in [0, 1], got {self.hold_brake}")
+        if self.max_steer_angle_deg >= 90:
+            raise CrchflError(f"expert.max_steer_angle_deg must be < 90, got {self.max_steer_angle_deg}")
+
+
+@dataclass(frozen=True)
+class Track:
+    """One vehicle's recorded states in time order; every array is [T].
+
+    max_accel_mps2 / max_decel_mps2 are the vehicle type's limits (constant
+    along a track, kept per sample for simple vectorised maths).
+    """
+
+    vehicle: str
+    t_s: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    heading_rad: np.ndarray
+    speed_mps: np.ndarray
+    accel_mps2: np.ndarray
+    max_accel_mps2: np.ndarray
+    max_decel_mps2: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def tracks_from_frames(frames: Sequence[Frame]) -> dict[str, Track]:
+    """Per-vehicle tracks from a run's frames (vehicle id -> Track, in time order)."""
+    if not frames:
+        return {}
+    columns = ("x_m", "y_m", "heading_rad", "speed_mps", "accel_mps2", "max_accel_mps2", "max_decel_mps2")
+    ids = np.concatenate([f.ids for f in frames])
+    t_s = np.concatenate([np.full(len(f), f.t_s, dtype=np.float64) for f in frames])
+    stacked = {c: np.concatenate([getattr(f, c) for f in frames]).astype(np.float64) for c in columns}
+    # A stable sort by id keeps each vehicle's rows in frame (time) order.
+    order = np.argsort(ids, kind="stable")
+    ids, t_s = ids[order], t_s[order]
+    stacked = {c: v[order] for c, v in stacked.items()}
+    names, starts = np.unique(ids, return_index=True)
+    ends = np.append(starts[1:], len(ids))
+    return {
+        str(name): Track(str(name), t_s[a:b], **{c: stacked[c][a:b] for c in columns})
+        for name, a, b in zip(names, starts, ends)
+    }
+
+
+def lookahead_m(speed_mps: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """Look-ahead distance L [m] per sample."""
+    return np.maximum(config.lookahead_min_m, config.lookahead_time_s * np.asarray(speed_mps, dtype=np.float64))
+
+
+def pursuit_curvature(
+    x_m: np.ndarray, y_m: np.ndarray, heading_rad: np.ndarray, lookahead: np.ndarray
+) -> np.ndarray:
+    """Pure-pursuit curvature [1/m] (CCW +) toward the point ``lookahead`` metres ahead on the track.
+
+    The track is the polyline of the given positions; the point is found by
+    arc length, so a vehicle that stands still still looks at the road it will
+    drive. Past the last position the path is extended along the last heading.
+    """
+    x_m, y_m = np.asarray(x_m, np.float64), np.asarray(y_m, np.float64)
+    heading_rad = np.asarray(heading_rad, np.float64)
+    if len(x_m) == 0:
+        return np.zeros(0)
+    step_m = np.hypot(np.diff(x_m), np.diff(y_m))
+    arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
+    target_arc_m = arc_m + lookahead
+    # j: first vertex with arc >= target; the target lies on segment (j-1, j).
+    j = np.searchsorted(arc_m, target_arc_m, side="left")
+    inside = j < len(arc_m)
+    jj = np.clip(j, 1, len(arc_m) - 1)
+    span = np.where(inside, arc_m[jj] - arc_m[jj - 1], 1.0)
+    frac = np.where(inside, (target_arc_m - arc_m[jj - 1]) / np.where(span > 0, span, 1.0), 0.0)
+    tx = np.where(inside, x_m[jj - 1] + frac * (x_m[jj] - x_m[jj - 1]), 0.0)
+    ty = np.where(inside, y_m[jj - 1] + frac * (y_m[jj] - y_m[jj - 1]), 0.0)
+    # Beyond the end: straight on along the last recorded heading.
+    beyond_m = target_arc_m - arc_m[-1]
+    tx = np.where(inside, tx, x_m[-1] + beyond_m * math.cos(heading_rad[-1]))
+    ty = np.where(inside, ty, y_m[-1] + beyond_m * math.sin(heading_rad[-1]))
+    dx, dy = tx - x_m, ty - y_m
+    chord_m = np.hypot(dx, dy)
+    alpha = np.arctan2(dy, dx) - heading_rad
+    # 2 sin(alpha) / chord is exact for a circular arc tangent to the heading.
+    return np.where(chord_m > 1e-6, 2.0 * np.sin(alpha) / np.maximum(chord_m, 1e-6), 0.0)
+
+
+def steer_from_curvature(curvature_per_m: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """Bicycle model: curvature (CCW +) -> steer in [-1, 1] (positive = RIGHT)."""
+    delta_rad = np.arctan(config.wheelbase_m * np.asarray(curvature_per_m, dtype=np.float64))
+    return np.clip(-delta_rad / math.radians(config.max_steer_angle_deg), -1.0, 1.0)
+
+
+def resistance_mps2(speed_mps: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """Deceleration [m/s^2] that rolling resistance and drag impose at ``speed_mps`` (0 at rest)."""
+    speed = np.abs(np.asarray(speed_mps, dtype=np.float64))
+    rolling = np.where(speed > 0, config.rolling_resistance * GRAVITY_MPS2, 0.0)
+    return rolling + config.drag_per_mass_per_m * speed**2
+
+
+def pedals(
+    speed_mps: np.ndarray,
+    accel_mps2: np.ndarray,
+    max_accel_mps2: np.ndarray,
+    max_decel_mps2: np.ndarray,
+    config: ExpertConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(throttle, brake), each in [0, 1], from speed and applied acceleration (module doc)."""
+    speed = np.asarray(speed_mps, dtype=np.float64)
+    accel = np.asarray(accel_mps2, dtype=np.float64)
+    commanded = accel + resistance_mps2(speed, config)
+    throttle = np.clip(commanded / np.asarray(max_accel_mps2, dtype=np.float64), 0.0, 1.0)
+    brake = np.clip(-commanded / np.asarray(max_decel_mps2, dtype=np.float64), 0.0, 1.0)
+    standing = (speed < config.stop_speed_mps) & (accel <= 0)
+    throttle = np.where(standing, 0.0, throttle)
+    brake = np.where(standing, np.maximum(brake, config.hold_brake), brake)
+    return throttle, brake
+
+
+def expert_actions(track: Track, config: ExpertConfig = ExpertConfig()) -> np.ndarray:
+    """Actions float32 [T, 3] = (throttle, steer, brake) for every sample of ``track``."""
+    curvature = pursuit_curvature(track.x_m, track.y_m, track.heading_rad, lookahead_m(track.speed_mps, config))
+    steer = steer_from_curvature(curvature, config)
+    throttle, brake = pedals(track.speed_mps, track.accel_mps2, track.max_accel_mps2, track.max_decel_mps2, config)
+    return np.stack([throttle, steer, brake], axis=1).astype(np.float32)
+
+
+def expert_labels(track: Track, config: ExpertConfig = ExpertConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """(actions float32 [T, 3], steer_class int64 [T]) for ``track``."""
+    actions = expert_actions(track, config)
+    return actions, digitize_steer(actions[:, 1])

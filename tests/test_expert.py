@@ -1,0 +1,200 @@
+import math
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.expert import (
+    ExpertConfig,
+    Track,
+    expert_actions,
+    expert_labels,
+    pedals,
+    pursuit_curvature,
+    resistance_mps2,
+    steer_from_curvature,
+    tracks_from_frames,
+)
+from crchfl_sumo.frame import make_frame
+from crchfl_sumo.labels import STEER_CLASS_VALUES
+
+CFG = ExpertConfig()
+DT_S = 0.25
+
+
+def make_track(x, y, heading, speed, accel=None, vehicle="v"):
+    n = len(x)
+    return Track(
+        vehicle=vehicle,
+        t_s=np.arange(n) * DT_S,
+        x_m=np.asarray(x, float),
+        y_m=np.asarray(y, float),
+        heading_rad=np.asarray(heading, float),
+        speed_mps=np.asarray(speed, float),
+        accel_mps2=np.zeros(n) if accel is None else np.asarray(accel, float),
+        max_accel_mps2=np.full(n, 2.6),
+        max_decel_mps2=np.full(n, 4.5),
+    )
+
+
+def turn_track(radius_m, left, speed_mps=6.0, straight_m=30.0, exit_m=30.0):
+    """Drive east along a straight, then a 90-degree arc (left or right), then straight on."""
+    arc_m = radius_m * math.pi / 2
+    s = np.arange(0.0, straight_m + arc_m + exit_m, speed_mps * DT_S)
+    sign = 1.0 if left else -1.0
+    x, y, h = np.empty_like(s), np.empty_like(s), np.empty_like(s)
+    for i, si in enumerate(s):
+        if si <= straight_m:
+            x[i], y[i], h[i] = si, 0.0, 0.0
+        elif si <= straight_m + arc_m:
+            phi = (si - straight_m) / radius_m
+            x[i] = straight_m + radius_m * math.sin(phi)
+            y[i] = sign * radius_m * (1 - math.cos(phi))
+            h[i] = sign * phi
+        else:
+            rest = si - straight_m - arc_m
+            x[i], y[i], h[i] = straight_m + radius_m, sign * (radius_m + rest), sign * math.pi / 2
+    return make_track(x, y, h, np.full(len(s), speed_mps)), s
+
+
+def on_arc(track):
+    """Indices of the samples inside the 90-degree arc (heading strictly changing)."""
+    turned = np.abs(track.heading_rad)
+    return np.flatnonzero((turned > 1e-9) & (turned < math.pi / 2 - 1e-9))
+
+
+def test_straight_cruise_small_throttle_no_steer_no_brake():
+    n = 40
+    x = np.arange(n) * 2.0
+    actions = expert_actions(make_track(x, np.zeros(n), np.zeros(n), np.full(n, 8.0)))
+    assert np.all(actions[:, 1] == 0.0)
+    assert np.all(actions[:, 2] == 0.0)
+    expected = (0.015 * 9.81 + 2.64e-4 * 64) / 2.6  # resistance at 8 m/s over max accel
+    assert actions[:, 0] == pytest.approx(np.full(n, expected), rel=1e-5)
+    assert 0 < expected < 0.1
+
+
+def test_pure_pursuit_curvature_is_exact_on_a_circle():
+    radius_m = 15.0
+    phi = np.linspace(0, 3 * math.pi / 2, 200)
+    x, y = radius_m * np.sin(phi), radius_m * (1 - np.cos(phi))  # CCW circle, heading = phi
+    kappa = pursuit_curvature(x, y, phi, np.full(200, 5.0))
+    # Well inside the arc (target still on it) the chord formula gives 1/R.
+    assert kappa[:100] == pytest.approx(np.full(100, 1 / radius_m), rel=1e-3)
+
+
+def test_left_turn_steers_negative_and_leads_the_heading():
+    track, s = turn_track(radius_m=15.0, left=True)
+    actions, classes = expert_labels(track)
+    steer = actions[:, 1]
+    turning = on_arc(track)
+    first_turning = turning[0]
+    # Look-ahead 5 m at 6 m/s: the label turns ~0.8 s (3 samples) before the heading does.
+    assert np.all(steer[first_turning - 3 : first_turning] < 0)
+    assert np.all(steer[: first_turning - 4] == 0)
+    # Mid-arc: the bicycle model's steady value, -atan(2.9/15)/40deg, class -0.275.
+    mid = turning[len(turning) // 2]
+    # (2% slack: the track is a polyline of 1.5 m chords, not the true arc.)
+    assert steer[mid] == pytest.approx(-math.atan(2.9 / 15.0) / math.radians(40.0), rel=2e-2)
+    assert STEER_CLASS_VALUES[classes[mid]] == pytest.approx(-0.275)
+    assert set(classes[turning[2:-2]]) <= {4, 5, 6}  # negative-side classes only
+    # The label also straightens out before the heading stops changing.
+    done = np.flatnonzero(track.heading_rad >= math.pi / 2 - 1e-9)[0]
+    assert abs(steer[done - 1]) < abs(steer[mid])
+
+
+def test_right_turn_steers_positive():
+    track, _ = turn_track(radius_m=10.0, left=False)
+    actions, classes = expert_labels(track)
+    turning = on_arc(track)
+    mid = turning[len(turning) // 2]
+    assert actions[mid, 1] == pytest.approx(math.atan(0.29) / math.radians(40.0), rel=2e-2)
+    assert STEER_CLASS_VALUES[classes[mid]] == pytest.approx(0.425)
+    assert np.all(actions[turning[2:-2], 1] > 0)
+
+
+def test_end_of_track_extrapolates_straight_on():
+    # Track ends in the middle of a left arc: the last sample looks along its heading, steer 0.
+    track, _ = turn_track(radius_m=15.0, left=True, exit_m=0.0)
+    cut = np.flatnonzero(track.heading_rad > 0.5)[0]
+    short = make_track(track.x_m[:cut], track.y_m[:cut], track.heading_rad[:cut], track.speed_mps[:cut])
+    steer = expert_actions(short)[:, 1]
+    assert steer[-1] == pytest.approx(0.0, abs=1e-9)
+    assert steer[-6] < -0.1
+
+
+def test_stop_at_red_brakes_and_holds_then_pulls_away():
+    # 8 m/s, brake at -3 m/s^2 to a stop, stand 10 s at the red, pull away at 2 m/s^2.
+    speed, accel = [8.0], [0.0]
+    while speed[-1] > 0:
+        speed.append(max(speed[-1] - 3.0 * DT_S, 0.0))
+        accel.append(-3.0)
+    speed += [0.0] * 40
+    accel += [0.0] * 40
+    for _ in range(10):
+        speed.append(speed[-1] + 2.0 * DT_S)
+        accel.append(2.0)
+    speed, accel = np.array(speed), np.array(accel)
+    x = np.concatenate([[0.0], np.cumsum(speed[1:] * DT_S)])
+    n = len(speed)
+    actions = expert_actions(make_track(x, np.zeros(n), np.zeros(n), speed, accel))
+    throttle, brake = actions[:, 0], actions[:, 2]
+    standing = (speed == 0) & (accel <= 0)
+    assert standing.sum() >= 40
+    assert np.all(brake[standing] >= 0.8) and np.all(throttle[standing] == 0)
+    braking = (accel < 0) & (speed > 0.1)
+    assert np.all(brake[braking] > 0.6) and np.all(throttle[braking] == 0)
+    assert np.all(throttle[accel > 0] > 0.7) and np.all(brake[accel > 0] == 0)
+
+
+def test_pedals_hand_computed_and_never_both():
+    speed = np.array([10.0, 10.0, 10.0, 0.0, 0.05])
+    accel = np.array([1.0, -0.1, -9.0, 0.0, 1.5])
+    throttle, brake = pedals(speed, accel, np.full(5, 2.6), np.full(5, 4.5), CFG)
+    res10 = 0.015 * 9.81 + 2.64e-4 * 100
+    assert throttle[0] == pytest.approx((1.0 + res10) / 2.6)
+    assert throttle[1] == pytest.approx((res10 - 0.1) / 2.6) and brake[1] == 0  # coasting: no brake
+    assert brake[2] == 1.0 and throttle[2] == 0  # emergency braking beyond the limit clips
+    assert brake[3] == CFG.hold_brake and throttle[3] == 0
+    assert throttle[4] > 0 and brake[4] == 0  # pulling away from rest
+    assert np.all(throttle * brake == 0)
+    assert resistance_mps2(np.array([0.0]), CFG)[0] == 0.0
+
+
+def test_steer_sign_and_saturation():
+    steer = steer_from_curvature(np.array([0.0, 0.05, -0.05, 10.0, -10.0]), CFG)
+    assert steer[0] == 0 and steer[1] < 0 < steer[2]
+    assert steer[3] == -1.0 and steer[4] == 1.0
+
+
+def test_standing_vehicle_steers_at_the_path_ahead():
+    # Waiting at the stop line of a left turn: the road ahead bends left, so steer < 0.
+    track, _ = turn_track(radius_m=15.0, left=True)
+    first_turning = np.flatnonzero(track.heading_rad > 1e-9)[0]
+    wait = first_turning - 1
+    rows = np.concatenate([np.full(20, wait), np.arange(wait, len(track))])
+    speed = np.where(np.arange(len(rows)) < 20, 0.0, 6.0)
+    stopped = make_track(track.x_m[rows], track.y_m[rows], track.heading_rad[rows], speed)
+    steer = expert_actions(stopped)[:20, 1]
+    assert np.all(steer < 0) and np.all(steer == steer[0])
+
+
+def test_tracks_from_frames_groups_by_vehicle_in_time_order():
+    frames = [
+        make_frame(t_s=0.0, ids=["a"], x_m=[0.0], speed_mps=[1.0]),
+        make_frame(t_s=0.25, ids=["a", "b"], x_m=[1.0, 10.0], speed_mps=[2.0, 5.0]),
+        make_frame(t_s=0.5, ids=["b"], x_m=[11.0], speed_mps=[6.0], max_decel_mps2=[7.5]),
+    ]
+    tracks = tracks_from_frames(frames)
+    assert sorted(tracks) == ["a", "b"]
+    assert tracks["a"].t_s.tolist() == [0.0, 0.25] and tracks["a"].x_m.tolist() == [0.0, 1.0]
+    assert tracks["b"].t_s.tolist() == [0.25, 0.5] and tracks["b"].speed_mps.tolist() == [5.0, 6.0]
+    assert tracks["b"].max_decel_mps2.tolist() == [4.5, 7.5]
+    assert tracks_from_frames([]) == {}
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(CrchflError, match="max_steer_angle_deg"):
+        ExpertConfig(max_steer_angle_deg=0)
+    with pytest.raises(CrchflError, match="hold_brake"):
+        ExpertConfig(hold_brake=1.5)
