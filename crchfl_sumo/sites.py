@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from .errors import CrchflError
 
 
@@ -25,3 +27,53 @@ class EdgeSite:
             raise CrchflError("edge_sites: every site needs a non-empty 'name'")
         if self.height_m <= 0:
             raise CrchflError(f"edge_sites.{self.name}.height_m must be > 0, got {self.height_m}")
+
+
+def place_edge_sites(
+    road_points_m: np.ndarray, coverage_radius_m: float, max_sites: int = 64, iterations: int = 30
+) -> tuple[EdgeSite, ...]:
+    """Fewest sites (k-means, k = 1, 2, ...) that put every road point within ``coverage_radius_m``.
+
+    Deterministic: centres start from a farthest-point traversal that begins at
+    the road point nearest the centroid, then Lloyd iterations refine them; k
+    grows until the farthest road point is covered. Sites are named edge00, edge01...
+    """
+    points = np.asarray(road_points_m, dtype=np.float64).reshape(-1, 2)
+    if len(points) == 0:
+        raise CrchflError("cannot place edge sites: the network has no lanes")
+    if coverage_radius_m <= 0:
+        raise CrchflError(f"mobility.coverage_radius_m must be > 0, got {coverage_radius_m}")
+    for k in range(1, max_sites + 1):
+        centres = _kmeans(points, _farthest_point_init(points, k), iterations)
+        if _distance_to_nearest(points, centres).max() <= coverage_radius_m:
+            break
+    else:
+        raise CrchflError(
+            f"{max_sites} edge sites of radius {coverage_radius_m} m cannot cover the network; "
+            "raise mobility.coverage_radius_m or give edge_sites explicitly"
+        )
+    return tuple(EdgeSite(f"edge{i:02d}", float(x), float(y)) for i, (x, y) in enumerate(centres))
+
+
+def _distance_to_nearest(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    return np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1)).min(axis=1)
+
+
+def _farthest_point_init(points: np.ndarray, k: int) -> np.ndarray:
+    first = np.argmin(((points - points.mean(axis=0)) ** 2).sum(-1))
+    centres = [points[first]]
+    for _ in range(1, k):
+        centres.append(points[np.argmax(_distance_to_nearest(points, np.array(centres)))])
+    return np.array(centres)
+
+
+def _kmeans(points: np.ndarray, centres: np.ndarray, iterations: int) -> np.ndarray:
+    for _ in range(iterations):
+        nearest = np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1)).argmin(axis=1)
+        updated = np.array(
+            [points[nearest == i].mean(axis=0) if np.any(nearest == i) else centres[i] for i in range(len(centres))]
+        )
+        if np.allclose(updated, centres):
+            break
+        centres = updated
+    return centres

@@ -1,0 +1,292 @@
+"""A Scenario: a SUMO configuration made safe to run headless, plus edge sites and towns.
+
+Every command takes either a built-in scenario name (a folder under
+``crchfl_sumo/scenarios/`` holding ``scenario.toml``) or a path to any
+``.sumocfg``. A user's configuration is read, not trusted blindly: options that
+only sumo-gui knows are dropped (sumo would refuse them), file options are made
+absolute (so relative paths keep working from any directory), and output-file
+options are dropped (so running here never overwrites the user's own results).
+What remains becomes command-line options for sumo/libsumo.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import shutil
+import subprocess
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import from_mapping, read_toml
+from .errors import CrchflError
+from .sites import EdgeSite, place_edge_sites
+
+log = logging.getLogger(__name__)
+
+BUILTIN_DIR = Path(__file__).parent / "scenarios"
+
+
+@dataclass(frozen=True)
+class Town:
+    """A named region of the network (the paper's Town01/Town02) and its named vehicles."""
+
+    name: str
+    xmin_m: float
+    ymin_m: float
+    xmax_m: float
+    ymax_m: float
+    data_vehicles: tuple[str, ...] = ()
+    test_vehicles: tuple[str, ...] = ()
+
+    def contains(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+        x_m, y_m = np.asarray(x_m), np.asarray(y_m)
+        return (x_m >= self.xmin_m) & (x_m <= self.xmax_m) & (y_m >= self.ymin_m) & (y_m <= self.ymax_m)
+
+
+@dataclass(frozen=True)
+class ScenarioFile:
+    """The schema of a built-in scenario's ``scenario.toml``."""
+
+    sumocfg: str
+    description: str = ""
+    edge_sites: tuple[EdgeSite, ...] = ()
+    towns: tuple[Town, ...] = ()
+
+
+@dataclass(frozen=True)
+class Bounds:
+    xmin_m: float
+    ymin_m: float
+    xmax_m: float
+    ymax_m: float
+
+    def contains(self, x_m: float, y_m: float, margin_m: float = 0.0) -> bool:
+        return (
+            self.xmin_m - margin_m <= x_m <= self.xmax_m + margin_m
+            and self.ymin_m - margin_m <= y_m <= self.ymax_m + margin_m
+        )
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """What a simulation needs: sumo options, the network, edge sites and towns."""
+
+    name: str
+    sumocfg_path: Path
+    net_path: Path
+    step_length_s: float
+    sumo_options: tuple[str, ...]
+    bounds: Bounds
+    edge_sites: tuple[EdgeSite, ...]
+    towns: tuple[Town, ...]
+    description: str = ""
+    dropped_options: tuple[str, ...] = field(default=(), compare=False)
+
+    def town_of(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+        """Town name per position ('' outside every town)."""
+        names = np.full(np.shape(x_m), "", dtype=object)
+        for town in self.towns:
+            names[town.contains(x_m, y_m) & (names == "")] = town.name
+        return names.astype(str)
+
+
+def builtin_names() -> list[str]:
+    return sorted(p.parent.name for p in BUILTIN_DIR.glob("*/scenario.toml"))
+
+
+def load_scenario(
+    name_or_path: str | Path,
+    edge_sites: tuple[EdgeSite, ...] | None = None,
+    coverage_radius_m: float = 250.0,
+) -> Scenario:
+    """Resolve a built-in name or a .sumocfg path into a runnable Scenario.
+
+    ``edge_sites`` (from an experiment config) override the scenario's own; a
+    user's .sumocfg without sites gets them placed automatically so that every
+    road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites).
+    """
+    text = str(name_or_path)
+    builtin = BUILTIN_DIR / text / "scenario.toml"
+    if builtin.is_file():
+        spec = from_mapping(ScenarioFile, read_toml(builtin), where=str(builtin))
+        cfg_path = (builtin.parent / spec.sumocfg).resolve()
+        name, description, towns = text, spec.description, spec.towns
+        sites = spec.edge_sites
+    elif text.endswith(".sumocfg") or Path(text).is_file():
+        cfg_path = Path(text).resolve()
+        name, description, towns, sites = cfg_path.stem.removesuffix(".sumo"), "", (), ()
+    else:
+        raise CrchflError(
+            f"{text}: not a built-in scenario ({', '.join(builtin_names())}) nor a .sumocfg file; "
+            "pass one of those names or a path to a SUMO configuration"
+        )
+    options, dropped = sumo_options_from_config(cfg_path)
+    net_path = Path(_option_value(options, "net-file") or "")
+    if not net_path.name:
+        raise CrchflError(f"{cfg_path}: no <net-file> in the configuration; add one under <input>")
+    bounds = read_net_bounds(net_path)
+    step = _option_value(options, "step-length")
+    step_length_s = float(step) if step else 1.0
+    if edge_sites is not None:
+        sites = tuple(edge_sites)
+    if not sites:
+        sites = place_edge_sites(lane_points(net_path), coverage_radius_m)
+        log.info("placed %d edge sites automatically over %s", len(sites), net_path.name)
+    for site in sites:
+        if not bounds.contains(site.x_m, site.y_m):
+            raise CrchflError(
+                f"edge site '{site.name}' at ({site.x_m:.1f}, {site.y_m:.1f}) m is off the map "
+                f"{net_path.name} (x {bounds.xmin_m:.1f}..{bounds.xmax_m:.1f}, "
+                f"y {bounds.ymin_m:.1f}..{bounds.ymax_m:.1f}); move it inside"
+            )
+    if not towns:
+        towns = (Town(name, bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m),)
+    return Scenario(
+        name=name,
+        sumocfg_path=cfg_path,
+        net_path=net_path,
+        step_length_s=step_length_s,
+        sumo_options=tuple(options),
+        bounds=bounds,
+        edge_sites=tuple(sites),
+        towns=tuple(towns),
+        description=description,
+        dropped_options=tuple(dropped),
+    )
+
+
+# --- reading a .sumocfg -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _OptionSpec:
+    section: str
+    type: str
+
+
+@functools.lru_cache(maxsize=1)
+def _sumo_option_specs() -> tuple[dict[str, _OptionSpec], dict[str, str]]:
+    """Every option sumo knows (from its own template): name -> spec, synonym -> name."""
+    with tempfile.TemporaryDirectory() as tmp:
+        template = Path(tmp) / "template.xml"
+        subprocess.run(
+            [sumo_binary(), "--save-template", str(template)],
+            check=True,
+            capture_output=True,
+        )
+        root = ET.parse(template).getroot()
+    specs: dict[str, _OptionSpec] = {}
+    synonyms: dict[str, str] = {}
+    for section in root:
+        for option in section:
+            specs[option.tag] = _OptionSpec(section.tag, option.get("type", ""))
+            for synonym in (option.get("synonymes") or "").split():
+                synonyms[synonym] = option.tag
+    return specs, synonyms
+
+
+def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
+    """Sanitised sumo command-line options from a .sumocfg, and the names of dropped options."""
+    if not cfg_path.is_file():
+        raise CrchflError(f"{cfg_path}: SUMO configuration not found; check the path")
+    try:
+        root = ET.parse(cfg_path).getroot()
+    except ET.ParseError as exc:
+        raise CrchflError(f"{cfg_path}: malformed XML ({exc}); fix the file") from None
+    specs, synonyms = _sumo_option_specs()
+    base = cfg_path.parent
+    options: list[str] = []
+    dropped: list[str] = []
+    for element in root.iter():
+        value = element.get("value")
+        if value is None or element is root:
+            continue
+        name = synonyms.get(element.tag, element.tag)
+        spec = specs.get(name)
+        if spec is None or spec.section == "gui_only":
+            dropped.append(name)
+            continue
+        if spec.type == "FILE":
+            if spec.section in ("output", "report") or name in ("save-configuration", "save-template", "save-schema"):
+                dropped.append(name)
+                continue
+            value = ",".join(str((base / p).resolve()) for p in _split_files(value))
+            missing = [p for p in value.split(",") if p and spec.section == "input" and not Path(p).exists()]
+            if missing:
+                raise CrchflError(
+                    f"{cfg_path}: <{element.tag}> names {missing[0]}, which does not exist; fix the path"
+                )
+        options.append(f"--{name}={value}")
+    if dropped:
+        log.info("%s: ignoring options %s (GUI-only, unknown, or output files)", cfg_path.name, dropped)
+    return options, dropped
+
+
+def _split_files(value: str) -> list[str]:
+    return [p for p in value.replace(",", " ").split() if p]
+
+
+def _option_value(options: list[str] | tuple[str, ...], name: str) -> str | None:
+    prefix = f"--{name}="
+    values = [o[len(prefix):] for o in options if o.startswith(prefix)]
+    return values[-1] if values else None
+
+
+def sumo_binary(gui: bool = False) -> str:
+    """Path of the sumo binary (from the eclipse-sumo package, else PATH)."""
+    name = "sumo-gui" if gui else "sumo"
+    try:
+        import sumo  # the eclipse-sumo wheel
+
+        candidate = Path(sumo.SUMO_HOME) / "bin" / name
+        if candidate.exists():
+            return str(candidate)
+    except ImportError:
+        pass
+    found = shutil.which(name)
+    if not found:
+        raise CrchflError(f"the '{name}' binary was not found; install it with: pip install eclipse-sumo")
+    return found
+
+
+# --- reading a network ---------------------------------------------------------------------
+
+
+def read_net_bounds(net_path: Path) -> Bounds:
+    """The network's convBoundary, read without parsing the whole file."""
+    if not net_path.is_file():
+        raise CrchflError(f"{net_path}: network file not found; check <net-file> in the configuration")
+    try:
+        for _, element in ET.iterparse(net_path, events=("start",)):
+            if element.tag == "location":
+                xmin, ymin, xmax, ymax = (float(v) for v in element.get("convBoundary", "").split(","))
+                return Bounds(xmin, ymin, xmax, ymax)
+    except (ET.ParseError, ValueError) as exc:
+        raise CrchflError(f"{net_path}: malformed SUMO network ({exc}); rebuild it with netconvert") from None
+    raise CrchflError(f"{net_path}: no <location> element: not a SUMO network; rebuild it with netconvert")
+
+
+def lane_points(net_path: Path, spacing_m: float = 10.0) -> np.ndarray:
+    """Points every ``spacing_m`` along every non-internal lane of the network, [P, 2]."""
+    import sumolib
+
+    try:
+        net = sumolib.net.readNet(str(net_path))
+    except Exception as exc:  # sumolib raises assorted errors on bad input
+        raise CrchflError(f"{net_path}: could not read the network ({exc}); rebuild it with netconvert") from None
+    points = []
+    for edge in net.getEdges():
+        for lane in edge.getLanes():
+            shape = np.asarray(lane.getShape(), dtype=np.float64)
+            for a, b in zip(shape[:-1], shape[1:]):
+                n = max(1, int(math.ceil(np.hypot(*(b - a)) / spacing_m)))
+                t = np.arange(n)[:, None] / n
+                points.append(a + t * (b - a))
+            points.append(shape[-1:])
+    return np.concatenate(points) if points else np.zeros((0, 2))

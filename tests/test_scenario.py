@@ -1,0 +1,102 @@
+from pathlib import Path
+
+import pytest
+
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.scenario import load_scenario
+from crchfl_sumo.sites import EdgeSite, place_edge_sites
+from crchfl_sumo.sim import Simulation
+
+import numpy as np
+
+
+def test_user_config_with_gui_options_relative_paths_and_several_files(grid_dir, tmp_path, monkeypatch):
+    # A user config in another folder, relative paths, two route files, an additional
+    # file, GUI-only options (whose settings file does not even exist), an output file.
+    user = tmp_path / "user"
+    (user / "routes").mkdir(parents=True)
+    (user / "routes" / "a.rou.xml").write_text((grid_dir / "routes.rou.xml").read_text())
+    (user / "routes" / "b.rou.xml").write_text(
+        '<routes><vehicle id="extra" type="DEFAULT_VEHTYPE" depart="1"><route edges="C0B0 B0A0"/></vehicle></routes>'
+    )
+    (user / "stops.add.xml").write_text("<additional/>")
+    (user / "my.sumocfg").write_text(
+        f"""<configuration>
+  <input>
+    <net-file value="{grid_dir / 'grid.net.xml'}"/>
+    <route-files value="routes/a.rou.xml, routes/b.rou.xml"/>
+    <additional-files value="stops.add.xml"/>
+  </input>
+  <time><step-length value="0.2"/><end value="50"/></time>
+  <output><tripinfo-output value="trips.out.xml"/></output>
+  <gui_only><gui-settings-file value="missing-view.xml"/><start value="true"/></gui_only>
+  <delay value="100"/>
+</configuration>
+"""
+    )
+    monkeypatch.chdir(tmp_path)  # relative paths must resolve against the config, not the cwd
+    scenario = load_scenario(user / "my.sumocfg")
+    assert scenario.step_length_s == pytest.approx(0.2)
+    assert {"gui-settings-file", "start", "delay", "tripinfo-output"} <= set(scenario.dropped_options)
+    with Simulation(scenario, seed=1) as sim:
+        frames = list(sim.run(10.0))
+    assert len(frames) == 50
+    assert frames[-1].t_s == pytest.approx(10.0)
+    assert "extra" in set(np.concatenate([f.ids for f in frames]))
+    assert not (user / "trips.out.xml").exists()  # the user's outputs are never written
+
+
+def test_user_config_without_sites_gets_sites_covering_every_road(grid_dir):
+    scenario = load_scenario(grid_dir / "grid.sumocfg", coverage_radius_m=150.0)
+    assert len(scenario.edge_sites) >= 2
+    assert len(scenario.towns) == 1 and scenario.towns[0].name == "grid"
+
+
+def test_explicit_sites_override_and_off_map_site_is_refused(grid_dir):
+    site = EdgeSite("rsu", 200.0, 200.0)
+    assert load_scenario(grid_dir / "grid.sumocfg", edge_sites=(site,)).edge_sites == (site,)
+    with pytest.raises(CrchflError, match="off the map"):
+        load_scenario(grid_dir / "grid.sumocfg", edge_sites=(EdgeSite("far", 5000.0, 0.0),))
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (None, "not found"),
+        ("<configuration><input>", "malformed XML"),
+        ('<configuration><input><route-files value="x.rou.xml"/></input></configuration>', "does not exist"),
+        ("<configuration><time><end value='5'/></time></configuration>", "no <net-file>"),
+    ],
+)
+def test_bad_configs_give_clear_errors(tmp_path, content, message):
+    path = tmp_path / "bad.sumocfg"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(CrchflError, match=message):
+        load_scenario(path)
+
+
+def test_unknown_name_lists_builtins():
+    with pytest.raises(CrchflError, match="not a built-in scenario"):
+        load_scenario("no-such-town")
+
+
+def test_malformed_net_is_refused(tmp_path):
+    (tmp_path / "broken.net.xml").write_text("<net><location convBoundary='a,b'/></net>")
+    (tmp_path / "x.sumocfg").write_text(
+        '<configuration><input><net-file value="broken.net.xml"/></input></configuration>'
+    )
+    with pytest.raises(CrchflError, match="malformed SUMO network"):
+        load_scenario(tmp_path / "x.sumocfg")
+
+
+def test_site_placement_covers_all_points_with_few_sites():
+    # Points along a 1000 m x 200 m strip: a 250 m radius needs 3 sites, not 1 or 10.
+    xs, ys = np.meshgrid(np.linspace(0, 1000, 51), np.linspace(0, 200, 11))
+    points = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    sites = place_edge_sites(points, 250.0)
+    centres = np.array([(s.x_m, s.y_m) for s in sites])
+    nearest = np.sqrt(((points[:, None] - centres[None]) ** 2).sum(-1)).min(axis=1)
+    assert nearest.max() <= 250.0
+    assert len(sites) == 3
+    assert place_edge_sites(points, 250.0) == sites  # deterministic
