@@ -1,0 +1,194 @@
+"""Data set settings (split sizes, sample period, bytes per sample) and the readers.
+
+Two ways to read a data set written by dataset_io:
+- ``ShardDataset``: a torch Dataset reading one sample at a time from the
+  HDF5 shards (small memory, works with DataLoader workers);
+- ``load_samples`` / ``load_vehicle_samples``: the fast path, whole shards
+  read into in-memory ``Samples`` (uint8 images) once.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import h5py
+import numpy as np
+import torch
+
+from .dataset_io import NOMINAL_SAMPLE_BYTES, Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from .errors import CrchflError
+from .samples import Samples
+
+
+@dataclass(frozen=True)
+class TownSplit:
+    """Sample counts of one town: one entry per training vehicle and per test vehicle."""
+
+    town: str
+    train_samples: tuple[int, ...]
+    test_samples: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.town:
+            raise CrchflError("dataset.towns: every town needs a non-empty 'town'")
+        for name in ("train_samples", "test_samples"):
+            counts = getattr(self, name)
+            if any(n < 1 for n in counts):
+                raise CrchflError(f"dataset.towns.{self.town}.{name}: every count must be >= 1, got {list(counts)}")
+        if not self.train_samples:
+            raise CrchflError(f"dataset.towns.{self.town}.train_samples: give at least one training vehicle")
+
+
+# The paper's data set (FACTS.md): 2 + 3 training vehicles and one test set per town.
+PAPER_TOWNS = (
+    TownSplit("Town01", train_samples=(2928, 2928), test_samples=(1061,)),
+    TownSplit("Town02", train_samples=(2586, 2587, 1555), test_samples=(1020,)),
+)
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """How big a data set is and how its samples are charged.
+
+    sample_period_s: simulated time between two samples of a vehicle (paper: 0.25 s).
+    towns: per-town sample counts (default: the paper's split).
+    compression: HDF5 filter for the images, 'lzf' (default: fast), 'gzip' or 'none'.
+    sample_bytes: what one uploaded sample costs in the byte ledger: 'nominal'
+        (the paper's 1800 KB) or 'measured' (the PNG size of our four images,
+        the data set's mean, from its manifest).
+    """
+
+    sample_period_s: float = 0.25
+    towns: tuple[TownSplit, ...] = PAPER_TOWNS
+    compression: Literal["lzf", "gzip", "none"] = "lzf"
+    sample_bytes: Literal["nominal", "measured"] = "nominal"
+
+    def __post_init__(self) -> None:
+        if not self.sample_period_s > 0:
+            raise CrchflError(f"dataset.sample_period_s must be > 0, got {self.sample_period_s}")
+        names = [t.town for t in self.towns]
+        if not names:
+            raise CrchflError("dataset.towns: list at least one town")
+        if len(set(names)) != len(names):
+            raise CrchflError(f"dataset.towns: each town may appear once, got {names}")
+
+
+@dataclass(frozen=True)
+class PlannedShard:
+    """One shard a generation run must produce: file name, town, split and size."""
+
+    file: str
+    town: str
+    split: str
+    index: int  # vehicle number within (town, split)
+    samples: int
+
+
+def shard_plan(config: DatasetConfig) -> list[PlannedShard]:
+    """The shards of a data set, in generation order; names are stable so a rerun can resume."""
+    plan = []
+    for town in config.towns:
+        for split, counts in (("train", town.train_samples), ("test", town.test_samples)):
+            for index, samples in enumerate(counts):
+                plan.append(PlannedShard(f"{town.town}-{split}-{index}.h5", town.town, split, index, samples))
+    return plan
+
+
+def bytes_per_sample(manifest: Manifest, mode: str) -> int:
+    """Bytes one sample costs in the ledger: 'nominal' (1800 KB) or 'measured' (mean PNG size)."""
+    if mode == "nominal":
+        return NOMINAL_SAMPLE_BYTES
+    if mode == "measured":
+        if manifest.samples == 0:
+            raise CrchflError("dataset.sample_bytes = 'measured' needs a data set with samples; generate it first")
+        return int(round(manifest.png_bytes_per_sample))
+    raise CrchflError(f"dataset.sample_bytes must be 'nominal' or 'measured', got {mode!r}")
+
+
+def _selected(root: Path, split: str | None, vehicles: list[str] | None) -> tuple[Manifest, tuple[ShardEntry, ...]]:
+    manifest = read_manifest(root)
+    shards = manifest.select(split, vehicles)
+    if vehicles is not None:
+        missing = sorted(set(vehicles) - {s.vehicle for s in shards})
+        if missing:
+            raise CrchflError(f"{root}: no {split or ''} shard for vehicle(s) {', '.join(missing)}")
+    return manifest, shards
+
+
+def load_samples(
+    root: str | Path, split: str | None = None, vehicles: list[str] | None = None, verify: bool = True
+) -> Samples:
+    """Fast path: the selected shards' samples, concatenated in manifest order, in memory."""
+    root = Path(root)
+    manifest, shards = _selected(root, split, vehicles)
+    if not shards:
+        return Samples.empty(manifest.image_height, manifest.image_width)
+    return Samples.concat([_to_samples(read_shard(root, s, verify)) for s in shards])
+
+
+def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = True) -> dict[str, Samples]:
+    """Fast path per vehicle: vehicle id -> its in-memory Samples (one vehicle, one client)."""
+    root = Path(root)
+    _, shards = _selected(root, split, None)
+    return {s.vehicle: _to_samples(read_shard(root, s, verify)) for s in shards}
+
+
+def _to_samples(data) -> Samples:
+    return Samples.from_numpy(data.images, data.actions, data.steer_class)
+
+
+class ShardDataset(torch.utils.data.Dataset):
+    """Per-sample reads from the shards: item i -> (images uint8 [4,H,W,3], actions f32 [3], steer_class i64).
+
+    Checksums are verified once, when the dataset is built. Files are opened
+    lazily in each process (safe with DataLoader workers).
+    """
+
+    def __init__(
+        self, root: str | Path, split: str | None = None, vehicles: list[str] | None = None, verify: bool = True
+    ):
+        self.root = Path(root)
+        self.manifest, self.shards = _selected(self.root, split, vehicles)
+        if verify:
+            for entry in self.shards:
+                verify_shard(self.root, entry)
+        self._ends = np.cumsum([s.samples for s in self.shards], dtype=np.int64)
+        self._files: dict[int, h5py.File] = {}
+        self._pid = os.getpid()
+
+    def __len__(self) -> int:
+        return int(self._ends[-1]) if len(self._ends) else 0
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        shard = int(np.searchsorted(self._ends, index, side="right"))
+        row = index - (int(self._ends[shard - 1]) if shard else 0)
+        f = self._file(shard)
+        return (
+            torch.from_numpy(f["images"][row]),
+            torch.from_numpy(f["actions"][row]),
+            torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
+        )
+
+    def _file(self, shard: int) -> h5py.File:
+        if self._pid != os.getpid():  # forked into a worker: handles are not shareable
+            self._files, self._pid = {}, os.getpid()
+        if shard not in self._files:
+            self._files[shard] = h5py.File(self.root / self.shards[shard].file, "r")
+        return self._files[shard]
+
+    def close(self) -> None:
+        for f in self._files.values():
+            f.close()
+        self._files = {}
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_files"] = {}
+        return state

@@ -1,0 +1,240 @@
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.config import from_mapping
+from crchfl_sumo.dataset import (
+    DatasetConfig,
+    ShardDataset,
+    bytes_per_sample,
+    load_samples,
+    load_vehicle_samples,
+    shard_plan,
+)
+from crchfl_sumo.dataset_io import (
+    MANIFEST_NAME,
+    NOMINAL_SAMPLE_BYTES,
+    DatasetWriter,
+    Manifest,
+    ShardData,
+    png_bytes_per_sample,
+    read_manifest,
+    read_shard,
+    sha256_file,
+    write_shard,
+)
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.labels import digitize_steer
+
+H, W = 12, 16
+
+
+def fake_shard(n, seed):
+    rng = np.random.default_rng(seed)
+    images = np.zeros((n, 4, H, W, 3), np.uint8)
+    images[:, :, H // 2 :] = rng.integers(0, 255, size=(n, 4, H - H // 2, W, 3), dtype=np.uint8)
+    actions = np.stack([rng.random(n), rng.uniform(-1, 1, n), rng.random(n)], axis=1).astype(np.float32)
+    t_s = np.arange(n) * 0.25
+    return ShardData(
+        images=images,
+        actions=actions,
+        steer_class=digitize_steer(actions[:, 1]),
+        t_s=t_s,
+        x_m=t_s * 8.0,
+        y_m=np.zeros(n),
+        heading_rad=np.zeros(n),
+    )
+
+
+def header(seed=7, **changes):
+    fields = dict(scenario="paper", seed=seed, sample_period_s=0.25, image_height=H, image_width=W)
+    fields["camera"] = {"width_px": W, "height_px": H, "fov_deg": 120.0, "poses": [[1.5, 0.0, 1.5]]}
+    fields.update(changes)
+    return Manifest(**fields)
+
+
+
+def small_config():
+    return from_mapping(
+        DatasetConfig,
+        {"towns": [{"town": "Town01", "train_samples": [5, 4], "test_samples": [3]},
+                   {"town": "Town02", "train_samples": [6]}]},
+    )
+
+
+class Interrupted(Exception):
+    pass
+
+
+def generate(root, config, seed, fail_after=None):
+    """A stand-in for the generation pipeline: deterministic shards from the seed, resumable."""
+    writer = DatasetWriter(root, header(seed))
+    written = []
+    for k, planned in enumerate(shard_plan(config)):
+        if writer.is_done(planned.file):
+            continue
+        if fail_after is not None and len(written) == fail_after:
+            raise Interrupted
+        data = fake_shard(planned.samples, seed * 100 + k)
+        writer.add(planned.file, data, vehicle=f"veh{k}", town=planned.town, edge=f"edge-{planned.town}",
+                   split=planned.split)
+        written.append(planned.file)
+    return written
+
+
+def test_paper_split_is_the_default():
+    plan = shard_plan(DatasetConfig())
+    train = [(p.town, p.samples) for p in plan if p.split == "train"]
+    test = [(p.town, p.samples) for p in plan if p.split == "test"]
+    assert train == [("Town01", 2928), ("Town01", 2928), ("Town02", 2586), ("Town02", 2587), ("Town02", 1555)]
+    assert test == [("Town01", 1061), ("Town02", 1020)]
+    assert len({p.file for p in plan}) == len(plan)
+    assert DatasetConfig().sample_period_s == 0.25
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(CrchflError, match="train_samples"):
+        from_mapping(DatasetConfig, {"towns": [{"town": "Town01", "train_samples": [0]}]})
+    with pytest.raises(CrchflError, match="sample_bytes"):
+        from_mapping(DatasetConfig, {"sample_bytes": "exact"})
+    with pytest.raises(CrchflError, match="once"):
+        from_mapping(DatasetConfig, {"towns": [{"town": "A", "train_samples": [1]}] * 2})
+
+
+def test_shard_round_trip_readable_with_plain_h5py(tmp_path):
+    data = fake_shard(6, 1)
+    entry = write_shard(tmp_path / "a.h5", data, vehicle="v1", town="Town01", edge="e1", split="train")
+    assert entry.samples == 6 and entry.sha256 == sha256_file(tmp_path / "a.h5")
+    back = read_shard(tmp_path, entry)
+    for name in ("images", "actions", "steer_class", "t_s", "x_m", "y_m", "heading_rad"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(data, name))
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        assert f["images"].shape == (6, 4, H, W, 3) and f["images"].chunks == (1, 4, H, W, 3)
+        assert f["actions"].dtype == np.float32 and f["steer_class"].dtype == np.int64
+        assert (f.attrs["vehicle"], f.attrs["town"], f.attrs["edge"], f.attrs["split"]) == ("v1", "Town01", "e1", "train")
+    assert not list(tmp_path.glob(".*"))  # no temporary left behind
+
+
+def test_same_samples_give_identical_bytes(tmp_path):
+    data = fake_shard(4, 2)
+    a = write_shard(tmp_path / "a.h5", data, vehicle="v", town="t", edge="e", split="test")
+    b = write_shard(tmp_path / "b.h5", data, vehicle="v", town="t", edge="e", split="test")
+    assert a.sha256 == b.sha256
+
+
+def test_manifest_round_trip(tmp_path):
+    generate(tmp_path, small_config(), seed=3)
+    manifest = read_manifest(tmp_path)
+    raw = json.loads((tmp_path / MANIFEST_NAME).read_text())
+    assert raw["scenario"] == "paper" and raw["seed"] == 3 and raw["camera"]["fov_deg"] == 120.0
+    assert raw["labels"]["steer_class_values"] == pytest.approx([0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425])
+    # Sorted by file name: Town01-test-0, Town01-train-0, Town01-train-1, Town02-train-0.
+    assert [s["samples"] for s in raw["shards"]] == [3, 5, 4, 6]
+    assert {"vehicle", "town", "edge", "split", "samples", "sha256", "file"} <= set(raw["shards"][0])
+    assert raw["samples"] == 18 and raw["nominal_bytes_per_sample"] == NOMINAL_SAMPLE_BYTES
+    assert Manifest.from_json(manifest.to_json(), "x") == manifest
+    assert [s.vehicle for s in manifest.select("train")] == ["veh0", "veh1", "veh3"]
+    for entry in manifest.shards:
+        assert sha256_file(tmp_path / entry.file) == entry.sha256
+
+
+def test_corrupt_shard_is_refused(tmp_path):
+    generate(tmp_path, small_config(), seed=3)
+    entry = read_manifest(tmp_path).entry("Town01-train-1.h5")
+    path = tmp_path / entry.file
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(CrchflError, match=f"{entry.file}.*corrupt.*rerun"):
+        load_samples(tmp_path)
+    with pytest.raises(CrchflError, match="corrupt"):
+        ShardDataset(tmp_path)
+    load_samples(tmp_path, vehicles=["veh0"])  # the intact shards still load
+
+
+def test_truncated_or_missing_shard_is_refused(tmp_path):
+    generate(tmp_path, small_config(), seed=3)
+    path = tmp_path / "Town01-train-0.h5"
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(CrchflError, match="Town01-train-0.h5.*truncated"):
+        load_samples(tmp_path, split="train")
+    (tmp_path / "Town01-test-0.h5").unlink()
+    with pytest.raises(CrchflError, match="missing"):
+        load_samples(tmp_path, split="test")
+
+
+def test_resume_after_interruption_gives_identical_shards(tmp_path):
+    config = small_config()
+    full = generate(tmp_path / "full", config, seed=5)
+    with pytest.raises(Interrupted):
+        generate(tmp_path / "cut", config, seed=5, fail_after=2)
+    (tmp_path / "cut" / ".Town02-train-0.h5.tmp-999").write_bytes(b"half a file")  # a crash's leftover
+    first = read_manifest(tmp_path / "cut").shards
+    assert len(first) == 2
+    kept_mtime = (tmp_path / "cut" / first[0].file).stat().st_mtime_ns
+    rest = generate(tmp_path / "cut", config, seed=5)
+    assert rest == full[2:]  # finished shards are not redone
+    assert (tmp_path / "cut" / first[0].file).stat().st_mtime_ns == kept_mtime
+    assert read_manifest(tmp_path / "cut") == read_manifest(tmp_path / "full")
+    for entry in read_manifest(tmp_path / "full").shards:
+        assert (tmp_path / "cut" / entry.file).read_bytes() == (tmp_path / "full" / entry.file).read_bytes()
+    assert not list((tmp_path / "cut").glob(".*"))
+    assert generate(tmp_path / "cut", config, seed=5) == []  # a complete folder: nothing to do
+
+
+def test_resume_regenerates_a_damaged_shard(tmp_path):
+    config = small_config()
+    generate(tmp_path, config, seed=5)
+    before = read_manifest(tmp_path)
+    (tmp_path / before.shards[0].file).write_bytes(b"garbage")
+    assert generate(tmp_path, config, seed=5) == [before.shards[0].file]
+    assert read_manifest(tmp_path) == before
+
+
+def test_other_settings_cannot_share_a_folder(tmp_path):
+    generate(tmp_path, small_config(), seed=5)
+    with pytest.raises(CrchflError, match="other settings"):
+        generate(tmp_path, small_config(), seed=6)
+    with pytest.raises(CrchflError, match="no data set manifest"):
+        read_manifest(tmp_path / "nowhere")
+
+
+def test_fast_path_and_torch_dataset_agree(tmp_path):
+    generate(tmp_path, small_config(), seed=9)
+    samples = load_samples(tmp_path, split="train")
+    assert len(samples) == 15 and samples.images.dtype == torch.uint8
+    assert samples.images.shape[1:] == (4, H, W, 3)
+    dataset = ShardDataset(tmp_path, split="train")
+    assert len(dataset) == 15
+    for i in (0, 4, 5, 8, 9, 14, -1):
+        images, actions, steer_class = dataset[i]
+        assert torch.equal(images, samples.images[i])
+        assert torch.equal(actions, samples.actions[i])
+        assert int(steer_class) == int(samples.steer_class[i])
+    with pytest.raises(IndexError):
+        dataset[15]
+    batch = next(iter(torch.utils.data.DataLoader(dataset, batch_size=6)))
+    assert batch[0].shape == (6, 4, H, W, 3) and batch[2].dtype == torch.int64
+    dataset.close()
+    per_vehicle = load_vehicle_samples(tmp_path, "train")
+    assert {k: len(v) for k, v in per_vehicle.items()} == {"veh0": 5, "veh1": 4, "veh3": 6}
+    assert torch.equal(per_vehicle["veh3"].actions, samples.actions[9:])
+    with pytest.raises(CrchflError, match="vehicle"):
+        load_samples(tmp_path, vehicles=["nobody"])
+
+
+def test_bytes_per_sample_nominal_and_measured(tmp_path):
+    generate(tmp_path, small_config(), seed=2)
+    manifest = read_manifest(tmp_path)
+    assert bytes_per_sample(manifest, "nominal") == 1800 * 1024
+    measured = bytes_per_sample(manifest, "measured")
+    expected = np.mean(np.concatenate(
+        [[png_bytes_per_sample(read_shard(tmp_path, s).images[i : i + 1]) for i in range(s.samples)]
+         for s in manifest.shards]))
+    assert measured == pytest.approx(expected, abs=1)
+    assert 4 * 67 < measured < 4 * (H * W * 3 + 200)  # four PNGs: headers plus some of the raw pixels
+    with pytest.raises(CrchflError):
+        bytes_per_sample(manifest, "other")
