@@ -1,0 +1,525 @@
+"""Byte ledger: every transfer of a run, its accounting rule, and the stopping rule.
+
+Three parts, all used by both the federation loop and the resource allocator so
+that they always agree on bytes:
+
+* ``LedgerConfig`` (settings) and ``ByteSizes`` (the resolved sizes in bytes).
+  Units are 1024-based throughout, as in the reference implementation:
+  1 KB = 1024 B, 1 MB = 1024 KB, 1 GB = 1024 MB. So the paper's 150 MB model
+  is 150 * 1024**2 bytes, one 1800 KB sample is 1800 * 1024 bytes and the
+  20 GB budget is 20 * 1024**3 bytes.
+* The schedule: pure functions listing the transfers of stage I, of one edge
+  aggregation, of one cloud aggregation and of one whole cloud round, for a
+  scheme (``crchfl``/``hfl`` hierarchical, ``sfl`` vehicles straight to the
+  cloud), a topology and an accounting rule (``paper`` or ``physical``; the
+  two rule sets are tabulated in docs/ledger.md).
+* ``Ledger``: charges transfers against the budget, applies the stopping rule
+  (training stops when the rest of the budget cannot carry one more model
+  transfer; a cloud round counts only if all its transfers were charged),
+  reports totals and is saved to / loaded from JSONL or CSV for resume.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Literal, Mapping, Sequence
+
+from .errors import CrchflError
+
+KIB = 1024
+MIB = 1024 * KIB
+GIB = 1024 * MIB
+
+Rule = Literal["paper", "physical"]
+Scheme = Literal["crchfl", "hfl", "sfl"]
+Link = Literal["wireless", "wireline"]
+Direction = Literal["uplink", "downlink"]
+Stage = Literal["I", "II", "III"]
+Payload = Literal["model", "samples"]
+
+CLOUD = "cloud"
+RULES = ("paper", "physical")
+SCHEMES = ("crchfl", "hfl", "sfl")
+LINKS = ("wireless", "wireline")
+STAGES = ("I", "II", "III")
+
+
+@dataclass(frozen=True)
+class LedgerConfig:
+    """Accounting settings (TOML table ``[ledger]``).
+
+    rule: ``paper`` charges what the reference implementation charged,
+        ``physical`` the bytes that really cross each link (docs/ledger.md).
+    model_size: ``nominal`` charges ``nominal_model_mb`` per model transfer
+        (the paper's 150 MB); ``real`` charges the serialized size of our own
+        model, which the caller measures and passes to ``resolve_sizes``.
+    nominal_model_mb: nominal model size [MB, 1 MB = 1024 * 1024 bytes].
+    sample_size: ``nominal`` charges ``nominal_sample_kb`` per pretraining
+        sample (the paper's 1800 KB: four PNGs); ``measured`` charges a size
+        the caller measures on our data set and passes to ``resolve_sizes``.
+    nominal_sample_kb: nominal sample size [KB, 1 KB = 1024 bytes].
+    budget_gb: the total communication budget U_sum [GB, 1 GB = 1024**3 bytes].
+    """
+
+    rule: Literal["paper", "physical"] = "paper"
+    model_size: Literal["nominal", "real"] = "nominal"
+    nominal_model_mb: float = 150.0
+    sample_size: Literal["nominal", "measured"] = "nominal"
+    nominal_sample_kb: float = 1800.0
+    budget_gb: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.rule not in RULES:
+            raise CrchflError(f"ledger.rule: {self.rule!r} is not one of 'paper', 'physical'")
+        if self.model_size not in ("nominal", "real"):
+            raise CrchflError(f"ledger.model_size: {self.model_size!r} is not one of 'nominal', 'real'")
+        if self.sample_size not in ("nominal", "measured"):
+            raise CrchflError(f"ledger.sample_size: {self.sample_size!r} is not one of 'nominal', 'measured'")
+        for key in ("nominal_model_mb", "nominal_sample_kb", "budget_gb"):
+            value = getattr(self, key)
+            if not math.isfinite(value) or value <= 0:
+                raise CrchflError(f"ledger.{key} must be a positive number, got {value!r}")
+
+
+@dataclass(frozen=True)
+class ByteSizes:
+    """What one model transfer and one sample cost, and the budget [bytes]."""
+
+    model_bytes: int
+    sample_bytes: int
+    budget_bytes: int
+
+    def __post_init__(self) -> None:
+        for key in ("model_bytes", "sample_bytes", "budget_bytes"):
+            if getattr(self, key) <= 0:
+                raise CrchflError(f"{key} must be > 0, got {getattr(self, key)}")
+
+
+def resolve_sizes(
+    config: LedgerConfig,
+    real_model_bytes: int | None = None,
+    measured_sample_bytes: int | None = None,
+) -> ByteSizes:
+    """Settings -> sizes in bytes; checks the budget can carry at least one model transfer."""
+    if config.model_size == "real":
+        if real_model_bytes is None or real_model_bytes <= 0:
+            raise CrchflError(
+                "ledger.model_size = 'real' needs the serialized model size; "
+                "pass real_model_bytes or set ledger.model_size = 'nominal'"
+            )
+        model_bytes = int(real_model_bytes)
+    else:
+        model_bytes = round(config.nominal_model_mb * MIB)
+    if config.sample_size == "measured":
+        if measured_sample_bytes is None or measured_sample_bytes <= 0:
+            raise CrchflError(
+                "ledger.sample_size = 'measured' needs the measured sample size; "
+                "pass measured_sample_bytes or set ledger.sample_size = 'nominal'"
+            )
+        sample_bytes = int(measured_sample_bytes)
+    else:
+        sample_bytes = round(config.nominal_sample_kb * KIB)
+    budget_bytes = math.floor(config.budget_gb * GIB)
+    if budget_bytes < model_bytes:
+        raise CrchflError(
+            f"ledger.budget_gb = {config.budget_gb:g} cannot carry one model transfer of {model_bytes} bytes; "
+            f"set budget_gb to at least {model_bytes / GIB:.4f} (1 GB = 1024**3 bytes)"
+        )
+    return ByteSizes(model_bytes=model_bytes, sample_bytes=sample_bytes, budget_bytes=budget_bytes)
+
+
+# ---------------------------------------------------------------- topology
+
+
+@dataclass(frozen=True)
+class Topology:
+    """Which vehicles each edge server serves: ``vehicles[i]`` belong to ``edges[i]``.
+
+    An edge that serves no vehicle in a round takes no part in it (no transfer).
+    """
+
+    edges: tuple[str, ...]
+    vehicles: tuple[tuple[str, ...], ...]
+
+    def __post_init__(self) -> None:
+        if len(self.edges) != len(self.vehicles):
+            raise CrchflError(f"topology: {len(self.edges)} edges but {len(self.vehicles)} vehicle groups")
+        names = list(self.edges) + [v for group in self.vehicles for v in group]
+        if len(set(names)) != len(names) or CLOUD in names or "" in names:
+            raise CrchflError(f"topology: node names must be unique, non-empty and not {CLOUD!r}: {names}")
+        if not self.all_vehicles:
+            raise CrchflError("topology: no vehicles; at least one vehicle must take part")
+
+    @classmethod
+    def from_counts(cls, vehicles_per_edge: Sequence[int]) -> "Topology":
+        """(2, 3) -> edges edge0, edge1 serving vehicles v0 v1 and v2 v3 v4."""
+        if not vehicles_per_edge or any(n < 0 for n in vehicles_per_edge):
+            raise CrchflError(f"vehicles_per_edge: needs non-negative counts, got {tuple(vehicles_per_edge)}")
+        edges, groups, next_id = [], [], 0
+        for i, count in enumerate(vehicles_per_edge):
+            edges.append(f"edge{i}")
+            groups.append(tuple(f"v{next_id + k}" for k in range(count)))
+            next_id += count
+        return cls(tuple(edges), tuple(groups))
+
+    @property
+    def all_vehicles(self) -> tuple[str, ...]:
+        return tuple(v for group in self.vehicles for v in group)
+
+    def active(self) -> tuple[tuple[str, tuple[str, ...]], ...]:
+        """(edge, its vehicles) for the edges that serve at least one vehicle."""
+        return tuple((e, vs) for e, vs in zip(self.edges, self.vehicles) if vs)
+
+
+# ---------------------------------------------------------------- schedule
+
+
+@dataclass(frozen=True)
+class Transfer:
+    """One planned transfer. Uplink = towards the cloud, downlink = away from it."""
+
+    link: Link
+    direction: Direction
+    stage: Stage
+    sender: str
+    receiver: str
+    payload: Payload
+    size_bytes: int
+
+
+def _model(link: Link, direction: Direction, stage: Stage, sender: str, receiver: str, sizes: ByteSizes) -> Transfer:
+    return Transfer(link, direction, stage, sender, receiver, "model", sizes.model_bytes)
+
+
+def _check_rule_scheme(rule: str, scheme: str) -> None:
+    if rule not in RULES:
+        raise ValueError(f"unknown accounting rule {rule!r}")
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown scheme {scheme!r}")
+
+
+def stage_one_schedule(
+    rule: Rule,
+    scheme: Scheme,
+    topology: Topology,
+    samples_per_vehicle: Mapping[str, int],
+    sizes: ByteSizes,
+) -> tuple[Transfer, ...]:
+    """Stage I: pretraining samples to the cloud (and, physically, the pretrained model back).
+
+    Hierarchical: each vehicle's samples over the wireless hop to its edge,
+    then each edge relays its vehicles' samples over the wireline hop (both
+    rules). ``physical`` adds the release of the pretrained model (cloud ->
+    edge, edge -> vehicle); the reference did not charge it. SFL: one
+    wireless hop vehicle -> cloud (both rules) and, physically, the release
+    cloud -> vehicle. No samples: no transfer at all (every node starts from
+    the same seeded initial model, which needs no transfer).
+    """
+    _check_rule_scheme(rule, scheme)
+    unknown = sorted(set(samples_per_vehicle) - set(topology.all_vehicles))
+    if unknown:
+        raise ValueError(f"samples_per_vehicle names vehicles not in the topology: {unknown}")
+    if any(n < 0 for n in samples_per_vehicle.values()):
+        raise ValueError("samples_per_vehicle: counts must be >= 0")
+    if sum(samples_per_vehicle.values()) == 0:
+        return ()
+    out: list[Transfer] = []
+    if scheme == "sfl":
+        for v in topology.all_vehicles:
+            n = samples_per_vehicle.get(v, 0)
+            if n:
+                out.append(Transfer("wireless", "uplink", "I", v, CLOUD, "samples", n * sizes.sample_bytes))
+        if rule == "physical":
+            out += [_model("wireless", "downlink", "I", CLOUD, v, sizes) for v in topology.all_vehicles]
+        return tuple(out)
+    relays = []
+    for edge, vehicles in topology.active():
+        edge_total = 0
+        for v in vehicles:
+            n = samples_per_vehicle.get(v, 0)
+            if n:
+                out.append(Transfer("wireless", "uplink", "I", v, edge, "samples", n * sizes.sample_bytes))
+                edge_total += n
+        if edge_total:
+            relays.append(Transfer("wireline", "uplink", "I", edge, CLOUD, "samples", edge_total * sizes.sample_bytes))
+    out += relays
+    if rule == "physical":
+        out += [_model("wireline", "downlink", "I", CLOUD, e, sizes) for e, _ in topology.active()]
+        out += [_model("wireless", "downlink", "I", e, v, sizes) for e, vs in topology.active() for v in vs]
+    return tuple(out)
+
+
+def edge_aggregation_schedule(
+    rule: Rule, scheme: Scheme, topology: Topology, sizes: ByteSizes, *, followed_by_cloud: bool
+) -> tuple[Transfer, ...]:
+    """One edge aggregation (hierarchical schemes only).
+
+    Both rules: every vehicle uploads its model to its edge (wireless, II).
+    ``paper``: every edge then sends one model to the cloud side (wireline,
+    III), whether or not a cloud aggregation follows. ``physical``: if no
+    cloud aggregation follows, the edge sends its model down to its vehicles
+    (wireless, II); if one follows, the edge -> cloud upload belongs to
+    ``cloud_aggregation_schedule``.
+    """
+    _check_rule_scheme(rule, scheme)
+    if scheme == "sfl":
+        raise ValueError("sfl has no edge aggregation; use cloud_aggregation_schedule")
+    out = [_model("wireless", "uplink", "II", v, e, sizes) for e, vs in topology.active() for v in vs]
+    if rule == "paper":
+        out += [_model("wireline", "uplink", "III", e, CLOUD, sizes) for e, _ in topology.active()]
+    elif not followed_by_cloud:
+        out += [_model("wireless", "downlink", "II", e, v, sizes) for e, vs in topology.active() for v in vs]
+    return tuple(out)
+
+
+def cloud_aggregation_schedule(rule: Rule, scheme: Scheme, topology: Topology, sizes: ByteSizes) -> tuple[Transfer, ...]:
+    """One cloud aggregation and the release of the global model (stage III).
+
+    Hierarchical: (``physical`` only: edge -> cloud, wireline), then
+    cloud -> edge (wireline) and edge -> vehicle (wireless), one model each.
+    SFL: vehicle -> cloud and cloud -> vehicle over the long-range wireless
+    link, one model each, under both rules.
+    """
+    _check_rule_scheme(rule, scheme)
+    if scheme == "sfl":
+        up = [_model("wireless", "uplink", "III", v, CLOUD, sizes) for v in topology.all_vehicles]
+        down = [_model("wireless", "downlink", "III", CLOUD, v, sizes) for v in topology.all_vehicles]
+        return tuple(up + down)
+    out: list[Transfer] = []
+    if rule == "physical":
+        out += [_model("wireline", "uplink", "III", e, CLOUD, sizes) for e, _ in topology.active()]
+    out += [_model("wireline", "downlink", "III", CLOUD, e, sizes) for e, _ in topology.active()]
+    out += [_model("wireless", "downlink", "III", e, v, sizes) for e, vs in topology.active() for v in vs]
+    return tuple(out)
+
+
+def cloud_round_schedule(
+    rule: Rule, scheme: Scheme, topology: Topology, sizes: ByteSizes, cloud_interval: int
+) -> tuple[Transfer, ...]:
+    """Everything between two cloud aggregations: ``cloud_interval`` edge aggregations, then one cloud aggregation.
+
+    SFL has no edge tier: its round is one cloud aggregation and
+    ``cloud_interval`` must be 1.
+    """
+    if cloud_interval < 1:
+        raise ValueError(f"cloud_interval must be >= 1, got {cloud_interval}")
+    if scheme == "sfl":
+        if cloud_interval != 1:
+            raise ValueError("sfl has no edge tier: cloud_interval must be 1")
+        return cloud_aggregation_schedule(rule, scheme, topology, sizes)
+    out: list[Transfer] = []
+    for tau in range(1, cloud_interval + 1):
+        out += edge_aggregation_schedule(rule, scheme, topology, sizes, followed_by_cloud=tau == cloud_interval)
+    out += cloud_aggregation_schedule(rule, scheme, topology, sizes)
+    return tuple(out)
+
+
+def schedule_bytes(transfers: Iterable[Transfer]) -> int:
+    return sum(t.size_bytes for t in transfers)
+
+
+# ---------------------------------------------------------------- ledger
+
+
+@dataclass(frozen=True)
+class Record:
+    """One charged transfer: the planned transfer, its cloud round (0 = stage I) and simulated times [s]."""
+
+    link: Link
+    direction: Direction
+    stage: Stage
+    sender: str
+    receiver: str
+    payload: Payload
+    size_bytes: int
+    cloud_round: int
+    start_s: float
+    end_s: float
+
+
+_RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(Record))
+
+
+class Ledger:
+    """Charges transfers against the budget; append-only.
+
+    ``charge`` refuses a transfer that does not fit (the caller checks
+    ``can_carry`` first); ``can_carry_model`` is the stopping rule.
+    """
+
+    def __init__(self, sizes: ByteSizes, records: Iterable[Record] = ()) -> None:
+        self.sizes = sizes
+        self._records: list[Record] = []
+        self._spent_bytes = 0
+        for record in records:
+            self._append(record)
+
+    @property
+    def records(self) -> tuple[Record, ...]:
+        return tuple(self._records)
+
+    @property
+    def budget_bytes(self) -> int:
+        return self.sizes.budget_bytes
+
+    @property
+    def spent_bytes(self) -> int:
+        return self._spent_bytes
+
+    @property
+    def remaining_bytes(self) -> int:
+        return self.sizes.budget_bytes - self._spent_bytes
+
+    def can_carry(self, size_bytes: int) -> bool:
+        return size_bytes <= self.remaining_bytes
+
+    def can_carry_model(self) -> bool:
+        """The stopping rule: False once the rest of the budget cannot carry one more model transfer."""
+        return self.can_carry(self.sizes.model_bytes)
+
+    def charge(self, transfer: Transfer, *, cloud_round: int, start_s: float = 0.0, end_s: float = 0.0) -> Record:
+        record = Record(**dataclasses.asdict(transfer), cloud_round=cloud_round, start_s=start_s, end_s=end_s)
+        self._append(record)
+        return record
+
+    def _append(self, record: Record) -> None:
+        if record.size_bytes < 0:
+            raise ValueError(f"negative transfer size {record.size_bytes}")
+        if not record.start_s <= record.end_s:
+            raise ValueError(f"transfer ends before it starts: {record.start_s} > {record.end_s}")
+        if record.size_bytes > self.remaining_bytes:
+            raise ValueError(
+                f"transfer of {record.size_bytes} bytes exceeds the remaining {self.remaining_bytes} bytes; "
+                "check can_carry() before charging"
+            )
+        self._records.append(record)
+        self._spent_bytes += record.size_bytes
+
+    def totals(self, by: Literal["link", "stage", "payload", "direction"]) -> dict[str, int]:
+        """Bytes charged per value of one record field, e.g. ``totals("stage")`` -> {"I": .., "II": .., "III": ..}."""
+        keys = {"link": LINKS, "stage": STAGES, "payload": ("model", "samples"), "direction": ("uplink", "downlink")}[by]
+        out = {k: 0 for k in keys}
+        for record in self._records:
+            out[getattr(record, by)] += record.size_bytes
+        return out
+
+    # -- persistence
+
+    def save(self, path: str | Path) -> None:
+        """Write all records to ``.jsonl`` (first line: the sizes) or ``.csv``, atomically."""
+        path = Path(path)
+        suffix = path.suffix.lower()
+        if suffix not in (".jsonl", ".csv"):
+            raise CrchflError(f"{path}: ledger files end in .jsonl or .csv")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w", newline="", encoding="utf-8") as handle:
+                if suffix == ".jsonl":
+                    handle.write(json.dumps({"sizes": dataclasses.asdict(self.sizes)}) + "\n")
+                    for record in self._records:
+                        handle.write(json.dumps(dataclasses.asdict(record)) + "\n")
+                else:
+                    writer = csv.DictWriter(handle, fieldnames=_RECORD_FIELDS)
+                    writer.writeheader()
+                    for record in self._records:
+                        writer.writerow(dataclasses.asdict(record))
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def load(cls, path: str | Path, sizes: ByteSizes) -> "Ledger":
+        """Read a ledger written by ``save``; a JSONL file must have been written with the same sizes."""
+        path = Path(path)
+        if not path.is_file():
+            raise CrchflError(f"{path}: ledger file not found")
+        try:
+            with path.open(newline="", encoding="utf-8") as handle:
+                if path.suffix.lower() == ".jsonl":
+                    lines = [line for line in handle if line.strip()]
+                    header = json.loads(lines[0]) if lines else {}
+                    if header.get("sizes") != dataclasses.asdict(sizes):
+                        raise CrchflError(
+                            f"{path}: written with sizes {header.get('sizes')}, resuming with {dataclasses.asdict(sizes)}; "
+                            "resume with the [ledger] settings of the original run"
+                        )
+                    rows = [json.loads(line) for line in lines[1:]]
+                elif path.suffix.lower() == ".csv":
+                    rows = list(csv.DictReader(handle))
+                else:
+                    raise CrchflError(f"{path}: ledger files end in .jsonl or .csv")
+            records = [_record_from_row(row) for row in rows]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise CrchflError(f"{path}: not a readable ledger ({exc}); delete it to start afresh") from None
+        return cls(sizes, records)
+
+
+def _record_from_row(row: Mapping[str, object]) -> Record:
+    if set(row) != set(_RECORD_FIELDS):
+        raise ValueError(f"fields {sorted(row)} differ from {list(_RECORD_FIELDS)}")
+    record = Record(
+        link=str(row["link"]),  # type: ignore[arg-type]
+        direction=str(row["direction"]),  # type: ignore[arg-type]
+        stage=str(row["stage"]),  # type: ignore[arg-type]
+        sender=str(row["sender"]),
+        receiver=str(row["receiver"]),
+        payload=str(row["payload"]),  # type: ignore[arg-type]
+        size_bytes=int(row["size_bytes"]),  # type: ignore[arg-type]
+        cloud_round=int(row["cloud_round"]),  # type: ignore[arg-type]
+        start_s=float(row["start_s"]),  # type: ignore[arg-type]
+        end_s=float(row["end_s"]),  # type: ignore[arg-type]
+    )
+    if record.link not in LINKS or record.stage not in STAGES or record.payload not in ("model", "samples"):
+        raise ValueError(f"bad record {row}")
+    if record.direction not in ("uplink", "downlink"):
+        raise ValueError(f"bad record {row}")
+    return record
+
+
+# ---------------------------------------------------------------- replay
+
+
+def charge_all(ledger: Ledger, transfers: Iterable[Transfer], *, cloud_round: int) -> bool:
+    """Charge ``transfers`` in order until one does not fit; True if all were charged.
+
+    For model transfers "does not fit" is exactly the stopping rule. Times are
+    left at 0: the federation loop charges with real simulated times itself.
+    """
+    for transfer in transfers:
+        if not ledger.can_carry(transfer.size_bytes):
+            return False
+        ledger.charge(transfer, cloud_round=cloud_round)
+    return True
+
+
+def replay(
+    ledger: Ledger,
+    stage_one: Sequence[Transfer],
+    cloud_round: Sequence[Transfer],
+    max_rounds: int | None = None,
+) -> int:
+    """Charge stage I, then whole cloud rounds until the stopping rule; returns the completed cloud rounds.
+
+    Stops early at ``max_rounds``. A round cut short by the budget leaves its
+    charged transfers in the ledger (the bytes were spent) but is not counted.
+    Returns -1 if stage I itself does not fit.
+    """
+    if not cloud_round:
+        raise ValueError("a cloud round with no transfers would never exhaust the budget")
+    if not charge_all(ledger, stage_one, cloud_round=0):
+        return -1
+    rounds = 0
+    while ledger.can_carry_model() and (max_rounds is None or rounds < max_rounds):
+        if not charge_all(ledger, cloud_round, cloud_round=rounds + 1):
+            break
+        rounds += 1
+    return rounds
