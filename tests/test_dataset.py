@@ -238,3 +238,26 @@ def test_bytes_per_sample_nominal_and_measured(tmp_path):
     assert 4 * 67 < measured < 4 * (H * W * 3 + 200)  # four PNGs: headers plus some of the raw pixels
     with pytest.raises(CrchflError):
         bytes_per_sample(manifest, "other")
+
+
+def test_dataset_stats_counts_and_files(tmp_path):
+    import cv2
+
+    from crchfl_sumo.dataset_stats import PEDAL_BINS, pick_examples, write_dataset_stats
+
+    generate(tmp_path / "data", small_config(), seed=4)
+    stats = write_dataset_stats(tmp_path / "data", tmp_path / "out")
+    train = load_samples(tmp_path / "data", split="train")
+    assert stats["samples"] == 18 and stats["train"]["samples"] == 15 and stats["test"]["samples"] == 3
+    assert stats["train"]["steer_class_counts"] == np.bincount(train.steer_class.numpy(), minlength=7).tolist()
+    assert stats["train"]["throttle_hist"] == np.histogram(train.actions[:, 0].numpy(), PEDAL_BINS)[0].tolist()
+    assert sum(stats["all"]["brake_hist"]) == 18
+    assert [r["samples"] for r in stats["per_vehicle"]] == [3, 5, 4, 6]
+    assert json.loads((tmp_path / "out" / "dataset_stats.json").read_text())["samples"] == 18
+    mosaic = cv2.imread(stats["files"]["mosaic"])
+    examples = pick_examples(tmp_path / "data")
+    classes_present = np.unique(train.steer_class.numpy())
+    assert len(examples) == len(classes_present)
+    scale = int(np.ceil(200 / W))
+    assert mosaic.shape == (len(examples) * (22 + H * scale), 4 * W * scale, 3)
+    assert cv2.imread(stats["files"]["figure"]) is not None

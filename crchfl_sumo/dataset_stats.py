@@ -1,0 +1,182 @@
+"""What a data set holds: label statistics, a summary figure and an example mosaic.
+
+Statistics read only the small label arrays of each shard; the mosaic reads a
+handful of samples (one per steer class where the data set has one).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import cv2
+import h5py
+import numpy as np
+
+from .dataset_io import atomic_write_text, read_manifest, read_shard, verify_shard
+from .labels import CAMERA_NAMES, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+
+log = logging.getLogger(__name__)
+
+PEDAL_BINS = np.linspace(0.0, 1.0, 11)  # 10 bins of width 0.1 for throttle and brake
+
+
+def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
+    """Label statistics of the data set in ``root`` (JSON-ready dict).
+
+    Keys: scenario, seed, samples, png_bytes_per_sample, per_vehicle (list of
+    vehicle/town/edge/split/samples), and per split ('train', 'test', 'all'):
+    steer_class_counts [7], throttle_hist / brake_hist [10] over PEDAL_BINS,
+    throttle_mean, brake_mean, steer_mean, standing_share (brake >= 0.8).
+    """
+    root = Path(root)
+    manifest = read_manifest(root)
+    actions: dict[str, list[np.ndarray]] = {"train": [], "test": []}
+    classes: dict[str, list[np.ndarray]] = {"train": [], "test": []}
+    for entry in manifest.shards:
+        data = read_shard(root, entry, verify=verify, images=False)
+        actions[entry.split].append(data.actions)
+        classes[entry.split].append(data.steer_class)
+    stats: dict[str, Any] = {
+        "scenario": manifest.scenario,
+        "seed": manifest.seed,
+        "samples": manifest.samples,
+        "png_bytes_per_sample": round(manifest.png_bytes_per_sample, 1),
+        "per_vehicle": [
+            {"vehicle": s.vehicle, "town": s.town, "edge": s.edge, "split": s.split, "samples": s.samples}
+            for s in manifest.shards
+        ],
+    }
+    for split in ("train", "test", "all"):
+        parts_a = actions["train"] + actions["test"] if split == "all" else actions[split]
+        parts_c = classes["train"] + classes["test"] if split == "all" else classes[split]
+        a = np.concatenate(parts_a) if parts_a else np.zeros((0, 3), np.float32)
+        c = np.concatenate(parts_c) if parts_c else np.zeros(0, np.int64)
+        stats[split] = _label_summary(a, c)
+    return stats
+
+
+def _label_summary(actions: np.ndarray, steer_class: np.ndarray) -> dict[str, Any]:
+    def mean(values: np.ndarray) -> float:
+        return round(float(values.mean()), 4) if len(values) else 0.0
+
+    return {
+        "samples": int(len(actions)),
+        "steer_class_counts": np.bincount(steer_class, minlength=NUM_STEER_CLASSES).tolist(),
+        "throttle_hist": np.histogram(actions[:, 0], PEDAL_BINS)[0].tolist(),
+        "brake_hist": np.histogram(actions[:, 2], PEDAL_BINS)[0].tolist(),
+        "throttle_mean": mean(actions[:, 0]),
+        "brake_mean": mean(actions[:, 2]),
+        "steer_mean": mean(actions[:, 1]),
+        "standing_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
+    }
+
+
+def plot_stats(stats: dict[str, Any], out_png: Path) -> Path:
+    """Figure: steer-class histogram, throttle and brake distributions, samples per vehicle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    order = np.argsort(STEER_CLASS_VALUES)  # plot classes left (negative) to right (positive)
+    for split, offset in (("train", -0.2), ("test", 0.2)):
+        counts = np.asarray(stats[split]["steer_class_counts"])[order]
+        axes[0, 0].bar(np.arange(NUM_STEER_CLASSES) + offset, counts, width=0.4, label=split)
+    axes[0, 0].set_xticks(range(NUM_STEER_CLASSES), [f"{v:+.3f}\n(c{k})" for k, v in zip(order, STEER_CLASS_VALUES[order])])
+    axes[0, 0].set_title("steer classes (negative = left)")
+    axes[0, 0].legend()
+    centres = (PEDAL_BINS[:-1] + PEDAL_BINS[1:]) / 2
+    for ax, name in ((axes[0, 1], "throttle"), (axes[1, 0], "brake")):
+        for split, offset in (("train", -0.02), ("test", 0.02)):
+            ax.bar(centres + offset, stats[split][f"{name}_hist"], width=0.04, label=split)
+        ax.set_yscale("symlog")
+        ax.set_xlabel(name)
+        ax.set_title(f"{name} (mean train {stats['train'][f'{name}_mean']:.3f})")
+        ax.legend()
+    rows = stats["per_vehicle"]
+    axes[1, 1].barh(
+        [f"{r['town']} {r['vehicle']} ({r['split']})" for r in rows],
+        [r["samples"] for r in rows],
+        color=["C0" if r["split"] == "train" else "C1" for r in rows],
+    )
+    axes[1, 1].invert_yaxis()
+    axes[1, 1].set_title("samples per vehicle")
+    fig.suptitle(f"{stats['scenario']} seed {stats['seed']}: {stats['samples']} samples")
+    fig.tight_layout()
+    out_png = Path(out_png)
+    tmp = out_png.with_name(f".{out_png.name}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(out_png)
+    return out_png
+
+
+def pick_examples(root: str | Path, split: str = "train") -> list[tuple[str, int]]:
+    """(shard file, row) of the first sample of each steer class, classes ordered left to right."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    found: dict[int, tuple[str, int]] = {}
+    for entry in manifest.select(split):
+        data = read_shard(root, entry, verify=False, images=False)
+        for k in range(NUM_STEER_CLASSES):
+            rows = np.flatnonzero(data.steer_class == k)
+            if k not in found and len(rows):
+                found[k] = (entry.file, int(rows[len(rows) // 2]))
+    return [found[int(k)] for k in np.argsort(STEER_CLASS_VALUES) if int(k) in found]
+
+
+def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_width_px: int = 200) -> Path:
+    """PNG: one row per example sample, the four cameras side by side, its label above."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    examples = pick_examples(root, split)
+    if not examples:
+        raise ValueError(f"{root}: no {split} samples to show")
+    scale = max(1, int(np.ceil(min_width_px / manifest.image_width)))
+    rows = []
+    for file, row in examples:
+        verify_shard(root, manifest.entry(file))
+        with h5py.File(root / file, "r") as f:
+            images = f["images"][row]
+            throttle, steer, brake = f["actions"][row]
+            steer_class = int(f["steer_class"][row])
+        tiles = [cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for img in images]
+        strip = np.concatenate(tiles, axis=1)
+        caption = np.full((22, strip.shape[1], 3), 255, np.uint8)
+        text = (
+            f"{file}#{row}  throttle {throttle:.2f}  steer {steer:+.3f} (class {steer_class}: "
+            f"{STEER_CLASS_VALUES[steer_class]:+.3f})  brake {brake:.2f}   [{' | '.join(CAMERA_NAMES)}]"
+        )
+        cv2.putText(caption, text, (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        rows.append(np.concatenate([caption, strip], axis=0))
+    mosaic = np.concatenate(rows, axis=0)
+    out_png = Path(out_png)
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(mosaic, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError("OpenCV failed to encode the mosaic")
+    tmp = out_png.with_name(f".{out_png.name}.tmp")
+    tmp.write_bytes(encoded.tobytes())
+    tmp.replace(out_png)
+    return out_png
+
+
+def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None) -> dict[str, Any]:
+    """Stats JSON, summary figure and mosaic into ``out_dir`` (default: the data set folder).
+
+    Returns the statistics with the written paths under 'files'.
+    """
+    root = Path(root)
+    out_dir = Path(out_dir) if out_dir is not None else root
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stats = dataset_stats(root)
+    files = {"figure": str(plot_stats(stats, out_dir / "dataset_stats.png"))}
+    if stats["train"]["samples"]:
+        files["mosaic"] = str(write_mosaic(root, out_dir / "dataset_mosaic.png"))
+    stats["files"] = files
+    atomic_write_text(out_dir / "dataset_stats.json", json.dumps(stats, indent=2) + "\n")
+    log.info("wrote %s", ", ".join(files.values()))
+    return stats
