@@ -1,0 +1,509 @@
+"""Build the built-in SUMO scenarios from the hand-written town descriptions.
+
+    python tools/build_nets.py
+
+Reads crchfl_sumo/scenarios/town01/town01.{nod,edg}.xml,
+town02/town02.{nod,edg}.xml and street.typ.xml, and writes, for each of the
+scenarios town01, town02, paper (both towns in one network, no road between
+them) and paper_linked (the same plus a two-way road from Town01 to Town02):
+
+    <name>.net.xml      netconvert's network
+    vtypes.add.xml      vehicle types
+    <name>.bg.rou.xml   background vehicles (randomTrips.py + duarouter, fixed seed)
+    <name>.ego.rou.xml  named data / test / link vehicles on closed loops
+    <name>.sumocfg      SUMO configuration (step length 0.25 s, fixed seed)
+    scenario.toml       edge sites and towns, read by crchfl_sumo.scenario
+
+Every output is written to a temporary file and renamed into place, and the
+same inputs give the same outputs (only netconvert's header comment carries
+a date). The binaries come from the eclipse-sumo package (sumo.SUMO_HOME).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import sumolib
+
+SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "crchfl_sumo" / "scenarios"
+TYPE_FILE = SCENARIOS_DIR / "street.typ.xml"
+
+SEED = 42
+STEP_LENGTH_S = 0.25
+SPEED_LIMIT_MPS = 13.89
+# Named vehicles repeat their loop long enough to drive this long at the speed limit.
+EGO_DRIVE_S = 7200.0
+# Background routes are at least this long, so no background vehicle leaves
+# within this many seconds even at 1.2 x the speed limit (its top speed factor).
+BACKGROUND_MIN_S = 3600.0
+BACKGROUND_MAX_SPEED_FACTOR = 1.2
+
+NETCONVERT_OPTIONS = [
+    "--no-turnarounds", "true",  # the towns have no dead ends, so no U-turns anywhere
+    "--offset.disable-normalization", "true",  # keep the coordinates as written
+    "--junctions.corner-detail", "5",  # smooth kerbs at corners and T-junctions
+    "--tls.default-type", "static",  # 42 s green / 3 s yellow per phase, as the reference
+    "--no-warnings", "true",
+]
+
+
+@dataclass(frozen=True)
+class Town:
+    """One hand-described town and how the named vehicles loop through it.
+
+    loops: vehicle id -> closed node sequence (first node == last node).
+    background_vehicles: how many randomTrips vehicles roam the town.
+    intermediate: randomTrips' intermediate waypoints per background trip.
+    link_node: where the connecting road of paper_linked meets this town:
+        (node id, x, y, road end a, road end b) splitting road a-b.
+    """
+
+    name: str
+    prefix: str
+    loops: dict[str, list[str]]
+    data_vehicles: list[str]
+    test_vehicles: list[str]
+    background_vehicles: int
+    intermediate: int
+    link_node: tuple[str, float, float, str, str]
+
+
+TOWN01 = Town(
+    name="town01",
+    prefix="t01",
+    loops={
+        # west zone: right at W1, lefts at E1/E2/M3/N2/S1, rights at W2/W3
+        "t01_data_0": ["S1", "W1", "E1", "E2", "W2", "W3", "M3", "N2", "N1", "NW", "SW", "S1"],
+        # east zone: lefts at N3/W2/W1/S2, rights at E2/E1
+        "t01_data_1": ["S2", "SE", "NE", "N3", "E3", "E2", "W2", "W1", "E1", "S2"],
+        # north-west start: rights at N2/N3/S1/N1, lefts at M3/E3
+        "t01_test_0": ["N1", "N2", "M3", "E3", "N3", "NE", "SE", "S2", "S1", "W1", "W2", "W3", "N1"],
+    },
+    data_vehicles=["t01_data_0", "t01_data_1"],
+    test_vehicles=["t01_test_0"],
+    background_vehicles=30,
+    intermediate=160,
+    link_node=("L", 394.4, 164.3, "SE", "NE"),
+)
+
+TOWN02 = Town(
+    name="town02",
+    prefix="t02",
+    loops={
+        # north zone: right at D/F/G/A, lefts at C/B
+        "t02_data_0": ["NW", "NE", "D", "C", "F", "G", "B", "A", "NW"],
+        # south-east zone: lefts at D/C/G/H, right at F
+        "t02_data_1": ["H", "SE", "E", "D", "C", "F", "G", "H"],
+        # centre: lefts at F/C/A/H, right at G
+        "t02_data_2": ["G", "F", "C", "B", "A", "SW", "H", "G"],
+        # east start: rights at E/G/A, left at B
+        "t02_test_0": ["D", "E", "F", "G", "B", "A", "NW", "NE", "D"],
+    },
+    data_vehicles=["t02_data_0", "t02_data_1", "t02_data_2"],
+    test_vehicles=["t02_test_0"],
+    background_vehicles=15,
+    intermediate=260,
+    link_node=("L", 0.0, 57.3, "SW", "A"),
+)
+
+# Placement of the towns in the two-town networks: Town02 sits 205.6 m east of
+# Town01's east edge, shifted north so the link road runs straight east-west.
+PAPER_OFFSETS_M = {"town01": (0.0, 0.0), "town02": (600.0, 107.0)}
+
+# paper_linked's cross-town vehicles: one loop through both towns, driven by
+# one vehicle starting in Town01 and one starting in Town02. Nodes carry
+# their town prefix; "t01_L"/"t02_L" are the link road's ends.
+LINK_LOOP = [
+    "t01_SE", "t01_L", "t02_L", "t02_A", "t02_B", "t02_G", "t02_H", "t02_SW", "t02_L",
+    "t01_L", "t01_SE", "t01_S2", "t01_E1", "t01_W1", "t01_S1", "t01_S2", "t01_SE",
+]
+LINK_VEHICLES = {"link_data_0": ("town01", 0), "link_data_1": ("town02", 3)}  # (home town, start index)
+
+
+@dataclass
+class Plain:
+    """A plain-XML network description: node and edge elements (ElementTree)."""
+
+    nodes: list[ET.Element] = field(default_factory=list)
+    edges: list[ET.Element] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------- descriptions
+
+
+def read_town(town: Town) -> Plain:
+    folder = SCENARIOS_DIR / town.name
+    nodes = ET.parse(folder / f"{town.name}.nod.xml").getroot().findall("node")
+    edges = ET.parse(folder / f"{town.name}.edg.xml").getroot().findall("edge")
+    return Plain(nodes=list(nodes), edges=list(edges))
+
+
+def placed(plain: Plain, prefix: str, dx_m: float, dy_m: float) -> Plain:
+    """Copy of `plain` with ids prefixed by `prefix`_ and nodes shifted by (dx, dy)."""
+    out = Plain()
+    for node in plain.nodes:
+        new = ET.Element("node", dict(node.attrib))
+        new.set("id", f"{prefix}_{node.get('id')}")
+        new.set("x", f"{float(node.get('x')) + dx_m:.2f}")
+        new.set("y", f"{float(node.get('y')) + dy_m:.2f}")
+        out.nodes.append(new)
+    for edge in plain.edges:
+        new = ET.Element("edge", dict(edge.attrib))
+        for key in ("id", "from", "to"):
+            new.set(key, f"{prefix}_{edge.get(key)}")
+        out.edges.append(new)
+    return out
+
+
+def merged(*plains: Plain) -> Plain:
+    return Plain(nodes=[n for p in plains for n in p.nodes], edges=[e for p in plains for e in p.edges])
+
+
+def split_road(plain: Plain, a: str, b: str, mid: str, x_m: float, y_m: float) -> Plain:
+    """Copy of `plain` where the two-way road a-b passes through a new signalised node `mid`."""
+    out = Plain(nodes=list(plain.nodes), edges=[])
+    out.nodes.append(ET.Element("node", {"id": mid, "x": f"{x_m:.2f}", "y": f"{y_m:.2f}", "type": "traffic_light"}))
+    for edge in plain.edges:
+        ends = (edge.get("from"), edge.get("to"))
+        if ends in ((a, b), (b, a)):
+            for start, end in ((ends[0], mid), (mid, ends[1])):
+                out.edges.append(ET.Element("edge", {**edge.attrib, "id": edge_id(start, end), "from": start, "to": end}))
+        else:
+            out.edges.append(edge)
+    return out
+
+
+def edge_id(from_node: str, to_node: str) -> str:
+    """Edge ids are FROM_TO; prefixed towns give t01_A_t01_B, shortened to t01_A_B."""
+    prefix, sep, rest = to_node.partition("_")
+    if sep and from_node.startswith(prefix + "_"):
+        return f"{from_node}_{rest}"
+    return f"{from_node}_{to_node}"
+
+
+def with_link_road(plain: Plain) -> Plain:
+    """paper_linked: split one outer road in each town and join the two new nodes."""
+    out = plain
+    for town in (TOWN01, TOWN02):
+        dx_m, dy_m = PAPER_OFFSETS_M[town.name]
+        mid, x_m, y_m, a, b = town.link_node
+        p = town.prefix
+        out = split_road(out, f"{p}_{a}", f"{p}_{b}", f"{p}_{mid}", x_m + dx_m, y_m + dy_m)
+    a, b = f"{TOWN01.prefix}_{TOWN01.link_node[0]}", f"{TOWN02.prefix}_{TOWN02.link_node[0]}"
+    out.edges.append(ET.Element("edge", {"id": f"link_{a}_{b}", "from": a, "to": b, "type": "street"}))
+    out.edges.append(ET.Element("edge", {"id": f"link_{b}_{a}", "from": b, "to": a, "type": "street"}))
+    return out
+
+
+def write_plain(plain: Plain, folder: Path, stem: str) -> tuple[Path, Path]:
+    nod, edg = folder / f"{stem}.nod.xml", folder / f"{stem}.edg.xml"
+    for path, tag, elements in ((nod, "nodes", plain.nodes), (edg, "edges", plain.edges)):
+        root = ET.Element(tag)
+        root.extend(elements)
+        ET.indent(root)
+        ET.ElementTree(root).write(path, encoding="UTF-8", xml_declaration=True)
+    return nod, edg
+
+
+# ---------------------------------------------------------------- tools
+
+
+def sumo_binary(name: str) -> str:
+    """A SUMO binary from the eclipse-sumo package, else from PATH."""
+    try:
+        import sumo
+
+        candidate = Path(sumo.SUMO_HOME) / "bin" / name
+        if candidate.exists():
+            return str(candidate)
+    except ImportError:
+        pass
+    found = shutil.which(name)
+    if found is None:
+        sys.exit(f"{name} not found: pip install eclipse-sumo")
+    return found
+
+
+def sumo_tool(name: str) -> str:
+    import sumo
+
+    return str(Path(sumo.SUMO_HOME) / "tools" / name)
+
+
+def run(cmd: list[str]) -> None:
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+
+
+def replace_into(tmp: Path, dest: Path, note: str) -> None:
+    """Move a finished SUMO output into place (temp file, then rename).
+
+    SUMO's header comment (date, temporary paths) is replaced by `note`, so
+    that the same inputs give byte-identical files.
+    """
+    text = tmp.read_text(encoding="utf-8")
+    text = re.sub(r"<!-- generated on .*?-->", f"<!-- {note} -->", text, count=1, flags=re.DOTALL)
+    write_text(dest, text)
+
+
+def write_text(dest: Path, text: str) -> None:
+    staging = dest.with_name(f".{dest.name}.tmp")
+    staging.write_text(text, encoding="utf-8")
+    os.replace(staging, dest)
+
+
+def netconvert(nod: Path, edg: Path, out: Path) -> None:
+    run([sumo_binary("netconvert"), "--node-files", str(nod), "--edge-files", str(edg),
+         "--type-files", str(TYPE_FILE), *NETCONVERT_OPTIONS, "--output-file", str(out)])
+
+
+# ---------------------------------------------------------------- traffic
+
+VTYPES_XML = f"""<?xml version="1.0" encoding="UTF-8"?>
+<!-- Written by tools/build_nets.py. -->
+<additional>
+    <!-- background traffic: speeds spread around the limit, SUMO's default dawdling -->
+    <vType id="background" vClass="passenger" speedFactor="normc(1.0,0.1,0.8,{BACKGROUND_MAX_SPEED_FACTOR})" color="0.6,0.6,0.6"/>
+    <!-- named data / test vehicles: an expert driver that keeps to the limit, no dawdling -->
+    <vType id="ego" vClass="passenger" speedFactor="1.0" sigma="0.0" color="1,0,0"/>
+</additional>
+"""
+
+
+def loop_edges(net: sumolib.net.Net, nodes: list[str]) -> list[str]:
+    """Edge ids along a closed node sequence (consecutive nodes share an edge)."""
+    edges = []
+    for a, b in zip(nodes, nodes[1:]):
+        out = [e for e in net.getNode(a).getOutgoing() if e.getToNode().getID() == b]
+        if len(out) != 1:
+            raise ValueError(f"no single edge {a} -> {b}")
+        edges.append(out[0].getID())
+    return edges
+
+
+def expand_splits(nodes: list[str], town: Town) -> list[str]:
+    """Insert the link node where a loop drives along the road paper_linked splits."""
+    mid, _, _, a, b = town.link_node
+    p = town.prefix
+    out = [nodes[0]]
+    for u, v in zip(nodes, nodes[1:]):
+        if {u, v} == {f"{p}_{a}", f"{p}_{b}"}:
+            out.append(f"{p}_{mid}")
+        out.append(v)
+    return out
+
+
+def ego_routes_xml(net: sumolib.net.Net, loops: dict[str, list[str]]) -> str:
+    """Named vehicles, each on its own loop route repeated for EGO_DRIVE_S at the limit."""
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>', "<!-- Written by tools/build_nets.py. -->", "<routes>"]
+    for vid, nodes in loops.items():
+        edges = loop_edges(net, nodes)
+        length_m = sum(net.getEdge(e).getLength() for e in edges)
+        repeat = math.ceil(EGO_DRIVE_S * SPEED_LIMIT_MPS / length_m)
+        lines.append(f'    <route id="{vid}_loop" edges="{" ".join(edges)}" repeat="{repeat}"/>')
+    for vid in loops:
+        lines.append(f'    <vehicle id="{vid}" type="ego" route="{vid}_loop" depart="0.00" departSpeed="0"/>')
+    lines.append("</routes>")
+    return "\n".join(lines) + "\n"
+
+
+def town_trips(town: Town, net_file: Path, vtypes: Path, work: Path) -> list[ET.Element]:
+    """Background trips in the town's own frame (randomTrips.py, fixed seed)."""
+    trips = work / f"{town.name}.trips.xml"
+    period_s = 1.0
+    run([sys.executable, sumo_tool("randomTrips.py"), "-n", str(net_file), "-a", str(vtypes), "-o", str(trips),
+         "--seed", str(SEED), "--begin", "0", "--end", str(town.background_vehicles * period_s),
+         "--period", str(period_s), "--length", "--intermediate", str(town.intermediate),
+         "--prefix", f"{town.prefix}_bg_", "--random-departpos",
+         "--trip-attributes", 'type="background" departSpeed="0"'])
+    return ET.parse(trips).getroot().findall("trip")
+
+
+def mapped_trips(trips: list[ET.Element], map_edge) -> list[ET.Element]:
+    out = []
+    for trip in trips:
+        new = ET.Element("trip", dict(trip.attrib))
+        new.set("from", map_edge(trip.get("from"), "first"))
+        new.set("to", map_edge(trip.get("to"), "last"))
+        if trip.get("via"):
+            new.set("via", " ".join(map_edge(e, "first") for e in trip.get("via").split()))
+        out.append(new)
+    return out
+
+
+def duarouter(net_file: Path, trips: list[ET.Element], vtypes: Path, out: Path, work: Path) -> None:
+    trips_file = work / f"{out.stem}.trips.xml"
+    root = ET.Element("routes")
+    root.extend(sorted(trips, key=lambda t: float(t.get("depart"))))
+    ET.indent(root)
+    ET.ElementTree(root).write(trips_file, encoding="UTF-8", xml_declaration=True)
+    run([sumo_binary("duarouter"), "-n", str(net_file), "--route-files", str(trips_file),
+         "--additional-files", str(vtypes), "--vtype-output", str(work / "unused.vtypes.xml"),
+         "--alternatives-output", str(work / "unused.alt.xml"), "--seed", str(SEED),
+         "--no-step-log", "true", "--no-warnings", "true", "--output-file", str(out)])
+
+
+def check_background_lengths(net_file: Path, routes: Path) -> None:
+    net = sumolib.net.readNet(str(net_file))
+    min_m = BACKGROUND_MIN_S * SPEED_LIMIT_MPS * BACKGROUND_MAX_SPEED_FACTOR
+    for route in ET.parse(routes).getroot().iter("route"):
+        length_m = sum(net.getEdge(e).getLength() for e in route.get("edges").split())
+        if length_m < min_m:
+            sys.exit(f"{routes}: a background route is {length_m:.0f} m < {min_m:.0f} m; raise 'intermediate'")
+
+
+# ---------------------------------------------------------------- configuration
+
+
+def sumocfg_xml(name: str) -> str:
+    return f"""<?xml version="1.0" encoding="UTF-8"?>
+<!-- Written by tools/build_nets.py. Paths are relative to this file. -->
+<configuration>
+    <input>
+        <net-file value="{name}.net.xml"/>
+        <route-files value="{name}.ego.rou.xml,{name}.bg.rou.xml"/>
+        <additional-files value="vtypes.add.xml"/>
+    </input>
+    <time>
+        <step-length value="{STEP_LENGTH_S}"/>
+    </time>
+    <random_number>
+        <seed value="{SEED}"/>
+    </random_number>
+</configuration>
+"""
+
+
+@dataclass(frozen=True)
+class TownEntry:
+    town: Town
+    dx_m: float
+    dy_m: float
+    data_vehicles: list[str]
+    test_vehicles: list[str]
+
+
+def bbox_m(net: sumolib.net.Net, prefix: str | None) -> tuple[float, float, float, float]:
+    xs, ys = [], []
+    for node in net.getNodes():
+        if prefix is None or node.getID().startswith(prefix + "_"):
+            xs.append(node.getCoord()[0])
+            ys.append(node.getCoord()[1])
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: list[TownEntry], prefixed: bool) -> str:
+    def qlist(items: list[str]) -> str:
+        return "[" + ", ".join(f'"{i}"' for i in items) + "]"
+
+    lines = [
+        "# Written by tools/build_nets.py. Coordinates in metres, in the network's frame.",
+        f'description = "{description}"',
+        f'sumocfg = "{name}.sumocfg"',
+    ]
+    boxes = [bbox_m(net, e.town.prefix if prefixed else None) for e in entries]
+    for n, box in enumerate(boxes, start=1):
+        lines += ["", "[[edge_sites]]", f'name = "edge{n:02d}"',
+                  f"x_m = {(box[0] + box[2]) / 2:.2f}", f"y_m = {(box[1] + box[3]) / 2:.2f}", "height_m = 10.0"]
+    for entry, box in zip(entries, boxes):
+        lines += ["", "[[towns]]", f'name = "{entry.town.name}"',
+                  f"xmin_m = {box[0]:.2f}", f"ymin_m = {box[1]:.2f}", f"xmax_m = {box[2]:.2f}", f"ymax_m = {box[3]:.2f}",
+                  f"data_vehicles = {qlist(entry.data_vehicles)}", f"test_vehicles = {qlist(entry.test_vehicles)}"]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- scenarios
+
+
+def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, list[str]],
+                   trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path) -> None:
+    folder = SCENARIOS_DIR / name
+    folder.mkdir(parents=True, exist_ok=True)
+    nod, edg = write_plain(plain, work, name)
+    net_tmp = work / f"{name}.net.xml"
+    netconvert(nod, edg, net_tmp)
+    net = sumolib.net.readNet(str(net_tmp))
+
+    vtypes = folder / "vtypes.add.xml"
+    write_text(vtypes, VTYPES_XML)
+    ego_tmp = work / f"{name}.ego.rou.xml"
+    ego_tmp.write_text(ego_routes_xml(net, loops), encoding="utf-8")
+    bg_tmp = work / f"{name}.bg.rou.xml"
+    duarouter(net_tmp, trips, vtypes, bg_tmp, work)
+    check_background_lengths(net_tmp, bg_tmp)
+
+    replace_into(net_tmp, folder / f"{name}.net.xml",
+                 f"Written by tools/build_nets.py: netconvert {' '.join(NETCONVERT_OPTIONS)}")
+    replace_into(ego_tmp, folder / f"{name}.ego.rou.xml", "Written by tools/build_nets.py")
+    replace_into(bg_tmp, folder / f"{name}.bg.rou.xml",
+                 f"Written by tools/build_nets.py: randomTrips.py --seed {SEED}, duarouter")
+    write_text(folder / f"{name}.sumocfg", sumocfg_xml(name))
+    write_text(folder / "scenario.toml", scenario_toml(description, name, net, entries, prefixed))
+
+
+def main() -> None:
+    with tempfile.TemporaryDirectory(prefix="build_nets_") as tmp:
+        work = Path(tmp)
+        towns = (TOWN01, TOWN02)
+        plains = {t.name: read_town(t) for t in towns}
+        trips: dict[str, list[ET.Element]] = {}
+        vtypes = work / "vtypes.add.xml"
+        vtypes.write_text(VTYPES_XML, encoding="utf-8")
+
+        for town in towns:
+            net_file = work / f"{town.name}.plain.net.xml"
+            netconvert(SCENARIOS_DIR / town.name / f"{town.name}.nod.xml",
+                       SCENARIOS_DIR / town.name / f"{town.name}.edg.xml", net_file)
+            trips[town.name] = town_trips(town, net_file, vtypes, work)
+            entry = TownEntry(town, 0.0, 0.0, town.data_vehicles, town.test_vehicles)
+            build_scenario(town.name, f"CARLA {town.name.capitalize()} modelled in SUMO, one edge server at its centre",
+                           plains[town.name], town.loops, trips[town.name], [entry], prefixed=False, work=work)
+
+        def prefixed_loops(town: Town, linked: bool) -> dict[str, list[str]]:
+            out = {}
+            for vid, nodes in town.loops.items():
+                nodes = [f"{town.prefix}_{n}" for n in nodes]
+                out[vid] = expand_splits(nodes, town) if linked else nodes
+            return out
+
+        def edge_mapper(town: Town, linked: bool):
+            mid, _, _, a, b = town.link_node
+
+            def map_edge(edge: str, role: str) -> str:
+                u, v = edge.split("_")
+                if linked and {u, v} == {a, b}:
+                    # the road is split: a trip may start on its first half and end on its last
+                    u, v = (u, mid) if role == "first" else (mid, v)
+                return f"{town.prefix}_{u}_{v}"
+
+            return map_edge
+
+        for name, linked in (("paper", False), ("paper_linked", True)):
+            placed_towns = [placed(plains[t.name], t.prefix, *PAPER_OFFSETS_M[t.name]) for t in towns]
+            plain = merged(*placed_towns)
+            loops = {vid: nodes for t in towns for vid, nodes in prefixed_loops(t, linked).items()}
+            all_trips = [trip for t in towns for trip in mapped_trips(trips[t.name], edge_mapper(t, linked))]
+            data = {t.name: list(t.data_vehicles) for t in towns}
+            if linked:
+                plain = with_link_road(plain)
+                for vid, (home, start) in LINK_VEHICLES.items():
+                    rotated = LINK_LOOP[start:-1] + LINK_LOOP[:start] + [LINK_LOOP[start]]
+                    loops[vid] = rotated
+                    data[home].append(vid)
+                description = "Town01 and Town02 joined by a two-way road; link vehicles drive between them"
+            else:
+                description = "Town01 and Town02 side by side in one network, no road between them"
+            entries = [TownEntry(t, *PAPER_OFFSETS_M[t.name], data[t.name], t.test_vehicles) for t in towns]
+            build_scenario(name, description, plain, loops, all_trips, entries, prefixed=True, work=work)
+
+
+if __name__ == "__main__":
+    main()
