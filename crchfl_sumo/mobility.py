@@ -1,0 +1,435 @@
+"""Which edge site serves each vehicle, and at what rate, step by step.
+
+``LinkModel`` turns a stream of Frames into LinkSnapshots: per vehicle the
+serving site (-1 = none), the large-scale received power and SNR, and the rate
+[bit/s] after bandwidth sharing and fading. It owns the only state this needs:
+the random processes of every (vehicle, site) link (LOS state, shadowing,
+fading), carried from step to step by vehicle id, and the association with its
+handover timers. Everything is vectorised over vehicles x sites.
+
+Association (docs/links.md): strongest large-scale received power among the
+sites in coverage (within ``coverage_radius_m`` and above ``min_rx_power_dbm``).
+A serving vehicle moves to another site only after that site has beaten the
+serving one by ``handover_margin_db`` at every step for ``time_to_trigger_s``
+(3GPP event A3 with hysteresis and time-to-trigger). Fast fading is left out
+of the comparison, as real handovers compare layer-3 filtered power: fading
+decorrelates within milliseconds and would only make vehicles ping-pong.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from . import channel as ch
+from .channel import ChannelConfig
+from .errors import CrchflError
+from .frame import Frame
+from .sites import EdgeSite
+
+log = logging.getLogger(__name__)
+
+NO_SITE = -1
+_EPS_S = 1e-9  # float slack when comparing simulated times
+
+
+@dataclass(frozen=True)
+class MobilityConfig:
+    """Association and handover settings (TOML ``[mobility]``)."""
+
+    coverage_radius_m: float = 300.0  # a road-side unit's service range
+    min_rx_power_dbm: float = -100.0  # about -8 dB SNR with the default channel
+    handover_margin_db: float = 3.0  # A3 offset + hysteresis
+    time_to_trigger_s: float = 0.48  # one of TS 38.331's TimeToTrigger values
+
+    def __post_init__(self) -> None:
+        if not self.coverage_radius_m > 0:
+            raise CrchflError(f"mobility.coverage_radius_m must be > 0, got {self.coverage_radius_m}")
+        if not self.handover_margin_db >= 0:
+            raise CrchflError(f"mobility.handover_margin_db must be >= 0, got {self.handover_margin_db}")
+        if not self.time_to_trigger_s >= 0:
+            raise CrchflError(f"mobility.time_to_trigger_s must be >= 0, got {self.time_to_trigger_s}")
+        if not math.isfinite(self.min_rx_power_dbm):
+            raise CrchflError(f"mobility.min_rx_power_dbm must be a finite number, got {self.min_rx_power_dbm}")
+
+
+@dataclass(frozen=True)
+class Handover:
+    """A change of serving site; -1 on either side is an attach or a loss of coverage."""
+
+    t_s: float
+    vehicle_id: str
+    from_site: int
+    to_site: int
+
+
+@dataclass(frozen=True)
+class LinkSnapshot:
+    """Link state of every vehicle of one frame; arrays are aligned with ``ids``.
+
+    site            [V] int   serving site index (-1: no coverage)
+    rx_power_dbm    [V] f64   large-scale received power from it (NaN if none)
+    snr_db          [V] f64   large-scale SNR, before fading (NaN if none)
+    rate_bps        [V] f64   rate this step after sharing and fading (0 if none)
+    cell_load       [V] int   vehicles the cell's bandwidth is split among (0 if none)
+    handovers       the serving-site changes that happened at this step
+    """
+
+    t_s: float
+    ids: np.ndarray
+    site: np.ndarray
+    rx_power_dbm: np.ndarray
+    snr_db: np.ndarray
+    rate_bps: np.ndarray
+    cell_load: np.ndarray
+    handovers: tuple[Handover, ...] = ()
+
+    def rate_of(self, vehicle_id: str) -> float:
+        """Rate [bit/s] of one vehicle; 0 when it is not in this snapshot."""
+        hits = np.flatnonzero(self.ids == vehicle_id)
+        return float(self.rate_bps[hits[0]]) if len(hits) else 0.0
+
+
+@dataclass
+class _State:
+    """Per-vehicle (rows) and per-link (rows x sites) state, rows aligned with ``ids``."""
+
+    ids: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    los_z: np.ndarray  # [V, S] Gaussian behind the spatially consistent LOS state
+    shadow_z: np.ndarray  # [V, S] unit-variance shadowing process
+    serving: np.ndarray  # [V]
+    beats_since_s: np.ndarray  # [V, S] since when a site beats the serving one by the margin (NaN: not now)
+    fade_gain: np.ndarray  # [V, K] Rayleigh power gains of the current blocks
+    fade_blocks: np.ndarray  # [V] how many of the K columns are in use
+    fade_until_s: np.ndarray  # [V] when the current blocks expire
+    fade_site: np.ndarray  # [V] site the current blocks belong to
+
+    @classmethod
+    def empty(cls, n_sites: int, n_blocks: int) -> "_State":
+        f = np.zeros(0)
+        return cls(
+            ids=np.zeros(0, dtype=str),
+            x_m=f,
+            y_m=f,
+            los_z=np.zeros((0, n_sites)),
+            shadow_z=np.zeros((0, n_sites)),
+            serving=np.zeros(0, dtype=np.int64),
+            beats_since_s=np.zeros((0, n_sites)),
+            fade_gain=np.ones((0, n_blocks)),
+            fade_blocks=np.zeros(0, dtype=np.int64),
+            fade_until_s=f,
+            fade_site=np.zeros(0, dtype=np.int64),
+        )
+
+    def carried_to(self, ids: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> tuple["_State", np.ndarray]:
+        """State re-indexed to ``ids``; new vehicles get fresh rows. Also returns the 'is new' mask."""
+        n, s, k = len(ids), self.los_z.shape[1], self.fade_gain.shape[1]
+        _, new_rows, old_rows = np.intersect1d(ids, self.ids, assume_unique=True, return_indices=True)
+        is_new = np.ones(n, dtype=bool)
+        is_new[new_rows] = False
+
+        def take(old: np.ndarray, fill, shape_tail=()) -> np.ndarray:
+            out = np.full((n, *shape_tail), fill, dtype=old.dtype)
+            out[new_rows] = old[old_rows]
+            return out
+
+        state = _State(
+            ids=ids,
+            x_m=np.where(is_new, x_m, take(self.x_m, 0.0)),
+            y_m=np.where(is_new, y_m, take(self.y_m, 0.0)),
+            los_z=take(self.los_z, 0.0, (s,)),
+            shadow_z=take(self.shadow_z, 0.0, (s,)),
+            serving=take(self.serving, NO_SITE),
+            beats_since_s=take(self.beats_since_s, np.nan, (s,)),
+            fade_gain=take(self.fade_gain, 1.0, (k,)),
+            fade_blocks=take(self.fade_blocks, 0),
+            fade_until_s=take(self.fade_until_s, -np.inf),
+            fade_site=take(self.fade_site, NO_SITE),
+        )
+        return state, is_new
+
+
+class LinkModel:
+    """Association + rates of vehicles to a fixed set of sites, advanced one Frame at a time.
+
+    Same sites, configs, seed and frames -> identical snapshots. Vehicles are
+    matched between frames by id; a vehicle that reappears starts afresh.
+    """
+
+    def __init__(
+        self,
+        sites: Sequence[EdgeSite],
+        channel: ChannelConfig = ChannelConfig(),
+        mobility: MobilityConfig = MobilityConfig(),
+        seed: int | np.random.Generator = 0,
+    ) -> None:
+        if len(sites) == 0:
+            raise CrchflError("edge_sites: a link model needs at least one site; add one to the scenario")
+        self.sites = tuple(sites)
+        self.channel = channel
+        self.mobility = mobility
+        self._site_x_m = np.array([s.x_m for s in self.sites], dtype=np.float64)
+        self._site_y_m = np.array([s.y_m for s in self.sites], dtype=np.float64)
+        self._site_h_m = np.array([s.height_m for s in self.sites], dtype=np.float64)
+        self._rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        self._state = _State.empty(len(self.sites), channel.fading_max_blocks_per_step)
+        self._t_prev_s: float | None = None
+
+    def step(self, frame: Frame, active: np.ndarray | None = None) -> LinkSnapshot:
+        """Advance to ``frame`` and return every vehicle's link.
+
+        ``active`` (bool [V], default all) marks the vehicles that currently
+        transmit: a cell's bandwidth is split equally among its active
+        vehicles; an inactive vehicle is quoted the rate it would get by
+        joining them.
+        """
+        t_s = float(frame.t_s)
+        if self._t_prev_s is not None and t_s < self._t_prev_s - _EPS_S:
+            raise ValueError(f"LinkModel.step: time went backwards ({t_s} < {self._t_prev_s})")
+        dt_s = 0.0 if self._t_prev_s is None else t_s - self._t_prev_s
+        cfg, mob, sp = self.channel, self.mobility, self.channel.params
+        n, n_sites = len(frame), len(self.sites)
+        active = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        if active.shape != (n,):
+            raise ValueError(f"LinkModel.step: active has shape {active.shape}, expected ({n},)")
+
+        prev, is_new = self._state.carried_to(np.asarray(frame.ids), frame.x_m, frame.y_m)
+        # New rows restart their processes: infinite travel makes the AR(1) forget.
+        travelled_m = np.where(is_new, np.inf, np.hypot(frame.x_m - prev.x_m, frame.y_m - prev.y_m))[:, None]
+        d2d_m = np.hypot(frame.x_m[:, None] - self._site_x_m, frame.y_m[:, None] - self._site_y_m)
+
+        # LOS weight per link: 1 = LOS, 0 = NLOS, in between for "expected".
+        los_z = ch.ar1_step(prev.los_z, travelled_m, sp.los_state_decorrelation_m, self._rng.standard_normal((n, n_sites)))
+        p_los = ch.los_probability(d2d_m, cfg.scenario, cfg.vehicle_antenna_height_m)
+        los_weight = {
+            "random": lambda: (ch.standard_normal_cdf(los_z) < p_los).astype(np.float64),
+            "expected": lambda: p_los,
+            "los": lambda: np.ones_like(p_los),
+            "nlos": lambda: np.zeros_like(p_los),
+        }[cfg.los_mode]()
+        path_loss = los_weight * ch.los_path_loss_db(d2d_m, self._site_h_m, cfg) + (1.0 - los_weight) * (
+            ch.nlos_path_loss_db(d2d_m, self._site_h_m, cfg)
+        )
+        sigma_db = los_weight * sp.shadow_sigma_los_db + (1.0 - los_weight) * sp.shadow_sigma_nlos_db
+        decorrelation_m = (
+            los_weight * sp.shadow_decorrelation_los_m + (1.0 - los_weight) * sp.shadow_decorrelation_nlos_m
+        )
+        shadow_z = ch.ar1_step(prev.shadow_z, travelled_m, decorrelation_m, self._rng.standard_normal((n, n_sites)))
+        shadowing_db = sigma_db * shadow_z if cfg.shadowing else 0.0
+        rx_dbm = ch.received_power_dbm(path_loss, shadowing_db, cfg)  # [V, S]
+
+        eligible = (d2d_m <= mob.coverage_radius_m) & (rx_dbm >= mob.min_rx_power_dbm)
+        serving, beats_since_s = associate(prev.serving, prev.beats_since_s, rx_dbm, eligible, t_s, mob)
+
+        rows = np.arange(n)
+        has_site = serving >= 0
+        site_col = np.where(has_site, serving, 0)
+        rx_serving = np.where(has_site, rx_dbm[rows, site_col], np.nan)
+        snr_serving_db = ch.snr_db(rx_serving, cfg)
+
+        load = np.bincount(serving[has_site & active], minlength=n_sites)
+        cell_load = np.where(has_site, load[site_col] + (~active), 0)
+        share = np.where(has_site, 1.0 / np.maximum(cell_load, 1), 0.0)
+
+        gains, blocks, until_s = self._fading(prev, is_new, serving, frame.speed_mps, t_s, dt_s)
+        snr_lin = np.where(has_site, ch.db_to_linear(np.nan_to_num(snr_serving_db, nan=-np.inf)), 0.0)
+        block_rates = ch.link_rate_bps(snr_lin[:, None] * gains, share[:, None], cfg)  # [V, K]
+        in_use = np.arange(gains.shape[1])[None, :] < blocks[:, None]
+        rate_bps = np.where(has_site, (block_rates * in_use).sum(axis=1) / np.maximum(blocks, 1), 0.0)
+
+        changed = np.flatnonzero(serving != prev.serving)
+        handovers = tuple(
+            Handover(t_s, str(frame.ids[i]), int(prev.serving[i]), int(serving[i])) for i in changed
+        )
+        for h in handovers:
+            log.debug("t=%.2f s: %s site %d -> %d", h.t_s, h.vehicle_id, h.from_site, h.to_site)
+
+        self._state = dataclasses.replace(
+            prev,
+            x_m=np.asarray(frame.x_m, dtype=np.float64).copy(),
+            y_m=np.asarray(frame.y_m, dtype=np.float64).copy(),
+            los_z=los_z,
+            shadow_z=shadow_z,
+            serving=serving,
+            beats_since_s=beats_since_s,
+            fade_gain=gains,
+            fade_blocks=blocks,
+            fade_until_s=until_s,
+            fade_site=serving.copy(),
+        )
+        self._t_prev_s = t_s
+        return LinkSnapshot(
+            t_s=t_s,
+            ids=np.asarray(frame.ids).copy(),
+            site=serving,
+            rx_power_dbm=rx_serving,
+            snr_db=snr_serving_db,
+            rate_bps=rate_bps,
+            cell_load=cell_load.astype(np.int64),
+            handovers=handovers,
+        )
+
+    def _fading(self, prev: _State, is_new, serving, speed_mps, t_s: float, dt_s: float):
+        """Block fading: keep each vehicle's gains until their coherence time runs out.
+
+        When the last step spanned several coherence times, the step's rate is
+        averaged over that many fresh blocks (at most K).
+        """
+        cfg = self.channel
+        n, k = prev.fade_gain.shape
+        draws = self._rng.exponential(1.0, size=(n, k))  # drawn every step: a fixed stream
+        if not cfg.fading:
+            return np.ones((n, k)), np.ones(n, dtype=np.int64), np.full(n, np.inf)
+        coherence_s = ch.coherence_time_s(speed_mps, cfg.carrier_hz, cfg.fading_min_speed_mps)
+        redraw = is_new | (serving != prev.fade_site) | (t_s >= prev.fade_until_s - _EPS_S)
+        fresh_blocks = np.clip(np.floor(dt_s / coherence_s + _EPS_S), 1, k).astype(np.int64)
+        gains = np.where(redraw[:, None], draws, prev.fade_gain)
+        blocks = np.where(redraw, fresh_blocks, prev.fade_blocks)
+        until_s = np.where(redraw, t_s + fresh_blocks * coherence_s, prev.fade_until_s)
+        return gains, blocks, until_s
+
+
+def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: MobilityConfig):
+    """One association step, vectorised over vehicles x sites (pure).
+
+    serving [V] int (-1 none), beats_since_s [V, S] (NaN where a site does not
+    beat the serving one), rx_dbm and eligible [V, S]. Returns the new
+    (serving, beats_since_s).
+
+    A vehicle whose serving site is no longer eligible, or that has none,
+    attaches at once to the strongest eligible site (or to none). Otherwise a
+    site that beats the serving one by the margin starts a timer; the
+    strongest site whose timer reached the time-to-trigger takes over.
+    """
+    n, n_sites = rx_dbm.shape
+    rows = np.arange(n)
+    masked = np.where(eligible, rx_dbm, -np.inf)
+    best = np.argmax(masked, axis=1) if n_sites else np.zeros(n, dtype=np.int64)
+    best = np.where(eligible.any(axis=1), best, NO_SITE)
+
+    serving_col = np.where(serving >= 0, serving, 0)
+    keeps = (serving >= 0) & eligible[rows, serving_col]
+    rx_serving = np.where(keeps, rx_dbm[rows, serving_col], np.inf)
+    others = np.arange(n_sites)[None, :] != serving[:, None]
+    beats = keeps[:, None] & others & eligible & (rx_dbm > rx_serving[:, None] + mob.handover_margin_db)
+    since_s = np.where(beats, np.where(np.isnan(beats_since_s), t_s, beats_since_s), np.nan)
+    ready = beats & (t_s - since_s >= mob.time_to_trigger_s - _EPS_S)
+    target = np.argmax(np.where(ready, rx_dbm, -np.inf), axis=1)
+
+    new_serving = np.where(keeps, np.where(ready.any(axis=1), target, serving), best)
+    # Timers measure against the serving site: a new serving site restarts them.
+    since_s = np.where((new_serving != serving)[:, None], np.nan, since_s)
+    return new_serving.astype(np.int64), since_s
+
+
+# --- SFL: direct vehicle <-> cloud over macro cells ----------------------------
+
+
+@dataclass(frozen=True)
+class MacroLinkConfig:
+    """SFL's long-range vehicle <-> cloud link over public macro cells (TOML ``[sfl_link]``).
+
+    The vehicle side (transmit power, antenna, fading, rate model) comes from
+    ``[channel]``; these keys set the macro side: TR 38.901 UMa, NR band n78
+    at 3.5 GHz, 25 m masts on a hexagonal grid of 500 m inter-site distance
+    (TR 38.901 Table 7.2-1), 8 dBi base-station antenna element and 5 dB
+    noise figure (ITU-R M.2412 / TR 38.802 evaluation assumptions), and
+    10 MHz per cell for the simulated vehicles (the carrier is shared with
+    other users of a public network).
+    """
+
+    carrier_hz: float = 3.5e9
+    bandwidth_hz: float = 10e6
+    site_antenna_gain_dbi: float = 8.0
+    noise_figure_db: float = 5.0
+    site_height_m: float = 25.0
+    inter_site_distance_m: float = 500.0
+    coverage_radius_m: float = 2000.0
+    min_rx_power_dbm: float = -109.0  # about -10 dB SNR in 10 MHz with a 5 dB noise figure
+    # Explicit macro sites; empty = a hexagonal grid over the network with a
+    # site at the network's centre.
+    sites: tuple[EdgeSite, ...] = ()
+
+    def __post_init__(self) -> None:
+        for key in ("carrier_hz", "bandwidth_hz", "site_height_m", "inter_site_distance_m", "coverage_radius_m"):
+            if not getattr(self, key) > 0:
+                raise CrchflError(f"sfl_link.{key} must be > 0, got {getattr(self, key)}")
+
+    def channel_config(self, base: ChannelConfig) -> ChannelConfig:
+        """``base`` (the vehicle side) with the macro side of this config."""
+        return dataclasses.replace(
+            base,
+            scenario="uma",
+            carrier_hz=self.carrier_hz,
+            bandwidth_hz=self.bandwidth_hz,
+            site_antenna_gain_dbi=self.site_antenna_gain_dbi,
+            noise_figure_db=self.noise_figure_db,
+        )
+
+    def mobility_config(self, base: MobilityConfig) -> MobilityConfig:
+        """``base`` handover settings with macro coverage."""
+        return dataclasses.replace(
+            base, coverage_radius_m=self.coverage_radius_m, min_rx_power_dbm=self.min_rx_power_dbm
+        )
+
+    def resolve_sites(self, bounds_m: tuple[float, float, float, float]) -> tuple[EdgeSite, ...]:
+        """The explicit sites, or a hexagonal grid covering ``bounds_m`` = (xmin, ymin, xmax, ymax)."""
+        if self.sites:
+            return self.sites
+        return hex_grid_sites(bounds_m, self.inter_site_distance_m, self.site_height_m)
+
+
+def hex_grid_sites(
+    bounds_m: tuple[float, float, float, float], spacing_m: float, height_m: float, prefix: str = "macro"
+) -> tuple[EdgeSite, ...]:
+    """Sites on a hexagonal lattice (neighbours ``spacing_m`` apart) centred on the bounds.
+
+    Every point of the bounds is within one spacing of a site; sites are
+    named ``{prefix}{i}`` in row-major order.
+    """
+    xmin, ymin, xmax, ymax = bounds_m
+    if not (xmax >= xmin and ymax >= ymin and spacing_m > 0):
+        raise CrchflError(f"hex_grid_sites: bad bounds {bounds_m} or spacing {spacing_m}")
+    cx, cy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0
+    row_m = spacing_m * math.sqrt(3.0) / 2.0
+    n_rows = math.ceil((ymax - cy) / row_m) + 1
+    n_cols = math.ceil((xmax - cx) / spacing_m) + 1
+    sites = []
+    for r in range(-n_rows, n_rows + 1):
+        offset = spacing_m / 2.0 if r % 2 else 0.0
+        for c in range(-n_cols, n_cols + 1):
+            x, y = cx + c * spacing_m + offset, cy + r * row_m
+            # keep sites whose cell can touch the bounds
+            if xmin - spacing_m <= x <= xmax + spacing_m and ymin - spacing_m <= y <= ymax + spacing_m:
+                sites.append((x, y))
+    return tuple(EdgeSite(f"{prefix}{i}", x, y, height_m) for i, (x, y) in enumerate(sites))
+
+
+def macro_link_model(
+    macro: MacroLinkConfig,
+    bounds_m: tuple[float, float, float, float],
+    channel: ChannelConfig = ChannelConfig(),
+    mobility: MobilityConfig = MobilityConfig(),
+    seed: int | np.random.Generator = 0,
+) -> LinkModel:
+    """The LinkModel of SFL's direct vehicle <-> cloud link."""
+    return LinkModel(
+        macro.resolve_sites(bounds_m), macro.channel_config(channel), macro.mobility_config(mobility), seed
+    )
+
+
+def rate_series(snapshots: Sequence[LinkSnapshot], vehicle_id: str) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s, rate_bps) of one vehicle over recorded snapshots; 0 where it is absent or uncovered.
+
+    The result feeds transfer.transfer(): rates hold from one sample to the next.
+    """
+    t_s = np.array([s.t_s for s in snapshots], dtype=np.float64)
+    rate_bps = np.array([s.rate_of(vehicle_id) for s in snapshots], dtype=np.float64)
+    return t_s, rate_bps
