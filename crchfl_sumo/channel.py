@@ -289,7 +289,7 @@ _erf = np.frompyfunc(math.erf, 1, 1)
 def standard_normal_cdf(x):
     """Phi(x), for turning a correlated Gaussian state into a uniform one."""
     x = np.asarray(x, dtype=np.float64)
-    return 0.5 * (1.0 + _erf(x / math.sqrt(2.0)).astype(np.float64))
+    return 0.5 * (1.0 + np.asarray(_erf(x / math.sqrt(2.0)), dtype=np.float64))
 
 
 def coherence_time_s(speed_mps, carrier_hz: float, min_speed_mps: float = 1.0):
