@@ -13,8 +13,11 @@ steer (pure pursuit over the FUTURE track, so the label leads the motion)
     delta  = atan(wheelbase_m * kappa)        bicycle-model wheel angle
     steer  = clip(-delta / max_steer_angle, -1, 1)
     Headings are CCW (frame.py), so a left turn has kappa > 0 and steer < 0:
-    the paper's convention, positive = right. A stopped vehicle is steered
-    the same way, at the path it will drive when it moves on.
+    the paper's convention, positive = right.
+    A standing vehicle (below) holds its wheels straight, steer 0: waiting at
+    a light, its images do not show which way its route turns, so a label
+    from the path ahead would be noise there (and the paper's red-light
+    example carries steer 0.000).
 
 throttle / brake (from the acceleration SUMO applied, plus what holding speed costs)
     a_cmd    = accel + resistance(speed)
@@ -175,6 +178,11 @@ def resistance_mps2(speed_mps: np.ndarray, config: ExpertConfig) -> np.ndarray:
     return rolling + config.drag_per_mass_per_m * speed**2
 
 
+def is_standing(speed_mps: np.ndarray, accel_mps2: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """True where a vehicle stands still: slower than stop_speed_mps and not pulling away."""
+    return (np.asarray(speed_mps) < config.stop_speed_mps) & (np.asarray(accel_mps2) <= 0)
+
+
 def pedals(
     speed_mps: np.ndarray,
     accel_mps2: np.ndarray,
@@ -188,7 +196,7 @@ def pedals(
     commanded = accel + resistance_mps2(speed, config)
     throttle = np.clip(commanded / np.asarray(max_accel_mps2, dtype=np.float64), 0.0, 1.0)
     brake = np.clip(-commanded / np.asarray(max_decel_mps2, dtype=np.float64), 0.0, 1.0)
-    standing = (speed < config.stop_speed_mps) & (accel <= 0)
+    standing = is_standing(speed, accel, config)
     throttle = np.where(standing, 0.0, throttle)
     brake = np.where(standing, np.maximum(brake, config.hold_brake), brake)
     return throttle, brake
@@ -197,7 +205,7 @@ def pedals(
 def expert_actions(track: Track, config: ExpertConfig = ExpertConfig()) -> np.ndarray:
     """Actions float32 [T, 3] = (throttle, steer, brake) for every sample of ``track``."""
     curvature = pursuit_curvature(track.x_m, track.y_m, track.heading_rad, lookahead_m(track.speed_mps, config))
-    steer = steer_from_curvature(curvature, config)
+    steer = np.where(is_standing(track.speed_mps, track.accel_mps2, config), 0.0, steer_from_curvature(curvature, config))
     throttle, brake = pedals(track.speed_mps, track.accel_mps2, track.max_accel_mps2, track.max_decel_mps2, config)
     return np.stack([throttle, steer, brake], axis=1).astype(np.float32)
 

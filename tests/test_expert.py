@@ -167,16 +167,17 @@ def test_steer_sign_and_saturation():
     assert steer[3] == -1.0 and steer[4] == 1.0
 
 
-def test_standing_vehicle_steers_at_the_path_ahead():
-    # Waiting at the stop line of a left turn: the road ahead bends left, so steer < 0.
+def test_standing_vehicle_holds_wheels_straight_then_steers_into_the_turn():
+    # Waiting 5 s at the stop line of a left turn, then driving it.
     track, _ = turn_track(radius_m=15.0, left=True)
-    first_turning = np.flatnonzero(track.heading_rad > 1e-9)[0]
-    wait = first_turning - 1
+    wait = on_arc(track)[0] - 2
     rows = np.concatenate([np.full(20, wait), np.arange(wait, len(track))])
     speed = np.where(np.arange(len(rows)) < 20, 0.0, 6.0)
-    stopped = make_track(track.x_m[rows], track.y_m[rows], track.heading_rad[rows], speed)
-    steer = expert_actions(stopped)[:20, 1]
-    assert np.all(steer < 0) and np.all(steer == steer[0])
+    accel = np.where(np.arange(len(rows)) == 20, 2.0, 0.0)
+    stopped = make_track(track.x_m[rows], track.y_m[rows], track.heading_rad[rows], speed, accel)
+    actions = expert_actions(stopped)
+    assert np.all(actions[:20, 1] == 0) and np.all(actions[:20, 2] == CFG.hold_brake)
+    assert actions[20, 1] < -0.1 and actions[20, 0] > 0  # moving off: steer at the bend ahead
 
 
 def test_tracks_from_frames_groups_by_vehicle_in_time_order():
