@@ -52,7 +52,8 @@ class WorldConfig:
     """How the static world is painted.
 
     metres_per_pixel  ground texture resolution [m/px]; 0.1 keeps a 0.15 m line >= 1 px
-    margin_m          off-road ground painted around the network's bounding box [m]
+    margin_m          off-road ground painted around the network's bounding box [m];
+                      must cover raster.max_ground_distance_m plus the camera offset
     sidewalk_width_m  sidewalk band around all road surface [m]
     kerb_width_m      kerb band between road and sidewalk [m]
     marking_width_m   lane and centre line width [m]
@@ -61,7 +62,7 @@ class WorldConfig:
     """
 
     metres_per_pixel: float = 0.1
-    margin_m: float = 30.0
+    margin_m: float = 45.0
     sidewalk_width_m: float = 2.0
     kerb_width_m: float = 0.25
     marking_width_m: float = 0.15

@@ -1,0 +1,386 @@
+"""Per-frame camera images: the static world's ground, other vehicles, traffic lights, sky.
+
+``Renderer(world, config).render(frame, vehicle_ids)`` -> uint8 RGB array
+[vehicles, 4, H, W, 3], cameras in labels.CAMERA_NAMES order. It reads a Frame
+only; it never talks to the simulator.
+
+Method (docs/raster.md has the reasoning and figures):
+  ground   A camera is fixed on its vehicle, so the ground point each pixel
+           sees is fixed in the VEHICLE frame; it is computed once
+           (camera.ground_rays). Per ego only the rigid 2-D transform
+           vehicle -> world changes: one cv2.transform maps the fixed ground
+           points of all four cameras to texture pixels, and one cv2.remap per
+           camera samples the world texture. Pixels whose ray misses the
+           ground within ``max_ground_distance_m`` are sky.
+  objects  Other vehicles (boxes 0..vehicle_height_m) and the signal heads
+           (pole + housing boxes at each stop line) are projected for all
+           (ego, object) pairs in range at once; faces turned away from the
+           camera are dropped, the rest are filled far to near (painter's
+           order by distance to the box centre), after clipping at the near
+           plane. A head's lit lamp is a disc on the face towards the traffic,
+           never smaller than ``lamp_min_radius_px``.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import dataclass, field
+from typing import Literal, Sequence
+
+import cv2
+import numpy as np
+
+from .camera import CameraConfig, camera_from_vehicle, ground_rays
+from .errors import CrchflError
+from .frame import Frame
+from .labels import CAMERA_NAMES
+from .raster_world import SKY_RGB, World
+
+VEHICLE_PALETTE_RGB = (
+    (200, 40, 40),
+    (40, 90, 210),
+    (230, 230, 225),
+    (240, 170, 30),
+    (40, 160, 90),
+    (150, 60, 170),
+    (30, 170, 190),
+    (120, 90, 60),
+)
+POLE_RGB = (55, 55, 55)
+HOUSING_RGB = (20, 20, 20)
+LAMP_RED_RGB = (255, 30, 30)
+LAMP_YELLOW_RGB = (255, 200, 0)
+LAMP_GREEN_RGB = (30, 255, 90)
+
+# Signal head geometry [m]: a pole to HEAD_BOTTOM_M, a housing above it,
+# three lamps (red on top) on the housing's face towards the traffic.
+POLE_SIZE_M = 0.12
+HEAD_BOTTOM_M = 2.0
+HEAD_HEIGHT_M = 0.9
+HEAD_DEPTH_M = 0.3
+HEAD_WIDTH_M = 0.35
+LAMP_RADIUS_M = 0.11
+LAMP_HEIGHTS_M = (HEAD_BOTTOM_M + 0.75, HEAD_BOTTOM_M + 0.45, HEAD_BOTTOM_M + 0.15)  # red, yellow, green
+
+# SUMO signal letter -> lit lamps (0 red, 1 yellow, 2 green). 'o'/'O' (off) and
+# unknown letters light nothing.
+LIT_LAMPS = {"r": (0,), "s": (0,), "u": (0, 1), "y": (1,), "Y": (1,), "g": (2,), "G": (2,)}
+LAMP_RGB = (LAMP_RED_RGB, LAMP_YELLOW_RGB, LAMP_GREEN_RGB)
+
+# Box corner k = 4*ix + 2*iy + iz: ix 0 rear / 1 front, iy 0 right / 1 left, iz 0 bottom / 1 top.
+FACES = np.array(
+    [
+        [4, 6, 7, 5],  # front
+        [0, 2, 3, 1],  # rear (a signal head's lamp face)
+        [2, 6, 7, 3],  # left
+        [0, 4, 5, 1],  # right
+        [1, 5, 7, 3],  # top
+        [0, 4, 6, 2],  # bottom
+    ]
+)
+REAR_FACE = 1
+FACE_SHADE = np.array([0.85, 0.85, 0.7, 0.7, 1.0, 0.5])
+_SHIFT = 4  # fixed-point bits for cv2 polygon filling
+_FAR_AWAY_M = 1.0e7
+
+
+@dataclass(frozen=True)
+class RasterConfig:
+    """Per-frame rendering settings.
+
+    camera                 image size, FOV and poses (camera.CameraConfig)
+    max_ground_distance_m  ground farther than this (horizontally) is drawn as sky [m];
+                           at 64 x 128, 40 m is 1.4 px below CamH's horizon
+    max_object_distance_m  vehicles and signal heads farther than this are not drawn [m]
+    vehicle_height_m       height of the vehicle boxes [m]
+    lamp_min_radius_px     a lit lamp is never drawn smaller, so that a signal
+                           30 m away still covers pixels at the default size
+    interpolation          ground texture sampling, "nearest" (fast) or "linear"
+    """
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    max_ground_distance_m: float = 40.0
+    max_object_distance_m: float = 60.0
+    vehicle_height_m: float = 1.5
+    lamp_min_radius_px: float = 1.0
+    interpolation: Literal["nearest", "linear"] = "nearest"
+
+    def __post_init__(self):
+        for name in ("max_ground_distance_m", "max_object_distance_m", "vehicle_height_m"):
+            if getattr(self, name) <= 0.0:
+                raise CrchflError(f"raster.{name}: {getattr(self, name)} must be > 0")
+        if self.lamp_min_radius_px < 0.0:
+            raise CrchflError(f"raster.lamp_min_radius_px: {self.lamp_min_radius_px} must be >= 0")
+        if self.interpolation not in ("nearest", "linear"):
+            raise CrchflError(f"raster.interpolation: {self.interpolation!r} is not 'nearest' or 'linear'")
+
+
+def box_corners(x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m) -> np.ndarray:
+    """World corners [B, 8, 3] of yaw-only boxes centred at (x, y) (corner order: FACES)."""
+    x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m = np.broadcast_arrays(
+        *(np.asarray(a, dtype=np.float64) for a in (x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m))
+    )
+    ix, iy, iz = np.array([(k >> 2) & 1 for k in range(8)]), np.array([(k >> 1) & 1 for k in range(8)]), np.arange(8) & 1
+    along = (ix - 0.5)[None, :] * length_m[:, None]
+    across = (iy - 0.5)[None, :] * width_m[:, None]
+    c, s = np.cos(heading_rad)[:, None], np.sin(heading_rad)[:, None]
+    z = np.where(iz[None, :] == 1, z_top_m[:, None], z_bottom_m[:, None])
+    return np.stack([x_m[:, None] + c * along - s * across, y_m[:, None] + s * along + c * across, z], axis=-1)
+
+
+def vehicle_rgb(vehicle_id: str) -> tuple[int, int, int]:
+    """A vehicle's body colour: fixed by its id (crc32, not Python's salted hash)."""
+    return VEHICLE_PALETTE_RGB[zlib.crc32(vehicle_id.encode()) % len(VEHICLE_PALETTE_RGB)]
+
+
+def lit_lamps(world: World, tls_states: dict[str, str]) -> list[tuple[int, ...]]:
+    """For each signal head of ``world``: the lamps its SUMO state letter lights."""
+    out = []
+    for head in world.heads:
+        state = tls_states.get(head.tls_id, "")
+        letter = state[head.link_index] if head.link_index < len(state) else ""
+        out.append(LIT_LAMPS.get(letter, ()))
+    return out
+
+
+def _clip_near(polygon: np.ndarray, near_m: float) -> np.ndarray:
+    """Sutherland-Hodgman clip of a camera-frame polygon [N, 3] to z >= near_m."""
+    out = []
+    for i in range(len(polygon)):
+        a, b = polygon[i], polygon[(i + 1) % len(polygon)]
+        a_in, b_in = a[2] >= near_m, b[2] >= near_m
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            t = (near_m - a[2]) / (b[2] - a[2])
+            out.append(a + t * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+class Renderer:
+    """Renders frames of one world with one camera rig; holds only precomputed tables."""
+
+    def __init__(self, world: World, config: RasterConfig | None = None):
+        self.world = world
+        self.config = config or RasterConfig()
+        cam = self.config.camera
+        reach_m = self.config.max_ground_distance_m + max(math.hypot(p.x_m, p.y_m) for p in cam.poses)
+        if world.config.margin_m < reach_m:
+            raise CrchflError(
+                f"world.margin_m: {world.config.margin_m} m of ground around the network is less than "
+                f"raster.max_ground_distance_m plus the camera offset ({reach_m:.1f} m); cameras near the "
+                "network's edge would see sky on the ground. Raise world.margin_m or lower max_ground_distance_m"
+            )
+        self.shape = (len(CAMERA_NAMES), cam.height_px, cam.width_px, 3)
+        self._intrinsics = cam.intrinsics()
+        self._cam_from_vehicle = np.stack([camera_from_vehicle(p)[:3] for p in cam.poses])  # [4, 3, 4]
+        self._interp = cv2.INTER_NEAREST if self.config.interpolation == "nearest" else cv2.INTER_LINEAR
+        self._prepare_ground()
+        self._prepare_heads()
+
+    # -- precomputation -------------------------------------------------------------
+    def _prepare_ground(self) -> None:
+        cam = self.config.camera
+        blocks, self._first_row, self._ground_slices = [], [], []
+        start = 0
+        for c in range(len(CAMERA_NAMES)):
+            ground, hits = ground_rays(cam, c, self.config.max_ground_distance_m)
+            rows_with_ground = np.flatnonzero(hits.any(axis=1))
+            first = int(rows_with_ground[0]) if len(rows_with_ground) else cam.height_px
+            # A ray that misses the ground is sent 10,000 km away: off the texture,
+            # where the border colour is the sky, whatever the ego's pose.
+            block = np.where(hits[first:, :, None], ground[first:], _FAR_AWAY_M).reshape(-1, 2)
+            blocks.append(block)
+            self._first_row.append(first)
+            self._ground_slices.append(slice(start, start + len(block)))
+            start += len(block)
+        self._ground_points = np.concatenate(blocks).astype(np.float32).reshape(-1, 1, 2)
+
+    def _prepare_heads(self) -> None:
+        heads = self.world.heads
+        n = len(heads)
+        x = np.array([h.x_m for h in heads], dtype=np.float64)
+        y = np.array([h.y_m for h in heads], dtype=np.float64)
+        heading = np.array([h.heading_rad for h in heads], dtype=np.float64)
+        poles = box_corners(x, y, heading, POLE_SIZE_M, POLE_SIZE_M, 0.0, HEAD_BOTTOM_M)
+        housings = box_corners(
+            x, y, heading, HEAD_DEPTH_M, HEAD_WIDTH_M, HEAD_BOTTOM_M, HEAD_BOTTOM_M + HEAD_HEIGHT_M
+        )
+        self._static_corners = np.concatenate([poles, housings]).reshape(-1, 8, 3)
+        self._static_centres = np.concatenate([np.stack([x, y], 1), np.stack([x, y], 1)]).reshape(-1, 2)
+        self._static_rgb = [POLE_RGB] * n + [HOUSING_RGB] * n
+        self._static_head = np.concatenate([np.full(n, -1), np.arange(n)])  # housing -> head index
+        self._static_face_rgb = [
+            [tuple(int(v * shade) for v in colour) for shade in FACE_SHADE] for colour in self._static_rgb
+        ]
+        # Lamp centres [n, 3 lamps, 3]: on the housing's rear face, towards the traffic.
+        face_offset = HEAD_DEPTH_M / 2.0 + 0.01
+        lamps = np.empty((n, 3, 3))
+        for k, z in enumerate(LAMP_HEIGHTS_M):
+            lamps[:, k, 0] = x - np.cos(heading) * face_offset
+            lamps[:, k, 1] = y - np.sin(heading) * face_offset
+            lamps[:, k, 2] = z
+        self._lamp_world = lamps
+
+    # -- per frame ------------------------------------------------------------------
+    def render(self, frame: Frame, vehicle_ids: Sequence[str]) -> np.ndarray:
+        """Camera images of each vehicle in ``vehicle_ids``: uint8 RGB [V, 4, H, W, 3]."""
+        row_of = {vid: i for i, vid in enumerate(frame.ids.tolist())}
+        missing = [vid for vid in vehicle_ids if vid not in row_of]
+        if missing:
+            raise KeyError(f"vehicles not in the frame at t={frame.t_s}: {missing[:5]}")
+        ego_rows = np.array([row_of[vid] for vid in vehicle_ids], dtype=np.int64)
+        out = np.empty((len(ego_rows),) + self.shape, np.uint8)
+        if len(ego_rows) == 0:
+            return out
+        vehicle_from_world = _vehicle_from_world_2d(frame, ego_rows)  # [E, 2, 3]
+        texture_from_vehicle = _texture_from_vehicle(self.world.raster_from_world, frame, ego_rows)
+        for e in range(len(ego_rows)):
+            self._draw_ground(out[e], texture_from_vehicle[e])
+        self._draw_objects(out, frame, ego_rows, vehicle_from_world)
+        return out
+
+    def _draw_ground(self, images: np.ndarray, texture_from_vehicle: np.ndarray) -> None:
+        maps = cv2.transform(self._ground_points, texture_from_vehicle)
+        width = self.config.camera.width_px
+        for c, first in enumerate(self._first_row):
+            image = images[c]
+            image[:first] = SKY_RGB
+            if first < image.shape[0]:
+                cv2.remap(
+                    self.world.texture, maps[self._ground_slices[c]].reshape(-1, width, 2), None, self._interp,
+                    dst=image[first:], borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
+                )
+
+    def _draw_objects(self, out, frame, ego_rows, vehicle_from_world) -> None:
+        cfg, cam = self.config, self.config.camera
+        n_vehicles = len(frame)
+        corners = np.concatenate([
+            box_corners(frame.x_m, frame.y_m, frame.heading_rad, frame.length_m, frame.width_m, 0.0, cfg.vehicle_height_m),
+            self._static_corners,
+        ])
+        centres = np.concatenate([np.stack([frame.x_m, frame.y_m], 1), self._static_centres])
+        rgb = [vehicle_rgb(v) for v in frame.ids.tolist()]
+        head_of_box = np.concatenate([np.full(n_vehicles, -1), self._static_head])
+
+        # (ego, box) pairs within range, the ego's own box excluded.
+        ego_xy = np.stack([frame.x_m[ego_rows], frame.y_m[ego_rows]], 1)
+        dist = np.linalg.norm(centres[None, :, :] - ego_xy[:, None, :], axis=2)
+        near = dist <= cfg.max_object_distance_m
+        near[np.arange(len(ego_rows)), ego_rows] = False
+        pair_ego, pair_box = np.nonzero(near)
+        if len(pair_ego) == 0:
+            return
+
+        # camera_from_world for each ego and camera: [E, 4, 3, 4].
+        rot = np.zeros((len(ego_rows), 3, 3))
+        rot[:, :2, :2] = vehicle_from_world[:, :, :2]
+        rot[:, 2, 2] = 1.0
+        trans = np.zeros((len(ego_rows), 3))
+        trans[:, :2] = vehicle_from_world[:, :, 2]
+        cam_rot, cam_trans = self._cam_from_vehicle[:, :, :3], self._cam_from_vehicle[:, :, 3]
+        cfw_rot = np.matmul(cam_rot[None], rot[:, None])  # [E, 4, 3, 3]
+        cfw_trans = np.matmul(cam_rot[None], trans[:, None, :, None])[..., 0] + cam_trans  # [E, 4, 3]
+        pts = (
+            np.matmul(corners[pair_box][:, None], cfw_rot[pair_ego].transpose(0, 1, 3, 2))
+            + cfw_trans[pair_ego][:, :, None, :]
+        )  # [P, 4 cams, 8 corners, 3]
+        x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+        k = self._intrinsics
+        tan_x = (k[0, 2] + 0.5) / k[0, 0]
+        tan_y = (k[1, 2] + 0.5) / k[1, 1]
+        outside = (
+            (z < cam.near_m).all(-1)
+            | (x > tan_x * z).all(-1) | (x < -tan_x * z).all(-1)
+            | (y > tan_y * z).all(-1) | (y < -tan_y * z).all(-1)
+        )
+        face_centres = pts[:, :, FACES].mean(axis=3)  # [P, 4, 6, 3]
+        box_centres = pts.mean(axis=2)  # [P, 4, 3]
+        facing = ((face_centres - box_centres[:, :, None]) * face_centres).sum(-1) < 0  # [P, 4, 6]
+        depth = np.sqrt((box_centres**2).sum(-1))
+        behind = z < cam.near_m  # [P, 4, 8]
+        clip = behind[:, :, FACES].any(-1)  # [P, 4, 6]
+        uv = pts[..., :2] / np.maximum(z, cam.near_m)[..., None] * k[[0, 1], [0, 1]] + k[:2, 2]
+        uv_fixed = np.ascontiguousarray(np.round(uv * (1 << _SHIFT)).astype(np.int32)[:, :, FACES])  # [P, 4, 6, 4, 2]
+
+        # Draw list: visible faces of boxes in view, per (ego, camera) far to near.
+        p_idx, c_idx, f_idx = np.nonzero(facing & ~outside[:, :, None])
+        if len(p_idx) == 0:
+            return
+        order = np.lexsort((f_idx, -depth[p_idx, c_idx], c_idx, pair_ego[p_idx]))
+        p_idx, c_idx, f_idx = p_idx[order], c_idx[order], f_idx[order]
+        polygons = uv_fixed[p_idx, c_idx, f_idx]  # [N, 4, 2], contiguous
+        box_idx = pair_box[p_idx].tolist()
+        face_rgb = self._face_rgb(frame, rgb)
+        images = [[out[e, c] for c in range(len(CAMERA_NAMES))] for e in range(len(ego_rows))]
+        lamps = lit_lamps(self.world, frame.tls_states) if len(self.world.heads) else []
+        head_of = head_of_box.tolist()
+        rows = zip(p_idx.tolist(), pair_ego[p_idx].tolist(), c_idx.tolist(), f_idx.tolist(), box_idx,
+                   clip[p_idx, c_idx, f_idx].tolist())
+        for i, (p, e, c, f, b, needs_clip) in enumerate(rows):
+            image = images[e][c]
+            if needs_clip:
+                self._fill_clipped(image, pts[p, c, FACES[f]], face_rgb[b][f])
+            else:
+                cv2.fillConvexPoly(image, polygons[i], face_rgb[b][f], cv2.LINE_8, _SHIFT)
+            if f == REAR_FACE and head_of[b] >= 0 and lamps[head_of[b]]:
+                camera_from_world = np.hstack([cfw_rot[e, c], cfw_trans[e, c][:, None]])
+                self._draw_lamps(image, camera_from_world, head_of[b], lamps[head_of[b]])
+
+    def _face_rgb(self, frame: Frame, rgb: list) -> list:
+        """Shaded colour of every face of every box: [box][face] -> (r, g, b)."""
+        vehicle_faces = [
+            [tuple(int(v * shade) for v in colour) for shade in FACE_SHADE] for colour in rgb[: len(frame)]
+        ]
+        return vehicle_faces + self._static_face_rgb
+
+    def _fill_clipped(self, image: np.ndarray, polygon_cam: np.ndarray, rgb) -> None:
+        clipped = _clip_near(polygon_cam, self.config.camera.near_m)
+        if len(clipped) < 3:
+            return
+        k = self._intrinsics
+        uv = clipped[:, :2] / clipped[:, 2:3] * k[[0, 1], [0, 1]] + k[:2, 2]
+        # Points just past the near plane project far away; cv2 needs them within int range.
+        uv = np.clip(uv, -1e5, 1e5)
+        cv2.fillConvexPoly(image, np.round(uv * (1 << _SHIFT)).astype(np.int32), rgb, cv2.LINE_8, _SHIFT)
+
+    def _draw_lamps(self, image: np.ndarray, camera_from_world: np.ndarray, head: int, lamps: tuple[int, ...]) -> None:
+        k = self._intrinsics
+        centres = self._lamp_world[head, list(lamps)] @ camera_from_world[:, :3].T + camera_from_world[:, 3]
+        for lamp, centre in zip(lamps, centres):
+            if centre[2] < self.config.camera.near_m:
+                continue
+            u = k[0, 0] * centre[0] / centre[2] + k[0, 2]
+            v = k[1, 1] * centre[1] / centre[2] + k[1, 2]
+            radius = max(self.config.lamp_min_radius_px, k[0, 0] * LAMP_RADIUS_M / centre[2])
+            scale = 1 << _SHIFT
+            cv2.circle(
+                image, (int(round(u * scale)), int(round(v * scale))), int(round(radius * scale)),
+                LAMP_RGB[lamp], -1, cv2.LINE_8, _SHIFT,
+            )
+
+
+def _vehicle_from_world_2d(frame: Frame, rows: np.ndarray) -> np.ndarray:
+    """[E, 2, 3] affine maps world (x, y) -> vehicle (forward, left) for the given rows."""
+    c, s = np.cos(frame.heading_rad[rows]), np.sin(frame.heading_rad[rows])
+    x, y = frame.x_m[rows], frame.y_m[rows]
+    out = np.empty((len(rows), 2, 3))
+    out[:, 0] = np.stack([c, s, -(c * x + s * y)], 1)
+    out[:, 1] = np.stack([-s, c, s * x - c * y], 1)
+    return out
+
+
+def _texture_from_vehicle(raster_from_world: np.ndarray, frame: Frame, rows: np.ndarray) -> np.ndarray:
+    """[E, 2, 3] affine maps vehicle (forward, left) metres -> world texture pixels."""
+    c, s = np.cos(frame.heading_rad[rows]), np.sin(frame.heading_rad[rows])
+    world_from_vehicle = np.empty((len(rows), 3, 3))
+    world_from_vehicle[:, 0] = np.stack([c, -s, frame.x_m[rows]], 1)
+    world_from_vehicle[:, 1] = np.stack([s, c, frame.y_m[rows]], 1)
+    world_from_vehicle[:, 2] = (0.0, 0.0, 1.0)
+    return raster_from_world @ world_from_vehicle
+
+
+def render_frame(world: World, config: RasterConfig, frame: Frame, vehicle_ids: Sequence[str]) -> np.ndarray:
+    """One-off convenience: build a Renderer and render (reuse a Renderer for many frames)."""
+    return Renderer(world, config).render(frame, vehicle_ids)
