@@ -1,6 +1,7 @@
 """Build the built-in SUMO scenarios from the hand-written town descriptions.
 
-    python tools/build_nets.py
+    python tools/build_nets.py            # rewrites crchfl_sumo/scenarios/*
+    python tools/build_nets.py --out DIR  # writes DIR/<scenario>/ instead
 
 Reads crchfl_sumo/scenarios/town01/town01.{nod,edg}.xml,
 town02/town02.{nod,edg}.xml and street.typ.xml, and writes, for each of the
@@ -21,6 +22,7 @@ a date). The binaries come from the eclipse-sumo package (sumo.SUMO_HOME).
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import re
@@ -47,13 +49,12 @@ EGO_DRIVE_S = 7200.0
 BACKGROUND_MIN_S = 3600.0
 BACKGROUND_MAX_SPEED_FACTOR = 1.2
 
-NETCONVERT_OPTIONS = [
-    "--no-turnarounds", "true",  # the towns have no dead ends, so no U-turns anywhere
-    "--offset.disable-normalization", "true",  # keep the coordinates as written
-    "--junctions.corner-detail", "5",  # smooth kerbs at corners and T-junctions
-    "--tls.default-type", "static",  # 42 s green / 3 s yellow per phase, as the reference
-    "--no-warnings", "true",
-]
+NETCONVERT_OPTIONS = {
+    "no-turnarounds": "true",  # the towns have no dead ends, so no U-turns anywhere
+    "offset.disable-normalization": "true",  # keep the coordinates as written
+    "junctions.corner-detail": "5",  # smooth kerbs at corners and T-junctions
+    "tls.default-type": "static",  # 42 s green / 3 s yellow per phase, as the reference
+}
 
 
 @dataclass(frozen=True)
@@ -262,7 +263,8 @@ def write_text(dest: Path, text: str) -> None:
 
 def netconvert(nod: Path, edg: Path, out: Path) -> None:
     run([sumo_binary("netconvert"), "--node-files", str(nod), "--edge-files", str(edg),
-         "--type-files", str(TYPE_FILE), *NETCONVERT_OPTIONS, "--output-file", str(out)])
+         "--type-files", str(TYPE_FILE), "--no-warnings", "true", "--output-file", str(out),
+         *(arg for key, value in NETCONVERT_OPTIONS.items() for arg in (f"--{key}", value))])
 
 
 # ---------------------------------------------------------------- traffic
@@ -327,11 +329,14 @@ def town_trips(town: Town, net_file: Path, vtypes: Path, work: Path) -> list[ET.
     return ET.parse(trips).getroot().findall("trip")
 
 
-def mapped_trips(trips: list[ET.Element], map_edge) -> list[ET.Element]:
+def mapped_trips(trips: list[ET.Element], map_edge, prefix: str) -> list[ET.Element]:
+    """Town-frame trips moved into a two-town network by `map_edge`."""
     out = []
     for trip in trips:
         new = ET.Element("trip", dict(trip.attrib))
         new.set("from", map_edge(trip.get("from"), "first"))
+        if new.get("from") != f"{prefix}_{trip.get('from')}":
+            new.set("departPos", "random")  # the start edge was split: the old position may not fit
         new.set("to", map_edge(trip.get("to"), "last"))
         if trip.get("via"):
             new.set("via", " ".join(map_edge(e, "first") for e in trip.get("via").split()))
@@ -424,8 +429,8 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
 
 
 def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, list[str]],
-                   trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path) -> None:
-    folder = SCENARIOS_DIR / name
+                   trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path, out_root: Path) -> None:
+    folder = out_root / name
     folder.mkdir(parents=True, exist_ok=True)
     nod, edg = write_plain(plain, work, name)
     net_tmp = work / f"{name}.net.xml"
@@ -441,15 +446,17 @@ def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, l
     check_background_lengths(net_tmp, bg_tmp)
 
     replace_into(net_tmp, folder / f"{name}.net.xml",
-                 f"Written by tools/build_nets.py: netconvert {' '.join(NETCONVERT_OPTIONS)}")
+                 "Written by tools/build_nets.py: netconvert with "
+                 + ", ".join(f"{key}={value}" for key, value in NETCONVERT_OPTIONS.items()))
     replace_into(ego_tmp, folder / f"{name}.ego.rou.xml", "Written by tools/build_nets.py")
     replace_into(bg_tmp, folder / f"{name}.bg.rou.xml",
-                 f"Written by tools/build_nets.py: randomTrips.py --seed {SEED}, duarouter")
+                 f"Written by tools/build_nets.py: randomTrips.py with seed {SEED}, then duarouter")
     write_text(folder / f"{name}.sumocfg", sumocfg_xml(name))
     write_text(folder / "scenario.toml", scenario_toml(description, name, net, entries, prefixed))
 
 
-def main() -> None:
+def build_all(out_root: Path = SCENARIOS_DIR) -> None:
+    """Build every built-in scenario into out_root/<name>/ (the package's folder by default)."""
     with tempfile.TemporaryDirectory(prefix="build_nets_") as tmp:
         work = Path(tmp)
         towns = (TOWN01, TOWN02)
@@ -465,7 +472,7 @@ def main() -> None:
             trips[town.name] = town_trips(town, net_file, vtypes, work)
             entry = TownEntry(town, 0.0, 0.0, town.data_vehicles, town.test_vehicles)
             build_scenario(town.name, f"CARLA {town.name.capitalize()} modelled in SUMO, one edge server at its centre",
-                           plains[town.name], town.loops, trips[town.name], [entry], prefixed=False, work=work)
+                           plains[town.name], town.loops, trips[town.name], [entry], prefixed=False, work=work, out_root=out_root)
 
         def prefixed_loops(town: Town, linked: bool) -> dict[str, list[str]]:
             out = {}
@@ -490,7 +497,7 @@ def main() -> None:
             placed_towns = [placed(plains[t.name], t.prefix, *PAPER_OFFSETS_M[t.name]) for t in towns]
             plain = merged(*placed_towns)
             loops = {vid: nodes for t in towns for vid, nodes in prefixed_loops(t, linked).items()}
-            all_trips = [trip for t in towns for trip in mapped_trips(trips[t.name], edge_mapper(t, linked))]
+            all_trips = [trip for t in towns for trip in mapped_trips(trips[t.name], edge_mapper(t, linked), t.prefix)]
             data = {t.name: list(t.data_vehicles) for t in towns}
             if linked:
                 plain = with_link_road(plain)
@@ -502,7 +509,14 @@ def main() -> None:
             else:
                 description = "Town01 and Town02 side by side in one network, no road between them"
             entries = [TownEntry(t, *PAPER_OFFSETS_M[t.name], data[t.name], t.test_vehicles) for t in towns]
-            build_scenario(name, description, plain, loops, all_trips, entries, prefixed=True, work=work)
+            build_scenario(name, description, plain, loops, all_trips, entries, prefixed=True, work=work, out_root=out_root)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=SCENARIOS_DIR,
+                        help="folder to write the scenario folders into (default: the package's scenarios/)")
+    build_all(parser.parse_args(argv).out)
 
 
 if __name__ == "__main__":
