@@ -74,3 +74,16 @@ def test_negative_duration_is_refused(grid):
     with Simulation(grid, seed=1) as sim:
         with pytest.raises(CrchflError, match="duration"):
             list(sim.run(-1.0))
+
+
+def test_signal_ahead_is_read_only_for_watched_vehicles(grid):
+    with Simulation(grid, seed=1) as sim:
+        everyone = list(sim.run(30.0))[-1]
+    watched_id = str(everyone.ids[everyone.tls_ahead_id != ""][0])
+    with Simulation(grid, seed=1, watch={watched_id}) as sim:
+        frame = list(sim.run(30.0))[-1]
+    row = frame.index_of(watched_id)
+    assert frame.tls_ahead_id[row] == everyone.tls_ahead_id[row]
+    others = np.arange(len(frame)) != row
+    assert np.all(frame.tls_ahead_id[others] == "") and np.all(np.isinf(frame.tls_ahead_dist_m[others]))
+    assert np.array_equal(frame.x_m, everyone.x_m)  # watching changes nothing else
