@@ -44,8 +44,8 @@ class TownSplit:
 
 # The paper's data set (FACTS.md): 2 + 3 training vehicles and one test set per town.
 PAPER_TOWNS = (
-    TownSplit("Town01", train_samples=(2928, 2928), test_samples=(1061,)),
-    TownSplit("Town02", train_samples=(2586, 2587, 1555), test_samples=(1020,)),
+    TownSplit("town01", train_samples=(2928, 2928), test_samples=(1061,)),
+    TownSplit("town02", train_samples=(2586, 2587, 1555), test_samples=(1020,)),
 )
 
 

@@ -89,8 +89,8 @@ def test_paper_split_is_the_default():
     plan = shard_plan(DatasetConfig())
     train = [(p.town, p.samples) for p in plan if p.split == "train"]
     test = [(p.town, p.samples) for p in plan if p.split == "test"]
-    assert train == [("Town01", 2928), ("Town01", 2928), ("Town02", 2586), ("Town02", 2587), ("Town02", 1555)]
-    assert test == [("Town01", 1061), ("Town02", 1020)]
+    assert train == [("town01", 2928), ("town01", 2928), ("town02", 2586), ("town02", 2587), ("town02", 1555)]
+    assert test == [("town01", 1061), ("town02", 1020)]
     assert len({p.file for p in plan}) == len(plan)
     assert DatasetConfig().sample_period_s == 0.25
 
