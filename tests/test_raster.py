@@ -1,0 +1,289 @@
+"""Rasterizer tests on a synthetic straight road (no SUMO needed except the netconvert test).
+
+The road runs east-west along y = 0: an eastbound lane centred at y = -1.75 and a
+westbound lane at y = +1.75, each 3.5 m wide; a yellow centre line at y = 0,
+white edge lines at y = -3.25 and +3.25; a signal for the eastbound lane with
+its stop line at x = 50.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+import zlib
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.camera import CameraConfig, project_vehicle_points
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.frame import make_frame
+from crchfl_sumo.raster import (
+    LAMP_GREEN_RGB,
+    LAMP_HEIGHTS_M,
+    LAMP_RED_RGB,
+    VEHICLE_PALETTE_RGB,
+    RasterConfig,
+    Renderer,
+    lit_lamps,
+)
+from crchfl_sumo.raster_world import (
+    SKY_RGB,
+    WHITE_RGB,
+    YELLOW_RGB,
+    Marking,
+    RoadGeometry,
+    SignalHead,
+    WorldConfig,
+    dash_segments,
+    lane_polygon,
+    offset_polyline,
+    paint_world,
+    road_geometry_from_net,
+)
+
+CAM_H, CAM_F, CAM_L, CAM_R = range(4)
+STOP_X = 50.0
+LANE_Y = -1.75
+
+
+def straight_geometry() -> RoadGeometry:
+    east = np.array([[-100.0, LANE_Y], [STOP_X, LANE_Y]])
+    west = np.array([[150.0, -LANE_Y], [-100.0, -LANE_Y]])
+    east_after = np.array([[STOP_X, LANE_Y], [150.0, LANE_Y]])
+    return RoadGeometry(
+        road_polygons=[lane_polygon(east, 3.5), lane_polygon(west, 3.5), lane_polygon(east_after, 3.5)],
+        markings=[
+            Marking(np.array([[-100.0, -3.25], [150.0, -3.25]]), False, WHITE_RGB),
+            Marking(np.array([[-100.0, 0.0], [150.0, 0.0]]), False, YELLOW_RGB),
+            Marking(np.array([[-100.0, 3.25], [150.0, 3.25]]), False, WHITE_RGB),
+        ],
+        stop_lines=[np.array([[STOP_X, 0.0], [STOP_X, -3.5]])],
+        signal_heads=[SignalHead(STOP_X, -3.9, 0.0, "J", 0)],
+    )
+
+
+@pytest.fixture(scope="module")
+def renderer() -> Renderer:
+    return Renderer(paint_world(straight_geometry(), WorldConfig()), RasterConfig())
+
+
+def ego_and(others: dict[str, tuple[float, float, float]], ego=(0.0, LANE_Y, 0.0), tls="r"):
+    """A frame with the ego 'ego' and other vehicles id -> (x, y, heading)."""
+    ids = ["ego"] + list(others)
+    poses = [ego] + list(others.values())
+    return make_frame(
+        ids=ids,
+        x_m=[p[0] for p in poses],
+        y_m=[p[1] for p in poses],
+        heading_rad=[p[2] for p in poses],
+        tls_states={"J": tls},
+    )
+
+
+def changed(renderer, others, ego=(0.0, LANE_Y, 0.0)) -> np.ndarray:
+    """[4, H, W] mask of pixels the other vehicles change in the ego's cameras."""
+    with_them = renderer.render(ego_and(others, ego), ["ego"])[0]
+    without = renderer.render(ego_and({}, ego), ["ego"])[0]
+    return (with_them != without).any(axis=-1)
+
+
+def bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    rows, cols = np.nonzero(mask)
+    return cols.min(), rows.min(), cols.max(), rows.max()
+
+
+def test_output_shape_dtype_and_sky(renderer):
+    images = renderer.render(ego_and({"a": (30.0, LANE_Y, 0.0)}), ["ego", "a"])
+    assert images.shape == (2, 4, 64, 128, 3) and images.dtype == np.uint8
+    assert (images[:, CAM_H, 0] == SKY_RGB).all()  # CamH sees sky at the top
+    assert not (images[:, CAM_F] == SKY_RGB).all(axis=-1).any()  # CamF looks down: no sky
+
+
+def test_vehicle_ten_metres_ahead_lands_where_projected(renderer):
+    config = renderer.config.camera
+    mask = changed(renderer, {"a": (10.0, LANE_Y, 0.0)})[CAM_H]
+    # Its rear face: 10 - 4.5/2 m ahead of the ego's centre, 1.8 m wide, 0..1.5 m high.
+    rear = np.array([[7.75, 0.9, 0.0], [7.75, -0.9, 0.0], [7.75, 0.9, 1.5], [7.75, -0.9, 1.5]])
+    pixels, _ = project_vehicle_points(config, CAM_H, rear)
+    expected = (pixels[:, 0].min(), pixels[:, 1].min(), pixels[:, 0].max(), pixels[:, 1].max())
+    np.testing.assert_allclose(bbox(mask), expected, atol=2.0)
+
+
+def test_vehicle_grows_as_it_gets_closer(renderer):
+    areas = [changed(renderer, {"a": (x, LANE_Y, 0.0)})[CAM_H].sum() for x in (40.0, 20.0, 10.0, 7.0)]
+    assert areas[0] > 0
+    assert all(a < b for a, b in zip(areas, areas[1:]))
+
+
+def test_vehicle_on_the_left_shows_in_cam_l_only(renderer):
+    mask = changed(renderer, {"a": (1.0, -LANE_Y, math.pi)})
+    assert mask[CAM_L].sum() > 100
+    assert not mask[CAM_R].any()
+
+
+def test_vehicle_on_the_right_shows_in_cam_r_only(renderer):
+    mask = changed(renderer, {"a": (1.0, LANE_Y - 3.5, 0.0)})
+    assert mask[CAM_R].sum() > 100
+    assert not mask[CAM_L].any()
+
+
+def test_vehicle_behind_shows_in_no_front_camera(renderer):
+    mask = changed(renderer, {"a": (-12.0, LANE_Y, 0.0)})
+    assert not mask[CAM_H].any() and not mask[CAM_F].any()
+
+
+def test_vehicle_alongside_is_clipped_at_the_near_plane(renderer):
+    # Its right side is 0.1 m from CamL; the face crosses the camera plane.
+    mask = changed(renderer, {"a": (1.0, LANE_Y + 2.2, 0.0)})
+    assert mask[CAM_L].mean() > 0.3
+    assert not mask[CAM_R].any()
+
+
+def ids_with_distinct_colours(n: int) -> list[str]:
+    seen, out = set(), []
+    for i in range(100):
+        vid = f"v{i}"
+        colour = zlib.crc32(vid.encode()) % len(VEHICLE_PALETTE_RGB)
+        if colour not in seen:
+            seen.add(colour)
+            out.append(vid)
+        if len(out) == n:
+            return out
+    raise AssertionError("palette too small")
+
+
+def test_nearer_vehicle_occludes_farther_one(renderer):
+    near_id, far_id = ids_with_distinct_colours(2)
+    frame_both = ego_and({near_id: (10.0, LANE_Y, 0.0), far_id: (14.0, LANE_Y - 0.5, 0.0)})
+    frame_near = ego_and({near_id: (10.0, LANE_Y, 0.0)})
+    both = renderer.render(frame_both, ["ego"])[0, CAM_H]
+    near_only = renderer.render(frame_near, ["ego"])[0, CAM_H]
+    near_mask = changed(renderer, {near_id: (10.0, LANE_Y, 0.0)})[CAM_H]
+    far_mask = changed(renderer, {far_id: (14.0, LANE_Y - 0.5, 0.0)})[CAM_H]
+    assert (near_mask & far_mask).sum() > 10  # they overlap in the image
+    np.testing.assert_array_equal(both[near_mask], near_only[near_mask])
+
+
+def test_lane_markings_project_to_predicted_lines(renderer):
+    """Sampled rows of the centre and edge lines hold the marking colour within 1.5 px of the projection.
+
+    Beyond ~6 m a 0.15 m line is thinner than a pixel's footprint and nearest
+    sampling drops some rows (docs/raster.md), so 80% of the rows must hit.
+    """
+    config = renderer.config.camera
+    image = renderer.render(ego_and({}), ["ego"])[0]
+    checked, hit = 0, 0
+    for cam, ahead in ((CAM_F, np.linspace(3.0, 8.0, 21)), (CAM_H, np.linspace(4.0, 9.0, 21))):
+        for lateral_m, rgb in ((-LANE_Y, YELLOW_RGB), (-1.5, WHITE_RGB)):  # centre line, right edge line
+            points = np.stack([ahead, np.full_like(ahead, lateral_m), np.zeros_like(ahead)], 1)
+            pixels, depth = project_vehicle_points(config, cam, points)
+            for (u, v), d in zip(pixels, depth):
+                row = int(round(v))
+                if d <= 0 or not (0 <= row < config.height_px and 2 <= u < config.width_px - 2):
+                    continue
+                cols = np.flatnonzero((image[cam, row] == rgb).all(axis=-1))
+                cols = cols[np.abs(cols - u) <= 8]  # the other lines of that colour are farther off
+                checked += 1
+                if len(cols):
+                    assert np.abs(cols - u).min() <= 1.5, (cam, lateral_m, row, u, cols)
+                    hit += 1
+    assert checked >= 40
+    assert hit >= 0.8 * checked
+
+
+def lamp_pixels(config: CameraConfig, ego_x: float, lamp: int) -> np.ndarray:
+    """Where a lamp of the test signal projects in CamH for an eastbound ego at ego_x."""
+    point = np.array([[STOP_X - 0.16 - ego_x, -3.9 - LANE_Y, LAMP_HEIGHTS_M[lamp]]])
+    return project_vehicle_points(config, CAM_H, point)[0][0]
+
+
+@pytest.mark.parametrize("decel_mps2", [4.5, 2.5])
+def test_red_and_green_differ_at_the_lamp_from_stop_distance(renderer, decel_mps2):
+    stop_distance_m = 13.89**2 / (2 * decel_mps2)  # 21.4 m hard, 38.6 m comfortable
+    ego_x = STOP_X - stop_distance_m - 4.5 / 2  # front bumper at the stop distance
+    red = renderer.render(ego_and({}, (ego_x, LANE_Y, 0.0), tls="r"), ["ego"])[0]
+    green = renderer.render(ego_and({}, (ego_x, LANE_Y, 0.0), tls="G"), ["ego"])[0]
+    differ = (red != green).any(axis=-1)
+    assert not differ[[CAM_F, CAM_L, CAM_R]].any()
+    rows, cols = np.nonzero(differ[CAM_H])
+    assert len(rows) > 0
+    config = renderer.config.camera
+    for image, lamp, rgb in ((red, 0, LAMP_RED_RGB), (green, 2, LAMP_GREEN_RGB)):
+        u, v = lamp_pixels(config, ego_x, lamp)
+        lit = np.argwhere((image[CAM_H] == rgb).all(axis=-1))
+        assert len(lit) > 0
+        assert np.abs(lit[:, 1] - u).max() <= 2.0 and np.abs(lit[:, 0] - v).max() <= 2.0
+
+
+def test_lamps_face_the_approaching_traffic_only(renderer):
+    ego = (70.0, -LANE_Y, math.pi)  # westbound, looking at the back of the head
+    red = renderer.render(ego_and({}, ego, tls="r"), ["ego"])[0]
+    green = renderer.render(ego_and({}, ego, tls="G"), ["ego"])[0]
+    np.testing.assert_array_equal(red, green)
+
+
+def test_batch_equals_one_by_one(renderer):
+    frame = ego_and({"a": (10.0, LANE_Y, 0.0), "b": (20.0, -LANE_Y, math.pi)})
+    together = renderer.render(frame, ["ego", "a", "b"])
+    for i, vid in enumerate(["ego", "a", "b"]):
+        np.testing.assert_array_equal(together[i], renderer.render(frame, [vid])[0])
+
+
+def test_unknown_vehicle_and_too_small_margin():
+    world = paint_world(straight_geometry(), WorldConfig(margin_m=10.0))
+    with pytest.raises(CrchflError, match="margin_m"):
+        Renderer(world, RasterConfig())
+    with pytest.raises(KeyError):
+        Renderer(world, RasterConfig(max_ground_distance_m=5.0)).render(ego_and({}), ["nobody"])
+
+
+def test_lit_lamps_follow_sumo_letters():
+    world = paint_world(straight_geometry())
+    assert lit_lamps(world, {"J": "r"}) == [(0,)]
+    assert lit_lamps(world, {"J": "y"}) == [(1,)]
+    assert lit_lamps(world, {"J": "G"}) == [(2,)]
+    assert lit_lamps(world, {"J": "u"}) == [(0, 1)]
+    assert lit_lamps(world, {"J": "O"}) == [()]
+    assert lit_lamps(world, {}) == [()]
+
+
+def test_offset_polyline_and_dashes():
+    line = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    left = offset_polyline(line, 1.0)
+    np.testing.assert_allclose(left, [[0, 1], [9, 1], [9, 10]], atol=1e-12)
+    dashes = dash_segments(np.array([[0.0, 0.0], [20.0, 0.0]]), 3.0, 6.0)
+    starts = [d[0, 0] for d in dashes]
+    ends = [d[-1, 0] for d in dashes]
+    assert starts == [0.0, 9.0, 18.0] and ends == [3.0, 12.0, 20.0]
+
+
+@pytest.mark.skipif(shutil.which("netconvert") is None, reason="needs SUMO's netconvert")
+def test_world_from_a_sumo_network(tmp_path):
+    (tmp_path / "n.nod.xml").write_text(
+        '<nodes><node id="A" x="-100" y="0"/><node id="B" x="0" y="0" type="traffic_light"/>'
+        '<node id="C" x="100" y="0"/></nodes>'
+    )
+    (tmp_path / "e.edg.xml").write_text(
+        '<edges><edge id="AB" from="A" to="B" numLanes="2"/><edge id="BA" from="B" to="A" numLanes="2"/>'
+        '<edge id="BC" from="B" to="C" numLanes="2"/><edge id="CB" from="C" to="B" numLanes="2"/></edges>'
+    )
+    net = tmp_path / "t.net.xml"
+    subprocess.run(
+        ["netconvert", "-n", str(tmp_path / "n.nod.xml"), "-e", str(tmp_path / "e.edg.xml"), "-o", str(net),
+         "--no-turnarounds"],
+        check=True, capture_output=True,
+    )
+    geometry = road_geometry_from_net(net)
+    assert len(geometry.stop_lines) == 4  # two incoming edges at B, two lanes each
+    assert {h.tls_id for h in geometry.signal_heads} == {"B"}
+    assert len({h.link_index for h in geometry.signal_heads}) == len(geometry.signal_heads)
+    yellow = [m for m in geometry.markings if m.rgb == YELLOW_RGB]
+    lane_lines = [m for m in geometry.markings if m.dashed]
+    assert len(yellow) == 4 and not any(m.dashed for m in yellow)  # one per edge; no overtaking lanes
+    assert len(lane_lines) == 4  # between the two lanes of every edge
+    world = paint_world(geometry)
+    assert (world.texture == YELLOW_RGB).all(axis=-1).any()
+    with pytest.raises(CrchflError, match="not found"):
+        road_geometry_from_net(tmp_path / "missing.net.xml")
