@@ -205,7 +205,9 @@ def los_path_loss_db(distance_2d_m, site_height_m, cfg: ChannelConfig):
     sp, h_ut = cfg.params, cfg.vehicle_antenna_height_m
     d_bp = breakpoint_distance_m(h_bs, h_ut, cfg.carrier_hz)
     pl1 = sp.los_a + sp.los_b * np.log10(d3) + 20.0 * np.log10(fc_ghz)
-    pl2 = sp.los_a + 40.0 * np.log10(d3) + 20.0 * np.log10(fc_ghz) - sp.los_c * np.log10(d_bp**2 + (h_bs - h_ut) ** 2)
+    pl2 = (
+        sp.los_a + 40.0 * np.log10(d3) + 20.0 * np.log10(fc_ghz) - sp.los_c * np.log10(d_bp**2 + (h_bs - h_ut) ** 2)
+    )
     return np.where(d2 <= d_bp, pl1, pl2)
 
 

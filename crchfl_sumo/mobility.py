@@ -173,6 +173,12 @@ class LinkModel:
         if len(sites) == 0:
             raise CrchflError("edge_sites: a link model needs at least one site; add one to the scenario")
         self.sites = tuple(sites)
+        for site in self.sites:
+            if site.height_m <= ch.ENVIRONMENT_HEIGHT_M:
+                raise CrchflError(
+                    f"edge_sites.{site.name}.height_m = {site.height_m} m: the path-loss model needs a mast "
+                    f"above {ch.ENVIRONMENT_HEIGHT_M} m (TR 38.901 UMi uses 10 m)"
+                )
         self.channel = channel
         self.mobility = mobility
         self._site_x_m = np.array([s.x_m for s in self.sites], dtype=np.float64)
@@ -206,7 +212,9 @@ class LinkModel:
         d2d_m = np.hypot(frame.x_m[:, None] - self._site_x_m, frame.y_m[:, None] - self._site_y_m)
 
         # LOS weight per link: 1 = LOS, 0 = NLOS, in between for "expected".
-        los_z = ch.ar1_step(prev.los_z, travelled_m, sp.los_state_decorrelation_m, self._rng.standard_normal((n, n_sites)))
+        los_z = ch.ar1_step(
+            prev.los_z, travelled_m, sp.los_state_decorrelation_m, self._rng.standard_normal((n, n_sites))
+        )
         p_los = ch.los_probability(d2d_m, cfg.scenario, cfg.vehicle_antenna_height_m)
         los_weight = {
             "random": lambda: (ch.standard_normal_cdf(los_z) < p_los).astype(np.float64),
@@ -221,7 +229,9 @@ class LinkModel:
         decorrelation_m = (
             los_weight * sp.shadow_decorrelation_los_m + (1.0 - los_weight) * sp.shadow_decorrelation_nlos_m
         )
-        shadow_z = ch.ar1_step(prev.shadow_z, travelled_m, decorrelation_m, self._rng.standard_normal((n, n_sites)))
+        shadow_z = ch.ar1_step(
+            prev.shadow_z, travelled_m, decorrelation_m, self._rng.standard_normal((n, n_sites))
+        )
         shadowing_db = sigma_db * shadow_z if cfg.shadowing else 0.0
         rx_dbm = ch.received_power_dbm(path_loss, shadowing_db, cfg)  # [V, S]
 
@@ -268,7 +278,7 @@ class LinkModel:
         return LinkSnapshot(
             t_s=t_s,
             ids=np.asarray(frame.ids).copy(),
-            site=serving,
+            site=serving.copy(),
             rx_power_dbm=rx_serving,
             snr_db=snr_serving_db,
             rate_bps=rate_bps,
@@ -311,8 +321,7 @@ def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: Mobilit
     n, n_sites = rx_dbm.shape
     rows = np.arange(n)
     masked = np.where(eligible, rx_dbm, -np.inf)
-    best = np.argmax(masked, axis=1) if n_sites else np.zeros(n, dtype=np.int64)
-    best = np.where(eligible.any(axis=1), best, NO_SITE)
+    best = np.where(eligible.any(axis=1), np.argmax(masked, axis=1), NO_SITE)
 
     serving_col = np.where(serving >= 0, serving, 0)
     keeps = (serving >= 0) & eligible[rows, serving_col]

@@ -96,7 +96,8 @@ def transfer(
             return TransferResult(False, float(a), sent_bits / 8.0, stalled_s, "outage")
         give_up_t = a + cfg.max_outage_s
         if b > give_up_t and give_up_t < deadline_t:
-            return TransferResult(False, float(give_up_t), sent_bits / 8.0, stalled_s + cfg.max_outage_s, "outage")
+            stalled_s += cfg.max_outage_s
+            return TransferResult(False, float(give_up_t), sent_bits / 8.0, stalled_s, "outage")
         if b >= deadline_t:
             stalled_s += deadline_t - a
             break

@@ -140,7 +140,8 @@ def test_wireline_rate():
 
 
 def test_configs_from_toml_mapping_and_validation():
-    cfg = from_mapping(ChannelConfig, {"carrier_hz": 3.5e9, "bandwidth_hz": 40e6, "los_mode": "expected"}, "channel")
+    table = {"carrier_hz": 3.5e9, "bandwidth_hz": 40e6, "los_mode": "expected"}
+    cfg = from_mapping(ChannelConfig, table, "channel")
     assert cfg.carrier_hz == 3.5e9 and cfg.bandwidth_hz == 40e6 and cfg.los_mode == "expected"
     with pytest.raises(CrchflError, match="carrier_hz"):
         ChannelConfig(carrier_hz=5.9)  # GHz instead of Hz

@@ -200,7 +200,8 @@ def test_fading_lowers_the_mean_rate_below_the_fading_free_rate():
     frames = [make_frame(t_s=k * 0.25, ids=["v"], x_m=[250.0], speed_mps=[10.0]) for k in range(200)]
     faded = LinkModel(far, channel, seed=2)
     mean_faded = np.mean([faded.step(f).rate_bps[0] for f in frames])
-    flat = LinkModel(far, ChannelConfig(los_mode="nlos", shadowing=False, fading=False)).step(frames[0]).rate_bps[0]
+    flat_channel = ChannelConfig(los_mode="nlos", shadowing=False, fading=False)
+    flat = LinkModel(far, flat_channel).step(frames[0]).rate_bps[0]
     assert 0.6 * flat < mean_faded < flat
 
 
@@ -251,3 +252,5 @@ def test_config_errors_name_the_key():
         MobilityConfig(time_to_trigger_s=-1.0)
     with pytest.raises(CrchflError, match="edge_sites"):
         LinkModel(())
+    with pytest.raises(CrchflError, match="edge_sites.low.height_m"):
+        LinkModel((EdgeSite("low", 0.0, 0.0, height_m=0.5),))
