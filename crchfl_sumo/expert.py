@@ -168,7 +168,8 @@ def pursuit_curvature(
 def steer_from_curvature(curvature_per_m: np.ndarray, config: ExpertConfig) -> np.ndarray:
     """Bicycle model: curvature (CCW +) -> steer in [-1, 1] (positive = RIGHT)."""
     delta_rad = np.arctan(config.wheelbase_m * np.asarray(curvature_per_m, dtype=np.float64))
-    return np.clip(-delta_rad / math.radians(config.max_steer_angle_deg), -1.0, 1.0)
+    # (+ 0.0 turns the -0.0 of a straight road into 0.0)
+    return np.clip(-delta_rad / math.radians(config.max_steer_angle_deg), -1.0, 1.0) + 0.0
 
 
 def resistance_mps2(speed_mps: np.ndarray, config: ExpertConfig) -> np.ndarray:

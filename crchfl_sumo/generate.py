@@ -1,0 +1,196 @@
+"""The data set generation pipeline: simulate, label, render, write shards.
+
+1. Run the scenario once and keep every step's Frame (small: arrays per
+   vehicle). Each planned vehicle is sampled every ``sample_period_s`` from
+   its departure until it has its sample count; the run goes on
+   ``FUTURE_S`` more seconds so the last samples have a path ahead to label.
+2. Per shard (one vehicle): build its track from all frames, label every
+   step with the expert (expert.py), keep the sampled steps, render their
+   four camera images (raster.py), write the shard (dataset_io.py).
+
+Shards already finished by an earlier run with the same settings are
+skipped (their rendering is the expensive part; the simulation is rerun,
+and with the same seed it reproduces the same frames). Which vehicles are
+sampled is the scenario's choice: each town lists its ``data_vehicles`` and
+``test_vehicles`` (scenario.toml), started in different parts of the town.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .config import to_mapping
+from .dataset import DatasetConfig, PlannedShard, shard_plan
+from .dataset_io import DatasetWriter, Manifest, ShardData, label_schema
+from .errors import CrchflError
+from .expert import ExpertConfig, expert_labels, tracks_from_frames
+from .frame import Frame
+from .raster import RasterConfig, Renderer
+from .raster_world import WorldConfig, build_world
+from .scenario import Scenario
+from .sim import Simulation
+from .sites import EdgeSite
+
+log = logging.getLogger(__name__)
+
+FUTURE_S = 10.0  # simulated time kept after the last sample: >= the look-ahead at any town speed
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+
+
+def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
+    """Shard file -> vehicle id, from the scenario towns' data/test vehicle lists."""
+    towns = {t.name: t for t in scenario.towns}
+    assigned = {}
+    for shard in plan:
+        town = towns.get(shard.town)
+        if town is None:
+            raise CrchflError(
+                f"dataset.towns: scenario '{scenario.name}' has no town '{shard.town}' "
+                f"(it has: {', '.join(sorted(towns))}); name one of those"
+            )
+        vehicles = town.data_vehicles if shard.split == "train" else town.test_vehicles
+        key = "data_vehicles" if shard.split == "train" else "test_vehicles"
+        if shard.index >= len(vehicles):
+            raise CrchflError(
+                f"dataset.towns.{shard.town}: {shard.index + 1} {shard.split} vehicles wanted, scenario "
+                f"'{scenario.name}' names {len(vehicles)} in its town's {key}; ask for fewer or name more"
+            )
+        assigned[shard.file] = vehicles[shard.index]
+    return assigned
+
+
+def nearest_site(sites: Sequence[EdgeSite], x_m: np.ndarray, y_m: np.ndarray) -> str:
+    """The edge site nearest to most of the given positions ('' without sites)."""
+    if not sites or len(x_m) == 0:
+        return ""
+    sx = np.array([s.x_m for s in sites])
+    sy = np.array([s.y_m for s in sites])
+    nearest = np.hypot(x_m[:, None] - sx, y_m[:, None] - sy).argmin(axis=1)
+    return sites[int(np.bincount(nearest, minlength=len(sites)).argmax())].name
+
+
+def record_run(
+    scenario: Scenario,
+    seed: int,
+    needed: dict[str, int],
+    sample_period_s: float,
+    progress: Progress | None = None,
+) -> tuple[list[Frame], dict[str, list[int]]]:
+    """Simulate until each vehicle in ``needed`` has its samples (plus FUTURE_S).
+
+    Returns every step's Frame and, per vehicle, the indices of its sampled frames.
+    """
+    step_s = scenario.step_length_s
+    every = int(round(sample_period_s / step_s))
+    if every < 1 or not math.isclose(every * step_s, sample_period_s, rel_tol=1e-6):
+        raise CrchflError(
+            f"dataset.sample_period_s = {sample_period_s} is not a multiple of the scenario's step "
+            f"length {step_s} s; choose a multiple"
+        )
+    longest_s = max(needed.values(), default=0) * sample_period_s
+    max_steps = int((4 * longest_s + 600.0) / step_s)
+    frames: list[Frame] = []
+    sampled: dict[str, list[int]] = {v: [] for v in needed}
+    seen: set[str] = set()
+    done_at: int | None = None
+    with Simulation(scenario, seed=seed, watch=set(needed)) as sim:
+        for step in range(max_steps):
+            frame = sim.step()
+            frames.append(frame)
+            present = set(frame.ids.tolist())
+            if round(frame.t_s / step_s) % every == 0:
+                for vehicle, rows in sampled.items():
+                    if vehicle in present and len(rows) < needed[vehicle]:
+                        rows.append(len(frames) - 1)
+            for vehicle in needed:
+                if vehicle in present:
+                    seen.add(vehicle)
+                elif vehicle in seen and len(sampled[vehicle]) < needed[vehicle]:
+                    raise CrchflError(
+                        f"vehicle '{vehicle}' left the network after {len(sampled[vehicle])} of its "
+                        f"{needed[vehicle]} samples; ask for fewer samples or give it a longer route"
+                    )
+            if done_at is None and all(len(sampled[v]) >= n for v, n in needed.items()):
+                done_at = step
+            if progress is not None and step % 40 == 0:
+                progress("simulate", sum(len(r) for r in sampled.values()), sum(needed.values()))
+            if done_at is not None and (step - done_at) * step_s >= FUTURE_S:
+                break
+        else:
+            short = {v: len(r) for v, r in sampled.items() if len(r) < needed[v]}
+            raise CrchflError(
+                f"after {max_steps * step_s:.0f} simulated seconds these vehicles still lack samples "
+                f"(have: {short}); check that they depart in scenario '{scenario.name}'"
+            )
+        stats = sim.stats()
+    if stats.teleports or stats.collisions:
+        log.warning("run had %d teleports and %d collisions", stats.teleports, stats.collisions)
+    return frames, sampled
+
+
+def generate_dataset(
+    scenario: Scenario,
+    out_dir: str | Path,
+    seed: int = 0,
+    sizes: DatasetConfig = DatasetConfig(),
+    raster: RasterConfig = RasterConfig(),
+    world: WorldConfig = WorldConfig(),
+    expert: ExpertConfig = ExpertConfig(),
+    progress: Progress | None = None,
+) -> Manifest:
+    """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest."""
+    plan = shard_plan(sizes)
+    vehicles = assign_vehicles(scenario, plan)
+    header = Manifest(
+        scenario=scenario.name,
+        seed=int(seed),
+        sample_period_s=sizes.sample_period_s,
+        image_height=raster.camera.height_px,
+        image_width=raster.camera.width_px,
+        camera={"raster": to_mapping(raster), "world": to_mapping(world)},
+        labels={**label_schema(), "expert": to_mapping(expert)},
+        compression=sizes.compression,
+    )
+    writer = DatasetWriter(Path(out_dir), header)
+    pending = [p for p in plan if not writer.is_done(p.file)]
+    if not pending:
+        log.info("%s: all %d shards already finished", out_dir, len(plan))
+        return writer.manifest
+    log.info("%d of %d shards to write", len(pending), len(plan))
+    needed = {vehicles[p.file]: p.samples for p in pending}
+    frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress)
+    tracks = tracks_from_frames(frames)
+    renderer = Renderer(build_world(scenario.net_path, world), raster)
+    total = sum(needed.values())
+    done = 0
+    for shard in pending:
+        vehicle = vehicles[shard.file]
+        track = tracks[vehicle]
+        actions, steer_class = expert_labels(track, expert)
+        frame_rows = sampled[vehicle]
+        rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
+        images = np.empty((len(rows), *renderer.shape), np.uint8)
+        for k, i in enumerate(frame_rows):
+            images[k] = renderer.render(frames[i], [vehicle])[0]
+            if progress is not None and k % 50 == 0:
+                progress("render", done + k, total)
+        data = ShardData(
+            images=images,
+            actions=actions[rows],
+            steer_class=steer_class[rows],
+            t_s=track.t_s[rows],
+            x_m=track.x_m[rows],
+            y_m=track.y_m[rows],
+            heading_rad=track.heading_rad[rows],
+        )
+        edge = nearest_site(scenario.edge_sites, data.x_m, data.y_m)
+        writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
+        done += len(rows)
+        if progress is not None:
+            progress("render", done, total)
+    return writer.manifest

@@ -1,0 +1,79 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.camera import CameraConfig
+from crchfl_sumo.config import from_mapping
+from crchfl_sumo.dataset import DatasetConfig, load_samples, shard_plan
+from crchfl_sumo.dataset_io import read_manifest, read_shard
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.generate import assign_vehicles, generate_dataset, nearest_site
+from crchfl_sumo.labels import digitize_steer
+from crchfl_sumo.raster import RasterConfig
+from crchfl_sumo.scenario import load_scenario
+from crchfl_sumo.sites import EdgeSite
+
+SIZES = {"towns": [{"town": "town01", "train_samples": [6, 5], "test_samples": [4]}]}
+RASTER = RasterConfig(camera=CameraConfig(height_px=24, width_px=48))
+
+
+def paper_scenario():
+    scenario = load_scenario("paper")
+    # Simulation passes its own --seed; drop the one the .sumocfg carries.
+    options = tuple(o for o in scenario.sumo_options if not o.startswith("--seed="))
+    return dataclasses.replace(scenario, sumo_options=options)
+
+
+class Stop(Exception):
+    pass
+
+
+def test_vehicles_come_from_the_scenario_towns():
+    scenario = paper_scenario()
+    sizes = from_mapping(DatasetConfig, SIZES)
+    assert list(assign_vehicles(scenario, shard_plan(sizes)).values()) == ["t01_data_0", "t01_data_1", "t01_test_0"]
+    too_many = from_mapping(DatasetConfig, {"towns": [{"town": "town01", "train_samples": [1, 1, 1]}]})
+    with pytest.raises(CrchflError, match="data_vehicles"):
+        assign_vehicles(scenario, shard_plan(too_many))
+    with pytest.raises(CrchflError, match="no town 'Town9'"):
+        assign_vehicles(scenario, shard_plan(from_mapping(DatasetConfig, {"towns": [{"town": "Town9", "train_samples": [1]}]})))
+
+
+def test_nearest_site_takes_the_majority():
+    sites = (EdgeSite("a", 0.0, 0.0), EdgeSite("b", 100.0, 0.0))
+    assert nearest_site(sites, np.array([10.0, 90.0, 95.0]), np.zeros(3)) == "b"
+    assert nearest_site((), np.zeros(1), np.zeros(1)) == ""
+
+
+@pytest.mark.slow
+def test_generate_then_resume_after_interruption_is_identical(tmp_path):
+    scenario = paper_scenario()
+    sizes = from_mapping(DatasetConfig, SIZES)
+    full = generate_dataset(scenario, tmp_path / "full", seed=3, sizes=sizes, raster=RASTER)
+    assert [(s.vehicle, s.split, s.samples, s.edge) for s in full.shards] == [
+        ("t01_test_0", "test", 4, "edge01"),
+        ("t01_data_0", "train", 6, "edge01"),
+        ("t01_data_1", "train", 5, "edge01"),
+    ]
+    data = read_shard(tmp_path / "full", full.entry("town01-train-0.h5"))
+    assert np.allclose(np.diff(data.t_s), 0.25)
+    assert data.images.shape == (6, 4, 24, 48, 3) and data.images.std() > 10  # not blank
+    assert np.array_equal(data.steer_class, digitize_steer(data.actions[:, 1]))
+    assert data.actions[0, 2] == 0.9 and data.actions[1, 0] == 1.0  # inserted at rest, then pulls away
+    assert full.png_bytes_per_sample > 0
+
+    def stop_after_first_shard(stage, done, total):
+        if stage == "render" and done >= 4:
+            raise Stop
+
+    with pytest.raises(Stop):
+        generate_dataset(scenario, tmp_path / "cut", seed=3, sizes=sizes, raster=RASTER, progress=stop_after_first_shard)
+    assert [s.file for s in read_manifest(tmp_path / "cut").shards] == ["town01-train-0.h5"]
+    resumed = generate_dataset(scenario, tmp_path / "cut", seed=3, sizes=sizes, raster=RASTER)
+    assert resumed == full
+    for entry in full.shards:
+        assert (tmp_path / "cut" / entry.file).read_bytes() == (tmp_path / "full" / entry.file).read_bytes()
+    assert len(load_samples(tmp_path / "cut", split="train")) == 11
+    with pytest.raises(CrchflError, match="other settings"):
+        generate_dataset(scenario, tmp_path / "cut", seed=4, sizes=sizes, raster=RASTER)
