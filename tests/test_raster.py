@@ -287,3 +287,22 @@ def test_world_from_a_sumo_network(tmp_path):
     assert (world.texture == YELLOW_RGB).all(axis=-1).any()
     with pytest.raises(CrchflError, match="not found"):
         road_geometry_from_net(tmp_path / "missing.net.xml")
+
+
+def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
+    import cv2
+
+    from crchfl_sumo.mosaic import render_run
+
+    frames = [ego_and({"a": (20.0 + i, LANE_Y, 0.0)}, ego=(float(i), LANE_Y, 0.0)) for i in range(5)]
+    frames.append(make_frame(ids=["a"], x_m=[30.0], y_m=[LANE_Y]))  # the ego has left
+    result = render_run(frames, renderer, "ego", tmp_path / "out", every_n=2, scale=2)
+    assert [p.name for p in result.png_paths] == ["step_000000.png", "step_000002.png", "step_000004.png"]
+    assert result.frames_seen == 6
+    picture = cv2.imread(str(result.png_paths[0]))
+    # 2 x 2 cameras at scale 2 (256 x 512) plus a square map of the grid's height.
+    assert picture.shape == (256, 512 + 256, 3)
+    assert result.video_path is not None and result.video_path.stat().st_size > 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "run.mp4", "step_000000.png", "step_000002.png", "step_000004.png"
+    ]
