@@ -1,0 +1,82 @@
+"""Model checkpoints: a plain dict of tensors and plain values, loadable with weights_only=True.
+
+Layout of the saved dict: ``format`` (CHECKPOINT_FORMAT), ``model_config``
+(plain mapping of ModelConfig), ``state_dict`` (name -> tensor, on the CPU) and
+``extra`` (plain JSON-like values: epoch, metrics ...). Written atomically.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .config import from_mapping, to_mapping
+from .errors import CrchflError
+from .model import DrivingModel, ModelConfig
+
+CHECKPOINT_FORMAT = "crchfl-sumo-model/1"
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What a checkpoint file holds."""
+
+    model_config: ModelConfig
+    state_dict: dict[str, torch.Tensor]
+    extra: dict[str, Any]
+
+
+def save_checkpoint(
+    path: str | Path,
+    model_config: ModelConfig,
+    state_dict: dict[str, torch.Tensor],
+    extra: dict[str, Any] | None = None,
+) -> None:
+    """Write a checkpoint to ``path`` via a temp file in the same folder and os.replace."""
+    path = Path(path)
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "model_config": to_mapping(model_config),
+        "state_dict": {name: t.detach().cpu().contiguous() for name, t in state_dict.items()},
+        "extra": dict(extra or {}),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            torch.save(payload, stream)
+        os.replace(temp_name, path)
+    except BaseException:
+        Path(temp_name).unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint written by save_checkpoint (weights_only=True: no code is unpickled)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CrchflError(f"{path}: checkpoint not found; check the path")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt or foreign files
+        raise CrchflError(f"{path}: not a readable checkpoint ({exc}); point to a checkpoint.pt written by crchfl-sumo") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CrchflError(f"{path}: not a crchfl-sumo checkpoint (format {CHECKPOINT_FORMAT} expected)")
+    model_config = from_mapping(ModelConfig, payload["model_config"], f"{path}: model_config")
+    return Checkpoint(model_config, dict(payload["state_dict"]), dict(payload["extra"]))
+
+
+def load_model(path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
+    """The model stored in a checkpoint, in eval mode, on ``device``."""
+    checkpoint = load_checkpoint(path)
+    model = DrivingModel(checkpoint.model_config)
+    try:
+        model.load_state_dict(checkpoint.state_dict)
+    except RuntimeError as exc:
+        raise CrchflError(f"{path}: weights do not fit the stored model config ({exc})") from None
+    return model.to(device).eval()

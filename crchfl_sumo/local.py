@@ -1,0 +1,465 @@
+"""Local training and evaluation of driving models: one vehicle, many vehicles, or centralized.
+
+Training settings follow the paper's Table II: branch I (throttle, brake) is
+trained with MSE, branch II (steer class) with cross-entropy, each branch by its
+own Adam (betas 0.9/0.999, weight decay 3e-3, learning rate 1e-4), batch 32.
+The reported Loss is the sum of both branch losses; Accuracy is branch II's
+top-1 accuracy.
+
+Many vehicles of one aggregation step are trained by ``train_vehicles``. Two
+methods give the same result (tests/test_local.py checks it):
+
+- ``sequential``: one vehicle after the other with torch.optim.Adam. Fastest on
+  a CPU, where a batch of 32 already keeps the cores busy (docs/model.md).
+- ``vmap``: all vehicles at once, torch.func.functional_call + vmap over
+  stacked parameters, with a stacked Adam. Vehicles with fewer batches simply
+  drop out of the vmapped step once their batches are used up (ragged data).
+
+Models cross this module's boundary as plain state dicts (name -> tensor).
+Each vehicle starts with fresh optimizer state, as a vehicle does after it
+receives a new model. Shuffling uses a torch.Generator seeded from the caller's
+seed and the vehicle's index, so the result does not depend on the method.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+import torch
+from torch.func import functional_call, grad, vmap
+from torch.nn import functional as F
+
+from .checkpoint import save_checkpoint
+from .config import to_mapping
+from .errors import CrchflError
+from .model import DrivingModel, ModelConfig, build_model
+from .samples import Samples
+
+log = logging.getLogger(__name__)
+
+State = dict[str, torch.Tensor]
+Progress = Callable[[int], None]
+
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of local training (defaults: the paper's Table II).
+
+    learning_rate, beta1, beta2, weight_decay, adam_eps: Adam of each branch.
+    batch_size: training batch (32); eval_batch_size: batch for evaluation only.
+    device: "auto" (CUDA when present, else CPU), "cpu" or "cuda".
+    deterministic: torch.use_deterministic_algorithms for reproducible runs.
+    multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
+    """
+
+    learning_rate: float = 1e-4
+    beta1: float = 0.9
+    beta2: float = 0.999
+    weight_decay: float = 3e-3
+    adam_eps: float = 1e-8
+    batch_size: int = 32
+    eval_batch_size: int = 256
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    deterministic: bool = False
+    multi_vehicle: Literal["sequential", "vmap"] = "sequential"
+
+    def __post_init__(self) -> None:
+        if not self.learning_rate > 0:
+            raise CrchflError(f"train.learning_rate: {self.learning_rate} must be > 0 (paper: 1e-4)")
+        for key in ("beta1", "beta2"):
+            if not 0 <= getattr(self, key) < 1:
+                raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")
+        if self.weight_decay < 0:
+            raise CrchflError(f"train.weight_decay: {self.weight_decay} must be >= 0 (paper: 3e-3)")
+        if not self.adam_eps > 0:
+            raise CrchflError(f"train.adam_eps: {self.adam_eps} must be > 0")
+        if self.batch_size < 1 or self.eval_batch_size < 1:
+            raise CrchflError("train.batch_size and train.eval_batch_size must be >= 1 (paper: 32)")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise CrchflError(f"train.device: {self.device!r} is unknown; use 'auto', 'cpu' or 'cuda'")
+        if self.multi_vehicle not in ("sequential", "vmap"):
+            raise CrchflError(f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use 'sequential' or 'vmap'")
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """Loss (sum of both branch losses), Accuracy (branch II top-1) and the parts, over num_samples.
+
+    A vehicle without samples gets num_samples 0 and NaN values.
+    """
+
+    loss: float
+    accuracy: float
+    loss_throttle_brake: float
+    loss_steer: float
+    num_samples: int
+
+    @staticmethod
+    def from_sums(loss_tb_sum: float, loss_steer_sum: float, correct: float, count: int) -> Metrics:
+        if count == 0:
+            return Metrics(math.nan, math.nan, math.nan, math.nan, 0)
+        loss_tb, loss_steer = loss_tb_sum / count, loss_steer_sum / count
+        return Metrics(loss_tb + loss_steer, correct / count, loss_tb, loss_steer, count)
+
+
+def resolve_device(name: str) -> torch.device:
+    """"auto" -> CUDA when available, else CPU; "cuda" without a GPU is a CrchflError."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise CrchflError("train.device: 'cuda' was asked for but no CUDA device is available; use 'auto' or 'cpu'")
+    return torch.device(name)
+
+
+def configure_determinism(enabled: bool) -> None:
+    """Turn on deterministic algorithms (process-wide); does nothing when ``enabled`` is False."""
+    if not enabled:
+        return
+    # cuBLAS needs a fixed workspace to be deterministic; it reads this before its first use.
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.backends.cudnn.benchmark = False
+    torch.use_deterministic_algorithms(True)
+
+
+def vehicle_seed(seed: int, vehicle_index: int) -> int:
+    """Seed of one vehicle's shuffling, derived from the caller's seed."""
+    return int(np.random.SeedSequence([seed, vehicle_index]).generate_state(1)[0])
+
+
+def epoch_batches(num_samples: int, batch_size: int, generator: torch.Generator) -> list[torch.Tensor]:
+    """Index batches of one epoch: a fresh permutation cut into batch_size pieces (last one shorter)."""
+    if num_samples == 0:
+        return []
+    return list(torch.randperm(num_samples, generator=generator).split(batch_size))
+
+
+def branch_losses(
+    throttle_brake: torch.Tensor, steer_logits: torch.Tensor, actions: torch.Tensor, steer_class: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(MSE of branch I on throttle and brake, cross-entropy of branch II), batch means."""
+    target = actions[:, [0, 2]]
+    return F.mse_loss(throttle_brake, target), F.cross_entropy(steer_logits, steer_class)
+
+
+@torch.no_grad()
+def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Metrics:
+    """Loss and Accuracy of ``model`` on ``samples`` (the model's device, eval mode)."""
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    sums = torch.zeros(3, dtype=torch.float64, device=device)
+    try:
+        for start in range(0, len(samples), config.eval_batch_size):
+            batch = samples.subset(slice(start, start + config.eval_batch_size)).to(device)
+            throttle_brake, steer_logits = model(batch.images)
+            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, batch.actions, batch.steer_class)
+            n = len(batch)
+            correct = (steer_logits.argmax(dim=1) == batch.steer_class).sum()
+            sums += torch.stack([loss_tb * n, loss_steer * n, correct.to(loss_tb.dtype)]).to(torch.float64)
+    finally:
+        model.train(was_training)
+    loss_tb_sum, loss_steer_sum, correct = sums.tolist()
+    return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
+
+
+class LocalTrainer:
+    """One model with one Adam per branch; trains epoch by epoch on Samples.
+
+    The model is owned by the trainer and updated in place; ``state()`` gives
+    a CPU copy of its weights.
+    """
+
+    def __init__(self, model: DrivingModel, config: TrainConfig) -> None:
+        self.model = model
+        self.config = config
+        adam = dict(
+            lr=config.learning_rate,
+            betas=(config.beta1, config.beta2),
+            eps=config.adam_eps,
+            weight_decay=config.weight_decay,
+        )
+        self.optimizers = (
+            torch.optim.Adam(model.branch_throttle_brake.parameters(), **adam),
+            torch.optim.Adam(model.branch_steer.parameters(), **adam),
+        )
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    def state(self) -> State:
+        return {name: t.detach().cpu().clone() for name, t in self.model.state_dict().items()}
+
+    def train_epoch(self, samples: Samples, generator: torch.Generator, progress: Progress | None = None) -> Metrics:
+        """One pass over ``samples`` in shuffled batches; metrics are those of the batches as trained."""
+        self.model.train()
+        samples = samples.to(self.device)
+        sums = torch.zeros(3, dtype=torch.float64, device=self.device)
+        for indices in epoch_batches(len(samples), self.config.batch_size, generator):
+            indices = indices.to(self.device)
+            images, actions, steer_class = samples.images[indices], samples.actions[indices], samples.steer_class[indices]
+            for optimizer in self.optimizers:
+                optimizer.zero_grad(set_to_none=True)
+            throttle_brake, steer_logits = self.model(images)
+            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, actions, steer_class)
+            # The branches share no weights, so one backward of the sum gives each branch its own gradient.
+            (loss_tb + loss_steer).backward()
+            for optimizer in self.optimizers:
+                optimizer.step()
+            n = len(indices)
+            with torch.no_grad():
+                correct = (steer_logits.argmax(dim=1) == steer_class).sum().to(torch.float64)
+                sums += torch.stack([loss_tb.detach().double() * n, loss_steer.detach().double() * n, correct])
+            if progress is not None:
+                progress(n)
+        loss_tb_sum, loss_steer_sum, correct = sums.tolist()
+        return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
+
+
+def _model_from_state(model_config: ModelConfig, state: State, device: torch.device) -> DrivingModel:
+    model = DrivingModel(model_config)
+    model.load_state_dict(state)
+    return model.to(device)
+
+
+def train_vehicle(
+    state: State,
+    samples: Samples,
+    epochs: int,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    seed: int,
+    progress: Progress | None = None,
+) -> tuple[State, list[Metrics]]:
+    """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
+    configure_determinism(config.deterministic)
+    trainer = LocalTrainer(_model_from_state(model_config, state, resolve_device(config.device)), config)
+    generator = torch.Generator().manual_seed(seed)
+    metrics = [trainer.train_epoch(samples, generator, progress) for _ in range(epochs)]
+    return trainer.state(), metrics
+
+
+def train_vehicles(
+    states: Sequence[State],
+    vehicle_samples: Sequence[Samples],
+    epochs: int,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    seed: int,
+    progress: Progress | None = None,
+) -> tuple[list[State], list[list[Metrics]]]:
+    """Train every vehicle's model on its own samples, by ``config.multi_vehicle``.
+
+    states[i] is vehicle i's starting model (pass the same dict several times
+    for a shared start). Returns new states (CPU) and per-vehicle, per-epoch
+    training metrics. Vehicle i shuffles with ``vehicle_seed(seed, i)``.
+    """
+    if len(states) != len(vehicle_samples):
+        raise ValueError(f"train_vehicles: {len(states)} states for {len(vehicle_samples)} vehicles")
+    if epochs < 0:
+        raise ValueError("train_vehicles: epochs must be >= 0")
+    configure_determinism(config.deterministic)
+    if config.multi_vehicle == "vmap" and states:
+        return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed, progress)
+    results = [
+        train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i), progress)
+        for i, (state, samples) in enumerate(zip(states, vehicle_samples))
+    ]
+    return [state for state, _ in results], [metrics for _, metrics in results]
+
+
+def _train_vehicles_vmap(
+    states: Sequence[State],
+    vehicle_samples: Sequence[Samples],
+    epochs: int,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    seed: int,
+    progress: Progress | None,
+) -> tuple[list[State], list[list[Metrics]]]:
+    """All vehicles in one vmapped step; Adam on stacked tensors, identical to torch.optim.Adam's update."""
+    device = resolve_device(config.device)
+    num_vehicles, batch_size = len(states), config.batch_size
+    # A weightless copy of the network for functional_call: its parameters are replaced on each call.
+    template = DrivingModel(model_config).to("meta")
+    names = [name for name, _ in template.named_parameters()]
+    params = {name: torch.stack([s[name] for s in states]).to(device, torch.float32) for name in names}
+    exp_avg = {name: torch.zeros_like(p) for name, p in params.items()}
+    exp_avg_sq = {name: torch.zeros_like(p) for name, p in params.items()}
+    samples_on_device = [s.to(device) for s in vehicle_samples]
+
+    # Each vehicle's whole schedule (all epochs) as (epoch, indices); vehicle v takes its t-th step at step t.
+    schedules: list[list[tuple[int, torch.Tensor]]] = []
+    for v, samples in enumerate(vehicle_samples):
+        generator = torch.Generator().manual_seed(vehicle_seed(seed, v))
+        schedules.append(
+            [(e, idx) for e in range(epochs) for idx in epoch_batches(len(samples), batch_size, generator)]
+        )
+    # Per vehicle and epoch: summed branch-I loss, branch-II loss, correct count.
+    sums = torch.zeros(num_vehicles, max(epochs, 1), 3, dtype=torch.float64, device=device)
+
+    def loss_fn(p: State, images: torch.Tensor, actions: torch.Tensor, steer_class: torch.Tensor, weight: torch.Tensor):
+        throttle_brake, steer_logits = functional_call(template, p, (images,))
+        per_sample_tb = (throttle_brake - actions[:, [0, 2]]).square().mean(dim=1)
+        per_sample_steer = F.cross_entropy(steer_logits, steer_class, reduction="none")
+        n = weight.sum()
+        loss_tb = (per_sample_tb * weight).sum() / n
+        loss_steer = (per_sample_steer * weight).sum() / n
+        correct = ((steer_logits.argmax(dim=1) == steer_class).to(weight.dtype) * weight).sum()
+        return loss_tb + loss_steer, torch.stack([loss_tb * n, loss_steer * n, correct]).detach()
+
+    grad_fn = vmap(grad(loss_fn, has_aux=True))
+    num_steps = max((len(s) for s in schedules), default=0)
+    for step in range(num_steps):
+        active = [v for v in range(num_vehicles) if step < len(schedules[v])]
+        images, actions, classes, weights = [], [], [], []
+        for v in active:
+            indices = schedules[v][step][1].to(device)
+            n = len(indices)
+            weight = torch.ones(batch_size, device=device)
+            if n < batch_size:  # short last batch: pad with sample 0 at weight 0
+                indices = torch.cat([indices, indices.new_zeros(batch_size - n)])
+                weight[n:] = 0
+            samples = samples_on_device[v]
+            images.append(samples.images[indices])
+            actions.append(samples.actions[indices])
+            classes.append(samples.steer_class[indices])
+            weights.append(weight)
+        every = len(active) == num_vehicles
+        rows = torch.tensor(active, device=device)
+        current = params if every else {name: p[rows] for name, p in params.items()}
+        grads, batch_sums = grad_fn(
+            current, torch.stack(images), torch.stack(actions), torch.stack(classes), torch.stack(weights)
+        )
+        _stacked_adam_step(params, exp_avg, exp_avg_sq, grads, None if every else rows, step + 1, config)
+        epoch_of = torch.tensor([schedules[v][step][0] for v in active], device=device)
+        sums.index_put_((rows, epoch_of), batch_sums.to(torch.float64), accumulate=True)
+        if progress is not None:
+            progress(int(sum(w.sum().item() for w in weights)))
+
+    new_states = [{name: params[name][v].detach().cpu().clone() for name in names} for v in range(num_vehicles)]
+    sums_cpu = sums.cpu().tolist()
+    metrics = [
+        [Metrics.from_sums(*sums_cpu[v][e], len(vehicle_samples[v])) for e in range(epochs)]
+        for v in range(num_vehicles)
+    ]
+    return new_states, metrics
+
+
+@torch.no_grad()
+def _stacked_adam_step(
+    params: State,
+    exp_avg: State,
+    exp_avg_sq: State,
+    grads: State,
+    rows: torch.Tensor | None,
+    step: int,
+    config: TrainConfig,
+) -> None:
+    """torch.optim.Adam's update (L2 weight decay added to the gradient) on the given rows of stacked tensors.
+
+    All rows updated together are at the same step count, so bias corrections are scalars.
+    """
+    beta1, beta2 = config.beta1, config.beta2
+    bias_correction1 = 1 - beta1**step
+    bias_correction2_sqrt = math.sqrt(1 - beta2**step)
+    step_size = config.learning_rate / bias_correction1
+    for name, g in grads.items():
+        p = params[name] if rows is None else params[name][rows]
+        m = exp_avg[name] if rows is None else exp_avg[name][rows]
+        v = exp_avg_sq[name] if rows is None else exp_avg_sq[name][rows]
+        g = g.add(p, alpha=config.weight_decay)
+        m.lerp_(g, 1 - beta1)
+        v.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+        denom = (v.sqrt() / bias_correction2_sqrt).add_(config.adam_eps)
+        p.addcdiv_(m, denom, value=-step_size)
+        if rows is not None:  # rows were gathered copies: write them back
+            params[name][rows] = p
+            exp_avg[name][rows] = m
+            exp_avg_sq[name][rows] = v
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    handle, temp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as stream:
+            stream.write(text)
+        os.replace(temp_name, path)
+    except BaseException:
+        Path(temp_name).unlink(missing_ok=True)
+        raise
+
+
+def train_centralized(
+    train: Samples,
+    test: Samples,
+    epochs: int,
+    out_dir: str | Path,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    seed: int,
+    progress: Progress | None = None,
+    initial_state: State | None = None,
+) -> list[dict[str, float | int]]:
+    """Train one model on all samples (the upper bound of the federated schemes).
+
+    After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
+    (one line per epoch: epoch, loss, accuracy, loss_throttle_brake,
+    loss_steer on the test set; train_loss, train_accuracy; samples_per_s) and
+    ``out_dir/checkpoint.pt``, both atomically. ``progress(n)`` is called after
+    each batch of n samples. Returns the metric records.
+    """
+    if epochs < 1:
+        raise CrchflError(f"epochs: {epochs} must be >= 1")
+    if len(train) == 0 or len(test) == 0:
+        raise CrchflError("train: the training or test set is empty; check the data set folder")
+    if train.image_hw != (model_config.image_height, model_config.image_width):
+        raise CrchflError(
+            f"model.image_height/image_width: {model_config.image_height} x {model_config.image_width} does not "
+            f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
+        )
+    configure_determinism(config.deterministic)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(config.device)
+    model = build_model(model_config, seed) if initial_state is None else _model_from_state(model_config, initial_state, device)
+    trainer = LocalTrainer(model.to(device), config)
+    generator = torch.Generator().manual_seed(seed)
+    train_on_device, test_on_device = train.to(device), test.to(device)
+    records: list[dict[str, float | int]] = []
+    for epoch in range(1, epochs + 1):
+        start_s = time.perf_counter()
+        train_metrics = trainer.train_epoch(train_on_device, generator, progress)
+        train_time_s = time.perf_counter() - start_s
+        test_metrics = evaluate(trainer.model, test_on_device, config)
+        record = {
+            "epoch": epoch,
+            **{k: v for k, v in asdict(test_metrics).items() if k != "num_samples"},
+            "test_samples": test_metrics.num_samples,
+            "train_loss": train_metrics.loss,
+            "train_accuracy": train_metrics.accuracy,
+            "train_samples": train_metrics.num_samples,
+            "samples_per_s": len(train) / train_time_s,
+        }
+        records.append(record)
+        log.info("epoch %d: test loss %.4f, accuracy %.3f", epoch, record["loss"], record["accuracy"])
+        _write_text_atomic(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
+        save_checkpoint(
+            out_dir / CHECKPOINT_FILE,
+            model_config,
+            trainer.model.state_dict(),
+            {"epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record},
+        )
+    return records

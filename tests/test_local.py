@@ -1,0 +1,152 @@
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.checkpoint import load_checkpoint, load_model, save_checkpoint
+from crchfl_sumo.config import from_mapping
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.local import (
+    LocalTrainer,
+    TrainConfig,
+    evaluate,
+    resolve_device,
+    train_centralized,
+    train_vehicles,
+)
+from crchfl_sumo.model import ModelConfig, build_model
+from crchfl_sumo.samples import Samples
+
+SMALL = ModelConfig("compact", 48, 64)
+CPU = TrainConfig(device="cpu")
+
+
+def _samples(n, seed):
+    rng = np.random.default_rng(seed)
+    return Samples.from_numpy(
+        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
+        rng.random((n, 3), dtype=np.float32),
+        rng.integers(0, 7, size=n),
+    )
+
+
+def test_one_training_step_lowers_the_loss_on_a_fixed_batch():
+    batch = _samples(32, seed=1)
+    trainer = LocalTrainer(build_model(SMALL, seed=0), CPU)
+    before = evaluate(trainer.model, batch, CPU)
+    trainer.train_epoch(batch, torch.Generator().manual_seed(0))  # 32 samples = exactly one step
+    after = evaluate(trainer.model, batch, CPU)
+    assert after.loss < before.loss
+    assert after.loss_throttle_brake < before.loss_throttle_brake and after.loss_steer < before.loss_steer
+
+
+def test_evaluate_matches_a_direct_computation_and_ignores_batching():
+    samples = _samples(23, seed=2)
+    model = build_model(SMALL, seed=0)
+    small_batches = evaluate(model, samples, TrainConfig(device="cpu", eval_batch_size=5))
+    with torch.no_grad():
+        throttle_brake, logits = model(samples.images)
+    mse = ((throttle_brake - samples.actions[:, [0, 2]]) ** 2).mean().item()
+    ce = torch.nn.functional.cross_entropy(logits, samples.steer_class).item()
+    accuracy = (logits.argmax(1) == samples.steer_class).float().mean().item()
+    assert small_batches.loss_throttle_brake == pytest.approx(mse, rel=1e-5)
+    assert small_batches.loss_steer == pytest.approx(ce, rel=1e-5)
+    assert small_batches.loss == pytest.approx(mse + ce, rel=1e-5)
+    assert small_batches.accuracy == pytest.approx(accuracy)
+    assert small_batches.num_samples == 23
+
+
+def _max_difference(a, b):
+    return max((a[k] - b[k]).abs().max().item() for k in a)
+
+
+@pytest.mark.slow
+def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles():
+    # Ragged on purpose: 70 (two full batches + 6), 33 (one + 1), 0 (idle) and 45 samples.
+    vehicles = [_samples(n, seed=10 + i) for i, n in enumerate((70, 33, 0, 45))]
+    start = [build_model(SMALL, seed=s).state_dict() for s in (0, 1, 2, 0)]
+    results = {
+        method: train_vehicles(start, vehicles, 2, SMALL, TrainConfig(device="cpu", multi_vehicle=method), seed=5)
+        for method in ("sequential", "vmap")
+    }
+    (seq_states, seq_metrics), (vmap_states, vmap_metrics) = results["sequential"], results["vmap"]
+    for v in range(4):
+        moved = _max_difference(seq_states[v], start[v])
+        # Stated tolerance: float32 rounding of grouped vs plain convolutions, far below one Adam step (1e-4).
+        assert _max_difference(seq_states[v], vmap_states[v]) < 1e-6
+        assert (moved > 1e-4) == (v != 2)
+        for a, b in zip(seq_metrics[v], vmap_metrics[v]):
+            assert a.num_samples == b.num_samples
+            if a.num_samples:
+                assert a.loss == pytest.approx(b.loss, rel=1e-5) and a.accuracy == pytest.approx(b.accuracy)
+            else:
+                assert math.isnan(a.loss) and math.isnan(b.loss)
+
+
+def test_train_vehicles_is_reproducible_and_seed_dependent():
+    vehicles = [_samples(20, seed=3), _samples(12, seed=4)]
+    state = build_model(SMALL, seed=0).state_dict()
+    run = lambda seed: train_vehicles([state, state], vehicles, 1, SMALL, CPU, seed=seed)[0]
+    first, again, other = run(7), run(7), run(8)
+    assert all(_max_difference(a, b) == 0 for a, b in zip(first, again))
+    assert _max_difference(first[0], other[0]) > 0
+    assert all(torch.equal(state[k], build_model(SMALL, seed=0).state_dict()[k]) for k in state)  # input untouched
+
+
+def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
+    model = build_model(SMALL, seed=0)
+    path = tmp_path / "sub" / "model.pt"
+    save_checkpoint(path, SMALL, model.state_dict(), {"epoch": 3, "note": "x"})
+    assert sorted(p.name for p in path.parent.iterdir()) == ["model.pt"]  # no temp file left behind
+    raw = torch.load(path, weights_only=True)
+    assert raw["model_config"] == {"size": "compact", "image_height": 48, "image_width": 64}
+    checkpoint = load_checkpoint(path)
+    assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
+    loaded = load_model(path)
+    assert _max_difference(loaded.state_dict(), model.state_dict()) == 0
+    images = _samples(2, seed=0).images
+    assert torch.equal(loaded(images)[1], model.eval()(images)[1])
+
+
+def test_checkpoint_errors_name_the_file(tmp_path):
+    with pytest.raises(CrchflError, match="not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CrchflError, match="junk.pt"):
+        load_checkpoint(tmp_path / "junk.pt")
+
+
+def test_train_centralized_writes_metrics_and_checkpoint(tmp_path):
+    train, test = _samples(40, seed=20), _samples(10, seed=21)
+    seen = []
+    records = train_centralized(train, test, 2, tmp_path, SMALL, CPU, seed=0, progress=seen.append)
+    assert sum(seen) == 2 * 40 and max(seen) == 32
+    lines = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert lines == records and [r["epoch"] for r in lines] == [1, 2]
+    for key in ("loss", "accuracy", "loss_throttle_brake", "loss_steer", "samples_per_s", "train_loss"):
+        assert key in lines[0]
+    assert lines[0]["loss"] == pytest.approx(lines[0]["loss_throttle_brake"] + lines[0]["loss_steer"])
+    checkpoint = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert checkpoint.extra["epoch"] == 2
+    reloaded = evaluate(load_model(tmp_path / "checkpoint.pt"), test, CPU)
+    assert reloaded.loss == pytest.approx(lines[-1]["loss"], rel=1e-5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "metrics.jsonl"]
+
+
+def test_train_centralized_rejects_a_size_mismatch(tmp_path):
+    with pytest.raises(CrchflError, match="image_height"):
+        train_centralized(_samples(4, 0), _samples(2, 1), 1, tmp_path, ModelConfig("compact", 64, 64), CPU, seed=0)
+
+
+def test_train_config_validation():
+    assert from_mapping(TrainConfig, {"batch_size": 16, "multi_vehicle": "vmap"}).batch_size == 16
+    with pytest.raises(CrchflError, match="batch_size"):
+        TrainConfig(batch_size=0)
+    with pytest.raises(CrchflError, match="multi_vehicle"):
+        from_mapping(TrainConfig, {"multi_vehicle": "threads"})
+    assert resolve_device("cpu") == torch.device("cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(CrchflError, match="cuda"):
+            resolve_device("cuda")

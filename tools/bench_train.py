@@ -1,0 +1,115 @@
+"""Benchmark: training many vehicle models vs one sequential loop vs one centralized model.
+
+In one run, on the same synthetic samples (vehicle sizes in the proportions of
+the paper's data set, FACTS.md), measures training throughput of
+  (a) train_vehicles with multi_vehicle="vmap" (the batched trainer),
+  (b) train_vehicles with multi_vehicle="sequential" (the plain per-vehicle loop),
+  (c) one centralized model on all samples (LocalTrainer.train_epoch),
+and prints samples/s, the ratios a/c, a/b, b/c, and the achieved GFLOP/s of
+each against a large float32 matmul measured in the same run.
+
+Usage: python tools/bench_train.py [--scale 0.05] [--height 66] [--width 200] [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from crchfl_sumo.local import LocalTrainer, TrainConfig, branch_losses, train_vehicles
+from crchfl_sumo.model import DrivingModel, ModelConfig, build_model
+from crchfl_sumo.samples import Samples
+
+PAPER_VEHICLE_SAMPLES = (2928, 2928, 2586, 2587, 1555)
+
+
+def synthetic_samples(num_samples: int, height: int, width: int, rng: np.random.Generator) -> Samples:
+    actions = rng.random((num_samples, 3), dtype=np.float32)
+    return Samples.from_numpy(
+        rng.integers(0, 256, size=(num_samples, 4, height, width, 3), dtype=np.uint8),
+        actions,
+        rng.integers(0, 7, size=num_samples),
+    )
+
+
+def train_flops_per_sample(model_config: ModelConfig, batch_size: int) -> float:
+    """FLOPs of one forward + backward pass, per sample, counted by torch's flop counter."""
+    model = DrivingModel(model_config)
+    batch = synthetic_samples(batch_size, model_config.image_height, model_config.image_width, np.random.default_rng(0))
+    with FlopCounterMode(display=False) as counter:
+        throttle_brake, steer_logits = model(batch.images)
+        loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, batch.actions, batch.steer_class)
+        (loss_tb + loss_steer).backward()
+    return counter.get_total_flops() / batch_size
+
+
+def matmul_gflops(size: int = 2048, repeats: int = 10) -> float:
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    start = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2 * size**3 * repeats / (time.perf_counter() - start) / 1e9
+
+
+def timed(function) -> float:
+    start = time.perf_counter()
+    function()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scale", type=float, default=0.05, help="fraction of the paper's per-vehicle sample counts")
+    parser.add_argument("--height", type=int, default=66)
+    parser.add_argument("--width", type=int, default=200)
+    parser.add_argument("--repeats", type=int, default=2, help="timed repeats of each method (best is kept)")
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    args = parser.parse_args()
+
+    rng = np.random.default_rng(0)
+    counts = [max(1, round(n * args.scale)) for n in PAPER_VEHICLE_SAMPLES]
+    vehicles = [synthetic_samples(n, args.height, args.width, rng) for n in counts]
+    everything = Samples.concat(vehicles)
+    total = len(everything)
+    model_config = ModelConfig("compact", args.height, args.width)
+    state = build_model(model_config, seed=0).state_dict()
+    states = [state] * len(vehicles)
+    configs = {m: TrainConfig(device=args.device, multi_vehicle=m) for m in ("vmap", "sequential")}
+
+    def run_multi(method: str) -> None:
+        train_vehicles(states, vehicles, 1, model_config, configs[method], seed=1)
+
+    def run_central() -> None:
+        trainer = LocalTrainer(build_model(model_config, seed=0), configs["sequential"])
+        trainer.model.to(trainer.device if args.device != "auto" else torch.device("cuda" if torch.cuda.is_available() else "cpu"))
+        trainer.train_epoch(everything, torch.Generator().manual_seed(1))
+
+    runs = {"a vmap": lambda: run_multi("vmap"), "b sequential": lambda: run_multi("sequential"), "c centralized": run_central}
+    # Warm-up once each, then interleave the timed repeats so load changes hit all methods alike.
+    for function in runs.values():
+        function()
+    best_s = {name: float("inf") for name in runs}
+    for _ in range(args.repeats):
+        for name, function in runs.items():
+            best_s[name] = min(best_s[name], timed(function))
+
+    flops = train_flops_per_sample(model_config, TrainConfig().batch_size)
+    peak = matmul_gflops()
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
+    print(f"vehicles {counts} = {total} samples, image {args.height}x{args.width}, batch 32, 1 epoch, best of {args.repeats}")
+    print(f"train FLOPs per sample {flops / 1e9:.3f} GFLOP; float32 matmul 2048^3: {peak:.1f} GFLOP/s")
+    rate = {name: total / seconds for name, seconds in best_s.items()}
+    for name, samples_per_s in rate.items():
+        gflops = samples_per_s * flops / 1e9
+        print(f"{name:14s} {samples_per_s:8.1f} samples/s  {gflops:6.1f} GFLOP/s  ({100 * gflops / peak:4.1f}% of matmul)")
+    a, b, c = rate["a vmap"], rate["b sequential"], rate["c centralized"]
+    print(f"a/c = {a / c:.3f}   a/b = {a / b:.3f}   b/c = {b / c:.3f}")
+
+
+if __name__ == "__main__":
+    main()
