@@ -19,6 +19,7 @@ Inputs are never modified; every returned tensor is new memory.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Mapping, Sequence
 
 import torch
@@ -65,7 +66,7 @@ def _check_weights(states: Sequence[StateDict], weights: Sequence[float]) -> Non
     if len(weights) != len(states):
         raise CrchflError(f"weighted_average: {len(states)} states but {len(weights)} weights; pass one weight per state")
     for i, w in enumerate(weights):
-        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(float(w)) or w < 0:
+        if isinstance(w, bool) or not isinstance(w, numbers.Real) or not math.isfinite(float(w)) or w < 0:
             raise CrchflError(f"weighted_average: weight {i} is {w!r}; weights are sample counts, finite and >= 0")
     if sum(float(w) for w in weights) <= 0:
         raise CrchflError("weighted_average: the weights sum to zero; at least one model must carry samples")

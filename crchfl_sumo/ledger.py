@@ -463,26 +463,18 @@ class Ledger:
         return cls(sizes, records)
 
 
+_FIELD_TYPES = {"size_bytes": int, "cloud_round": int, "start_s": float, "end_s": float}
+_ALLOWED = {"link": LINKS, "direction": ("uplink", "downlink"), "stage": STAGES, "payload": ("model", "samples")}
+
+
 def _record_from_row(row: Mapping[str, object]) -> Record:
     if set(row) != set(_RECORD_FIELDS):
         raise ValueError(f"fields {sorted(row)} differ from {list(_RECORD_FIELDS)}")
-    record = Record(
-        link=str(row["link"]),  # type: ignore[arg-type]
-        direction=str(row["direction"]),  # type: ignore[arg-type]
-        stage=str(row["stage"]),  # type: ignore[arg-type]
-        sender=str(row["sender"]),
-        receiver=str(row["receiver"]),
-        payload=str(row["payload"]),  # type: ignore[arg-type]
-        size_bytes=int(row["size_bytes"]),  # type: ignore[arg-type]
-        cloud_round=int(row["cloud_round"]),  # type: ignore[arg-type]
-        start_s=float(row["start_s"]),  # type: ignore[arg-type]
-        end_s=float(row["end_s"]),  # type: ignore[arg-type]
-    )
-    if record.link not in LINKS or record.stage not in STAGES or record.payload not in ("model", "samples"):
-        raise ValueError(f"bad record {row}")
-    if record.direction not in ("uplink", "downlink"):
-        raise ValueError(f"bad record {row}")
-    return record
+    values = {name: _FIELD_TYPES.get(name, str)(row[name]) for name in _RECORD_FIELDS}
+    for name, allowed in _ALLOWED.items():
+        if values[name] not in allowed:
+            raise ValueError(f"{name} {values[name]!r} is not one of {allowed}")
+    return Record(**values)
 
 
 # ---------------------------------------------------------------- replay

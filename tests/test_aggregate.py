@@ -82,6 +82,13 @@ def test_inputs_not_mutated_and_outputs_are_new_memory():
     assert single["w"].data_ptr() != a["w"].data_ptr()
 
 
+def test_numpy_sample_counts_are_weights():
+    import numpy as np
+
+    out = weighted_average([{"p": torch.tensor([0.0])}, {"p": torch.tensor([4.0])}], list(np.array([1, 3])))
+    assert out["p"].item() == 3.0
+
+
 def test_fedavg_pairs():
     out = fedavg([({"p": torch.tensor([0.0])}, 1), ({"p": torch.tensor([4.0])}, 3)])
     assert out["p"].item() == 3.0

@@ -68,7 +68,8 @@ def test_paper_scenario_keeps_nine_cloud_rounds():
 def test_mobility_rates_change_the_answer():
     slow = dataclasses.replace(PAPER_LIKE, wireless_rate_bps=2e6)  # 150 MB takes 629 s per wireless hop
     plan = make_plan(slow, LedgerConfig(budget_gb=20.0))
-    assert plan.round_time_s == pytest.approx(round_time_s(slow, costs_for(slow, "paper", Topology.from_counts((2, 3)), resolve_sizes(LedgerConfig())), plan.edge_interval, plan.cloud_interval))
+    costs = costs_for(slow, "paper", Topology.from_counts((2, 3)), resolve_sizes(LedgerConfig()))
+    assert plan.round_time_s == pytest.approx(round_time_s(slow, costs, plan.edge_interval, plan.cloud_interval))
     assert (plan.edge_interval, plan.cloud_rounds) != (5, 9)
 
 
