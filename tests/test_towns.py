@@ -98,6 +98,26 @@ def test_t_junctions_are_signalised_and_the_rest_are_plain_corners(town):
         assert (ax - cx) * (bx - cx) + (ay - cy) * (by - cy) == pytest.approx(0.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("town", ["town01", "town02"])
+def test_corners_turn_on_a_10m_radius(town):
+    """Roads stop 10 m before a corner node; the curve between them is the
+    internal lane, whose speed SUMO limits by lateral acceleration
+    (5.5 m/s^2: sqrt(5.5 * 8) = 6.6 m/s on the inner lane's 8 m radius)."""
+    inner = sumolib.net.readNet(str(SCENARIOS_DIR / town / f"{town}.net.xml"), withInternal=True)
+    for node in inner.getNodes():
+        if node.getType() != "priority":
+            continue
+        cx, cy = node.getCoord()
+        for edge in node.getIncoming():
+            x, y = edge.getShape()[-1]  # lane end, where the curve starts
+            # the roads are axis-aligned: the distance along the road is the larger offset
+            assert max(abs(x - cx), abs(y - cy)) == pytest.approx(10.0, abs=0.01)
+        vias = [c.getViaLaneID() for c in node.getConnections() if c.getViaLaneID()]
+        assert len(vias) == 2
+        for via in vias:
+            assert inner.getLane(via).getSpeed() > 6.6
+
+
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_every_road_has_one_4m_lane_each_way_at_50_kmh(name):
     edges = net(name).getEdges()

@@ -54,6 +54,7 @@ NETCONVERT_OPTIONS = {
     "offset.disable-normalization": "true",  # keep the coordinates as written
     "junctions.corner-detail": "5",  # smooth kerbs at corners and T-junctions
     "tls.default-type": "static",  # 42 s green / 3 s yellow per phase, as the reference
+    "tls.allred.time": "2",  # 2 s all-red after each yellow, so the junction clears
 }
 
 
@@ -203,6 +204,63 @@ def with_link_road(plain: Plain) -> Plain:
     out.edges.append(ET.Element("edge", {"id": f"link_{a}_{b}", "from": a, "to": b, "type": "street"}))
     out.edges.append(ET.Element("edge", {"id": f"link_{b}_{a}", "from": b, "to": a, "type": "street"}))
     return out
+
+
+def arc(centre: tuple[float, float], radius_m: float, start: tuple[float, float], end: tuple[float, float],
+        points: int) -> list[tuple[float, float]]:
+    """`points` points on the shorter circular arc around `centre` from direction `start` to `end`."""
+    a0, a1 = math.atan2(start[1], start[0]), math.atan2(end[1], end[0])
+    sweep = (a1 - a0 + math.pi) % (2 * math.pi) - math.pi
+    return [(centre[0] + radius_m * math.cos(a0 + sweep * k / (points - 1)),
+             centre[1] + radius_m * math.sin(a0 + sweep * k / (points - 1))) for k in range(points)]
+
+
+def corner_shape(corner: tuple[float, float], arm1: tuple[float, float], arm2: tuple[float, float],
+                 radius_m: float, half_width_m: float) -> list[tuple[float, float]]:
+    """Outline of a rounded 90-degree corner: the roads leave it `radius_m` from
+    the node along unit directions arm1/arm2; the kerbs are arcs around the
+    centre of the turn."""
+    cx, cy = corner[0] + radius_m * (arm1[0] + arm2[0]), corner[1] + radius_m * (arm1[1] + arm2[1])
+    # directions from the turn's centre to where the roads leave the corner: -arm2 and -arm1
+    d1, d2 = (-arm2[0], -arm2[1]), (-arm1[0], -arm1[1])
+    outer = arc((cx, cy), radius_m + half_width_m, d1, d2, 7)
+    inner = arc((cx, cy), radius_m - half_width_m, d2, d1, 5)
+    return outer + inner
+
+
+def with_corner_shapes(plain: Plain, half_width_m: float) -> Plain:
+    # half_width_m: half the road's width, i.e. one lane
+    """Give every 2-way node with a `radius` an explicit rounded outline.
+
+    netconvert ignores a node's radius where only two roads meet and would
+    cut the roads 4 m from a corner (a 2 to 6 m turn); CARLA's corners turn
+    on about 10 m. An explicit outline makes netconvert cut the roads where
+    the curve starts and draw the internal lanes as the curve.
+    """
+    coords = {n.get("id"): (float(n.get("x")), float(n.get("y"))) for n in plain.nodes}
+    arms: dict[str, set[str]] = {n: set() for n in coords}
+    for edge in plain.edges:
+        arms[edge.get("from")].add(edge.get("to"))
+        arms[edge.get("to")].add(edge.get("from"))
+    nodes = []
+    for node in plain.nodes:
+        nid = node.get("id")
+        if node.get("radius") is None or len(arms[nid]) != 2:
+            nodes.append(node)
+            continue
+        units = []
+        for other in sorted(arms[nid]):
+            dx, dy = coords[other][0] - coords[nid][0], coords[other][1] - coords[nid][1]
+            units.append((dx / math.hypot(dx, dy), dy / math.hypot(dx, dy)))
+        shape = corner_shape(coords[nid], units[0], units[1], float(node.get("radius")), half_width_m)
+        new = ET.Element("node", dict(node.attrib))
+        new.set("shape", " ".join(f"{x:.2f},{y:.2f}" for x, y in shape))
+        nodes.append(new)
+    return Plain(nodes=nodes, edges=list(plain.edges))
+
+
+def lane_width_m() -> float:
+    return float(ET.parse(TYPE_FILE).getroot().find("type").get("width"))
 
 
 def write_plain(plain: Plain, folder: Path, stem: str) -> tuple[Path, Path]:
@@ -432,7 +490,7 @@ def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, l
                    trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path, out_root: Path) -> None:
     folder = out_root / name
     folder.mkdir(parents=True, exist_ok=True)
-    nod, edg = write_plain(plain, work, name)
+    nod, edg = write_plain(with_corner_shapes(plain, lane_width_m()), work, name)
     net_tmp = work / f"{name}.net.xml"
     netconvert(nod, edg, net_tmp)
     net = sumolib.net.readNet(str(net_tmp))
@@ -467,8 +525,8 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
 
         for town in towns:
             net_file = work / f"{town.name}.plain.net.xml"
-            netconvert(SCENARIOS_DIR / town.name / f"{town.name}.nod.xml",
-                       SCENARIOS_DIR / town.name / f"{town.name}.edg.xml", net_file)
+            netconvert(*write_plain(with_corner_shapes(plains[town.name], lane_width_m()), work, f"{town.name}.plain"),
+                       net_file)
             trips[town.name] = town_trips(town, net_file, vtypes, work)
             entry = TownEntry(town, 0.0, 0.0, town.data_vehicles, town.test_vehicles)
             build_scenario(town.name, f"CARLA {town.name.capitalize()} modelled in SUMO, one edge server at its centre",
