@@ -31,7 +31,7 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
-from .camera import CameraConfig, camera_from_vehicle, ground_rays
+from .camera import CameraConfig, camera_from_vehicle, ground_rays, vehicle_from_camera_rotation
 from .errors import CrchflError
 from .frame import Frame
 from .labels import CAMERA_NAMES
@@ -158,6 +158,51 @@ def _clip_near(polygon: np.ndarray, near_m: float) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
+@dataclass(frozen=True)
+class CameraReach:
+    """Where on the ground plane each camera can see anything at or above the ground.
+
+    A camera whose highest pixel ray points below the horizon sees no point
+    (z >= 0) farther than its height over the tangent of that ray's depression;
+    none sees beyond ``max_object_distance_m`` nor outside the azimuths its rays span.
+    """
+
+    xy_m: np.ndarray  # [4, 2] camera positions, vehicle frame
+    yaw_rad: np.ndarray  # [4]
+    half_azimuth_rad: np.ndarray  # [4]
+    reach_m: np.ndarray  # [4]
+
+    @staticmethod
+    def of(camera: CameraConfig, max_distance_m: float) -> "CameraReach":
+        k = camera.intrinsics()
+        cols, rows = np.meshgrid(np.arange(camera.width_px), np.arange(camera.height_px))
+        rays_cam = np.stack([(cols - k[0, 2]) / k[0, 0], (rows - k[1, 2]) / k[1, 1], np.ones(cols.shape)], -1)
+        xy, yaw, half_az, reach = [], [], [], []
+        for pose in camera.poses:
+            rays = rays_cam.reshape(-1, 3) @ vehicle_from_camera_rotation(pose).T
+            horizontal = np.hypot(rays[:, 0], rays[:, 1])
+            top = np.max(np.arctan2(rays[:, 2], horizontal))
+            yaw_rad = math.radians(pose.yaw_deg)
+            azimuth = np.angle(np.exp(1j * (np.arctan2(rays[:, 1], rays[:, 0]) - yaw_rad)))
+            xy.append((pose.x_m, pose.y_m))
+            yaw.append(yaw_rad)
+            half_az.append(np.max(np.abs(azimuth)))
+            reach.append(max_distance_m if top >= 0 else min(max_distance_m, pose.z_m / math.tan(-top)))
+        return CameraReach(np.array(xy), np.array(yaw), np.array(half_az), np.array(reach))
+
+    def may_see(self, rel_xy: np.ndarray, radii_m: np.ndarray) -> np.ndarray:
+        """[N, 4]: may each camera see some of a box (footprint centre in the vehicle frame, radius)? Conservative."""
+        d = rel_xy[:, None, :] - self.xy_m  # [N, 4, 2]
+        dist = np.hypot(d[..., 0], d[..., 1])
+        radii = radii_m[:, None]
+        cos_yaw, sin_yaw = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
+        along = d[..., 0] * cos_yaw + d[..., 1] * sin_yaw
+        across = d[..., 1] * cos_yaw - d[..., 0] * sin_yaw
+        azimuth = np.arctan2(np.abs(across), along)  # off the camera's yaw, 0..pi
+        widening = np.arcsin(np.clip(radii / np.maximum(dist, 1e-9), 0.0, 1.0))
+        return (dist <= self.reach_m + radii) & ((azimuth <= self.half_azimuth_rad + widening) | (dist <= radii))
+
+
 class Renderer:
     """Renders frames of one world with one camera rig; holds only precomputed tables."""
 
@@ -178,6 +223,7 @@ class Renderer:
         self._interp = cv2.INTER_NEAREST if self.config.interpolation == "nearest" else cv2.INTER_LINEAR
         self._prepare_ground()
         self._prepare_heads()
+        self._reach = CameraReach.of(cam, self.config.max_object_distance_m)
 
     # -- precomputation -------------------------------------------------------------
     def _prepare_ground(self) -> None:
@@ -208,6 +254,9 @@ class Renderer:
             x, y, heading, HEAD_DEPTH_M, HEAD_WIDTH_M, HEAD_BOTTOM_M, HEAD_BOTTOM_M + HEAD_HEIGHT_M
         )
         self._static_corners = np.concatenate([poles, housings]).reshape(-1, 8, 3)
+        self._static_radius = np.concatenate(
+            [np.full(n, POLE_SIZE_M / math.sqrt(2)), np.full(n, 0.5 * math.hypot(HEAD_DEPTH_M, HEAD_WIDTH_M))]
+        )
         self._static_centres = np.concatenate([np.stack([x, y], 1), np.stack([x, y], 1)]).reshape(-1, 2)
         self._static_rgb = [POLE_RGB] * n + [HOUSING_RGB] * n
         self._static_head = np.concatenate([np.full(n, -1), np.arange(n)])  # housing -> head index
@@ -264,12 +313,18 @@ class Renderer:
         rgb = [vehicle_rgb(v) for v in frame.ids.tolist()]
         head_of_box = np.concatenate([np.full(n_vehicles, -1), self._static_head])
 
-        # (ego, box) pairs within range, the ego's own box excluded.
+        # (ego, box) pairs some camera may see, the ego's own box excluded: a cheap
+        # 2-D test first, so that the 3-D projection runs on few pairs.
+        radii = np.concatenate([0.5 * np.hypot(frame.length_m, frame.width_m), self._static_radius])
         ego_xy = np.stack([frame.x_m[ego_rows], frame.y_m[ego_rows]], 1)
-        dist = np.linalg.norm(centres[None, :, :] - ego_xy[:, None, :], axis=2)
-        near = dist <= cfg.max_object_distance_m
+        dist = np.hypot(centres[None, :, 0] - ego_xy[:, None, 0], centres[None, :, 1] - ego_xy[:, None, 1])
+        near = dist <= cfg.max_object_distance_m + radii
         near[np.arange(len(ego_rows)), ego_rows] = False
         pair_ego, pair_box = np.nonzero(near)
+        rel = np.einsum("pij,pj->pi", vehicle_from_world[pair_ego, :, :2], centres[pair_box]) + vehicle_from_world[pair_ego, :, 2]
+        seen = self._reach.may_see(rel, radii[pair_box])  # [P, 4]
+        keep = seen.any(axis=1)
+        pair_ego, pair_box, seen = pair_ego[keep], pair_box[keep], seen[keep]
         if len(pair_ego) == 0:
             return
 
@@ -291,7 +346,8 @@ class Renderer:
         tan_x = (k[0, 2] + 0.5) / k[0, 0]
         tan_y = (k[1, 2] + 0.5) / k[1, 1]
         outside = (
-            (z < cam.near_m).all(-1)
+            ~seen
+            | (z < cam.near_m).all(-1)
             | (x > tan_x * z).all(-1) | (x < -tan_x * z).all(-1)
             | (y > tan_y * z).all(-1) | (y < -tan_y * z).all(-1)
         )

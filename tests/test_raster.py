@@ -306,3 +306,22 @@ def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         "run.mp4", "step_000000.png", "step_000002.png", "step_000004.png"
     ]
+
+
+def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
+    """CameraReach.may_see is a pre-filter: every camera image a box changes must be flagged."""
+    from crchfl_sumo.raster import CameraReach
+
+    reach = CameraReach.of(renderer.config.camera, renderer.config.max_object_distance_m)
+    radius = 0.5 * math.hypot(4.5, 1.8)
+    rng = np.random.default_rng(3)
+    flagged_somewhere = 0
+    for _ in range(40):
+        forward, left, heading = rng.uniform(-12, 25), rng.uniform(-6, 6), rng.uniform(-math.pi, math.pi)
+        if abs(forward) < 3.5 and abs(left) < 2.5:
+            continue  # would overlap the ego
+        mask = changed(renderer, {"a": (forward, LANE_Y + left, heading)})
+        flags = reach.may_see(np.array([[forward, left]]), np.array([radius]))[0]
+        assert not (mask.any(axis=(1, 2)) & ~flags).any(), (forward, left, mask.any(axis=(1, 2)), flags)
+        flagged_somewhere += flags.any()
+    assert flagged_somewhere > 10
