@@ -16,8 +16,9 @@ them) and paper_linked (the same plus a two-way road from Town01 to Town02):
     scenario.toml       edge sites and towns, read by crchfl_sumo.scenario
 
 Every output is written to a temporary file and renamed into place, and the
-same inputs give the same outputs (only netconvert's header comment carries
-a date). The binaries come from the eclipse-sumo package (sumo.SUMO_HOME).
+same inputs give byte-identical outputs (SUMO's header comments, which carry
+a date and temporary paths, are replaced). The binaries and randomTrips.py
+come from the eclipse-sumo package (sumo.SUMO_HOME), else from PATH.
 """
 
 from __future__ import annotations
@@ -53,8 +54,8 @@ NETCONVERT_OPTIONS = {
     "no-turnarounds": "true",  # the towns have no dead ends, so no U-turns anywhere
     "offset.disable-normalization": "true",  # keep the coordinates as written
     "junctions.corner-detail": "5",  # smooth kerbs at corners and T-junctions
-    "tls.default-type": "static",  # 42 s green / 3 s yellow per phase, as the reference
-    "tls.allred.time": "2",  # 2 s all-red after each yellow, so the junction clears
+    "tls.default-type": "static",  # fixed 90 s cycle, as the reference
+    "tls.allred.time": "2",  # 40 s green, 3 s yellow, 2 s all-red per phase: the junction clears
 }
 
 
@@ -229,8 +230,8 @@ def corner_shape(corner: tuple[float, float], arm1: tuple[float, float], arm2: t
 
 
 def with_corner_shapes(plain: Plain, half_width_m: float) -> Plain:
-    # half_width_m: half the road's width, i.e. one lane
-    """Give every 2-way node with a `radius` an explicit rounded outline.
+    """Give every 2-way node with a `radius` an explicit rounded outline
+    (half_width_m: half the road's width, i.e. one lane).
 
     netconvert ignores a node's radius where only two roads meet and would
     cut the roads 4 m from a corner (a 2 to 6 m turn); CARLA's corners turn
