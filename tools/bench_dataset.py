@@ -1,0 +1,124 @@
+"""Benchmark the data set pipeline: generation speed and the storage codecs, side by side.
+
+    python tools/bench_dataset.py [--scenario paper] [--samples 300] [--paper-size] [--out DIR]
+
+1. Generates a data set (the paper's split with ``--paper-size``, else every
+   vehicle ``--samples`` samples) and times simulation vs rendering+writing.
+2. Rewrites the same samples with each HDF5 image filter (none, lzf, gzip)
+   and measures bytes per sample, write time, full load (fast path) with and
+   without checksum verification, and random per-sample reads (ShardDataset).
+3. Prints the PNG bytes per sample against the paper's nominal 1800 KB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crchfl_sumo.dataset import PAPER_TOWNS, DatasetConfig, ShardDataset, TownSplit, load_samples
+from crchfl_sumo.dataset_io import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
+from crchfl_sumo.generate import generate_dataset
+from crchfl_sumo.scenario import load_scenario
+
+
+def sizes_for(args: argparse.Namespace) -> DatasetConfig:
+    if args.paper_size:
+        return DatasetConfig()
+    towns = tuple(
+        TownSplit(t.town, tuple(args.samples for _ in t.train_samples), tuple(args.samples for _ in t.test_samples))
+        for t in PAPER_TOWNS
+    )
+    return DatasetConfig(towns=towns)
+
+
+def timed_generation(args: argparse.Namespace, out: Path) -> None:
+    scenario = load_scenario(args.scenario)
+    # Simulation passes its own --seed; drop one the .sumocfg may carry.
+    scenario = dataclasses.replace(
+        scenario, sumo_options=tuple(o for o in scenario.sumo_options if not o.startswith("--seed="))
+    )
+    marks: dict[str, float] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        marks.setdefault(stage, time.perf_counter())
+
+    start = time.perf_counter()
+    manifest = generate_dataset(scenario, out, seed=args.seed, sizes=sizes_for(args), progress=progress)
+    end = time.perf_counter()
+    render_start = marks.get("render", end)
+    n = manifest.samples
+    print(f"generation: {n} samples in {end - start:.1f} s ({n / (end - start):.0f} samples/s)")
+    print(f"  simulate (+ scenario load): {render_start - start:.1f} s")
+    print(f"  label + render + write (+ world build): {end - render_start:.1f} s "
+          f"({n / max(end - render_start, 1e-9):.0f} samples/s)")
+    print(f"  image size {manifest.image_height}x{manifest.image_width}, 4 cameras")
+
+
+def best_of(repeats: int, work) -> float:
+    """Shortest wall time of ``repeats`` runs (the first may pay for a cold page cache)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        work()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def codec_table(source: Path, work: Path, reads: int) -> None:
+    manifest = read_manifest(source)
+    shards = [(entry, read_shard(source, entry)) for entry in manifest.shards]
+    n = manifest.samples
+    raw = n * 4 * manifest.image_height * manifest.image_width * 3
+    print(f"\nstorage ({n} samples, raw images {raw / n / 1024:.1f} KiB/sample):")
+    print(f"{'codec':6} {'KiB/sample':>10} {'ratio':>6} {'write+sha+png s':>15} {'load s':>7} {'load+sha s':>10} "
+          f"{'random read ms':>14}")
+    rng = np.random.default_rng(0)
+    for codec in ("none", "lzf", "gzip"):
+        root = work / codec
+        shutil.rmtree(root, ignore_errors=True)
+        t0 = time.perf_counter()
+        writer = DatasetWriter(root, dataclasses.replace(manifest, compression=codec, shards=()))
+        for entry, data in shards:
+            writer.add(entry.file, data, vehicle=entry.vehicle, town=entry.town, edge=entry.edge, split=entry.split)
+        write_s = time.perf_counter() - t0
+        size = sum(e.size_bytes for e in writer.manifest.shards)
+        load_s = best_of(2, lambda: load_samples(root, verify=False))
+        verify_s = best_of(2, lambda: load_samples(root, verify=True))
+        dataset = ShardDataset(root, verify=False)
+        indices = rng.integers(0, len(dataset), reads)
+        t0 = time.perf_counter()
+        for i in indices:
+            dataset[int(i)]
+        random_ms = (time.perf_counter() - t0) / reads * 1e3
+        dataset.close()
+        print(f"{codec:6} {size / n / 1024:10.1f} {raw / size:6.1f} {write_s:15.2f} {load_s:7.2f} {verify_s:10.2f} "
+              f"{random_ms:14.3f}")
+        shutil.rmtree(root)
+    png = manifest.png_bytes_per_sample
+    print(f"\nbytes per sample: nominal {NOMINAL_SAMPLE_BYTES} (1800 KiB), measured PNG {png:.0f} "
+          f"({png / 1024:.1f} KiB, OpenCV PNG level 3); nominal / measured = {NOMINAL_SAMPLE_BYTES / png:.0f}x")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="paper")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--samples", type=int, default=300, help="samples per vehicle (without --paper-size)")
+    parser.add_argument("--paper-size", action="store_true", help="the paper's split (14,665 samples)")
+    parser.add_argument("--reads", type=int, default=2000, help="random per-sample reads per codec")
+    parser.add_argument("--out", type=Path, help="keep the generated data set here (default: a temp folder)")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = args.out or Path(tmp) / "dataset"
+        timed_generation(args, out)
+        codec_table(out, Path(tmp) / "codecs", args.reads)
+
+
+if __name__ == "__main__":
+    main()
