@@ -227,21 +227,36 @@ class Renderer:
 
     # -- precomputation -------------------------------------------------------------
     def _prepare_ground(self) -> None:
+        """Fixed ground points of every pixel, grouped into runs of rows that share a texture level."""
         cam = self.config.camera
-        blocks, self._first_row, self._ground_slices = [], [], []
-        start = 0
+        world_cfg = self.world.config
+        points_by_level: list[list[np.ndarray]] = [[] for _ in range(world_cfg.levels)]
+        counts = [0] * world_cfg.levels
+        self._first_row, self._runs = [], []  # run: (camera, first row, end row, level, slice)
         for c in range(len(CAMERA_NAMES)):
             ground, hits = ground_rays(cam, c, self.config.max_ground_distance_m)
             rows_with_ground = np.flatnonzero(hits.any(axis=1))
             first = int(rows_with_ground[0]) if len(rows_with_ground) else cam.height_px
+            self._first_row.append(first)
             # A ray that misses the ground is sent 10,000 km away: off the texture,
             # where the border colour is the sky, whatever the ego's pose.
-            block = np.where(hits[first:, :, None], ground[first:], _FAR_AWAY_M).reshape(-1, 2)
-            blocks.append(block)
-            self._first_row.append(first)
-            self._ground_slices.append(slice(start, start + len(block)))
-            start += len(block)
-        self._ground_points = np.concatenate(blocks).astype(np.float32).reshape(-1, 1, 2)
+            points = np.where(hits[:, :, None], ground, _FAR_AWAY_M)
+            levels = _row_levels(ground, hits, world_cfg)
+            row = first
+            while row < cam.height_px:
+                end = row + 1
+                while end < cam.height_px and levels[end] == levels[row]:
+                    end += 1
+                level = int(levels[row])
+                block = points[row:end].reshape(-1, 2)
+                points_by_level[level].append(block)
+                self._runs.append((c, row, end, level, slice(counts[level], counts[level] + len(block))))
+                counts[level] += len(block)
+                row = end
+        self._ground_points = [
+            np.concatenate(blocks).astype(np.float32).reshape(-1, 1, 2) if blocks else None
+            for blocks in points_by_level
+        ]
 
     def _prepare_heads(self) -> None:
         heads = self.world.heads
@@ -291,16 +306,19 @@ class Renderer:
         return out
 
     def _draw_ground(self, images: np.ndarray, texture_from_vehicle: np.ndarray) -> None:
-        maps = cv2.transform(self._ground_points, texture_from_vehicle)
+        maps = [
+            None if points is None else cv2.transform(points, texture_from_vehicle / 2**level)
+            for level, points in enumerate(self._ground_points)
+        ]
         width = self.config.camera.width_px
         for c, first in enumerate(self._first_row):
-            image = images[c]
-            image[:first] = SKY_RGB
-            if first < image.shape[0]:
-                cv2.remap(
-                    self.world.texture, maps[self._ground_slices[c]].reshape(-1, width, 2), None, self._interp,
-                    dst=image[first:], borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
-                )
+            images[c, :first] = SKY_RGB
+        textures = self.world.textures
+        for c, row, end, level, part in self._runs:
+            cv2.remap(
+                textures[level], maps[level][part].reshape(-1, width, 2), None, self._interp,
+                dst=images[c, row:end], borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
+            )
 
     def _draw_objects(self, out, frame, ego_rows, vehicle_from_world) -> None:
         cfg, cam = self.config, self.config.camera
@@ -425,6 +443,32 @@ def _vehicle_from_world_2d(frame: Frame, rows: np.ndarray) -> np.ndarray:
     out[:, 0] = np.stack([c, s, -(c * x + s * y)], 1)
     out[:, 1] = np.stack([-s, c, s * x - c * y], 1)
     return out
+
+
+def _row_levels(ground: np.ndarray, hits: np.ndarray, config) -> np.ndarray:
+    """Texture level for each image row: the finest whose lines are as wide as the pixel spacing.
+
+    A pixel's spacing is the distance between its ground point and its
+    neighbours', the smaller of across and along the row (a line is missed only
+    when pixels straddle it both ways); a row's spacing is the largest over its
+    middle half, where lane lines mostly are. Level k lines are
+    max(marking width, texel) wide.
+    """
+    height, width = hits.shape
+    across = np.full((height, width), np.inf)
+    across[:, 1:] = np.linalg.norm(np.diff(ground, axis=1), axis=-1)
+    along = np.full((height, width), np.inf)
+    along[:-1] = np.linalg.norm(np.diff(ground, axis=0), axis=-1)
+    valid = hits.copy()
+    valid[:, 1:] &= hits[:, :-1]
+    spacing = np.where(valid, np.minimum(across, along), np.nan)[:, width // 4 : (3 * width) // 4 + 1]
+    all_nan = np.isnan(spacing).all(axis=1)
+    row_spacing = np.where(all_nan, np.inf, np.nanmax(np.where(all_nan[:, None], 0.0, spacing), axis=1))
+    texel = config.metres_per_pixel * 2.0 ** np.arange(config.levels)
+    line_width = np.maximum(config.marking_width_m, texel)
+    # finest level whose line width covers the spacing; the coarsest when none does
+    covered = line_width[None, :] >= row_spacing[:, None]
+    return np.where(covered.any(axis=1), covered.argmax(axis=1), config.levels - 1)
 
 
 def _texture_from_vehicle(raster_from_world: np.ndarray, frame: Frame, rows: np.ndarray) -> np.ndarray:

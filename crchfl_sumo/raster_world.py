@@ -59,6 +59,9 @@ class WorldConfig:
     marking_width_m   lane and centre line width [m]
     stop_line_width_m stop line width [m]
     dash_length_m, dash_gap_m  dashed line pattern [m]
+    levels            textures at metres_per_pixel * 1, 2, 4 ...: far pixels sample
+                      coarse levels, whose lines are >= 1 texel wide (mip-mapping),
+                      so that markings do not break up with distance
     """
 
     metres_per_pixel: float = 0.1
@@ -69,8 +72,11 @@ class WorldConfig:
     stop_line_width_m: float = 0.5
     dash_length_m: float = 3.0
     dash_gap_m: float = 6.0
+    levels: int = 4
 
     def __post_init__(self):
+        if not 1 <= self.levels <= 8:
+            raise CrchflError(f"world.levels: {self.levels} is outside 1..8; 4 is the default")
         if not 0.01 <= self.metres_per_pixel <= 1.0:
             raise CrchflError(
                 f"world.metres_per_pixel: {self.metres_per_pixel} is outside 0.01..1.0; 0.1 is the default"
@@ -121,17 +127,27 @@ class RoadGeometry:
 
 @dataclass(frozen=True)
 class World:
-    """The painted ground texture and the signal heads: what per-frame rendering reads.
+    """The painted ground textures and the signal heads: what per-frame rendering reads.
 
-    texture            [Ht, Wt, 3] uint8 RGB, north up
-    raster_from_world  2x3 affine: world (x, y) metres -> texture (u, v) pixels
+    textures           level k: [Ht / 2^k, Wt / 2^k, 3] uint8 RGB, north up, at
+                       metres_per_pixel * 2^k (level 0 is the full resolution)
+    raster_from_world  2x3 affine: world (x, y) metres -> level-0 texture (u, v) pixels
     heads              the signal heads, in a fixed order
     """
 
-    texture: np.ndarray
+    textures: tuple[np.ndarray, ...]
     raster_from_world: np.ndarray
     heads: tuple[SignalHead, ...]
     config: WorldConfig
+
+    @property
+    def texture(self) -> np.ndarray:
+        """The full-resolution texture (level 0)."""
+        return self.textures[0]
+
+    def raster_from_world_at(self, level: int) -> np.ndarray:
+        """2x3 affine: world metres -> pixels of texture level ``level``."""
+        return self.raster_from_world / 2**level
 
 
 def offset_polyline(points: np.ndarray, offset_m: float) -> np.ndarray:
@@ -296,7 +312,7 @@ _SHIFT = 4  # fixed-point bits for cv2 drawing: sub-pixel accurate outlines
 
 
 def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> World:
-    """Paint a RoadGeometry into a World (texture layers: module doc)."""
+    """Paint a RoadGeometry into a World: the base texture and its coarser levels (module doc)."""
     config = config or WorldConfig()
     x_min, y_min, x_max, y_max = _bounds(geometry)
     mpp = config.metres_per_pixel
@@ -304,6 +320,19 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
     width_px = int(math.ceil((x_max - x_min + 2 * config.margin_m) / mpp)) + 1
     height_px = int(math.ceil((y_max - y_min + 2 * config.margin_m) / mpp)) + 1
     raster_from_world = np.array([[1.0 / mpp, 0.0, -x0 / mpp], [0.0, -1.0 / mpp, y1 / mpp]])
+    textures = tuple(
+        _paint_level(geometry, config, raster_from_world / 2**level, -(-height_px // 2**level), -(-width_px // 2**level))
+        for level in range(config.levels)
+    )
+    return World(textures, raster_from_world, tuple(geometry.signal_heads), config)
+
+
+def _paint_level(
+    geometry: RoadGeometry, config: WorldConfig, raster_from_world: np.ndarray, height_px: int, width_px: int
+) -> np.ndarray:
+    """One texture level. Kerbs and lines are at least one texel wide, so that coarse
+    levels, sampled by far pixels, still show them."""
+    mpp = 1.0 / raster_from_world[0, 0]
 
     def to_px(points: np.ndarray) -> np.ndarray:
         uv = np.asarray(points, dtype=np.float64) @ raster_from_world[:, :2].T + raster_from_world[:, 2]
@@ -317,17 +346,18 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
     fill(road_mask, geometry.road_polygons + geometry.junction_polygons, 255)
     # Distance from the road surface, in pixels, gives the kerb and sidewalk bands.
     distance_px = cv2.distanceTransform(cv2.bitwise_not(road_mask), cv2.DIST_L2, 5)
+    kerb_px = max(config.kerb_width_m / mpp, 1.0) if config.kerb_width_m > 0 else 0.0
     texture = np.empty((height_px, width_px, 3), np.uint8)
     texture[:] = OFFROAD_RGB
-    texture[distance_px <= (config.kerb_width_m + config.sidewalk_width_m) / mpp] = SIDEWALK_RGB
-    texture[distance_px <= config.kerb_width_m / mpp] = KERB_RGB
+    texture[distance_px <= kerb_px + config.sidewalk_width_m / mpp] = SIDEWALK_RGB
+    texture[distance_px <= kerb_px] = KERB_RGB
     fill(texture, geometry.sidewalk_polygons, SIDEWALK_RGB)
     fill(texture, geometry.road_polygons, ROAD_RGB)
     fill(texture, geometry.junction_polygons, JUNCTION_RGB)
 
     def line(points: np.ndarray, width_m: float, rgb) -> None:
-        thickness = max(1, int(round(width_m / mpp)))
-        cv2.polylines(texture, [to_px(points)], False, rgb, thickness, cv2.LINE_8, _SHIFT)
+        # A filled outline, not cv2.polylines: its thickness is whole pixels and uneven.
+        fill(texture, [lane_polygon(points, max(width_m, mpp))], rgb)
 
     for marking in geometry.markings:
         pieces = (
@@ -339,7 +369,7 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
             line(piece, config.marking_width_m, marking.rgb)
     for stop_line in geometry.stop_lines:
         line(stop_line, config.stop_line_width_m, WHITE_RGB)
-    return World(texture, raster_from_world, tuple(geometry.signal_heads), config)
+    return texture
 
 
 def build_world(net_path: str | Path, config: WorldConfig | None = None) -> World:

@@ -167,15 +167,15 @@ def test_nearer_vehicle_occludes_farther_one(renderer):
 
 
 def test_lane_markings_project_to_predicted_lines(renderer):
-    """Sampled rows of the centre and edge lines hold the marking colour within 1.5 px of the projection.
+    """Every row the centre and edge lines cross holds the marking colour within 1.5 px of the projection.
 
-    Beyond ~6 m a 0.15 m line is thinner than a pixel's footprint and nearest
-    sampling drops some rows (docs/raster.md), so 80% of the rows must hit.
+    Out to 25 m ahead in CamH: far rows sample coarser texture levels, whose lines
+    are wider than the pixel spacing, so the lines do not break up with distance.
     """
     config = renderer.config.camera
     image = renderer.render(ego_and({}), ["ego"])[0]
     checked, hit = 0, 0
-    for cam, ahead in ((CAM_F, np.linspace(3.0, 8.0, 21)), (CAM_H, np.linspace(4.0, 9.0, 21))):
+    for cam, ahead in ((CAM_F, np.linspace(3.0, 12.0, 41)), (CAM_H, np.linspace(4.0, 25.0, 61))):
         for lateral_m, rgb in ((-LANE_Y, YELLOW_RGB), (-1.5, WHITE_RGB)):  # centre line, right edge line
             points = np.stack([ahead, np.full_like(ahead, lateral_m), np.zeros_like(ahead)], 1)
             pixels, depth = project_vehicle_points(config, cam, points)
@@ -184,13 +184,13 @@ def test_lane_markings_project_to_predicted_lines(renderer):
                 if d <= 0 or not (0 <= row < config.height_px and 2 <= u < config.width_px - 2):
                     continue
                 cols = np.flatnonzero((image[cam, row] == rgb).all(axis=-1))
-                cols = cols[np.abs(cols - u) <= 8]  # the other lines of that colour are farther off
+                cols = cols[np.abs(cols - u) <= 4]  # the other lines of that colour are farther off
                 checked += 1
                 if len(cols):
                     assert np.abs(cols - u).min() <= 1.5, (cam, lateral_m, row, u, cols)
                     hit += 1
-    assert checked >= 40
-    assert hit >= 0.8 * checked
+    assert checked >= 60
+    assert hit == checked
 
 
 def lamp_pixels(config: CameraConfig, ego_x: float, lamp: int) -> np.ndarray:
