@@ -51,7 +51,7 @@ def label_schema() -> dict[str, Any]:
     return {
         "actions": list(ACTION_NAMES),
         "cameras": list(CAMERA_NAMES),
-        "steer_class_values": [float(v) for v in STEER_CLASS_VALUES],
+        "steer_class_values": [round(float(v), 6) for v in STEER_CLASS_VALUES],
         "steer_sign": "positive = right, negative = left",
         "throttle_brake_range": [0.0, 1.0],
     }
