@@ -325,3 +325,11 @@ def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
         assert not (mask.any(axis=(1, 2)) & ~flags).any(), (forward, left, mask.any(axis=(1, 2)), flags)
         flagged_somewhere += flags.any()
     assert flagged_somewhere > 10
+
+
+def test_world_without_signals_and_a_lone_vehicle():
+    geometry = straight_geometry()
+    world = paint_world(RoadGeometry(geometry.road_polygons, markings=geometry.markings))
+    images = Renderer(world).render(ego_and({}), ["ego"])
+    assert images.shape == (1, 4, 64, 128, 3)
+    assert Renderer(world).render(ego_and({}), []).shape == (0, 4, 64, 128, 3)

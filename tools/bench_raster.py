@@ -89,8 +89,9 @@ def main() -> None:
 
     n = len(ids)
     print(f"network            {args.net}")
-    print(f"world texture      {world.texture.shape[1]} x {world.texture.shape[0]} px "
-          f"({world.texture.nbytes / 2**20:.1f} MiB), built in {build_s:.2f} s")
+    texture_mib = sum(t.nbytes for t in world.textures) / 2**20
+    print(f"world texture      {world.texture.shape[1]} x {world.texture.shape[0]} px, {len(world.textures)} levels "
+          f"({texture_mib:.1f} MiB in all), built in {build_s:.2f} s")
     print(f"frame              {n} vehicles, {len(world.heads)} signal heads; "
           f"image {args.height} x {args.width}, {args.interpolation}")
     print(f"output per set     {out[0].nbytes} bytes")
