@@ -20,6 +20,7 @@ import torch
 
 from .dataset_io import NOMINAL_SAMPLE_BYTES, Manifest, ShardEntry, read_manifest, read_shard, verify_shard
 from .errors import CrchflError
+from .labels import CAMERA_NAMES
 from .samples import Samples
 
 
@@ -124,9 +125,25 @@ def load_samples(
     """Fast path: the selected shards' samples, concatenated in manifest order, in memory."""
     root = Path(root)
     manifest, shards = _selected(root, split, vehicles)
-    if not shards:
-        return Samples.empty(manifest.image_height, manifest.image_width)
-    return Samples.concat([_to_samples(read_shard(root, s, verify)) for s in shards])
+    n = sum(s.samples for s in shards)
+    # Read straight into one preallocated array: no second copy of the images.
+    images = np.empty((n, len(CAMERA_NAMES), manifest.image_height, manifest.image_width, 3), np.uint8)
+    actions, steer_class = np.empty((n, 3), np.float32), np.empty(n, np.int64)
+    start = 0
+    for entry in shards:
+        labels = read_shard(root, entry, verify, images=False)
+        end = start + entry.samples
+        actions[start:end], steer_class[start:end] = labels.actions, labels.steer_class
+        if entry.samples:
+            with h5py.File(root / entry.file, "r") as f:
+                if f["images"].shape != images[start:end].shape:
+                    raise CrchflError(
+                        f"{root / entry.file}: images are {f['images'].shape[2:4]}, the manifest says "
+                        f"{images.shape[2:4]}; regenerate the data set"
+                    )
+                f["images"].read_direct(images, dest_sel=np.s_[start:end])
+        start = end
+    return Samples.from_numpy(images, actions, steer_class)
 
 
 def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = True) -> dict[str, Samples]:
