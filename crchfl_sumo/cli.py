@@ -8,8 +8,11 @@ stderr with exit status 2; anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
 import sys
+from pathlib import Path
 
 from .errors import CrchflError
 
@@ -30,7 +33,68 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _commands():
     """(name, help, add_arguments, run) for each subcommand, in the order --help lists them."""
-    return []
+    return [
+        ("simulate", "run a scenario with edge association and link rates; write trace, summary, plots",
+         _add_simulate, _run_simulate),
+        ("plan", "solve the resource allocation (problem P) for a communication budget",
+         _add_plan, _run_plan),
+    ]
+
+
+def _progress(total: int, unit: str = "step"):
+    """A tqdm bar for the library's progress callbacks (the CLI owns all progress display)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, dynamic_ncols=True, leave=False, disable=None)
+
+
+def _scenario_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", help="built-in scenario name (town01, town02, paper, paper_linked) or a .sumocfg path")
+
+
+# --- simulate -----------------------------------------------------------------------------------
+
+
+def _add_simulate(p: argparse.ArgumentParser) -> None:
+    _scenario_argument(p)
+    p.add_argument("--duration-s", type=float, default=300.0, help="simulated seconds (default 300)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=None, help="seed (overrides the config's)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="TOML with seed, [[edge_sites]], [channel], [mobility] (docs/links.md)")
+
+
+def _run_simulate(args) -> int:
+    from .simulate import run_simulate_command
+
+    summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, _progress)
+    print(
+        f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
+        f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "
+        f"mean rate {summary['mean_rate_bps'] / 1e6:.2f} Mbit/s, "
+        f"teleports {summary['teleports']}, collisions {summary['collisions']} -> {args.out}"
+    )
+    return 0
+
+
+# --- plan ---------------------------------------------------------------------------------------
+
+
+def _add_plan(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--budget-gb", type=float, default=None,
+                   help="communication budget [GB, 1 GB = 1024**3 B]; overrides [ledger] budget_gb (default 20)")
+    p.add_argument("--config", type=Path, default=None, help="TOML file; its [ledger] and [allocation] tables are read")
+    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.add_argument("--fix-edge-interval", type=int, default=None, metavar="N",
+                   help="fix edge_interval (the paper's ablation: 2, 3, 4)")
+
+
+def _run_plan(args) -> int:
+    from .allocation import plan_command
+
+    out = plan_command(args.budget_gb, args.config, args.json, args.fix_edge_interval)
+    print(json.dumps(out, indent=2) if args.json else out)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("crchfl-sumo: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into `head` and the like: not an error
+        sys.stdout = open(os.devnull, "w")
+        return 0
 
 
 if __name__ == "__main__":

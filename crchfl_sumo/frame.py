@@ -32,13 +32,16 @@ class Frame:
       accel_mps2      [V] f64   acceleration SUMO applied in the last step
       length_m, width_m [V] f64
       max_accel_mps2, max_decel_mps2 [V] f64  the vehicle type's limits
-      lane_id         [V] str   current lane ('' while off the network)
-      lane_pos_m      [V] f64   distance along that lane
+      lane_id         [V] str   current lane ('' if not read: see below)
+      lane_pos_m      [V] f64   distance along that lane (nan if not read)
       tls_ahead_id    [V] str   next traffic light on the route ('' if none)
       tls_ahead_state [V] str   its one-letter state for this vehicle's link
                                 (SUMO letters: r y g G u o O s; '' if none)
       tls_ahead_dist_m [V] f64  distance to its stop line (inf if none)
       tls_states      dict tls id -> full SUMO state string (one letter a link)
+
+    The lane and tls_ahead_* columns cost the simulator a route walk a vehicle,
+    so sim.Simulation fills them only for the vehicles it is told to watch.
     """
 
     t_s: float

@@ -2,9 +2,15 @@
 
 libsumo runs SUMO inside this process (one simulation per process: run parallel
 simulations in separate processes). The same code also runs over TraCI (pass
-``api=traci``), which the benchmark uses as its comparison. State is read
-through one context subscription, so one step costs one bulk read, not one
-call per vehicle and variable.
+``api=traci``), which the benchmark uses as its comparison.
+
+How state is read, and why (measured, docs/benchmarks.md): simulation-wide
+counters and signal states come through subscriptions; vehicle state through
+three in-process getters a vehicle (position, angle, speed). In SUMO 1.28
+per-vehicle subscriptions cost SUMO time that grows faster than the number of
+vehicles, and a network-wide context subscription costs several times what
+three libsumo getters do. Lane and signal ahead need a route walk inside SUMO,
+so they are read only for the vehicles a caller watches.
 """
 
 from __future__ import annotations
@@ -51,7 +57,7 @@ class Simulation:
         extra_options: tuple[str, ...] = (),
         watch: Collection[str] | None = None,
     ) -> None:
-        """``watch``: the vehicles whose signal ahead is read each step (None: all)."""
+        """``watch``: the vehicles whose lane and signal ahead are read each step (None: all)."""
         self.scenario = scenario
         self._watch = None if watch is None else frozenset(watch)
         self.seed = int(seed)
@@ -62,19 +68,21 @@ class Simulation:
         self._tls_ids: tuple[str, ...] = ()
         self._steps = self._departed = self._arrived = self._teleports = self._collisions = 0
         self._running = False
+        self._previous_speed: dict[str, float] = {}
+        self._step_s = scenario.step_length_s
 
     # --- lifecycle --------------------------------------------------------------------------
 
     def command(self) -> list[str]:
-        """The sumo command line this simulation runs (also usable with the plain binary)."""
-        return [
-            sumo_binary(),
-            *self.scenario.sumo_options,
-            f"--seed={self.seed}",
-            "--no-step-log=true",
-            "--duration-log.disable=true",
-            *self._extra_options,
-        ]
+        """The sumo command line this simulation runs (also usable with the plain binary).
+
+        Options set here (the seed above all) replace the same options from the
+        scenario's configuration: sumo refuses an option given twice.
+        """
+        ours = [f"--seed={self.seed}", "--no-step-log=true", "--duration-log.disable=true", *self._extra_options]
+        overridden = {option.split("=", 1)[0] for option in ours}
+        kept = [o for o in self.scenario.sumo_options if o.split("=", 1)[0] not in overridden]
+        return [sumo_binary(), *kept, *ours]
 
     def __enter__(self) -> "Simulation":
         global _active_libsumo
@@ -105,18 +113,6 @@ class Simulation:
                 tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER,
                 tc.VAR_COLLIDING_VEHICLES_NUMBER,
             ]
-        )
-        # One context subscription around a junction, with a radius covering the whole
-        # network, returns every vehicle in one bulk read. (Per-vehicle subscriptions
-        # cost SUMO time that grows faster than the number of vehicles.)
-        bounds = self.scenario.bounds
-        radius_m = 2.0 * float(np.hypot(bounds.xmax_m - bounds.xmin_m, bounds.ymax_m - bounds.ymin_m)) + 1e3
-        self._anchor = api.junction.getIDList()[0]
-        api.junction.subscribeContext(
-            self._anchor,
-            tc.CMD_GET_VEHICLE_VARIABLE,
-            radius_m,
-            [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_ACCELERATION, tc.VAR_LANE_ID, tc.VAR_LANEPOSITION],
         )
         self._tls_ids = tuple(sorted(api.trafficlight.getIDList()))
         for tls in self._tls_ids:
@@ -157,6 +153,7 @@ class Simulation:
             )
         for vehicle_id in sim[tc.VAR_ARRIVED_VEHICLES_IDS]:
             self._static.pop(vehicle_id, None)
+            self._previous_speed.pop(vehicle_id, None)
         self._departed += len(sim[tc.VAR_DEPARTED_VEHICLES_IDS])
         self._arrived += len(sim[tc.VAR_ARRIVED_VEHICLES_IDS])
         self._teleports += sim[tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER]
@@ -178,25 +175,39 @@ class Simulation:
         return self._tls_ids
 
     def _read_frame(self, tc) -> Frame:
-        results = self._api.junction.getContextSubscriptionResults(self._anchor)
-        ids = sorted(v for v in results if v in self._static)
-        rows = [results[v] for v in ids]
+        vehicle = self._api.vehicle
+        ids = sorted(vehicle.getIDList())
+        get_position, get_angle, get_speed = vehicle.getPosition, vehicle.getAngle, vehicle.getSpeed
+        front = np.array([get_position(v) for v in ids], dtype=np.float64).reshape(-1, 2)
+        heading = sumo_angle_to_heading_rad(np.array([get_angle(v) for v in ids], dtype=np.float64))
+        speed = np.array([get_speed(v) for v in ids], dtype=np.float64)
+        # SUMO's acceleration is exactly the speed change over the step (0 on the first),
+        # which spares one call per vehicle.
+        previous = self._previous_speed
+        accel = np.array(
+            [(s - previous[v]) / self._step_s if v in previous else 0.0 for v, s in zip(ids, speed.tolist())]
+        )
+        self._previous_speed = dict(zip(ids, speed.tolist()))
         static = np.array([self._static[v] for v in ids], dtype=np.float64).reshape(-1, 4)
-        front = np.array([r[tc.VAR_POSITION] for r in rows], dtype=np.float64).reshape(-1, 2)
-        heading = sumo_angle_to_heading_rad(np.array([r[tc.VAR_ANGLE] for r in rows], dtype=np.float64))
         half_length = static[:, 0] / 2.0
         # SUMO reports the front bumper; the frame holds the footprint's centre.
         x_m = front[:, 0] - half_length * np.cos(heading)
         y_m = front[:, 1] - half_length * np.sin(heading)
-        # The signal ahead walks the route inside SUMO (microseconds a vehicle), so it is
-        # read only for the watched vehicles; the others get '' / inf.
-        watched = self._watch
-        next_tls = [
-            self._api.vehicle.getNextTLS(v) if watched is None or v in watched else () for v in ids
-        ]
-        tls_id = np.array([n[0][0] if n else "" for n in next_tls], dtype=str) if rows else np.zeros(0, str)
-        tls_state = np.array([n[0][3] if n else "" for n in next_tls], dtype=str) if rows else np.zeros(0, str)
-        tls_dist = np.array([n[0][2] if n else np.inf for n in next_tls], dtype=np.float64)
+        # Lane and the signal ahead cost SUMO a route walk a vehicle, so they are read
+        # only for the watched vehicles; the others get '' / nan / inf.
+        watched = ids if self._watch is None else [v for v in ids if v in self._watch]
+        rows = np.searchsorted(np.array(ids, dtype=str), np.array(watched, dtype=str)) if watched else []
+        lane_id = np.full(len(ids), "", dtype=object)
+        lane_pos = np.full(len(ids), np.nan)
+        tls_id = np.full(len(ids), "", dtype=object)
+        tls_state = np.full(len(ids), "", dtype=object)
+        tls_dist = np.full(len(ids), np.inf)
+        for row, v in zip(rows, watched):
+            lane_id[row] = vehicle.getLaneID(v)
+            lane_pos[row] = vehicle.getLanePosition(v)
+            ahead = vehicle.getNextTLS(v)
+            if ahead:
+                tls_id[row], _, tls_dist[row], tls_state[row] = ahead[0]
         tls_results = self._api.trafficlight.getAllSubscriptionResults()
         rygs = tc.TL_RED_YELLOW_GREEN_STATE
         return Frame(
@@ -205,16 +216,16 @@ class Simulation:
             x_m=x_m,
             y_m=y_m,
             heading_rad=heading,
-            speed_mps=np.array([r[tc.VAR_SPEED] for r in rows], dtype=np.float64),
-            accel_mps2=np.array([r[tc.VAR_ACCELERATION] for r in rows], dtype=np.float64),
+            speed_mps=speed,
+            accel_mps2=accel,
             length_m=static[:, 0].copy(),
             width_m=static[:, 1].copy(),
             max_accel_mps2=static[:, 2].copy(),
             max_decel_mps2=static[:, 3].copy(),
-            lane_id=np.array([r[tc.VAR_LANE_ID] for r in rows], dtype=str) if rows else np.zeros(0, str),
-            lane_pos_m=np.array([r[tc.VAR_LANEPOSITION] for r in rows], dtype=np.float64),
-            tls_ahead_id=tls_id,
-            tls_ahead_state=tls_state,
+            lane_id=lane_id.astype(str),
+            lane_pos_m=lane_pos,
+            tls_ahead_id=tls_id.astype(str),
+            tls_ahead_state=tls_state.astype(str),
             tls_ahead_dist_m=tls_dist,
             tls_states={tls: tls_results[tls][rygs] for tls in self._tls_ids},
         )

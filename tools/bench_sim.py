@@ -5,8 +5,10 @@ vehicles on the road (randomTrips, fixed seed), then in one run times:
   (a) the `sumo` binary alone, same options and steps (the floor),
   (b) crchfl_sumo.sim.Simulation over libsumo, reading a Frame every step,
   (c) the same Simulation class over TraCI (a socket per call batch).
-Prints wall times, vehicles per step, and the ratios b/a (target <= 1.5) and
-c/b (target >= 5).
+Prints wall and CPU times (CPU time is the steadier figure on a shared
+machine), vehicles per step, and the ratios b/a (target <= 1.5) and c/b
+(target >= 5). (b) is run twice: signal ahead read for every vehicle, and for
+five watched vehicles as a data-generation run does.
 
     python tools/bench_sim.py [--steps 1200] [--grid 10] [--repeat 3]
 """
@@ -14,6 +16,7 @@ c/b (target >= 5).
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import subprocess
 import sys
@@ -76,49 +79,68 @@ def build_scenario(folder: Path, grid: int, period_s: float, end_s: float) -> Pa
     return cfg
 
 
-def time_plain_sumo(command: list[str], steps: int, step_length_s: float) -> float:
-    start = time.perf_counter()
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def time_plain_sumo(command: list[str], steps: int, step_length_s: float) -> tuple[float, float]:
+    """(wall s, CPU s) of the sumo binary alone."""
+    wall, cpu = time.perf_counter(), _children_cpu_s()
     subprocess.run([*command, f"--end={steps * step_length_s}"], check=True, capture_output=True)
-    return time.perf_counter() - start
+    return time.perf_counter() - wall, _children_cpu_s() - cpu
 
 
-def time_frames(scenario, steps: int, api=None) -> tuple[float, float]:
+def time_frames(scenario, steps: int, api=None, watch=None) -> tuple[float, float, float]:
+    """(wall s, CPU s of this process and its children, mean vehicles) of a Frame per step."""
     # Start-up included, as it is in the plain sumo run.
-    start = time.perf_counter()
-    with Simulation(scenario, seed=1, api=api) as sim:
+    wall, cpu = time.perf_counter(), time.process_time() + _children_cpu_s()
+    with Simulation(scenario, seed=1, api=api, watch=watch) as sim:
         counts = [len(sim.step()) for _ in range(steps)]
-    elapsed = time.perf_counter() - start
-    return elapsed, statistics.mean(counts)
+    return time.perf_counter() - wall, time.process_time() + _children_cpu_s() - cpu, statistics.mean(counts)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=1200, help="steps of 0.25 s to time (after warm-up)")
+    parser.add_argument("--steps", type=int, default=1200, help="steps of 0.25 s to time")
     parser.add_argument("--grid", type=int, default=10, help="junctions per side of the grid")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, median reported")
     args = parser.parse_args()
 
     import traci
 
+    runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("a", "b", "b5", "c")}
+    vehicles = []
     with tempfile.TemporaryDirectory() as tmp:
         cfg = build_scenario(Path(tmp), args.grid, period_s=0.4, end_s=2000)
         scenario = load_scenario(cfg)
         command = Simulation(scenario, seed=1).command()
-        plain, ours, over_traci, vehicles = [], [], [], []
+        watch5 = {str(i) for i in range(5)}  # the first five vehicles, as a data run watches its own
         for _ in range(args.repeat):
-            plain.append(time_plain_sumo(command, args.steps, scenario.step_length_s))
-            elapsed, mean_vehicles = time_frames(scenario, args.steps)
-            ours.append(elapsed)
+            runs["a"].append(time_plain_sumo(command, args.steps, scenario.step_length_s))
+            wall, cpu, mean_vehicles = time_frames(scenario, args.steps)
+            runs["b"].append((wall, cpu))
             vehicles.append(mean_vehicles)
-            over_traci.append(time_frames(scenario, args.steps, api=traci)[0])
-    a, b, c = (statistics.median(x) for x in (plain, ours, over_traci))
-    print(f"scenario: {args.grid}x{args.grid} signalised grid, {args.steps} steps of 0.25 s")
+            runs["b5"].append(time_frames(scenario, args.steps, watch=watch5)[:2])
+            runs["c"].append(time_frames(scenario, args.steps, api=traci)[:2])
+    med = {k: (statistics.median(w for w, _ in v), statistics.median(c for _, c in v)) for k, v in runs.items()}
+    labels = {
+        "a": "(a) sumo binary alone",
+        "b": "(b) libsumo, Frame, signal ahead for all",
+        "b5": "(b5) libsumo, Frame, signal ahead for 5",
+        "c": "(c) TraCI, Frame, signal ahead for all",
+    }
+    print(f"scenario: {args.grid}x{args.grid} signalised grid, {args.steps} steps of 0.25 s, median of {args.repeat}")
     print(f"vehicles running: mean {statistics.mean(vehicles):.0f} per step")
-    print(f"(a) sumo binary alone        {a:7.2f} s  ({args.steps / a:7.0f} steps/s)")
-    print(f"(b) libsumo + Frame per step {b:7.2f} s  ({args.steps / b:7.0f} steps/s)")
-    print(f"(c) TraCI + Frame per step   {c:7.2f} s  ({args.steps / c:7.0f} steps/s)")
-    print(f"ratio b/a (ours vs plain sumo, target <= 1.5): {b / a:.2f}")
-    print(f"ratio c/b (TraCI vs ours, target >= 5):        {c / b:.2f}")
+    print(f"{'':44s} {'wall s':>8s} {'CPU s':>8s}")
+    for key, label in labels.items():
+        print(f"{label:44s} {med[key][0]:8.2f} {med[key][1]:8.2f}")
+    for name, num, den, target in (
+        ("b/a  (ours vs plain sumo, target <= 1.5)", "b", "a", None),
+        ("b5/a (ours, 5 watched, vs plain sumo)", "b5", "a", None),
+        ("c/b  (TraCI vs ours, target >= 5)", "c", "b", None),
+    ):
+        print(f"ratio {name:42s} wall {med[num][0] / med[den][0]:5.2f}   CPU {med[num][1] / med[den][1]:5.2f}")
     return 0
 
 

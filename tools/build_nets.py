@@ -474,8 +474,9 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
         f'sumocfg = "{name}.sumocfg"',
     ]
     boxes = [bbox_m(net, e.town.prefix if prefixed else None) for e in entries]
-    for n, box in enumerate(boxes, start=1):
-        lines += ["", "[[edge_sites]]", f'name = "edge{n:02d}"',
+    for entry, box in zip(entries, boxes):
+        # The paper's names: Edge01 serves Town01, Edge02 Town02.
+        lines += ["", "[[edge_sites]]", f'name = "edge{entry.town.name.removeprefix("town")}"',
                   f"x_m = {(box[0] + box[2]) / 2:.2f}", f"y_m = {(box[1] + box[3]) / 2:.2f}", "height_m = 10.0"]
     for entry, box in zip(entries, boxes):
         lines += ["", "[[towns]]", f'name = "{entry.town.name}"',

@@ -1,0 +1,107 @@
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.cli import main
+from crchfl_sumo.mobility import Handover
+from crchfl_sumo.scenario import load_scenario
+from crchfl_sumo.simulate import SimulateConfig, Trace, summarize
+from crchfl_sumo.sites import EdgeSite
+
+
+def _trace(site, rate, handovers=()):
+    n = len(site)
+    return Trace(
+        t_s=np.arange(n, dtype=float),
+        vehicle=np.array(["a", "b"] * (n // 2)),
+        x_m=np.zeros(n),
+        y_m=np.zeros(n),
+        speed_mps=np.zeros(n),
+        site=np.array(site),
+        rate_bps=np.array(rate, dtype=float),
+        handovers=tuple(handovers),
+        steps=n // 2,
+        teleports=0,
+        collisions=0,
+    )
+
+
+def test_summary_figures_by_hand(grid_dir):
+    scenario = load_scenario(grid_dir / "grid.sumocfg", edge_sites=(EdgeSite("e0", 0, 0), EdgeSite("e1", 400, 400)))
+    trace = _trace(
+        [0, 1, 0, -1],
+        [4e6, 2e6, 6e6, 0.0],
+        [Handover(1.0, "a", -1, 0), Handover(2.0, "b", 0, 1), Handover(3.0, "b", 1, -1)],
+    )
+    summary = summarize(trace, scenario, 2.0, SimulateConfig())
+    assert summary["vehicles"] == 2
+    assert summary["coverage_fraction"] == pytest.approx(0.75)  # 3 of 4 samples served
+    assert summary["mean_rate_bps"] == pytest.approx(4e6)  # (4 + 2 + 6) / 3 over served samples
+    assert summary["handovers"] == 1  # only e0 -> e1; attach and loss are coverage changes
+    assert summary["coverage_changes"] == 2
+    assert summary["per_edge"]["e0"] == {"samples": 2, "mean_rate_bps": pytest.approx(5e6)}
+
+
+def test_simulate_command_writes_consistent_outputs(tmp_path):
+    out = tmp_path / "run"
+    assert main(["simulate", "town02", "--duration-s", "20", "--out", str(out), "--seed", "3"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("vehicles", "steps", "handovers", "mean_rate_bps", "coverage_fraction"):
+        assert key in summary
+    assert summary["steps"] == 80  # 20 s at 0.25 s
+    assert summary["teleports"] == 0 and summary["collisions"] == 0
+    with open(out / "trace.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len({r["vehicle"] for r in rows}) == summary["vehicles"]
+    assert {r["edge"] for r in rows} <= {"edge02", ""}
+    served = [float(r["rate_bps"]) for r in rows if r["edge"]]
+    assert sum(1 for r in rows if r["edge"]) / len(rows) == pytest.approx(summary["coverage_fraction"])
+    assert np.mean(served) == pytest.approx(summary["mean_rate_bps"], rel=1e-3)
+    assert (out / "map.png").stat().st_size > 10_000 and (out / "rate.png").stat().st_size > 10_000
+    # Same seed, same figures.
+    again = tmp_path / "again"
+    assert main(["simulate", "town02", "--duration-s", "20", "--out", str(again), "--seed", "3"]) == 0
+    assert (again / "trace.csv").read_text() == (out / "trace.csv").read_text()
+
+
+@pytest.mark.parametrize(
+    "config, message",
+    [
+        ("seed = 1\nsed = 2\n", "unknown key(s) 'sed'"),
+        ("[mobility]\ncoverage_radius = 5\n", "mobility: unknown key(s) 'coverage_radius'"),
+        ("[mobility]\ncoverage_radius_m = -5.0\n", "coverage_radius_m must be > 0"),
+        ('[[edge_sites]]\nname = "far"\nx_m = 1e5\ny_m = 0.0\n', "off the map"),
+        ("seed = [\n", "malformed TOML"),
+    ],
+)
+def test_bad_config_exits_2_with_named_key_and_writes_nothing(tmp_path, capsys, config, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(config)
+    out = tmp_path / "out"
+    code = main(["simulate", "town01", "--duration-s", "5", "--out", str(out), "--config", str(path)])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_missing_config_and_negative_duration_exit_2(tmp_path, capsys):
+    assert main(["simulate", "town01", "--out", str(tmp_path / "o"), "--config", str(tmp_path / "none.toml")]) == 2
+    assert "config file not found" in capsys.readouterr().err
+    assert main(["simulate", "town01", "--duration-s", "-1", "--out", str(tmp_path / "o")]) == 2
+    assert "--duration-s must be >= 0" in capsys.readouterr().err
+
+
+def test_plan_json_has_the_four_hyper_parameters(capsys):
+    assert main(["plan", "--budget-gb", "20", "--json"]) == 0
+    plan = json.loads(capsys.readouterr().out)
+    for key in ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds", "objective", "stage_bytes"):
+        assert key in plan
+    assert sum(plan["stage_bytes"].values()) <= 20 * 1024**3
+
+
+def test_plan_with_too_small_budget_exits_2(capsys):
+    assert main(["plan", "--budget-gb", "0.1"]) == 2
+    assert "budget_gb" in capsys.readouterr().err
