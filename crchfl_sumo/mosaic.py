@@ -54,10 +54,13 @@ def top_down_view(
         [[0.0, -metres_per_px, centre * metres_per_px], [-metres_per_px, 0.0, centre * metres_per_px], [0, 0, 1]]
     )
     world_from_vehicle = np.array([[c, -s, frame.x_m[row]], [s, c, frame.y_m[row]], [0, 0, 1]])
-    texture_from_view = world.raster_from_world @ world_from_vehicle @ vehicle_from_view
+    # The coarsest texture level still at least as fine as the view's pixels.
+    texels_m = world.config.metres_per_pixel * 2.0 ** np.arange(len(world.textures))
+    level = int(np.flatnonzero(texels_m <= metres_per_px + 1e-12)[-1]) if texels_m[0] <= metres_per_px else 0
+    texture_from_view = world.raster_from_world_at(level) @ world_from_vehicle @ vehicle_from_view
     view = cv2.warpAffine(
-        world.texture, texture_from_view, (size_px, size_px),
-        flags=cv2.INTER_AREA | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
+        world.textures[level], texture_from_view, (size_px, size_px),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
     )
     view_from_world = np.linalg.inv(world_from_vehicle @ vehicle_from_view)[:2]
 
@@ -74,7 +77,8 @@ def top_down_view(
     for head, lit in zip(world.heads, lamps):
         rgb = LAMP_RGB[lit[-1]] if lit else UNLIT_HEAD_RGB
         centre_px = to_view(np.array([head.x_m, head.y_m]))
-        cv2.circle(view, tuple(int(v) for v in centre_px), max(1, int(0.6 / metres_per_px)) * 16, rgb, -1, cv2.LINE_AA, 4)
+        radius = max(1, int(0.6 / metres_per_px)) * 16
+        cv2.circle(view, tuple(int(v) for v in centre_px), radius, rgb, -1, cv2.LINE_AA, 4)
     camera = renderer.config.camera
     for k, rgb in enumerate(FOOTPRINT_RGB):
         ground, hits = ground_rays(camera, k, renderer.config.max_ground_distance_m)
@@ -142,7 +146,8 @@ class VideoWriter:
         if self._writer is None:
             self._temp = _temp_path(self.path)
             height, width = rgb.shape[:2]
-            self._writer = cv2.VideoWriter(str(self._temp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (width, height))
+            fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+            self._writer = cv2.VideoWriter(str(self._temp), fourcc, self.fps, (width, height))
             if not self._writer.isOpened():
                 self._temp.unlink(missing_ok=True)
                 raise CrchflError(f"{self.path}: OpenCV cannot write MP4 (mp4v) here; use the PNGs instead")

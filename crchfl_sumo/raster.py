@@ -8,10 +8,11 @@ Method (docs/raster.md has the reasoning and figures):
   ground   A camera is fixed on its vehicle, so the ground point each pixel
            sees is fixed in the VEHICLE frame; it is computed once
            (camera.ground_rays). Per ego only the rigid 2-D transform
-           vehicle -> world changes: one cv2.transform maps the fixed ground
-           points of all four cameras to texture pixels, and one cv2.remap per
-           camera samples the world texture. Pixels whose ray misses the
-           ground within ``max_ground_distance_m`` are sky.
+           vehicle -> world changes: one cv2.transform per texture level maps
+           the fixed ground points of all four cameras to texture pixels, and
+           one cv2.remap per run of rows sharing a level samples the world
+           texture (far rows: coarse levels, so lines do not break up). Pixels
+           whose ray misses the ground within ``max_ground_distance_m`` are sky.
   objects  Other vehicles (boxes 0..vehicle_height_m) and the signal heads
            (pole + housing boxes at each stop line) are projected for all
            (ego, object) pairs in range at once; faces turned away from the
@@ -118,10 +119,12 @@ class RasterConfig:
 
 def box_corners(x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m) -> np.ndarray:
     """World corners [B, 8, 3] of yaw-only boxes centred at (x, y) (corner order: FACES)."""
+    columns = (x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m)
     x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m = np.broadcast_arrays(
-        *(np.asarray(a, dtype=np.float64) for a in (x_m, y_m, heading_rad, length_m, width_m, z_bottom_m, z_top_m))
+        *(np.asarray(a, dtype=np.float64) for a in columns)
     )
-    ix, iy, iz = np.array([(k >> 2) & 1 for k in range(8)]), np.array([(k >> 1) & 1 for k in range(8)]), np.arange(8) & 1
+    k = np.arange(8)
+    ix, iy, iz = (k >> 2) & 1, (k >> 1) & 1, k & 1
     along = (ix - 0.5)[None, :] * length_m[:, None]
     across = (iy - 0.5)[None, :] * width_m[:, None]
     c, s = np.cos(heading_rad)[:, None], np.sin(heading_rad)[:, None]
@@ -191,7 +194,10 @@ class CameraReach:
         return CameraReach(np.array(xy), np.array(yaw), np.array(half_az), np.array(reach))
 
     def may_see(self, rel_xy: np.ndarray, radii_m: np.ndarray) -> np.ndarray:
-        """[N, 4]: may each camera see some of a box (footprint centre in the vehicle frame, radius)? Conservative."""
+        """[N, 4]: may camera c see some of box n? Boxes: footprint centre (vehicle frame) and radius.
+
+        Conservative: False only where the camera certainly cannot see the box.
+        """
         d = rel_xy[:, None, :] - self.xy_m  # [N, 4, 2]
         dist = np.hypot(d[..., 0], d[..., 1])
         radii = radii_m[:, None]
@@ -323,10 +329,10 @@ class Renderer:
     def _draw_objects(self, out, frame, ego_rows, vehicle_from_world) -> None:
         cfg, cam = self.config, self.config.camera
         n_vehicles = len(frame)
-        corners = np.concatenate([
-            box_corners(frame.x_m, frame.y_m, frame.heading_rad, frame.length_m, frame.width_m, 0.0, cfg.vehicle_height_m),
-            self._static_corners,
-        ])
+        vehicle_corners = box_corners(
+            frame.x_m, frame.y_m, frame.heading_rad, frame.length_m, frame.width_m, 0.0, cfg.vehicle_height_m
+        )
+        corners = np.concatenate([vehicle_corners, self._static_corners])
         centres = np.concatenate([np.stack([frame.x_m, frame.y_m], 1), self._static_centres])
         rgb = [vehicle_rgb(v) for v in frame.ids.tolist()]
         head_of_box = np.concatenate([np.full(n_vehicles, -1), self._static_head])
@@ -339,7 +345,8 @@ class Renderer:
         near = dist <= cfg.max_object_distance_m + radii
         near[np.arange(len(ego_rows)), ego_rows] = False
         pair_ego, pair_box = np.nonzero(near)
-        rel = np.einsum("pij,pj->pi", vehicle_from_world[pair_ego, :, :2], centres[pair_box]) + vehicle_from_world[pair_ego, :, 2]
+        transforms = vehicle_from_world[pair_ego]
+        rel = np.einsum("pij,pj->pi", transforms[:, :, :2], centres[pair_box]) + transforms[:, :, 2]
         seen = self._reach.may_see(rel, radii[pair_box])  # [P, 4]
         keep = seen.any(axis=1)
         pair_ego, pair_box, seen = pair_ego[keep], pair_box[keep], seen[keep]
@@ -376,7 +383,8 @@ class Renderer:
         behind = z < cam.near_m  # [P, 4, 8]
         clip = behind[:, :, FACES].any(-1)  # [P, 4, 6]
         uv = pts[..., :2] / np.maximum(z, cam.near_m)[..., None] * k[[0, 1], [0, 1]] + k[:2, 2]
-        uv_fixed = np.ascontiguousarray(np.round(uv * (1 << _SHIFT)).astype(np.int32)[:, :, FACES])  # [P, 4, 6, 4, 2]
+        uv_int = np.round(uv * (1 << _SHIFT)).astype(np.int32)
+        uv_fixed = np.ascontiguousarray(uv_int[:, :, FACES])  # [P, 4, 6, 4, 2]
 
         # Draw list: visible faces of boxes in view, per (ego, camera) far to near.
         p_idx, c_idx, f_idx = np.nonzero(facing & ~outside[:, :, None])
@@ -419,7 +427,9 @@ class Renderer:
         uv = np.clip(uv, -1e5, 1e5)
         cv2.fillConvexPoly(image, np.round(uv * (1 << _SHIFT)).astype(np.int32), rgb, cv2.LINE_8, _SHIFT)
 
-    def _draw_lamps(self, image: np.ndarray, camera_from_world: np.ndarray, head: int, lamps: tuple[int, ...]) -> None:
+    def _draw_lamps(
+        self, image: np.ndarray, camera_from_world: np.ndarray, head: int, lamps: tuple[int, ...]
+    ) -> None:
         k = self._intrinsics
         centres = self._lamp_world[head, list(lamps)] @ camera_from_world[:, :3].T + camera_from_world[:, 3]
         for lamp, centre in zip(lamps, centres):

@@ -320,10 +320,12 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
     width_px = int(math.ceil((x_max - x_min + 2 * config.margin_m) / mpp)) + 1
     height_px = int(math.ceil((y_max - y_min + 2 * config.margin_m) / mpp)) + 1
     raster_from_world = np.array([[1.0 / mpp, 0.0, -x0 / mpp], [0.0, -1.0 / mpp, y1 / mpp]])
-    textures = tuple(
-        _paint_level(geometry, config, raster_from_world / 2**level, -(-height_px // 2**level), -(-width_px // 2**level))
-        for level in range(config.levels)
-    )
+    textures = []
+    for level in range(config.levels):
+        shrink = 2**level
+        size_px = (-(-height_px // shrink), -(-width_px // shrink))  # ceiling division
+        textures.append(_paint_level(geometry, config, raster_from_world / shrink, *size_px))
+    textures = tuple(textures)
     return World(textures, raster_from_world, tuple(geometry.signal_heads), config)
 
 

@@ -333,3 +333,15 @@ def test_world_without_signals_and_a_lone_vehicle():
     images = Renderer(world).render(ego_and({}), ["ego"])
     assert images.shape == (1, 4, 64, 128, 3)
     assert Renderer(world).render(ego_and({}), []).shape == (0, 4, 64, 128, 3)
+
+
+def test_settings_round_trip_through_toml_mappings():
+    from crchfl_sumo.config import from_mapping, to_mapping
+
+    raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=96), interpolation="linear")
+    assert from_mapping(RasterConfig, to_mapping(raster), "raster") == raster
+    assert from_mapping(WorldConfig, {"metres_per_pixel": 0.2, "levels": 2}, "world").levels == 2
+    with pytest.raises(CrchflError, match="levels"):
+        WorldConfig(levels=0)
+    with pytest.raises(CrchflError, match="interpolation"):
+        from_mapping(RasterConfig, {"interpolation": "cubic"}, "raster")

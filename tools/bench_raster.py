@@ -32,7 +32,8 @@ def random_frame(net_path: Path, n_vehicles: int, seed: int):
     """Vehicles at random points of random passenger lanes, heading along the lane."""
     net = sumolib.net.readNet(str(net_path), withInternal=True, withPrograms=True)
     rng = np.random.default_rng(seed)
-    lanes = [lane for edge in net.getEdges(withInternal=False) for lane in edge.getLanes() if lane.allows("passenger")]
+    edges = net.getEdges(withInternal=False)
+    lanes = [lane for edge in edges for lane in edge.getLanes() if lane.allows("passenger")]
     xs, ys, headings = [], [], []
     for _ in range(n_vehicles):
         shape = np.asarray(lanes[rng.integers(len(lanes))].getShape())
@@ -90,7 +91,8 @@ def main() -> None:
     n = len(ids)
     print(f"network            {args.net}")
     texture_mib = sum(t.nbytes for t in world.textures) / 2**20
-    print(f"world texture      {world.texture.shape[1]} x {world.texture.shape[0]} px, {len(world.textures)} levels "
+    height_px, width_px = world.texture.shape[:2]
+    print(f"world texture      {width_px} x {height_px} px, {len(world.textures)} levels "
           f"({texture_mib:.1f} MiB in all), built in {build_s:.2f} s")
     print(f"frame              {n} vehicles, {len(world.heads)} signal heads; "
           f"image {args.height} x {args.width}, {args.interpolation}")
