@@ -17,14 +17,16 @@ sampled is the scenario's choice: each town lists its ``data_vehicles`` and
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from .config import to_mapping
+from .config import from_mapping, read_toml, to_mapping
 from .dataset import DatasetConfig, PlannedShard, shard_plan
 from .dataset_io import DatasetWriter, Manifest, ShardData, label_schema
 from .errors import CrchflError
@@ -32,7 +34,7 @@ from .expert import ExpertConfig, expert_labels, tracks_from_frames
 from .frame import Frame
 from .raster import RasterConfig, Renderer
 from .raster_world import WorldConfig, build_world
-from .scenario import Scenario
+from .scenario import Scenario, load_scenario
 from .sim import Simulation
 from .sites import EdgeSite
 
@@ -194,3 +196,64 @@ def generate_dataset(
         if progress is not None:
             progress("render", done, total)
     return writer.manifest
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """Settings of `crchfl-sumo dataset` (TOML: top-level ``seed``, ``[dataset]``,
+    ``[raster]`` (with ``[raster.camera]``), ``[world]``, ``[expert]``)."""
+
+    seed: int = 0
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    raster: RasterConfig = field(default_factory=RasterConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+
+
+def load_generate_config(path: str | Path | None, seed: int | None = None) -> GenerateConfig:
+    """The config file's settings (defaults without one); ``seed`` overrides the file's."""
+    config = GenerateConfig() if path is None else from_mapping(GenerateConfig, read_toml(path), where=str(path))
+    if seed is not None:
+        config = GenerateConfig(int(seed), config.dataset, config.raster, config.world, config.expert)
+    return config
+
+
+class _StageBars:
+    """Adapts (stage, done, total) callbacks to one progress bar a stage, from ``factory(total)``."""
+
+    def __init__(self, factory):
+        self._factory = factory
+        self._stage: str | None = None
+        self._stack = contextlib.ExitStack()
+        self._bar = None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if stage != self._stage:
+            self._stack.close()
+            self._bar = self._stack.enter_context(self._factory(total))
+            self._bar.set_description(stage)
+            self._stage = stage
+        self._bar.update(done - self._bar.n)
+
+    def close(self) -> None:
+        self._stack.close()
+
+
+def run_dataset_command(
+    scenario_name: str,
+    out_dir: Path,
+    seed: int | None = None,
+    config_path: Path | None = None,
+    progress_factory=None,
+) -> Manifest:
+    """What `crchfl-sumo dataset SCENARIO --out DIR [--seed S] [--config TOML]` does."""
+    config = load_generate_config(config_path, seed)
+    scenario = load_scenario(scenario_name)
+    bars = _StageBars(progress_factory) if progress_factory is not None else None
+    try:
+        return generate_dataset(
+            scenario, out_dir, config.seed, config.dataset, config.raster, config.world, config.expert, bars
+        )
+    finally:
+        if bars is not None:
+            bars.close()

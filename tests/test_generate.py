@@ -77,3 +77,21 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     assert len(load_samples(tmp_path / "cut", split="train")) == 11
     with pytest.raises(CrchflError, match="other settings"):
         generate_dataset(scenario, tmp_path / "cut", seed=4, sizes=sizes, raster=RASTER)
+
+
+def test_generate_config_from_toml(tmp_path):
+    from crchfl_sumo.generate import load_generate_config
+
+    path = tmp_path / "gen.toml"
+    path.write_text(
+        "seed = 5\n[dataset]\nsample_bytes = 'measured'\n"
+        "[[dataset.towns]]\ntown = 'town01'\ntrain_samples = [10]\n"
+        "[raster.camera]\nheight_px = 32\nwidth_px = 64\n[expert]\nmax_steer_angle_deg = 35.0\n"
+    )
+    config = load_generate_config(path)
+    assert config.seed == 5 and config.dataset.towns[0].train_samples == (10,)
+    assert config.raster.camera.width_px == 64 and config.expert.max_steer_angle_deg == 35.0
+    assert load_generate_config(path, seed=9).seed == 9
+    path.write_text("[expert]\nlook_ahead = 3\n")
+    with pytest.raises(CrchflError, match="expert.*look_ahead"):
+        load_generate_config(path)
