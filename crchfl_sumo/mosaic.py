@@ -176,7 +176,7 @@ class RunPictures:
     """What render_run wrote."""
 
     png_paths: tuple[Path, ...]
-    video_path: Path | None
+    video_path: Path
     frames_seen: int
 
 
@@ -189,10 +189,11 @@ def render_run(
     fps: float = 4.0,
     scale: int = 3,
 ) -> RunPictures:
-    """Mosaic PNG for every ``every_n``-th frame holding ``vehicle_id``, and an MP4 of them all.
+    """Mosaic PNG for frames 0, every_n, 2 every_n ... that hold ``vehicle_id``, and an MP4 of them all.
 
-    Frames without the vehicle (not yet departed, or arrived) are skipped.
-    PNGs are named step_<frame count>.png; the video is run.mp4 at ``fps``.
+    Frames without the vehicle (not yet departed, or arrived) are skipped; a
+    vehicle in no frame at all is a CrchflError (a wrong id, most likely).
+    PNGs are named step_<frame index>.png; the video is run.mp4 at ``fps``.
     """
     if every_n < 1:
         raise CrchflError(f"every_n: {every_n} must be >= 1")
@@ -200,10 +201,12 @@ def render_run(
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     seen = 0
+    last_ids = np.array([], dtype=str)
     video_path = out_dir / "run.mp4"
     with VideoWriter(video_path, fps) as video:
         for index, frame in enumerate(frames):
             seen += 1
+            last_ids = frame.ids
             if index % every_n or vehicle_id not in set(frame.ids.tolist()):
                 continue
             images = renderer.render(frame, [vehicle_id])[0]
@@ -213,5 +216,10 @@ def render_run(
             video.write(picture)
             paths.append(path)
     if not paths:
-        log.warning("vehicle %s appeared in none of the %d frames; nothing written", vehicle_id, seen)
-    return RunPictures(tuple(paths), video_path if paths else None, seen)
+        some = ", ".join(last_ids[:5].tolist()) if seen else "none"
+        raise CrchflError(
+            f"vehicle '{vehicle_id}' is in none of the {seen} steps (ids in the last step: {some}); "
+            "pick one of those ids or run longer"
+        )
+    log.info("wrote %d mosaics of %s and %s", len(paths), vehicle_id, video_path)
+    return RunPictures(tuple(paths), video_path, seen)

@@ -306,6 +306,9 @@ def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         "run.mp4", "step_000000.png", "step_000002.png", "step_000004.png"
     ]
+    with pytest.raises(CrchflError, match=r"'nobody' is in none of the 6 steps \(ids in the last step: a\)"):
+        render_run(frames, renderer, "nobody", tmp_path / "none")
+    assert not any((tmp_path / "none").iterdir())  # no empty video left behind
 
 
 def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
