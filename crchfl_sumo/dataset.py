@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import torch
 
-from .dataset_io import NOMINAL_SAMPLE_BYTES, Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from .dataset_io import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
 from .errors import CrchflError
 from .labels import CAMERA_NAMES
 from .samples import Samples
@@ -57,15 +57,14 @@ class DatasetConfig:
     sample_period_s: simulated time between two samples of a vehicle (paper: 0.25 s).
     towns: per-town sample counts (default: the paper's split).
     compression: HDF5 filter for the images, 'lzf' (default: fast), 'gzip' or 'none'.
-    sample_bytes: what one uploaded sample costs in the byte ledger: 'nominal'
-        (the paper's 1800 KB) or 'measured' (the PNG size of our four images,
-        the data set's mean, from its manifest).
+
+    What a sample costs in the byte ledger is the ledger's setting
+    (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
     """
 
     sample_period_s: float = 0.25
     towns: tuple[TownSplit, ...] = PAPER_TOWNS
     compression: Literal["lzf", "gzip", "none"] = "lzf"
-    sample_bytes: Literal["nominal", "measured"] = "nominal"
 
     def __post_init__(self) -> None:
         if not self.sample_period_s > 0:
@@ -98,15 +97,16 @@ def shard_plan(config: DatasetConfig) -> list[PlannedShard]:
     return plan
 
 
-def bytes_per_sample(manifest: Manifest, mode: str) -> int:
-    """Bytes one sample costs in the ledger: 'nominal' (1800 KB) or 'measured' (mean PNG size)."""
-    if mode == "nominal":
-        return NOMINAL_SAMPLE_BYTES
-    if mode == "measured":
-        if manifest.samples == 0:
-            raise CrchflError("dataset.sample_bytes = 'measured' needs a data set with samples; generate it first")
-        return int(round(manifest.png_bytes_per_sample))
-    raise CrchflError(f"dataset.sample_bytes must be 'nominal' or 'measured', got {mode!r}")
+def measured_sample_bytes(manifest: Manifest) -> int:
+    """Measured size of one sample [bytes]: the data set's mean PNG size of its four images.
+
+    This is what ``ledger.resolve_sizes(..., measured_sample_bytes=...)`` takes
+    when ``ledger.sample_size = "measured"``; the nominal alternative is the
+    paper's 1800 KB (dataset_io.NOMINAL_SAMPLE_BYTES).
+    """
+    if manifest.samples == 0:
+        raise CrchflError("ledger.sample_size = 'measured' needs a data set with samples; generate it first")
+    return int(round(manifest.png_bytes_per_sample))
 
 
 def _selected(root: Path, split: str | None, vehicles: list[str] | None) -> tuple[Manifest, tuple[ShardEntry, ...]]:

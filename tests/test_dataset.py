@@ -9,7 +9,7 @@ from crchfl_sumo.config import from_mapping
 from crchfl_sumo.dataset import (
     DatasetConfig,
     ShardDataset,
-    bytes_per_sample,
+    measured_sample_bytes,
     load_samples,
     load_vehicle_samples,
     shard_plan,
@@ -98,8 +98,8 @@ def test_paper_split_is_the_default():
 def test_config_rejects_bad_values():
     with pytest.raises(CrchflError, match="train_samples"):
         from_mapping(DatasetConfig, {"towns": [{"town": "Town01", "train_samples": [0]}]})
-    with pytest.raises(CrchflError, match="sample_bytes"):
-        from_mapping(DatasetConfig, {"sample_bytes": "exact"})
+    with pytest.raises(CrchflError, match="compression"):
+        from_mapping(DatasetConfig, {"compression": "zstd"})
     with pytest.raises(CrchflError, match="once"):
         from_mapping(DatasetConfig, {"towns": [{"town": "A", "train_samples": [1]}] * 2})
 
@@ -226,18 +226,18 @@ def test_fast_path_and_torch_dataset_agree(tmp_path):
         load_samples(tmp_path, vehicles=["nobody"])
 
 
-def test_bytes_per_sample_nominal_and_measured(tmp_path):
+def test_measured_sample_bytes_is_the_mean_png_size(tmp_path):
     generate(tmp_path, small_config(), seed=2)
     manifest = read_manifest(tmp_path)
-    assert bytes_per_sample(manifest, "nominal") == 1800 * 1024
-    measured = bytes_per_sample(manifest, "measured")
+    measured = measured_sample_bytes(manifest)
     expected = np.mean(np.concatenate(
         [[png_bytes_per_sample(read_shard(tmp_path, s).images[i : i + 1]) for i in range(s.samples)]
          for s in manifest.shards]))
     assert measured == pytest.approx(expected, abs=1)
     assert 4 * 67 < measured < 4 * (H * W * 3 + 200)  # four PNGs: headers plus some of the raw pixels
-    with pytest.raises(CrchflError):
-        bytes_per_sample(manifest, "other")
+    assert NOMINAL_SAMPLE_BYTES == 1800 * 1024
+    with pytest.raises(CrchflError, match="measured"):
+        measured_sample_bytes(header())
 
 
 def test_dataset_stats_counts_and_files(tmp_path):
@@ -261,3 +261,26 @@ def test_dataset_stats_counts_and_files(tmp_path):
     scale = int(np.ceil(200 / W))
     assert mosaic.shape == (len(examples) * (22 + H * scale), 4 * W * scale, 3)
     assert cv2.imread(stats["files"]["figure"]) is not None
+
+
+def test_torch_dataset_survives_pickling_for_workers(tmp_path):
+    import pickle
+
+    generate(tmp_path, small_config(), seed=9)
+    dataset = ShardDataset(tmp_path, split="test")
+    first = dataset[0]  # opens a file handle
+    clone = pickle.loads(pickle.dumps(dataset))  # what a DataLoader worker receives
+    assert torch.equal(clone[0][0], first[0]) and len(clone) == 3
+    dataset.close()
+    clone.close()
+
+
+def test_malformed_manifest_is_refused(tmp_path):
+    (tmp_path / MANIFEST_NAME).write_text("{not json")
+    with pytest.raises(CrchflError, match="not valid JSON"):
+        read_manifest(tmp_path)
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(CrchflError, match="not a crchfl-sumo data set"):
+        read_manifest(tmp_path)
+    with pytest.raises(CrchflError, match="other settings|not a crchfl-sumo"):
+        DatasetWriter(tmp_path, header())

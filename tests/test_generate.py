@@ -84,7 +84,7 @@ def test_generate_config_from_toml(tmp_path):
 
     path = tmp_path / "gen.toml"
     path.write_text(
-        "seed = 5\n[dataset]\nsample_bytes = 'measured'\n"
+        "seed = 5\n[dataset]\ncompression = 'gzip'\n"
         "[[dataset.towns]]\ntown = 'town01'\ntrain_samples = [10]\n"
         "[raster.camera]\nheight_px = 32\nwidth_px = 64\n[expert]\nmax_steer_angle_deg = 35.0\n"
     )
