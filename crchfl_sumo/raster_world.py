@@ -1,10 +1,10 @@
-"""The static world of a SUMO network, painted once into a top-down ground texture.
+"""The static world of a SUMO network, painted once into top-down ground textures.
 
 Two steps, so that tests can build worlds without SUMO:
   road_geometry_from_net(path)  .net.xml -> RoadGeometry (polygons, polylines,
                                 signal heads; plain numpy, world metres)
-  paint_world(geometry, config) RoadGeometry -> World (RGB texture at
-                                ``metres_per_pixel`` + the signal heads)
+  paint_world(geometry, config) RoadGeometry -> World (RGB textures at
+                                ``metres_per_pixel`` x 1, 2, 4 ... + the signal heads)
 
 Lane markings follow what SUMO's lane attributes imply (SUMO stores no paint):
   - right edge of the rightmost vehicle lane: solid white edge line (inset
