@@ -1,5 +1,3 @@
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -19,10 +17,7 @@ RASTER = RasterConfig(camera=CameraConfig(height_px=24, width_px=48))
 
 
 def paper_scenario():
-    scenario = load_scenario("paper")
-    # Simulation passes its own --seed; drop the one the .sumocfg carries.
-    options = tuple(o for o in scenario.sumo_options if not o.startswith("--seed="))
-    return dataclasses.replace(scenario, sumo_options=options)
+    return load_scenario("paper")
 
 
 class Stop(Exception):

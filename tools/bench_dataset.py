@@ -39,10 +39,6 @@ def sizes_for(args: argparse.Namespace) -> DatasetConfig:
 
 def timed_generation(args: argparse.Namespace, out: Path) -> None:
     scenario = load_scenario(args.scenario)
-    # Simulation passes its own --seed; drop one the .sumocfg may carry.
-    scenario = dataclasses.replace(
-        scenario, sumo_options=tuple(o for o in scenario.sumo_options if not o.startswith("--seed="))
-    )
     marks: dict[str, float] = {}
 
     def progress(stage: str, done: int, total: int) -> None:
