@@ -36,6 +36,8 @@ def _commands():
     return [
         ("simulate", "run a scenario with edge association and link rates; write trace, summary, plots",
          _add_simulate, _run_simulate),
+        ("render", "draw one vehicle's four camera images and a top-down map: PNG per step and an MP4",
+         _add_render, _run_render),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
          _add_plan, _run_plan),
     ]
@@ -74,6 +76,40 @@ def _run_simulate(args) -> int:
         f"mean rate {summary['mean_rate_bps'] / 1e6:.2f} Mbit/s, "
         f"teleports {summary['teleports']}, collisions {summary['collisions']} -> {args.out}"
     )
+    return 0
+
+
+# --- render -------------------------------------------------------------------------------------
+
+
+def _add_render(p: argparse.ArgumentParser) -> None:
+    _scenario_argument(p)
+    p.add_argument("--vehicle", required=True, help="id of the vehicle whose cameras are drawn")
+    p.add_argument("--duration-s", type=float, default=60.0, help="simulated seconds (default 60)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (step_*.png, run.mp4)")
+    p.add_argument("--every-n", type=int, default=1, help="draw every n-th step (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    p.add_argument("--scale", type=int, default=3, help="camera tiles enlarged this many times (default 3)")
+
+
+def _run_render(args) -> int:
+    from .errors import CrchflError
+    from .mosaic import render_run
+    from .raster import Renderer
+    from .raster_world import build_world
+    from .scenario import load_scenario
+    from .sim import Simulation
+
+    if args.every_n < 1:
+        raise CrchflError(f"--every-n must be >= 1, got {args.every_n}")
+    scenario = load_scenario(args.scenario)
+    renderer = Renderer(build_world(scenario.net_path))
+    with Simulation(scenario, seed=args.seed, watch=[args.vehicle]) as sim:
+        result = render_run(
+            sim.run(args.duration_s), renderer, args.vehicle, args.out, every_n=args.every_n,
+            fps=1.0 / (scenario.step_length_s * args.every_n), scale=args.scale,
+        )
+    print(f"{len(result.png_paths)} mosaics of {args.vehicle} over {result.frames_seen} steps -> {args.out}")
     return 0
 
 
