@@ -25,12 +25,11 @@ import csv
 import dataclasses
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Literal, Mapping, Sequence
 
+from .atomic import atomic_path
 from .errors import CrchflError
 
 KIB = 1024
@@ -418,23 +417,16 @@ class Ledger:
         suffix = path.suffix.lower()
         if suffix not in (".jsonl", ".csv"):
             raise CrchflError(f"{path}: ledger files end in .jsonl or .csv")
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w", newline="", encoding="utf-8") as handle:
-                if suffix == ".jsonl":
-                    handle.write(json.dumps({"sizes": dataclasses.asdict(self.sizes)}) + "\n")
-                    for record in self._records:
-                        handle.write(json.dumps(dataclasses.asdict(record)) + "\n")
-                else:
-                    writer = csv.DictWriter(handle, fieldnames=_RECORD_FIELDS)
-                    writer.writeheader()
-                    for record in self._records:
-                        writer.writerow(dataclasses.asdict(record))
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as handle:
+            if suffix == ".jsonl":
+                handle.write(json.dumps({"sizes": dataclasses.asdict(self.sizes)}) + "\n")
+                for record in self._records:
+                    handle.write(json.dumps(dataclasses.asdict(record)) + "\n")
+            else:
+                writer = csv.DictWriter(handle, fieldnames=_RECORD_FIELDS)
+                writer.writeheader()
+                for record in self._records:
+                    writer.writerow(dataclasses.asdict(record))
 
     @classmethod
     def load(cls, path: str | Path, sizes: ByteSizes) -> "Ledger":

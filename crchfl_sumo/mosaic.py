@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
@@ -20,6 +19,7 @@ from typing import Iterable
 import cv2
 import numpy as np
 
+from .atomic import atomic_write_bytes, temporary_beside
 from .camera import ground_rays
 from .errors import CrchflError
 from .frame import Frame
@@ -111,22 +111,13 @@ def mosaic(camera_images: np.ndarray, top_down: np.ndarray, scale: int = 3) -> n
     return np.hstack([grid, top_down])
 
 
-def _temp_path(path: Path) -> Path:
-    handle, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(handle)
-    os.chmod(name, 0o644)  # mkstemp makes 0600; these are ordinary output files
-    return Path(name)
-
-
 def write_png(path: str | Path, rgb: np.ndarray) -> None:
     """Write an RGB image as PNG (temporary file, then moved into place)."""
     path = Path(path)
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise CrchflError(f"{path}: OpenCV could not encode the PNG")
-    temp = _temp_path(path)
-    temp.write_bytes(encoded.tobytes())
-    os.replace(temp, path)
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 class VideoWriter:
@@ -144,7 +135,7 @@ class VideoWriter:
 
     def write(self, rgb: np.ndarray) -> None:
         if self._writer is None:
-            self._temp = _temp_path(self.path)
+            self._temp = temporary_beside(self.path)
             height, width = rgb.shape[:2]
             fourcc = cv2.VideoWriter_fourcc(*"mp4v")
             self._writer = cv2.VideoWriter(str(self._temp), fourcc, self.fps, (width, height))
