@@ -98,3 +98,20 @@ def test_site_placement_covers_all_points_with_few_sites():
     assert nearest.max() <= 250.0
     assert len(sites) == 3
     assert place_edge_sites(points, 250.0) == sites  # deterministic
+
+
+@pytest.mark.parametrize("name", ["town01", "town02", "paper", "paper_linked"])
+def test_each_builtin_runs_and_its_data_vehicles_drive_in_their_town(name):
+    scenario = load_scenario(name)
+    named = {v: town for town in scenario.towns for v in town.data_vehicles + town.test_vehicles}
+    with Simulation(scenario, seed=0) as sim:
+        frames = list(sim.run(15.0))
+        stats = sim.stats()
+    assert stats.teleports == 0 and stats.collisions == 0
+    last = frames[-1]
+    assert set(named) <= set(last.ids.tolist())
+    for vehicle, town in named.items():
+        row = last.index_of(vehicle)
+        if not vehicle.startswith("link_"):  # link vehicles drive between the towns
+            assert town.contains(last.x_m[row], last.y_m[row])
+    assert all(scenario.bounds.contains(s.x_m, s.y_m) for s in scenario.edge_sites)
