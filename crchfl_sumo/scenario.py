@@ -30,6 +30,9 @@ from .sites import EdgeSite, place_edge_sites
 log = logging.getLogger(__name__)
 
 BUILTIN_DIR = Path(__file__).parent / "scenarios"
+# A town's box spans its junction centres; lanes and their vehicles lie up to a
+# lane width or two beside the outermost ones.
+TOWN_MARGIN_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -44,9 +47,15 @@ class Town:
     data_vehicles: tuple[str, ...] = ()
     test_vehicles: tuple[str, ...] = ()
 
-    def contains(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    def contains(self, x_m: np.ndarray, y_m: np.ndarray, margin_m: float = TOWN_MARGIN_M) -> np.ndarray:
+        """Whether positions lie in the town: its box (junction centres) widened by ``margin_m``."""
         x_m, y_m = np.asarray(x_m), np.asarray(y_m)
-        return (x_m >= self.xmin_m) & (x_m <= self.xmax_m) & (y_m >= self.ymin_m) & (y_m <= self.ymax_m)
+        return (
+            (x_m >= self.xmin_m - margin_m)
+            & (x_m <= self.xmax_m + margin_m)
+            & (y_m >= self.ymin_m - margin_m)
+            & (y_m <= self.ymax_m + margin_m)
+        )
 
 
 @dataclass(frozen=True)
