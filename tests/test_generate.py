@@ -90,3 +90,23 @@ def test_generate_config_from_toml(tmp_path):
     path.write_text("[expert]\nlook_ahead = 3\n")
     with pytest.raises(CrchflError, match="expert.*look_ahead"):
         load_generate_config(path)
+
+
+@pytest.mark.slow
+def test_label_signs_follow_sumo_turns():
+    from crchfl_sumo.expert import expert_labels, tracks_from_frames
+    from crchfl_sumo.generate import record_run
+
+    frames, _ = record_run(paper_scenario(), 1, {"t02_data_1": 240, "t01_data_0": 240}, 0.25)
+    turns = {"left": 0, "right": 0}
+    for vehicle in ("t02_data_1", "t01_data_0"):
+        track = tracks_from_frames(frames)[vehicle]
+        actions, classes = expert_labels(track)
+        yaw_rate = np.gradient(np.unwrap(track.heading_rad), track.t_s)
+        left, right = yaw_rate > 0.3, yaw_rate < -0.3
+        # (At a turn's end the leading label is already back near 0, class 0.)
+        assert np.all(actions[left, 1] < 0) and not np.isin(classes[left], [1, 2, 3]).any()
+        assert np.all(actions[right, 1] > 0) and not np.isin(classes[right], [4, 5, 6]).any()
+        turns["left"] += int(left.sum())
+        turns["right"] += int(right.sum())
+    assert turns["left"] > 3 and turns["right"] > 3
