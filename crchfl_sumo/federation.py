@@ -1,0 +1,672 @@
+"""Algorithm 1 of the paper on SUMO's clock: CRCHFL, HFL and SFL as configurations of one loop.
+
+The loop (docs/federation.md maps it line by line):
+
+* stage I (CRCHFL with ``pretrain_batch`` > 0): each vehicle uploads a fixed,
+  seeded subset of its samples to its edge, the edges relay them to the
+  cloud, the cloud pretrains and releases the model to every edge and
+  vehicle;
+* stage II: every vehicle trains ``edge_interval`` local epochs and uploads
+  its model; each edge averages what it received (FedAvg, weights |T_nk|)
+  and, unless a cloud aggregation follows, sends the result down;
+* stage III: after ``cloud_interval`` edge aggregations the edges send their
+  models to the cloud, which averages them (weights: the samples behind each
+  edge model) and releases the global model to every edge and vehicle.
+
+SFL has no edge tier: vehicles upload straight to the cloud over the macro
+link, one cloud aggregation per round (``cloud_interval`` = 1). HFL is the
+hierarchy without stage I and without the optimizer.
+
+Time: local training takes ``compute_s_per_sample`` x samples x epochs of
+simulated time; every wireless transfer runs over the vehicle's link on the
+clock (``fl_clock``), every wireline one takes latency + size / rate. An
+aggregation waits for its vehicles' uploads until ``deadline_s`` after its
+window opened; a model that has not arrived by then is a straggler's,
+recorded and left out of that FedAvg (weights renormalised over the rest).
+
+Bytes: every step's transfers come from the ledger's schedule functions
+(``ledger.stage_one_schedule``, ``edge_aggregation_schedule``,
+``cloud_aggregation_schedule``) for the step's actual topology, and are
+charged with their simulated start and end times. Training stops when the
+rest of the budget cannot carry one more model transfer; a step whose
+transfers do not all fit is not counted and its models are dropped (its
+charged bytes stay spent, as ``ledger.replay`` does).
+
+The loop's whole memory is a ``FederationState`` (models, times, counters,
+ledger records, metric lines), so a checkpoint is the state and a resume
+continues from it. Mobility and training are injected (a ``Clock`` and a
+``Trainer``), so the loop runs with scripted tracks and tiny models in tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Literal, Mapping, Protocol, Sequence
+
+import numpy as np
+import torch
+
+from .aggregate import fedavg
+from .allocation import split_pretrain_batch
+from .channel import WirelineConfig
+from .errors import CrchflError
+from .fl_clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
+from .ledger import (
+    CLOUD,
+    ByteSizes,
+    Ledger,
+    Record,
+    Topology,
+    Transfer,
+    cloud_aggregation_schedule,
+    edge_aggregation_schedule,
+    stage_one_schedule,
+)
+from .mobility import NO_SITE
+from .samples import Samples
+from .transfer import TransferConfig, wireline_transfer_time_s
+
+log = logging.getLogger(__name__)
+
+State = dict[str, torch.Tensor]
+HandoverPolicy = Literal["new_edge", "wait", "miss"]
+SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
+
+# Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
+DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
+
+
+@dataclass(frozen=True)
+class FederationConfig:
+    """The scheme and its four hyper-parameters (TOML table ``[federation]``).
+
+    scheme: "crchfl" (stage I + hierarchy), "hfl" (hierarchy only), "sfl"
+        (vehicles straight to the cloud).
+    use_plan: CRCHFL only: ask the resource optimizer (allocation.make_plan)
+        for the four values below instead of taking them from here.
+    pretrain_batch: samples uploaded for cloud pretraining (CRCHFL; 0 = no stage I).
+    edge_interval: local epochs between two edge aggregations (SFL: between
+        two cloud aggregations).
+    cloud_interval: edge aggregations between two cloud aggregations (SFL: 1).
+    cloud_rounds: stop after this many cloud rounds; 0 = until the budget is spent.
+    pretrain_epochs: epochs of the cloud's pretraining on the uploaded subset.
+    evaluate_every_edge: also evaluate the edge models after every edge aggregation.
+    handover_policy: what a vehicle's upload does when the vehicle is not (or
+        no longer) served by its edge: "new_edge" (the model goes to whichever
+        edge serves the vehicle when the upload ends; the vehicle joins it),
+        "wait" (it is sent only while its own edge serves it, waiting out any
+        time elsewhere, up to the deadline), "miss" (leaving its edge's
+        coverage during the upload fails it: the vehicle misses that aggregation).
+    deadline_s: per aggregation: how long after its window opened an edge
+        (or, in SFL, the cloud) waits for uploads [s]; inf = for all of them.
+    compute_s_per_sample: simulated time of one sample of one local epoch on a
+        vehicle, and of the cloud's pretraining [s].
+    seed: seed of the initial model, the pretraining subset and the shuffling.
+    """
+
+    scheme: Literal["crchfl", "hfl", "sfl"] = "crchfl"
+    use_plan: bool = False
+    pretrain_batch: int = 0
+    edge_interval: int = 2
+    cloud_interval: int = 1
+    cloud_rounds: int = 0
+    pretrain_epochs: int = 10
+    evaluate_every_edge: bool = False
+    handover_policy: Literal["new_edge", "wait", "miss"] = "new_edge"
+    deadline_s: float = math.inf
+    compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.scheme not in ("crchfl", "hfl", "sfl"):
+            raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
+        if self.handover_policy not in ("new_edge", "wait", "miss"):
+            raise CrchflError(
+                f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'wait', 'miss'"
+            )
+        if self.use_plan and self.scheme != "crchfl":
+            raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
+        if self.pretrain_batch < 0:
+            raise CrchflError(f"federation.pretrain_batch: {self.pretrain_batch} must be >= 0")
+        if self.pretrain_batch > 0 and self.scheme != "crchfl":
+            raise CrchflError(
+                f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"
+            )
+        if self.edge_interval < 1:
+            raise CrchflError(f"federation.edge_interval: {self.edge_interval} must be >= 1 (local epochs)")
+        if self.cloud_interval < 1:
+            raise CrchflError(f"federation.cloud_interval: {self.cloud_interval} must be >= 1")
+        if self.scheme == "sfl" and self.cloud_interval != 1:
+            raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
+        if self.cloud_rounds < 0:
+            raise CrchflError(f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)")
+        if self.pretrain_epochs < 1:
+            raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
+        if not self.deadline_s > 0:
+            raise CrchflError(f"federation.deadline_s: {self.deadline_s} must be > 0 (inf = no deadline)")
+        if not (math.isfinite(self.compute_s_per_sample) and self.compute_s_per_sample >= 0):
+            raise CrchflError(f"federation.compute_s_per_sample: {self.compute_s_per_sample} must be a number >= 0")
+
+    @property
+    def hierarchical(self) -> bool:
+        return self.scheme != "sfl"
+
+
+@dataclass(frozen=True)
+class Hyper:
+    """The four hyper-parameters a run uses (from the config or from the optimizer's plan)."""
+
+    pretrain_batch: int
+    edge_interval: int
+    cloud_interval: int
+    cloud_rounds: int  # 0 = until the budget is spent
+
+
+class Trainer(Protocol):
+    """What the loop needs from learning; models are state dicts."""
+
+    def initial_state(self) -> State: ...
+
+    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> list[State]: ...
+
+    def evaluate(self, state: State) -> tuple[float, float]:
+        """(Loss, Accuracy) on the test set."""
+        ...
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Everything fixed for one run: who takes part, sizes, links.
+
+    vehicles: the federated vehicles in a fixed order (their training seeds
+    follow it); home_site: each vehicle's edge site index at the start;
+    edges: edge site names (index = site index).
+    """
+
+    config: FederationConfig
+    hyper: Hyper
+    vehicles: tuple[str, ...]
+    samples: Mapping[str, Samples]
+    home_site: Mapping[str, int]
+    edges: tuple[str, ...]
+    sizes: ByteSizes
+    rule: Literal["paper", "physical"]
+    wireline: WirelineConfig = WirelineConfig()
+    transfer: TransferConfig = TransferConfig()
+
+    def __post_init__(self) -> None:
+        names = list(self.vehicles) + list(self.edges)
+        if len(set(names)) != len(names) or CLOUD in names or SFL_LINK in names:
+            raise CrchflError(f"vehicle ids and edge names must be distinct and not {CLOUD!r}/{SFL_LINK!r}: {names}")
+        for v in self.vehicles:
+            if v not in self.samples or len(self.samples[v]) == 0:
+                raise CrchflError(f"vehicle '{v}' has no training samples; check the data set's train shards")
+            if self.config.hierarchical and not 0 <= self.home_site.get(v, NO_SITE) < len(self.edges):
+                raise CrchflError(f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges")
+
+    def count(self, vehicle: str) -> int:
+        return len(self.samples[vehicle])
+
+
+@dataclass
+class FederationState:
+    """All the loop remembers; a checkpoint stores exactly this.
+
+    member: vehicle -> edge name it belongs to now; ready_s: when each vehicle
+    holds its current model; open_s: per edge (or the cloud, SFL) when its
+    current aggregation window opened; steps: steps done (the training seed
+    of step k derives from it).
+    """
+
+    vehicle_models: dict[str, State]
+    edge_models: dict[str, State]
+    edge_weights: dict[str, float]
+    cloud_model: State
+    member: dict[str, str]
+    ready_s: dict[str, float]
+    open_s: dict[str, float]
+    stage_one_done: bool = False
+    steps: int = 0
+    cloud_rounds: int = 0
+    edge_aggregations: int = 0
+    tau: int = 0  # edge aggregations done in the current cloud round
+    records: list[Record] = field(default_factory=list)
+    metrics: list[dict] = field(default_factory=list)
+    stragglers: list[dict] = field(default_factory=list)
+    best_model: State | None = None
+    best: dict | None = None  # metrics line of the best cloud model
+    stop_reason: str | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.stop_reason is not None
+
+    def to_payload(self) -> dict:
+        """Plain dict of tensors and JSON-like values (torch.load(weights_only=True) reads it back)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["records"] = [dataclasses.asdict(r) for r in self.records]
+        return out
+
+    @classmethod
+    def from_payload(cls, payload: Mapping) -> "FederationState":
+        values = dict(payload)
+        values["records"] = [Record(**r) for r in payload["records"]]
+        return cls(**values)
+
+
+def initial_state(setup: Setup, trainer: Trainer, start_s: float) -> FederationState:
+    """Every node holds the same seeded initial model (no transfer needed: only the seed)."""
+    model = trainer.initial_state()
+    edges = setup.edges if setup.config.hierarchical else ()
+    member = {v: setup.edges[setup.home_site[v]] if setup.config.hierarchical else CLOUD for v in setup.vehicles}
+    weights = {e: float(sum(setup.count(v) for v in setup.vehicles if member[v] == e)) for e in edges}
+    return FederationState(
+        vehicle_models={v: model for v in setup.vehicles},
+        edge_models={e: model for e in edges},
+        edge_weights=weights,
+        cloud_model=model,
+        member=member,
+        ready_s={v: start_s for v in setup.vehicles},
+        open_s={k: start_s for k in (edges or (CLOUD,))},
+        stage_one_done=setup.hyper.pretrain_batch == 0,
+    )
+
+
+# ------------------------------------------------------------------ one step
+
+
+@dataclass(frozen=True)
+class Event:
+    """A simulated transfer: who, when, how much arrived."""
+
+    start_s: float
+    end_s: float
+    ok: bool
+    sent_bytes: float
+
+
+def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> Event:
+    return Event(start_s, start_s + wireline_transfer_time_s(size_bytes, cfg), True, float(size_bytes))
+
+
+def _wireless(outcome: WirelessOutcome) -> Event:
+    return Event(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes)
+
+
+def _charge(
+    ledger: Ledger, schedule: Sequence[Transfer], events: Mapping[tuple[str, str, str], Event], rule: str, cloud_round: int
+) -> bool:
+    """Charge the schedule's transfers that happened, with their times; False when one does not fit.
+
+    ``paper`` charges the schedule's size of every transfer that started,
+    ``physical`` the bytes that crossed (fewer than the size for a failed
+    transfer, or for a relay that lost some of its vehicles' samples).
+    A transfer the schedule lists but that never started is not charged.
+    """
+    for planned in schedule:
+        event = events.get((planned.sender, planned.receiver, planned.direction))
+        if event is None:
+            continue
+        size = planned.size_bytes if rule == "paper" else min(planned.size_bytes, math.ceil(event.sent_bytes))
+        if not ledger.can_carry(size):
+            return False
+        ledger.charge(dataclasses.replace(planned, size_bytes=size), cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
+    return True
+
+
+def _bytes_line(ledger: Ledger) -> dict:
+    links = ledger.totals("link")
+    return {"wireless_bytes": links["wireless"], "wireline_bytes": links["wireline"], "consumed_bytes": ledger.spent_bytes}
+
+
+class Federation:
+    """Runs the loop of one setup on a clock with a trainer; ``step`` advances one aggregation step."""
+
+    def __init__(self, setup: Setup, clock: Clock, trainer: Trainer) -> None:
+        self.setup = setup
+        self.clock = clock
+        self.trainer = trainer
+        self.config = setup.config
+
+    # -- public
+
+    def run(self, state: FederationState, on_step: Callable[[FederationState], None] | None = None) -> FederationState:
+        """Step until the stopping rule; ``on_step`` sees the state after every step (checkpoints, progress)."""
+        while not state.done:
+            state = self.step(state)
+            if on_step is not None:
+                on_step(state)
+        return state
+
+    def step(self, state: FederationState) -> FederationState:
+        """One step on a copy of ``state``: stage I, one edge aggregation (+ cloud), or one SFL round."""
+        state = dataclasses.replace(
+            state,
+            vehicle_models=dict(state.vehicle_models),
+            edge_models=dict(state.edge_models),
+            edge_weights=dict(state.edge_weights),
+            member=dict(state.member),
+            ready_s=dict(state.ready_s),
+            open_s=dict(state.open_s),
+            records=list(state.records),
+            metrics=list(state.metrics),
+            stragglers=list(state.stragglers),
+        )
+        ledger = Ledger(self.setup.sizes, state.records)
+        hyper = self.setup.hyper
+        if hyper.cloud_rounds and state.cloud_rounds >= hyper.cloud_rounds:
+            state.stop_reason = "cloud_rounds"
+        elif not ledger.can_carry_model():
+            state.stop_reason = "budget"
+        elif not state.stage_one_done:
+            self._stage_one(state, ledger)
+        elif self.config.hierarchical:
+            self._edge_step(state, ledger)
+        else:
+            self._sfl_round(state, ledger)
+        state.records = list(ledger.records)
+        state.steps += 1
+        return state
+
+    # -- pieces
+
+    def _compute_s(self, vehicle: str, epochs: int) -> float:
+        return epochs * self.setup.count(vehicle) * self.config.compute_s_per_sample
+
+    def _upload(
+        self, vehicle: str, edge: str | None, start_s: float, size: int, window_end_s: float
+    ) -> WirelessOutcome | None:
+        """``vehicle``'s upload to its ``edge`` under the handover policy (SFL, edge None: to the cloud).
+
+        None if it cannot even start before the deadline ``window_end_s``.
+        """
+        if start_s >= window_end_s:
+            return None
+        cfg = with_deadline(self.setup.transfer, window_end_s - start_s)
+        if edge is None:
+            return wireless_transfer(self.clock, vehicle, "macro", start_s, size, cfg)
+        policy = self.config.handover_policy
+        home = self.setup.edges.index(edge)
+        if policy == "new_edge":
+            return wireless_transfer(self.clock, vehicle, "edge", start_s, size, cfg)
+        if policy == "wait":
+            cfg = dataclasses.replace(cfg, on_outage="stall", max_outage_s=math.inf)
+        else:  # miss: any time off its own edge fails the upload
+            cfg = dataclasses.replace(cfg, on_outage="fail")
+        return wireless_transfer(self.clock, vehicle, "edge", start_s, size, cfg, only_site=home)
+
+    def _download(self, vehicle: str, start_s: float, size: int, edge: str | None) -> WirelessOutcome:
+        """Edge -> vehicle (only while that edge serves it) or, for SFL (edge None), cloud -> vehicle."""
+        if edge is None:
+            return wireless_transfer(self.clock, vehicle, "macro", start_s, size, self.setup.transfer)
+        site = self.setup.edges.index(edge)
+        return wireless_transfer(self.clock, vehicle, "edge", start_s, size, self.setup.transfer, only_site=site)
+
+    def _train(self, state: FederationState, epochs: int) -> dict[str, State]:
+        vehicles = self.setup.vehicles
+        seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
+        new = self.trainer.train(
+            [state.vehicle_models[v] for v in vehicles], [self.setup.samples[v] for v in vehicles], epochs, seed
+        )
+        return dict(zip(vehicles, new))
+
+    def _line(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics=None, **extra) -> dict:
+        loss, accuracy = metrics if metrics is not None else (None, None)
+        line = {
+            "step": state.steps,
+            "stage": stage,
+            "cloud_round": state.cloud_rounds,
+            "edge_aggregations": state.edge_aggregations,
+            **_bytes_line(ledger),
+            "sim_time_s": t_s,
+            "loss": loss,
+            "accuracy": accuracy,
+            **extra,
+        }
+        state.metrics.append(line)
+        return line
+
+    def _evaluate_cloud(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, **extra) -> None:
+        loss, accuracy = self.trainer.evaluate(state.cloud_model)
+        line = self._line(state, ledger, stage, t_s, (loss, accuracy), **extra)
+        better = state.best is None or _better(accuracy, loss, state.best["accuracy"], state.best["loss"])
+        if better:
+            state.best, state.best_model = dict(line), state.cloud_model
+
+    # -- stage I
+
+    def _stage_one(self, state: FederationState, ledger: Ledger) -> None:
+        setup, cfg, sizes = self.setup, self.config, self.setup.sizes
+        counts = {v: setup.count(v) for v in setup.vehicles}
+        shares = split_pretrain_batch(setup.hyper.pretrain_batch, counts)
+        member = dict(state.member)
+        events: dict[tuple[str, str, str], Event] = {}
+        uploaded: dict[str, Samples] = {}
+        for i, v in enumerate(setup.vehicles):
+            if not shares[v]:
+                continue
+            edge = state.member[v]
+            out = self._upload(v, edge, state.ready_s[v], shares[v] * sizes.sample_bytes, state.open_s[edge] + cfg.deadline_s)
+            if out is None:
+                self._straggler(state, v, "I", "no time to upload before the deadline", state.open_s[edge] + cfg.deadline_s)
+                continue
+            if out.ok and cfg.handover_policy == "new_edge":
+                member[v] = setup.edges[out.site]
+            events[(v, member[v], "uplink")] = _wireless(out)
+            if out.ok:
+                # the fixed uploaded subset: a seeded choice of the vehicle's samples
+                rng = np.random.default_rng([cfg.seed, 2, i])
+                uploaded[v] = setup.samples[v].subset(np.sort(rng.permutation(counts[v])[: shares[v]]))
+            else:
+                self._straggler(state, v, "I", out.reason, out.end_s)
+        topology = self._topology(member)
+        relay_end = {}
+        for e, vehicles in topology.active():
+            ends = [events[(v, e, "uplink")].end_s for v in vehicles if (v, e, "uplink") in events]
+            if ends:
+                n = sum(len(uploaded[v]) for v in vehicles if v in uploaded)
+                events[(e, CLOUD, "uplink")] = _wireline(max(ends), n * sizes.sample_bytes, setup.wireline)
+                relay_end[e] = events[(e, CLOUD, "uplink")].end_s
+        start_s = max(relay_end.values(), default=max(state.ready_s.values()))
+        n = sum(len(s) for s in uploaded.values())
+        model = state.cloud_model
+        if uploaded:
+            parts = [uploaded[v] for v in setup.vehicles if v in uploaded]
+            seed = int(np.random.SeedSequence([cfg.seed, 3]).generate_state(1)[0])
+            model = self.trainer.train([state.cloud_model], [Samples.concat(parts)], cfg.pretrain_epochs, seed)[0]
+        pretrained_s = start_s + cfg.pretrain_epochs * n * cfg.compute_s_per_sample
+        # release: cloud -> every edge (wireline), edge -> its vehicles (wireless)
+        ready, models, open_s = dict(state.ready_s), dict(state.vehicle_models), dict(state.open_s)
+        for e, vehicles in topology.active():
+            ev = _wireline(pretrained_s, sizes.model_bytes, setup.wireline)
+            events[(CLOUD, e, "downlink")] = ev
+            open_s[e] = ev.end_s
+            for v in vehicles:
+                out = self._download(v, ev.end_s, sizes.model_bytes, e)
+                events[(e, v, "downlink")] = _wireless(out)
+                ready[v] = out.end_s
+                if out.ok:
+                    models[v] = model
+                else:
+                    self._straggler(state, v, "I", f"download {out.reason}", out.end_s)
+        received = {v: shares[v] for v in setup.vehicles}
+        schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
+        if not _charge(ledger, schedule, events, setup.rule, cloud_round=0):
+            state.stop_reason = "budget"
+            return
+        state.stage_one_done = True
+        state.cloud_model = model
+        state.edge_models = {e: model for e in setup.edges}
+        state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
+        self._evaluate_cloud(state, ledger, "I", pretrained_s, pretrain_samples=n)
+
+    # -- stages II and III
+
+    def _topology(self, member: Mapping[str, str]) -> Topology:
+        edges = tuple(e for e in self.setup.edges if any(member[v] == e for v in self.setup.vehicles))
+        groups = tuple(tuple(v for v in self.setup.vehicles if member[v] == e) for e in edges)
+        return Topology(edges, groups)
+
+    def _edge_step(self, state: FederationState, ledger: Ledger) -> None:
+        setup, cfg, sizes = self.setup, self.config, self.setup.sizes
+        followed = state.tau + 1 == setup.hyper.cloud_interval
+        epochs = setup.hyper.edge_interval
+        trained = self._train(state, epochs)
+        member = dict(state.member)
+        events: dict[tuple[str, str, str], Event] = {}
+        uploads: dict[str, WirelessOutcome | None] = {}
+        for v in setup.vehicles:
+            edge = state.member[v]
+            window_end = state.open_s[edge] + cfg.deadline_s
+            out = self._upload(v, edge, state.ready_s[v] + self._compute_s(v, epochs), sizes.model_bytes, window_end)
+            uploads[v] = out
+            if out is not None and out.ok and cfg.handover_policy == "new_edge":
+                member[v] = setup.edges[out.site]
+        # each edge aggregates once its members' uploads ended (or at its deadline)
+        topology = self._topology(member)
+        agg_s: dict[str, float] = {}
+        edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
+        received_by: dict[str, list[str]] = {}
+        for e, vehicles in topology.active():
+            ends, received = [], []
+            for v in vehicles:
+                out = uploads[v]
+                deadline = state.open_s[state.member[v]] + cfg.deadline_s
+                if out is None:
+                    ends.append(deadline)
+                    self._straggler(state, v, "II", "no time to upload before the deadline", deadline)
+                    continue
+                events[(v, e, "uplink")] = _wireless(out)
+                ends.append(out.end_s)
+                if out.ok:
+                    received.append(v)
+                else:
+                    self._straggler(state, v, "II", out.reason, out.end_s)
+            agg_s[e] = max(ends)
+            received_by[e] = received
+            if received:
+                edge_models[e] = fedavg([(trained[v], setup.count(v)) for v in received])
+                edge_weights[e] = float(sum(setup.count(v) for v in received))
+        models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
+        for e in agg_s:
+            # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
+            events[(e, CLOUD, "uplink")] = _wireline(agg_s[e], sizes.model_bytes, setup.wireline)
+        t_line = max(agg_s.values())
+        cloud_model, cloud_s = state.cloud_model, None
+        if followed:
+            arrive = {e: events[(e, CLOUD, "uplink")].end_s for e in agg_s}
+            cloud_s = max(arrive.values())
+            fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
+            cloud_model = fedavg(fresh) if fresh else state.cloud_model
+            senders = {}
+            for e in agg_s:
+                ev = _wireline(cloud_s, sizes.model_bytes, setup.wireline)
+                events[(CLOUD, e, "downlink")] = ev
+                edge_models[e] = cloud_model
+                senders[e] = ev.end_s
+        else:
+            senders = agg_s
+        for e, vehicles in topology.active():
+            open_s[e] = senders[e]
+            for v in vehicles:
+                out = self._download(v, senders[e], sizes.model_bytes, e)
+                events[(e, v, "downlink")] = _wireless(out)
+                ready[v] = out.end_s
+                if out.ok:
+                    models[v] = edge_models[e]
+                else:
+                    self._straggler(state, v, "III" if followed else "II", f"download {out.reason}", out.end_s)
+        next_round = state.cloud_rounds + 1
+        schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
+        if followed:
+            schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
+        if not _charge(ledger, schedule, events, setup.rule, cloud_round=next_round):
+            state.stop_reason = "budget"
+            return
+        state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
+        state.edge_models, state.edge_weights = edge_models, edge_weights
+        state.edge_aggregations += 1
+        state.tau += 1
+        received_count = {e: len(vs) for e, vs in received_by.items()}
+        if cfg.evaluate_every_edge:
+            metrics = self._evaluate_edges(edge_models, edge_weights, agg_s)
+            self._line(state, ledger, "II", t_line, metrics, received=received_count)
+        else:
+            self._line(state, ledger, "II", t_line, received=received_count)
+        if followed:
+            state.cloud_model = cloud_model
+            state.cloud_rounds = next_round
+            state.tau = 0
+            self._evaluate_cloud(state, ledger, "III", cloud_s)
+
+    def _evaluate_edges(self, models, weights, edges) -> tuple[float, float]:
+        """Sample-weighted mean of the edge models' test Loss and Accuracy."""
+        results = [(self.trainer.evaluate(models[e]), weights[e]) for e in edges]
+        total = sum(w for _, w in results) or 1.0
+        return (sum(m[0] * w for m, w in results) / total, sum(m[1] * w for m, w in results) / total)
+
+    def _straggler(self, state: FederationState, vehicle: str, stage: str, reason: str, t_s: float) -> None:
+        state.stragglers.append(
+            {"step": state.steps, "stage": stage, "cloud_round": state.cloud_rounds + 1, "vehicle": vehicle, "reason": reason, "t_s": t_s}
+        )
+        log.info("step %d: %s straggles (%s) at %.1f s", state.steps, vehicle, reason, t_s)
+
+    # -- SFL
+
+    def _sfl_round(self, state: FederationState, ledger: Ledger) -> None:
+        setup, cfg, sizes = self.setup, self.config, self.setup.sizes
+        epochs = setup.hyper.edge_interval
+        trained = self._train(state, epochs)
+        window_end = state.open_s[CLOUD] + cfg.deadline_s
+        events: dict[tuple[str, str, str], Event] = {}
+        ends, received = [], []
+        for v in setup.vehicles:
+            out = self._upload(v, None, state.ready_s[v] + self._compute_s(v, epochs), sizes.model_bytes, window_end)
+            if out is None:
+                ends.append(window_end)
+                self._straggler(state, v, "III", "no time to upload before the deadline", window_end)
+                continue
+            events[(v, CLOUD, "uplink")] = _wireless(out)
+            ends.append(out.end_s)
+            if out.ok:
+                received.append(v)
+            else:
+                self._straggler(state, v, "III", out.reason, out.end_s)
+        cloud_s = max(ends)
+        cloud_model = fedavg([(trained[v], setup.count(v)) for v in received]) if received else state.cloud_model
+        models, ready = dict(trained), dict(state.ready_s)
+        for v in setup.vehicles:
+            out = self._download(v, cloud_s, sizes.model_bytes, None)
+            events[(CLOUD, v, "downlink")] = _wireless(out)
+            ready[v] = out.end_s
+            if out.ok:
+                models[v] = cloud_model
+            else:
+                self._straggler(state, v, "III", f"download {out.reason}", out.end_s)
+        topology = Topology((SFL_LINK,), (setup.vehicles,))
+        next_round = state.cloud_rounds + 1
+        if not _charge(ledger, cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes), events, setup.rule, next_round):
+            state.stop_reason = "budget"
+            return
+        state.vehicle_models, state.ready_s = models, ready
+        state.open_s = {CLOUD: cloud_s}
+        state.cloud_model = cloud_model
+        state.cloud_rounds = next_round
+        self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received))
+
+
+def _better(accuracy: float, loss: float, best_accuracy: float, best_loss: float) -> bool:
+    """Higher Accuracy wins; equal Accuracy: lower Loss (NaN never wins)."""
+    if math.isnan(accuracy):
+        return False
+    if math.isnan(best_accuracy) or accuracy > best_accuracy:
+        return True
+    return accuracy == best_accuracy and loss < best_loss
+
+
+def sim_time_s(state: FederationState) -> float:
+    """The latest simulated time the run reached (the last model's arrival)."""
+    return max(list(state.ready_s.values()) + [r.end_s for r in state.records], default=0.0)

@@ -1,0 +1,276 @@
+"""The federation's mobility clock: each vehicle's link over simulated time, and transfers over it.
+
+A clock answers one question: over ``[from_s, to_s]``, what rate [bit/s]
+does a vehicle get and which site serves it, step by step? Two kinds of
+link are asked for: ``edge`` (the road-side units, the hierarchical schemes)
+and ``macro`` (SFL's direct vehicle <-> cloud link over public macro cells).
+
+* ``SumoClock`` steps SUMO and the LinkModel(s) lazily, only as far as the
+  latest question needs, and keeps every step's rate and serving site of the
+  federated vehicles. The series is a pure function of the scenario, the
+  seed and the link settings: the bandwidth of a cell is shared among the
+  federated vehicles it serves (all marked transmitting), not among the ones
+  that happen to transmit at that moment. That keeps the clock independent
+  of the learning loop, so a resumed run that re-runs SUMO from the start
+  (libsumo is deterministic) sees exactly the same links.
+* ``ScriptedClock`` plays fixed per-vehicle tracks: tests and the
+  ``constant`` clock of run configs (no mobility at all).
+
+``wireless_transfer`` integrates a transfer of N bytes over a vehicle's
+series with ``transfer.transfer``, asking the clock for more time until the
+outcome is settled, and applies the receiving-site rules of the handover
+policies (docs/federation.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Literal, Mapping, Protocol, Sequence
+
+import numpy as np
+
+from .channel import ChannelConfig
+from .errors import CrchflError
+from .mobility import NO_SITE, LinkModel, MacroLinkConfig, MobilityConfig, macro_link_model
+from .scenario import Scenario
+from .transfer import TransferConfig, transfer
+
+log = logging.getLogger(__name__)
+
+LinkKind = Literal["edge", "macro"]
+_EPS_S = 1e-9
+
+
+@dataclass(frozen=True)
+class LinkSeries:
+    """One vehicle's link, sample by sample; each sample holds until the next.
+
+    t_s [N] strictly increasing; rate_bps [N] (0 = no coverage); site [N]
+    serving site index (-1 = none).
+    """
+
+    t_s: np.ndarray
+    rate_bps: np.ndarray
+    site: np.ndarray
+
+
+class Clock(Protocol):
+    """What the federation loop needs from mobility."""
+
+    start_s: float  # simulated time the federation starts at
+    step_s: float  # spacing of the samples
+
+    def series(self, vehicle: str, kind: LinkKind, from_s: float, to_s: float) -> LinkSeries:
+        """Samples of ``vehicle``'s link: the first at or before ``from_s``, the last at or after ``to_s``."""
+        ...
+
+
+# ------------------------------------------------------------------ scripted
+
+
+@dataclass(frozen=True)
+class Segment:
+    """From ``t_s`` on (until the next segment) the vehicle is served by ``site`` at ``rate_bps``."""
+
+    t_s: float
+    site: int
+    rate_bps: float
+
+
+class ScriptedClock:
+    """Fixed piecewise-constant tracks per vehicle, sampled every ``step_s``.
+
+    ``tracks[vehicle]`` are the edge-link segments (sorted by time, the first
+    at 0); ``macro_tracks`` those of the macro link (default: the edge
+    tracks). A vehicle without a track has no coverage.
+    """
+
+    def __init__(
+        self,
+        tracks: Mapping[str, Sequence[Segment]],
+        step_s: float = 1.0,
+        macro_tracks: Mapping[str, Sequence[Segment]] | None = None,
+        start_s: float = 0.0,
+    ) -> None:
+        if not step_s > 0:
+            raise ValueError(f"ScriptedClock: step_s must be > 0, got {step_s}")
+        self.step_s = float(step_s)
+        self.start_s = float(start_s)
+        self._tracks = {"edge": dict(tracks), "macro": dict(tracks if macro_tracks is None else macro_tracks)}
+        for kind in self._tracks.values():
+            for vehicle, segments in kind.items():
+                times = [s.t_s for s in segments]
+                if not segments or times != sorted(times) or times[0] > 0:
+                    raise ValueError(f"ScriptedClock: track of {vehicle} must be time-sorted and start at 0")
+
+    @classmethod
+    def constant(cls, sites: Mapping[str, int], rate_bps: float, step_s: float = 1.0, macro_rate_bps: float | None = None):
+        """Every vehicle served by its site at one rate for ever (no mobility)."""
+        edge = {v: [Segment(0.0, s, rate_bps)] for v, s in sites.items()}
+        macro = {v: [Segment(0.0, 0, rate_bps if macro_rate_bps is None else macro_rate_bps)] for v in sites}
+        return cls(edge, step_s, macro)
+
+    def series(self, vehicle: str, kind: LinkKind, from_s: float, to_s: float) -> LinkSeries:
+        first = math.floor(from_s / self.step_s + _EPS_S)
+        last = max(math.ceil(to_s / self.step_s - _EPS_S), first)
+        t = np.arange(first, last + 1, dtype=np.float64) * self.step_s
+        segments = self._tracks[kind].get(vehicle, [Segment(0.0, NO_SITE, 0.0)])
+        starts = np.array([s.t_s for s in segments])
+        index = np.clip(np.searchsorted(starts, t + _EPS_S, side="right") - 1, 0, None)
+        rate = np.array([segments[i].rate_bps for i in index], dtype=np.float64)
+        site = np.array([segments[i].site for i in index], dtype=np.int64)
+        return LinkSeries(t, np.where(site >= 0, rate, 0.0), site)
+
+
+# ------------------------------------------------------------------ SUMO
+
+
+class SumoClock:
+    """SUMO + LinkModel(s) stepped lazily; use as a context manager (libsumo: one per process).
+
+    ``vehicles`` are the federated vehicles (the data vehicles); only they
+    enter the link models. ``kinds`` says which links to model: ``edge``
+    uses the scenario's edge sites, ``macro`` SFL's macro cells.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        vehicles: Sequence[str],
+        seed: int,
+        kinds: Sequence[LinkKind] = ("edge",),
+        channel: ChannelConfig = ChannelConfig(),
+        mobility: MobilityConfig = MobilityConfig(),
+        macro: MacroLinkConfig = MacroLinkConfig(),
+    ) -> None:
+        from .sim import Simulation
+
+        self.scenario = scenario
+        self.vehicles = tuple(vehicles)
+        self.step_s = scenario.step_length_s
+        self._sim = Simulation(scenario, seed=seed, watch=())
+        # Separate seeds per link kind, so adding the macro link leaves the edge link unchanged.
+        seeds = np.random.SeedSequence([seed, 7919]).spawn(2)
+        self._links: dict[str, LinkModel] = {}
+        if "edge" in kinds:
+            self._links["edge"] = LinkModel(scenario.edge_sites, channel, mobility, np.random.default_rng(seeds[0]))
+        if "macro" in kinds:
+            bounds = scenario.bounds
+            box = (bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m)
+            self._links["macro"] = macro_link_model(macro, box, channel, mobility, np.random.default_rng(seeds[1]))
+        self._t: list[float] = []
+        self._rate = {k: {v: [] for v in self.vehicles} for k in self._links}
+        self._site = {k: {v: [] for v in self.vehicles} for k in self._links}
+        self.start_s = 0.0
+
+    def __enter__(self) -> "SumoClock":
+        self._sim.__enter__()
+        self._advance()  # the first frame: the federation starts at its time
+        self.start_s = self._t[0]
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._sim.close()
+
+    @property
+    def t_s(self) -> float:
+        """Simulated time of the latest step."""
+        return self._t[-1]
+
+    def _advance(self) -> None:
+        frame = self._sim.step()
+        keep = np.isin(frame.ids, self.vehicles)
+        mine = frame.select(keep)
+        self._t.append(float(frame.t_s))
+        for kind, links in self._links.items():
+            snapshot = links.step(mine)
+            rows = {str(v): i for i, v in enumerate(snapshot.ids)}
+            for v in self.vehicles:
+                i = rows.get(v)
+                self._rate[kind][v].append(0.0 if i is None else float(snapshot.rate_bps[i]))
+                self._site[kind][v].append(NO_SITE if i is None else int(snapshot.site[i]))
+
+    def series(self, vehicle: str, kind: LinkKind, from_s: float, to_s: float) -> LinkSeries:
+        if kind not in self._links:
+            raise ValueError(f"SumoClock: link kind {kind!r} was not requested")
+        if vehicle not in self._rate[kind]:
+            raise CrchflError(f"vehicle '{vehicle}' is not one of the clock's vehicles {list(self.vehicles)}")
+        while self._t[-1] < to_s - _EPS_S:
+            self._advance()
+        t = np.asarray(self._t)
+        first = max(int(np.searchsorted(t, from_s + _EPS_S, side="right")) - 1, 0)
+        last = int(np.searchsorted(t, to_s - _EPS_S, side="left"))
+        sl = slice(first, last + 1)
+        return LinkSeries(
+            t[sl].copy(),
+            np.asarray(self._rate[kind][vehicle][sl], dtype=np.float64),
+            np.asarray(self._site[kind][vehicle][sl], dtype=np.int64),
+        )
+
+
+# ------------------------------------------------------------------ transfers
+
+
+@dataclass(frozen=True)
+class WirelessOutcome:
+    """One wireless transfer on the clock.
+
+    ok: every byte arrived; end_s: arrival, or when it was given up;
+    sent_bytes: bytes delivered by end_s; site: the site serving the vehicle
+    when the last byte arrived (-1 if it failed); reason: "done", "outage"
+    or "deadline" (transfer.TransferResult).
+    """
+
+    ok: bool
+    start_s: float
+    end_s: float
+    sent_bytes: float
+    site: int
+    reason: str
+
+
+def wireless_transfer(
+    clock: Clock,
+    vehicle: str,
+    kind: LinkKind,
+    start_s: float,
+    size_bytes: float,
+    cfg: TransferConfig,
+    *,
+    only_site: int | None = None,
+    horizon_s: float = 60.0,
+    max_span_s: float = 86400.0,
+) -> WirelessOutcome:
+    """Send ``size_bytes`` between ``vehicle`` and its network from ``start_s`` on.
+
+    ``only_site``: the transfer runs only while that site serves the vehicle
+    (rate 0 elsewhere, an outage for ``cfg``); None: any serving site carries
+    it. The clock is asked for ``horizon_s`` at first, then for twice as
+    much, until the outcome lies within known time; a transfer unsettled
+    after ``max_span_s`` is given up ("outage").
+    """
+    span_s = horizon_s
+    while True:
+        link = clock.series(vehicle, kind, start_s, start_s + span_s)
+        rate = link.rate_bps if only_site is None else np.where(link.site == only_site, link.rate_bps, 0.0)
+        result = transfer(link.t_s, rate, start_s, size_bytes, cfg)
+        if result.end_t_s <= link.t_s[-1] + _EPS_S:
+            break
+        if span_s >= max_span_s:
+            return WirelessOutcome(False, start_s, start_s + max_span_s, result.sent_bytes, NO_SITE, "outage")
+        span_s = min(2.0 * span_s, max_span_s)
+    site = NO_SITE
+    if result.ok:
+        # the sample whose rate carried the last bit
+        i = int(np.searchsorted(link.t_s, result.end_t_s - _EPS_S, side="left")) - 1
+        i = min(max(i, int(np.searchsorted(link.t_s, start_s + _EPS_S, side="right")) - 1), len(link.t_s) - 1)
+        site = int(link.site[i]) if only_site is None else only_site
+    return WirelessOutcome(result.ok, start_s, result.end_t_s, result.sent_bytes, site, result.reason)
+
+
+def with_deadline(cfg: TransferConfig, deadline_s: float) -> TransferConfig:
+    """``cfg`` with its whole-transfer deadline cut to ``deadline_s`` (if that is shorter)."""
+    return dataclasses.replace(cfg, deadline_s=min(cfg.deadline_s, deadline_s))
