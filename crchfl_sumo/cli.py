@@ -38,6 +38,10 @@ def _commands():
          _add_simulate, _run_simulate),
         ("render", "draw one vehicle's four camera images and a top-down map: PNG per step and an MP4",
          _add_render, _run_render),
+        ("dataset", "generate the driving data set (per-vehicle HDF5 shards); rerun the same command to resume",
+         _add_dataset, _run_dataset),
+        ("dataset-stats", "label statistics, summary figure and example mosaic of a data set",
+         _add_dataset_stats, _run_dataset_stats),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
          _add_plan, _run_plan),
     ]
@@ -110,6 +114,42 @@ def _run_render(args) -> int:
             fps=1.0 / (scenario.step_length_s * args.every_n), scale=args.scale,
         )
     print(f"{len(result.png_paths)} mosaics of {args.vehicle} over {result.frames_seen} steps -> {args.out}")
+    return 0
+
+
+# --- dataset ------------------------------------------------------------------------------------
+
+
+def _add_dataset(p: argparse.ArgumentParser) -> None:
+    _scenario_argument(p)
+    p.add_argument("--out", type=Path, required=True, help="data set folder (rerun the same command to resume)")
+    p.add_argument("--seed", type=int, default=None, help="seed (overrides the config's)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="TOML: seed, [dataset], [raster], [world], [expert] (docs/dataset.md)")
+
+
+def _run_dataset(args) -> int:
+    from .generate import run_dataset_command
+
+    manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, lambda n: _progress(n, "sample"))
+    print(
+        f"{manifest.scenario}: {len(manifest.shards)} shards, {manifest.samples} samples, "
+        f"{manifest.png_bytes_per_sample:.0f} PNG bytes/sample -> {args.out}"
+    )
+    return 0
+
+
+def _add_dataset_stats(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="data set folder (with manifest.json)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
+
+
+def _run_dataset_stats(args) -> int:
+    from .dataset_stats import write_dataset_stats
+
+    stats = write_dataset_stats(args.dir, args.out)
+    files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
+    print(f"{stats['samples']} samples; steer classes (train) {stats['train']['steer_class_counts']}; {files}")
     return 0
 
 

@@ -22,7 +22,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -31,6 +30,7 @@ import cv2
 import h5py
 import numpy as np
 
+from .atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from .errors import CrchflError
 from .labels import ACTION_NAMES, CAMERA_NAMES, STEER_CLASS_VALUES
 
@@ -41,7 +41,6 @@ FORMAT_NAME = "crchfl-sumo-dataset"
 FORMAT_VERSION = 1
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
-TMP_MARK = ".tmp-"
 
 Compression = Literal["lzf", "gzip", "none"]
 
@@ -174,32 +173,6 @@ def _jsonable(value: Any) -> Any:
     return json.loads(json.dumps(value))
 
 
-# ---------------------------------------------------------------- atomic files
-
-
-def _tmp_path(path: Path) -> Path:
-    return path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename."""
-    tmp = _tmp_path(path)
-    with open(tmp, "w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-
-
-def remove_stale_temporaries(folder: Path) -> list[Path]:
-    """Delete temporary files an interrupted writer left in ``folder``; returns what was removed."""
-    removed = []
-    for path in folder.glob(f".*{TMP_MARK}*"):
-        path.unlink(missing_ok=True)
-        removed.append(path)
-    return removed
-
-
 def sha256_file(path: Path, block_bytes: int = 1 << 22) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
@@ -245,8 +218,7 @@ def write_shard(
     path = Path(path)
     options = _compression_options(compression)
     n, _, height, width, _ = data.images.shape
-    tmp = _tmp_path(path)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.create_dataset(
                 "images",
@@ -262,11 +234,6 @@ def write_shard(
                 f.attrs[key] = value
             f.attrs["cameras"] = ",".join(CAMERA_NAMES)
             f.attrs["actions"] = ",".join(ACTION_NAMES)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return ShardEntry(
         file=path.name,
         vehicle=vehicle,

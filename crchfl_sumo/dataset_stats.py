@@ -15,7 +15,8 @@ import cv2
 import h5py
 import numpy as np
 
-from .dataset_io import atomic_write_text, read_manifest, read_shard, verify_shard
+from .atomic import atomic_write_text
+from .dataset_io import read_manifest, read_shard, verify_shard
 from .labels import CAMERA_NAMES, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 
 log = logging.getLogger(__name__)

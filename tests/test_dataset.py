@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from crchfl_sumo.atomic import TMP_MARK
 from crchfl_sumo.config import from_mapping
 from crchfl_sumo.dataset import (
     DatasetConfig,
@@ -171,7 +172,7 @@ def test_resume_after_interruption_gives_identical_shards(tmp_path):
     full = generate(tmp_path / "full", config, seed=5)
     with pytest.raises(Interrupted):
         generate(tmp_path / "cut", config, seed=5, fail_after=2)
-    (tmp_path / "cut" / ".Town02-train-0.h5.tmp-999").write_bytes(b"half a file")  # a crash's leftover
+    (tmp_path / "cut" / f".Town02-train-0.h5{TMP_MARK}999.h5").write_bytes(b"half a file")  # a crash's leftover
     first = read_manifest(tmp_path / "cut").shards
     assert len(first) == 2
     kept_mtime = (tmp_path / "cut" / first[0].file).stat().st_mtime_ns
