@@ -16,8 +16,9 @@ so they are read only for the vehicles a caller watches.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from types import ModuleType
 
 import numpy as np
@@ -173,6 +174,44 @@ class Simulation:
 
     def tls_ids(self) -> tuple[str, ...]:
         return self._tls_ids
+
+    # --- a vehicle driven from outside (drive.py) --------------------------------------------
+
+    def vehicle_type_ids(self) -> tuple[str, ...]:
+        """The vehicle types this simulation knows."""
+        return tuple(self._api.vehicletype.getIDList())
+
+    def add_external_vehicle(self, vehicle_id: str, edges: Sequence[str], type_id: str) -> None:
+        """Ask SUMO to insert a vehicle on ``edges`` now, standing, its rear at the first lane's start.
+
+        SUMO inserts it at a later step when the spot is free. Its speed and lane
+        change modes are off: from then on ``place_vehicle`` moves it, not SUMO.
+        """
+        api = self._api
+        try:
+            api.route.add(f"{vehicle_id}__route", list(edges))
+            api.vehicle.add(
+                vehicle_id, f"{vehicle_id}__route", typeID=type_id, depart="now", departPos="base", departSpeed="0"
+            )
+        except Exception as exc:  # libsumo reports bad ids as a generic error
+            raise CrchflError(f"SUMO refused vehicle '{vehicle_id}' on edges {list(edges)}: {exc}") from None
+        api.vehicle.setSpeedMode(vehicle_id, 0)
+        api.vehicle.setLaneChangeMode(vehicle_id, 0)
+
+    def place_vehicle(self, vehicle_id: str, x_front_m: float, y_front_m: float, heading_rad: float, speed_mps: float) -> None:
+        """Put a vehicle's FRONT bumper at (x, y), facing ``heading_rad``, at the next step (free placement).
+
+        moveToXY with keepRoute=2 maps it onto whatever lane lies there (or none,
+        off the road) with its exact lateral offset; the speed is set so that the
+        vehicles around it react to it as to any other.
+        """
+        angle_deg = (90.0 - math.degrees(heading_rad)) % 360.0
+        self._api.vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
+        self._api.vehicle.setSpeed(vehicle_id, max(0.0, float(speed_mps)))
+
+    def colliding_vehicles(self) -> tuple[str, ...]:
+        """Vehicles SUMO found in a collision during the last step."""
+        return tuple(self._api.simulation.getCollidingVehiclesIDList())
 
     def _read_frame(self, tc) -> Frame:
         vehicle = self._api.vehicle
