@@ -1,0 +1,435 @@
+"""`crchfl-sumo run CONFIG.toml --out DIR [--resume]`: a federation run from config to results folder.
+
+DIR receives (every file written atomically):
+
+  config.toml      the config file as given
+  config.json      the resolved run: settings, the four hyper-parameters used, byte sizes
+  checkpoint.pt    the whole FederationState after the latest step (what --resume reads)
+  metrics.jsonl    one line per aggregation (stage I, each edge aggregation, each cloud aggregation)
+  ledger.jsonl     every charged transfer (ledger.Ledger.save; first line: the sizes)
+  stragglers.jsonl every vehicle that missed an aggregation or a download, and why
+  best_model.pt    the best cloud model so far (checkpoint.save_checkpoint format)
+  final_model.pt   the last cloud model
+  summary.json     scheme, cloud_rounds, edge_aggregations, consumed_bytes, budget_bytes,
+                   best/final accuracy and loss, sim_time_s, stop_reason, ...
+
+A run killed at any moment and resumed with --resume continues from the
+latest checkpoint and ends with the same files as an uninterrupted run with
+the same seed: every step's randomness derives from the seed and the step
+number, and the clock re-runs SUMO deterministically from the start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal, Mapping
+
+import torch
+
+from .allocation import AllocationConfig, make_plan
+from .atomic import atomic_path, atomic_write_text
+from .channel import ChannelConfig, WirelineConfig
+from .checkpoint import save_checkpoint
+from .config import from_mapping, read_toml, to_mapping
+from .errors import CrchflError
+from .federation import (
+    Federation,
+    FederationConfig,
+    FederationState,
+    Hyper,
+    Setup,
+    initial_state,
+    sim_time_s,
+)
+from .fl_clock import Clock, ScriptedClock
+from .ledger import Ledger, LedgerConfig, resolve_sizes
+from .local import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicles
+from .mobility import MacroLinkConfig, MobilityConfig
+from .model import DrivingModel, ModelConfig, build_model, state_size_bytes
+from .samples import Samples
+from .transfer import TransferConfig
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "crchfl-sumo-federation/1"
+Progress = Callable[[dict], None]
+
+
+@dataclass(frozen=True)
+class ClockConfig:
+    """Which clock the federation runs on (TOML ``[clock]``).
+
+    kind: "sumo" (the scenario in SUMO with the link models: the product) or
+        "constant" (no mobility: every vehicle always served by its home edge
+        at ``constant_rate_bps``, the macro link at ``constant_macro_rate_bps``;
+        for quick runs and checks).
+    constant_step_s: sample spacing of the constant clock [s].
+    """
+
+    kind: Literal["sumo", "constant"] = "sumo"
+    constant_rate_bps: float = 20e6
+    constant_macro_rate_bps: float = 10e6
+    constant_step_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sumo", "constant"):
+            raise CrchflError(f"clock.kind: {self.kind!r} is not one of 'sumo', 'constant'")
+        for key in ("constant_rate_bps", "constant_macro_rate_bps", "constant_step_s"):
+            if not getattr(self, key) > 0:
+                raise CrchflError(f"clock.{key} must be > 0, got {getattr(self, key)}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A federation run (one TOML file; every table is the owning module's settings).
+
+    scenario: built-in scenario name or .sumocfg path (the SUMO clock drives it).
+    dataset: data set folder (``crchfl-sumo dataset``), relative to the
+        current directory unless absolute; its train shards are the
+        vehicles' data, its test shards the test set.
+    data_mode: "fixed": each vehicle trains on its generated shard (the
+        paper's setting). ("online", vehicles collecting while they drive,
+        is not implemented.)
+    """
+
+    scenario: str = "paper"
+    dataset: str = "data/paper"
+    data_mode: str = "fixed"
+    federation: FederationConfig = field(default_factory=FederationConfig)
+    ledger: LedgerConfig = field(default_factory=LedgerConfig)
+    allocation: AllocationConfig = field(default_factory=AllocationConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    clock: ClockConfig = field(default_factory=ClockConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+    mobility: MobilityConfig = field(default_factory=MobilityConfig)
+    wireline: WirelineConfig = field(default_factory=WirelineConfig)
+    sfl_link: MacroLinkConfig = field(default_factory=MacroLinkConfig)
+    transfer: TransferConfig = field(default_factory=TransferConfig)
+
+    def __post_init__(self) -> None:
+        if self.data_mode != "fixed":
+            raise CrchflError(
+                f"data_mode: {self.data_mode!r} is not available; only 'fixed' (each vehicle trains on its "
+                "generated shard) is implemented: set data_mode = \"fixed\""
+            )
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    return from_mapping(RunConfig, read_toml(path), where=str(path))
+
+
+# ------------------------------------------------------------------ training adapter
+
+
+class TorchTrainer:
+    """The loop's Trainer on top of local.py: DrivingModel state dicts, Table II training, test-set metrics."""
+
+    def __init__(self, model_config: ModelConfig, config: TrainConfig, test: Samples, seed: int) -> None:
+        configure_determinism(config.deterministic)
+        self.model_config, self.config, self.seed = model_config, config, seed
+        self.device = resolve_device(config.device)
+        self.test = test.to(self.device)
+        self._eval_model = DrivingModel(model_config).to(self.device)
+
+    def initial_state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().cpu().clone() for k, v in build_model(self.model_config, self.seed).state_dict().items()}
+
+    def train(self, states, samples, epochs, seed):
+        new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
+        return new
+
+    def evaluate(self, state) -> tuple[float, float]:
+        self._eval_model.load_state_dict(state)
+        metrics = evaluate(self._eval_model, self.test, self.config)
+        return metrics.loss, metrics.accuracy
+
+
+# ------------------------------------------------------------------ inputs
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What a run reads before it starts: the vehicles' data, the test set, edges, sizes."""
+
+    vehicles: tuple[str, ...]
+    samples: Mapping[str, Samples]
+    test: Samples
+    edges: tuple[str, ...]
+    home_site: Mapping[str, int]
+    measured_sample_bytes: int | None
+
+
+def read_inputs(config: RunConfig) -> Inputs:
+    """Load the data set (train shards per vehicle, test shards) and map vehicles to edge sites."""
+    from .dataset import load_samples, load_vehicle_samples, measured_sample_bytes
+    from .dataset_io import read_manifest
+
+    root = Path(config.dataset)
+    manifest = read_manifest(root)
+    if (manifest.image_height, manifest.image_width) != (config.model.image_height, config.model.image_width):
+        raise CrchflError(
+            f"model.image_height/image_width: {config.model.image_height} x {config.model.image_width} does not "
+            f"match the data set's {manifest.image_height} x {manifest.image_width} ({root}); set them to the data's size"
+        )
+    samples = load_vehicle_samples(root, "train")
+    if not samples:
+        raise CrchflError(f"{root}: the data set has no train shards; generate it with `crchfl-sumo dataset`")
+    test = load_samples(root, "test")
+    if len(test) == 0:
+        raise CrchflError(f"{root}: the data set has no test shards; the run evaluates on them")
+    shards = {s.vehicle: s for s in manifest.select("train")}
+    vehicles = tuple(shards)
+    if config.clock.kind == "sumo":
+        from .scenario import load_scenario
+
+        scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
+        edges = tuple(site.name for site in scenario.edge_sites)
+    else:
+        edges = tuple(dict.fromkeys(s.edge for s in shards.values()))
+    home = {}
+    for v, shard in shards.items():
+        if shard.edge not in edges:
+            raise CrchflError(
+                f"{root}: vehicle {v} was recorded at edge {shard.edge!r}, which scenario {config.scenario!r} "
+                f"does not have ({', '.join(edges)}); use the scenario the data set was generated with"
+            )
+        home[v] = edges.index(shard.edge)
+    measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
+    return Inputs(vehicles, samples, test, edges, home, measured)
+
+
+def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int) -> tuple[Hyper, dict | None]:
+    """The four hyper-parameters: the config's, or (CRCHFL, use_plan) the optimizer's for this run's topology."""
+    fed = config.federation
+    if not fed.use_plan:
+        return Hyper(fed.pretrain_batch, fed.edge_interval, fed.cloud_interval, fed.cloud_rounds), None
+    per_edge = tuple(sum(1 for v in inputs.vehicles if inputs.home_site[v] == i) for i in range(len(inputs.edges)))
+    allocation = dataclasses.replace(
+        config.allocation,
+        vehicles_per_edge=per_edge,
+        local_samples=sum(len(inputs.samples[v]) for v in inputs.vehicles),
+    )
+    plan = make_plan(
+        allocation, config.ledger, real_model_bytes=model_bytes, measured_sample_bytes=inputs.measured_sample_bytes
+    )
+    return Hyper(plan.pretrain_batch, plan.edge_interval, plan.cloud_interval, plan.cloud_rounds), plan.to_dict()
+
+
+def make_clock(config: RunConfig, inputs: Inputs):
+    """The clock of ``config.clock`` (a context manager for SUMO; a plain object otherwise)."""
+    if config.clock.kind == "constant":
+        clock = ScriptedClock.constant(
+            inputs.home_site,
+            config.clock.constant_rate_bps,
+            config.clock.constant_step_s,
+            config.clock.constant_macro_rate_bps,
+        )
+        return _NoContext(clock)
+    from .fl_clock import SumoClock
+    from .scenario import load_scenario
+
+    scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
+    kinds = ("edge",) if config.federation.hierarchical else ("macro",)
+    return SumoClock(
+        scenario, inputs.vehicles, config.federation.seed, kinds, config.channel, config.mobility, config.sfl_link
+    )
+
+
+class _NoContext:
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+
+    def __enter__(self) -> Clock:
+        return self.clock
+
+    def __exit__(self, *exc_info) -> None:
+        return None
+
+
+# ------------------------------------------------------------------ the run
+
+
+def run_federation_dir(
+    config: RunConfig,
+    inputs: Inputs,
+    out_dir: str | Path,
+    *,
+    resume: bool = False,
+    config_text: str | None = None,
+    trainer=None,
+    clock_factory: Callable[[], Any] | None = None,
+    progress: Progress | None = None,
+    after_checkpoint: Callable[[FederationState], None] | None = None,
+) -> dict:
+    """Run (or resume) the federation of ``config`` on ``inputs`` into ``out_dir``; returns the summary.
+
+    ``trainer`` defaults to TorchTrainer, ``clock_factory`` to ``make_clock``
+    (both injectable for tests). ``after_checkpoint`` is called right after
+    each checkpoint is written, before the other files are (tests kill a run there).
+    """
+    out_dir = Path(out_dir)
+    checkpoint_path = out_dir / "checkpoint.pt"
+    if checkpoint_path.exists() and not resume:
+        raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fed = config.federation
+    trainer = trainer or TorchTrainer(config.model, config.train, inputs.test, fed.seed)
+    first = trainer.initial_state()
+    sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
+    hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first))
+    resolved = {
+        "config": to_mapping(config),
+        "hyper": dataclasses.asdict(hyper),
+        "plan": plan,
+        "sizes": dataclasses.asdict(sizes),
+        "vehicles": list(inputs.vehicles),
+        "edges": list(inputs.edges),
+    }
+    resolved = json.loads(json.dumps(resolved))  # inf and tuples as JSON reads them back
+    setup = Setup(
+        config=fed,
+        hyper=hyper,
+        vehicles=inputs.vehicles,
+        samples=inputs.samples,
+        home_site=inputs.home_site,
+        edges=inputs.edges,
+        sizes=sizes,
+        rule=config.ledger.rule,
+        wireline=config.wireline,
+        transfer=config.transfer,
+    )
+    state = None
+    if resume and checkpoint_path.exists():
+        state = _load_state(checkpoint_path, resolved)
+        log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
+    else:
+        if config_text is not None:
+            atomic_write_text(out_dir / "config.toml", config_text)
+        atomic_write_text(out_dir / "config.json", json.dumps(resolved, indent=2) + "\n")
+    with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
+        if state is None:
+            state = initial_state(setup, trainer, clock.start_s)
+        federation = Federation(setup, clock, trainer)
+
+        def on_step(new: FederationState) -> None:
+            _save_state(checkpoint_path, resolved, new)
+            if after_checkpoint is not None:
+                after_checkpoint(new)
+            _write_outputs(out_dir, config, setup, new)
+            if progress is not None:
+                progress(progress_info(new, sizes.budget_bytes, hyper))
+
+        if state.done:
+            _write_outputs(out_dir, config, setup, state)
+        state = federation.run(state, on_step)
+    return summarize(config, setup, state)
+
+
+def progress_info(state: FederationState, budget_bytes: int, hyper: Hyper) -> dict:
+    """What a progress bar shows: round, bytes used / budget, latest loss and accuracy."""
+    ledger_bytes = sum(r.size_bytes for r in state.records)
+    last = next((m for m in reversed(state.metrics) if m["loss"] is not None), None)
+    return {
+        "cloud_round": state.cloud_rounds,
+        "cloud_rounds": hyper.cloud_rounds or None,
+        "edge_aggregations": state.edge_aggregations,
+        "consumed_bytes": ledger_bytes,
+        "budget_bytes": budget_bytes,
+        "loss": None if last is None else last["loss"],
+        "accuracy": None if last is None else last["accuracy"],
+        "sim_time_s": sim_time_s(state),
+        "done": state.done,
+    }
+
+
+def summarize(config: RunConfig, setup: Setup, state: FederationState) -> dict:
+    ledger = Ledger(setup.sizes, state.records)
+    cloud_lines = [m for m in state.metrics if m["stage"] in ("I", "III")]
+    final = cloud_lines[-1] if cloud_lines else None
+    best = state.best
+    return {
+        "scheme": config.federation.scheme,
+        "rule": setup.rule,
+        "cloud_rounds": state.cloud_rounds,
+        "edge_aggregations": state.edge_aggregations,
+        "consumed_bytes": ledger.spent_bytes,
+        "budget_bytes": ledger.budget_bytes,
+        "bytes_by_link": ledger.totals("link"),
+        "bytes_by_stage": ledger.totals("stage"),
+        "model_bytes": setup.sizes.model_bytes,
+        "sample_bytes": setup.sizes.sample_bytes,
+        "best_accuracy": None if best is None else best["accuracy"],
+        "best_loss": None if best is None else best["loss"],
+        "best_cloud_round": None if best is None else best["cloud_round"],
+        "final_accuracy": None if final is None else final["accuracy"],
+        "final_loss": None if final is None else final["loss"],
+        "sim_time_s": sim_time_s(state),
+        "stragglers": len(state.stragglers),
+        "stop_reason": state.stop_reason,
+        "hyper": dataclasses.asdict(setup.hyper),
+        "vehicles": list(setup.vehicles),
+        "samples_per_vehicle": {v: setup.count(v) for v in setup.vehicles},
+    }
+
+
+def _save_state(path: Path, resolved: dict, state: FederationState) -> None:
+    with atomic_path(path) as tmp:
+        torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload()}, tmp)
+
+
+def _load_state(path: Path, resolved: dict) -> FederationState:
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise CrchflError(f"{path}: not a readable federation checkpoint ({exc}); delete the folder to start afresh") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CrchflError(f"{path}: not a crchfl-sumo federation checkpoint ({CHECKPOINT_FORMAT})")
+    if payload["resolved"] != resolved:
+        raise CrchflError(
+            f"{path}: written by a run with other settings or data; resume with the original config "
+            "(see config.json there) or choose another --out"
+        )
+    return FederationState.from_payload(payload["state"])
+
+
+def _write_outputs(out_dir: Path, config: RunConfig, setup: Setup, state: FederationState) -> None:
+    atomic_write_text(out_dir / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in state.metrics))
+    atomic_write_text(out_dir / "stragglers.jsonl", "".join(json.dumps(s) + "\n" for s in state.stragglers))
+    Ledger(setup.sizes, state.records).save(out_dir / "ledger.jsonl")
+    extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds}
+    save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
+    if state.best_model is not None:
+        save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})
+    atomic_write_text(out_dir / "summary.json", json.dumps(summarize(config, setup, state), indent=2) + "\n")
+
+
+def run_command(
+    config_path: str | Path,
+    out_dir: str | Path,
+    resume: bool = False,
+    progress: Progress | None = None,
+) -> dict:
+    """What `crchfl-sumo run CONFIG --out DIR [--resume]` does; returns the summary.
+
+    CONFIG is a TOML file or the name of a built-in experiment (crchfl, hfl, sfl).
+    """
+    config_path = Path(config_path)
+    builtins = builtin_experiments()
+    if not config_path.is_file() and str(config_path) in builtins:
+        config_path = builtins[str(config_path)]
+    config = load_run_config(config_path)
+    inputs = read_inputs(config)
+    return run_federation_dir(
+        config, inputs, out_dir, resume=resume, config_text=config_path.read_text(encoding="utf-8"), progress=progress
+    )
+
+
+def builtin_experiments() -> dict[str, Path]:
+    """The built-in run configs (scenarios/experiments/*.toml) by name."""
+    folder = Path(__file__).parent / "scenarios" / "experiments"
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
