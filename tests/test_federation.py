@@ -1,0 +1,363 @@
+"""The federation loop on scripted clocks with a toy trainer: counts, charges, FedAvg, policies."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.allocation import AllocationConfig, make_plan
+from crchfl_sumo.channel import WirelineConfig
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.federation import CLOUD, Federation, FederationConfig, Hyper, Setup, initial_state
+from crchfl_sumo.fl_clock import ScriptedClock, Segment, wireless_transfer
+from crchfl_sumo.ledger import MIB, Ledger, LedgerConfig, Topology, cloud_round_schedule, replay, resolve_sizes
+from crchfl_sumo.samples import Samples
+from crchfl_sumo.transfer import TransferConfig
+
+
+class SumTrainer:
+    """A model is one tensor; training adds epochs x samples, so every state records its history."""
+
+    def initial_state(self):
+        return {"w": torch.zeros(2, dtype=torch.float64)}
+
+    def train(self, states, samples, epochs, seed):
+        return [{"w": s["w"] + epochs * len(x)} for s, x in zip(states, samples)]
+
+    def evaluate(self, state):
+        total = float(state["w"].sum())
+        return 1.0 / (1.0 + total), total / (1.0 + total)
+
+
+class FixedTrainer(SumTrainer):
+    """Training sets each vehicle's model to a fixed value (by its sample count), for hand-computed FedAvg."""
+
+    def __init__(self, values_by_count):
+        self.values = values_by_count
+
+    def train(self, states, samples, epochs, seed):
+        return [{"w": torch.full((2,), float(self.values[len(x)]), dtype=torch.float64)} for x in samples]
+
+
+def _samples(n: int) -> Samples:
+    return Samples.from_numpy(np.zeros((n, 4, 1, 1, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64))
+
+
+PAPER_HOME = {"a": 0, "b": 0, "c": 1, "d": 1, "e": 1}  # 2 vehicles in town 1, 3 in town 2
+
+
+def _setup(config, hyper, counts, home, *, rule="paper", ledger=LedgerConfig(), transfer=TransferConfig(), edges=("e0", "e1")):
+    return Setup(
+        config=config,
+        hyper=hyper,
+        vehicles=tuple(counts),
+        samples={v: _samples(n) for v, n in counts.items()},
+        home_site=home,
+        edges=edges,
+        sizes=resolve_sizes(ledger),
+        rule=rule,
+        wireline=WirelineConfig(),
+        transfer=transfer,
+    )
+
+
+def _run(setup, clock, trainer=None):
+    trainer = trainer or SumTrainer()
+    return Federation(setup, clock, trainer).run(initial_state(setup, trainer, clock.start_s))
+
+
+def _hyper(config):
+    return Hyper(config.pretrain_batch, config.edge_interval, config.cloud_interval, config.cloud_rounds)
+
+
+# ------------------------------------------------------------------ the paper's round counts
+
+
+@pytest.mark.parametrize("scheme, expected", [("sfl", 13), ("hfl", 9)])
+def test_paper_rule_20_gb_gives_sfl_13_and_hfl_9_cloud_rounds(scheme, expected):
+    config = FederationConfig(scheme=scheme, edge_interval=2)
+    setup = _setup(config, _hyper(config), {v: 3 for v in PAPER_HOME}, PAPER_HOME)
+    state = _run(setup, ScriptedClock.constant(PAPER_HOME, 20e6, macro_rate_bps=10e6))
+    assert state.cloud_rounds == expected
+    assert state.stop_reason == "budget"
+    ledger = Ledger(setup.sizes, state.records)
+    assert not ledger.can_carry_model()
+    # The loop spent exactly what replaying the ledger's schedule spends.
+    reference = Ledger(setup.sizes)
+    topology = Topology.from_counts((2, 3))
+    assert replay(reference, (), cloud_round_schedule("paper", scheme, topology, setup.sizes, 1)) == expected
+    assert ledger.spent_bytes == reference.spent_bytes
+    assert ledger.totals("link") == reference.totals("link")
+
+
+def test_crchfl_with_the_paper_plan_gives_9_cloud_rounds():
+    plan = make_plan(AllocationConfig(), LedgerConfig())
+    config = FederationConfig(
+        scheme="crchfl", pretrain_batch=plan.pretrain_batch, edge_interval=plan.edge_interval,
+        cloud_interval=plan.cloud_interval, pretrain_epochs=1,
+    )
+    setup = _setup(config, _hyper(config), {v: 100 for v in PAPER_HOME}, PAPER_HOME)
+    state = _run(setup, ScriptedClock.constant(PAPER_HOME, 20e6))
+    assert state.cloud_rounds == plan.cloud_rounds == 9
+    ledger = Ledger(setup.sizes, state.records)
+    assert ledger.totals("stage") == plan.stage_bytes
+    assert state.metrics[0]["stage"] == "I" and state.metrics[0]["pretrain_samples"] == plan.pretrain_batch
+
+
+def test_cloud_rounds_limit_stops_before_the_budget():
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_interval=2, cloud_rounds=2)
+    setup = _setup(config, _hyper(config), {v: 2 for v in PAPER_HOME}, PAPER_HOME)
+    state = _run(setup, ScriptedClock.constant(PAPER_HOME, 20e6))
+    assert (state.cloud_rounds, state.edge_aggregations, state.stop_reason) == (2, 4, "cloud_rounds")
+    assert [m["stage"] for m in state.metrics] == ["II", "II", "III", "II", "II", "III"]
+    assert all(m["loss"] is None for m in state.metrics if m["stage"] == "II")  # evaluate_every_edge is off
+
+
+# ------------------------------------------------------------------ one round's charges, by hand
+
+# Small numbers for hand computation: 1 MiB models, 8 Mbit/s wireless (1 MiB takes 1.048576 s),
+# 1 Gbit/s + 10 ms wireline (1 MiB takes 0.018388608 s), 2 samples at 0.5 s each: 1 s per epoch.
+SMALL = LedgerConfig(nominal_model_mb=1.0, nominal_sample_kb=512.0, budget_gb=1.0)
+HOME3 = {"a": 0, "b": 0, "c": 1}
+WIRELESS_S = 8 * MIB / 8e6
+WIRELINE_S = 8 * MIB / 1e9 + 0.010
+
+
+def _one_round(scheme, rule, pretrain_batch=0):
+    config = FederationConfig(
+        scheme=scheme, pretrain_batch=pretrain_batch, edge_interval=1, cloud_rounds=1,
+        compute_s_per_sample=0.5, pretrain_epochs=1,
+    )
+    setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, rule=rule, ledger=SMALL)
+    return _run(setup, ScriptedClock.constant(HOME3, 8e6, step_s=0.25, macro_rate_bps=8e6))
+
+
+def _rows(state):
+    return [(r.link, r.direction, r.stage, r.sender, r.receiver, r.payload, r.size_bytes) for r in state.records]
+
+
+M = MIB
+
+
+def test_hfl_round_paper_rule_charges_by_hand():
+    state = _one_round("hfl", "paper")
+    assert _rows(state) == [
+        ("wireless", "uplink", "II", "a", "e0", "model", M),
+        ("wireless", "uplink", "II", "b", "e0", "model", M),
+        ("wireless", "uplink", "II", "c", "e1", "model", M),
+        ("wireline", "uplink", "III", "e0", CLOUD, "model", M),
+        ("wireline", "uplink", "III", "e1", CLOUD, "model", M),
+        ("wireline", "downlink", "III", CLOUD, "e0", "model", M),
+        ("wireline", "downlink", "III", CLOUD, "e1", "model", M),
+        ("wireless", "downlink", "III", "e0", "a", "model", M),
+        ("wireless", "downlink", "III", "e0", "b", "model", M),
+        ("wireless", "downlink", "III", "e1", "c", "model", M),
+    ]
+    # times: 1 s training, then uploads; the edges aggregate at the last arrival, the cloud after the wireline hops
+    up_end = 1.0 + WIRELESS_S
+    cloud_s = up_end + WIRELINE_S
+    times = [(r.start_s, r.end_s) for r in state.records]
+    assert times[0] == pytest.approx((1.0, up_end))
+    assert times[3] == pytest.approx((up_end, cloud_s))
+    assert times[5] == pytest.approx((cloud_s, cloud_s + WIRELINE_S))
+    assert times[7] == pytest.approx((cloud_s + WIRELINE_S, cloud_s + WIRELINE_S + WIRELESS_S))
+    assert state.metrics[-1]["sim_time_s"] == pytest.approx(cloud_s)
+    assert state.metrics[-1]["consumed_bytes"] == 10 * M
+    assert state.metrics[-1]["wireline_bytes"] == 4 * M
+
+
+def test_hfl_round_physical_rule_with_two_edge_aggregations_charges_by_hand():
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_interval=2, cloud_rounds=1, compute_s_per_sample=0.5)
+    setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, rule="physical", ledger=SMALL)
+    state = _run(setup, ScriptedClock.constant(HOME3, 8e6, step_s=0.25))
+    up = [("wireless", "uplink", "II", v, e, "model", M) for v, e in (("a", "e0"), ("b", "e0"), ("c", "e1"))]
+    down_ii = [("wireless", "downlink", "II", e, v, "model", M) for v, e in (("a", "e0"), ("b", "e0"), ("c", "e1"))]
+    assert _rows(state) == up + down_ii + up + [
+        ("wireline", "uplink", "III", "e0", CLOUD, "model", M),
+        ("wireline", "uplink", "III", "e1", CLOUD, "model", M),
+        ("wireline", "downlink", "III", CLOUD, "e0", "model", M),
+        ("wireline", "downlink", "III", CLOUD, "e1", "model", M),
+        ("wireless", "downlink", "III", "e0", "a", "model", M),
+        ("wireless", "downlink", "III", "e0", "b", "model", M),
+        ("wireless", "downlink", "III", "e1", "c", "model", M),
+    ]
+    # the second edge window starts when the edge model arrived back: 1 s + up + down, then 1 s training
+    second_start = 1.0 + WIRELESS_S + WIRELESS_S + 1.0
+    assert state.records[6].start_s == pytest.approx(second_start)
+
+
+def test_sfl_round_charges_by_hand():
+    state = _one_round("sfl", "paper")
+    assert _rows(state) == [("wireless", "uplink", "III", v, CLOUD, "model", M) for v in "abc"] + [
+        ("wireless", "downlink", "III", CLOUD, v, "model", M) for v in "abc"
+    ]
+    assert state.edge_aggregations == 0 and state.cloud_rounds == 1
+
+
+@pytest.mark.parametrize("rule", ["paper", "physical"])
+def test_crchfl_stage_one_charges_by_hand(rule):
+    state = _one_round("crchfl", rule, pretrain_batch=3)
+    s = 512 * 1024
+    stage_one = [r for r in _rows(state) if r[2] == "I"]
+    # split 3 samples over (2, 2, 2) by largest remainder: a 1, b 1, c 1
+    expected = [
+        ("wireless", "uplink", "I", "a", "e0", "samples", s),
+        ("wireless", "uplink", "I", "b", "e0", "samples", s),
+        ("wireless", "uplink", "I", "c", "e1", "samples", s),
+        ("wireline", "uplink", "I", "e0", CLOUD, "samples", 2 * s),
+        ("wireline", "uplink", "I", "e1", CLOUD, "samples", s),
+    ]
+    if rule == "physical":
+        expected += [
+            ("wireline", "downlink", "I", CLOUD, "e0", "model", M),
+            ("wireline", "downlink", "I", CLOUD, "e1", "model", M),
+            ("wireless", "downlink", "I", "e0", "a", "model", M),
+            ("wireless", "downlink", "I", "e0", "b", "model", M),
+            ("wireless", "downlink", "I", "e1", "c", "model", M),
+        ]
+    assert stage_one == expected
+    assert state.records[0].cloud_round == 0
+    # the pretrained model (3 samples x 1 epoch) reached every vehicle before stage II
+    assert state.metrics[0]["pretrain_samples"] == 3
+
+
+# ------------------------------------------------------------------ FedAvg inside the loop
+
+
+def test_edge_and_cloud_fedavg_weight_by_sample_counts():
+    # a (1 sample) -> 1, b (3) -> 5 on e0; c (2) -> 10 on e1
+    home = {"a": 0, "b": 0, "c": 1}
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1, compute_s_per_sample=0.0)
+    setup = _setup(config, _hyper(config), {"a": 1, "b": 3, "c": 2}, home, ledger=SMALL)
+    state = _run(setup, ScriptedClock.constant(home, 8e6), FixedTrainer({1: 1.0, 3: 5.0, 2: 10.0}))
+    e0 = (1 * 1 + 3 * 5) / 4
+    assert state.edge_weights == {"e0": 4.0, "e1": 2.0}
+    assert state.cloud_model["w"].tolist() == [pytest.approx((4 * e0 + 2 * 10) / 6)] * 2
+    assert all(m["w"].tolist() == state.cloud_model["w"].tolist() for m in state.vehicle_models.values())
+
+
+# ------------------------------------------------------------------ handover and straggler policies
+
+# a is served by e0 until 1.5 s, then by e1 (from `back_s` on: by e0 again); b stays on e0, c on e1.
+
+
+def _handover_clock(back_s=None):
+    track_a = [Segment(0.0, 0, 8e6), Segment(1.5, 1, 8e6)]
+    if back_s is not None:
+        track_a.append(Segment(back_s, 0, 8e6))
+    return ScriptedClock({"a": track_a, "b": [Segment(0.0, 0, 8e6)], "c": [Segment(0.0, 1, 8e6)]}, step_s=0.25)
+
+
+def _policy_run(policy, clock, deadline_s=math.inf, values=None):
+    config = FederationConfig(
+        scheme="hfl", edge_interval=1, cloud_rounds=1, compute_s_per_sample=0.5,
+        handover_policy=policy, deadline_s=deadline_s,
+    )
+    setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=SMALL, rule="physical")
+    trainer = FixedTrainer({2: 1.0}) if values is None else values
+    fed = Federation(setup, clock, trainer)
+    return fed.step(initial_state(setup, trainer, 0.0))
+
+
+def test_new_edge_policy_delivers_to_the_edge_serving_at_the_end_of_the_upload():
+    state = _policy_run("new_edge", _handover_clock())
+    uploads = {r.sender: r.receiver for r in state.records if r.direction == "uplink" and r.link == "wireless"}
+    assert uploads == {"a": "e1", "b": "e0", "c": "e1"}
+    assert state.member["a"] == "e1"
+    assert state.edge_weights == {"e0": 2.0, "e1": 4.0}
+    assert state.stragglers == []
+    # the release reaches a from its new edge
+    assert any(r.sender == "e1" and r.receiver == "a" for r in state.records)
+
+
+def test_wait_policy_waits_for_the_own_edge():
+    state = _policy_run("wait", _handover_clock(back_s=4.0))
+    (a_up,) = [r for r in state.records if r.sender == "a" and r.direction == "uplink"]
+    # 0.5 s of the 1.048576 s sent before 1.5 s, the rest after returning at 4 s
+    assert a_up.receiver == "e0"
+    assert a_up.end_s == pytest.approx(4.0 + WIRELESS_S - 0.5)
+    assert state.member["a"] == "e0" and state.stragglers == []
+
+
+def test_wait_policy_past_the_deadline_is_a_straggler_left_out_of_fedavg():
+    trainer = FixedTrainer({2: 1.0})
+    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer)
+    # a never returns to e0: its upload misses the deadline, and e0's release cannot reach it either
+    assert [(s["vehicle"], s["reason"]) for s in state.stragglers] == [("a", "deadline"), ("a", "download outage")]
+    assert [r.size_bytes for r in state.records if r.receiver == "a"] == [0]  # physical: nothing crossed
+    assert state.edge_weights["e0"] == 2.0  # only b's samples behind e0's model
+    (a_up,) = [r for r in state.records if r.sender == "a" and r.direction == "uplink"]
+    assert a_up.end_s == pytest.approx(10.0)
+    assert a_up.size_bytes == math.ceil(0.5 * 8e6 / 8)  # physical: the bytes sent before the handover
+    e0_agg = [r for r in state.records if r.sender == "e0" and r.receiver == CLOUD][0]
+    assert e0_agg.start_s == pytest.approx(10.0)  # the edge waited until its deadline
+
+
+def test_miss_policy_fails_the_upload_at_the_handover():
+    state = _policy_run("miss", _handover_clock(back_s=4.0))
+    assert [(s["vehicle"], s["reason"], s["t_s"]) for s in state.stragglers] == [("a", "outage", 1.5)]
+    assert state.edge_weights == {"e0": 2.0, "e1": 2.0}
+    assert state.member["a"] == "e0"
+
+
+def test_a_vehicle_that_cannot_start_before_the_deadline_is_not_charged():
+    home = {"a": 0, "b": 0}
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1, compute_s_per_sample=1.0, deadline_s=5.0)
+    setup = _setup(config, _hyper(config), {"a": 10, "b": 1}, home, ledger=SMALL, edges=("e0",))
+    state = _run(setup, ScriptedClock.constant(home, 8e6))
+    assert [(s["vehicle"], s["reason"]) for s in state.stragglers] == [("a", "no time to upload before the deadline")]
+    assert [r.sender for r in state.records if r.direction == "uplink" and r.link == "wireless"] == ["b"]
+    assert state.edge_weights == {"e0": 1.0}
+    # a still receives the new model
+    assert {r.receiver for r in state.records if r.direction == "downlink" and r.link == "wireless"} == {"a", "b"}
+
+
+def test_best_model_is_kept_when_accuracy_falls():
+    class Falling(SumTrainer):
+        def evaluate(self, state):
+            return float(state["w"][0]), 1.0 / (1.0 + float(state["w"][0]))
+
+    config = FederationConfig(scheme="sfl", edge_interval=1, cloud_rounds=3, compute_s_per_sample=0.0)
+    setup = _setup(config, _hyper(config), {"a": 1, "b": 1}, {"a": 0, "b": 0}, ledger=SMALL, edges=("e0",))
+    state = _run(setup, ScriptedClock.constant({"a": 0, "b": 0}, 8e6), Falling())
+    assert state.best["cloud_round"] == 1
+    assert state.best_model["w"].tolist() == [1.0, 1.0]
+    assert state.cloud_model["w"].tolist() == [3.0, 3.0]
+
+
+# ------------------------------------------------------------------ pieces
+
+
+def test_wireless_transfer_asks_the_clock_for_more_time_until_it_settles():
+    clock = ScriptedClock({"a": [Segment(0.0, 0, 1e6), Segment(100.0, 1, 2e6)]}, step_s=1.0)
+    out = wireless_transfer(clock, "a", "edge", 10.0, 50e6 / 8, TransferConfig(), horizon_s=5.0)
+    # 90 s at 1 Mbit/s = 90 Mbit by 100 s... 50 Mbit needs 50 s: done at 60 s on site 0
+    assert out.ok and out.end_s == pytest.approx(60.0) and out.site == 0
+    out = wireless_transfer(clock, "a", "edge", 10.0, 130e6 / 8, TransferConfig(), horizon_s=5.0)
+    # 90 Mbit by 100 s, 40 Mbit more at 2 Mbit/s: 120 s, delivered on site 1
+    assert out.ok and out.end_s == pytest.approx(120.0) and out.site == 1
+
+
+def test_config_rejects_impossible_combinations():
+    with pytest.raises(CrchflError, match="cloud_interval"):
+        FederationConfig(scheme="sfl", cloud_interval=2)
+    with pytest.raises(CrchflError, match="pretrain_batch"):
+        FederationConfig(scheme="hfl", pretrain_batch=10)
+    with pytest.raises(CrchflError, match="use_plan"):
+        FederationConfig(scheme="sfl", use_plan=True)
+    with pytest.raises(CrchflError, match="handover_policy"):
+        FederationConfig(handover_policy="teleport")
+    with pytest.raises(CrchflError, match="deadline_s"):
+        FederationConfig(deadline_s=0.0)
+
+
+def test_state_round_trips_through_its_payload():
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1)
+    setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=SMALL)
+    state = _run(setup, ScriptedClock.constant(HOME3, 8e6))
+    again = type(state).from_payload(state.to_payload())
+    assert again.records == state.records and again.metrics == state.metrics
+    assert again.cloud_model["w"].tolist() == state.cloud_model["w"].tolist()
