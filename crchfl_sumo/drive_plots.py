@@ -68,9 +68,13 @@ def pick_moments(drive_log: DriveLog) -> dict[str, int]:
 
 
 def turn_moment(drive_log: DriveLog, route: RouteGeometry) -> int | None:
-    """Row nearest the middle of the first left/right turn the ego drove through (None if none)."""
+    """Row nearest the middle of the first left/right turn the ego drove through (None if none).
+
+    Turns at signalised junctions (the towns' T-junctions) come first, then
+    those elsewhere (the towns' rounded corners).
+    """
     acted = np.isfinite(drive_log.throttle)
-    for crossing in route.crossings:
+    for crossing in sorted(route.crossings, key=lambda c: (not c.tls_id, c.s_start_m)):
         if crossing.direction.lower() not in ("l", "r"):
             continue
         inside = acted & (drive_log.progress_m >= crossing.s_start_m) & (drive_log.progress_m <= crossing.s_end_m)
@@ -97,7 +101,8 @@ def action_panel(width_px: int, action: Sequence[float], caption: str) -> np.nda
         if math.isfinite(value):
             cv2.rectangle(panel, (x0, y0), (x0 + int(round(np.clip(value, 0, 1) * bar_w)), y0 + 14), rgb, -1)
     x0 = 8 + 2 * (bar_w + 90)
-    side = "right" if steer > 0 else "left" if steer < 0 else "straight"
+    # Half the smallest steer class: below it the DAC's nearest value is 0 (straight).
+    side = "right" if steer > 0.0625 else "left" if steer < -0.0625 else "straight"
     cv2.putText(panel, f"steer {steer:+.3f} ({side})", (x0, 24), font, 0.5, TEXT_RGB, 1, cv2.LINE_AA)
     centre = x0 + bar_w // 2
     cv2.rectangle(panel, (x0, 36), (x0 + bar_w, 50), TEXT_RGB, 1)

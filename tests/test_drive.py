@@ -1,0 +1,374 @@
+"""Closed-loop driving: bicycle model and metrics by hand, then drives on tiny networks built here."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.checkpoint import save_checkpoint
+from crchfl_sumo.drive import (
+    ConstantPolicy,
+    Crossing,
+    DriveConfig,
+    ModelPolicy,
+    RouteGeometry,
+    RoutePolicy,
+    VehicleState,
+    acceleration_from_pedals,
+    bicycle_step,
+    count_onsets,
+    curvature_from_steer,
+    drive,
+    drive_command,
+    lane_departed,
+    load_drive_routes,
+    next_crossing,
+    on_road,
+    point_at,
+    project_points,
+    read_net,
+    red_light_violations,
+    resolve_route,
+    road_area,
+    route_geometry,
+    signal_letter,
+)
+from crchfl_sumo.drive_plots import action_panel, compare_runs, pick_moments, read_trajectory_csv, turn_moment
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.expert import ExpertConfig, pedals, steer_from_curvature
+from crchfl_sumo.labels import STEER_CLASS_VALUES
+from crchfl_sumo.model import ModelConfig, build_model
+from crchfl_sumo.raster import Renderer
+from crchfl_sumo.raster_world import build_world
+from crchfl_sumo.scenario import load_scenario, sumo_binary
+
+EXPERT = ExpertConfig()
+NO_WARMUP = DriveConfig(warmup_s=0.0)
+
+
+# --- pure parts ---------------------------------------------------------------------------------
+
+
+def test_bicycle_straight_line_and_stopping_within_a_step():
+    state = bicycle_step(VehicleState(1.0, 2.0, math.pi / 2, 10.0), 0.0, 0.0, 0.5)
+    assert state.x_m == pytest.approx(1.0) and state.y_m == pytest.approx(7.0)
+    assert state.heading_rad == pytest.approx(math.pi / 2) and state.speed_mps == 10.0
+    # Speed 1 m/s, braking at 4 m/s^2: stands after 0.25 s, having rolled 1 / 8 m, never backwards.
+    stopped = bicycle_step(VehicleState(0.0, 0.0, 0.0, 1.0), -4.0, 0.0, 1.0)
+    assert stopped.speed_mps == 0.0 and stopped.x_m == pytest.approx(0.125)
+    assert bicycle_step(stopped, -4.0, 0.0, 1.0).x_m == pytest.approx(0.125)
+    # Constant acceleration: distance (v0 + v1) / 2 * dt exactly.
+    assert bicycle_step(VehicleState(0.0, 0.0, 0.0, 2.0), 1.0, 0.0, 2.0).x_m == pytest.approx(6.0)
+
+
+@pytest.mark.parametrize("steer", [0.425, -0.275, 0.125])
+def test_bicycle_constant_steer_drives_a_circle_of_radius_wheelbase_over_tan_delta(steer):
+    delta = -steer * math.radians(EXPERT.max_steer_angle_deg)
+    radius = EXPERT.wheelbase_m / math.tan(abs(delta))
+    kappa = math.tan(delta) / EXPERT.wheelbase_m
+    state = VehicleState(3.0, -1.0, 0.3, 5.0)
+    centre = np.array([3.0 - math.sin(0.3) / kappa, -1.0 + math.cos(0.3) / kappa])
+    headings = []
+    for _ in range(80):
+        state = bicycle_step(state, 0.0, steer, 0.1)
+        assert math.hypot(state.x_m - centre[0], state.y_m - centre[1]) == pytest.approx(radius, rel=1e-9)
+        headings.append(state.heading_rad)
+    # Positive steer turns right: the CCW heading falls; negative turns left.
+    step = np.angle(np.exp(1j * np.diff(np.unwrap(headings))))
+    assert np.all(np.sign(step) == -np.sign(steer))
+    assert abs(step[0]) == pytest.approx(5.0 * 0.1 / radius)
+
+
+def test_steer_and_pedal_mappings_invert_the_expert():
+    for steer in STEER_CLASS_VALUES:
+        assert steer_from_curvature(curvature_from_steer(float(steer)), EXPERT) == pytest.approx(float(steer), abs=1e-12)
+    speeds = np.array([0.5, 3.0, 8.0, 13.0, 13.0])
+    accels = np.array([1.0, 0.0, -2.0, 0.3, -4.0])
+    throttle, brake = pedals(speeds, accels, np.full(5, 2.6), np.full(5, 4.5), EXPERT)
+    for v, a, t, b in zip(speeds, accels, throttle, brake):
+        assert acceleration_from_pedals(t, b, v, 2.6, 4.5, EXPERT) == pytest.approx(a, abs=1e-12)
+    # Standing with the held brake: the car stays put (speed is clipped at 0 by the bicycle model).
+    assert acceleration_from_pedals(0.0, EXPERT.hold_brake, 0.0, 2.6, 4.5) == pytest.approx(-0.9 * 4.5)
+
+
+def _route(points, crossings=()) -> RouteGeometry:
+    xy = np.asarray(points, dtype=np.float64)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    n = len(xy) - 1
+    return RouteGeometry(("e",), xy, s, np.full(n, 4.0), np.zeros(n, bool), tuple(crossings))
+
+
+def test_projection_on_a_polyline_by_hand():
+    route = _route([(0, 0), (10, 0), (10, 10)])
+    s, offset, width = project_points(route, [5.0, 11.0, 9.0, -2.0], [1.0, 5.0, 3.0, 0.0])
+    assert s.tolist() == pytest.approx([5.0, 15.0, 13.0, 0.0])
+    # Left of the direction of travel is positive: (11, 5) is right of the northbound leg.
+    assert offset.tolist() == pytest.approx([1.0, -1.0, 1.0, 2.0])
+    assert width.tolist() == [4.0] * 4
+    assert point_at(route, 12.0) == pytest.approx((10.0, 2.0, math.pi / 2))
+    assert point_at(route, 25.0) == pytest.approx((10.0, 15.0, math.pi / 2))  # straight on past the end
+
+
+def test_projection_window_keeps_a_route_that_passes_twice_on_its_own_pass():
+    # Out along y = 0, back along y = 3 (a U): (5, 1.5) is as near to both passes.
+    route = _route([(0, 0), (10, 0), (10, 3), (0, 3)])
+    s_out, off_out, _ = project_points(route, 5.0, 1.4, 0.0, 10.0)
+    s_back, off_back, _ = project_points(route, 5.0, 1.6, 13.0, 23.0)
+    assert s_out[0] == pytest.approx(5.0) and off_out[0] == pytest.approx(1.4)
+    assert s_back[0] == pytest.approx(18.0) and off_back[0] == pytest.approx(1.4)
+
+
+def test_departure_onsets_and_red_light_rules_by_hand():
+    assert lane_departed([0.0, 1.0, -1.2, 1.3], [4.0] * 4, 1.8).tolist() == [False, False, True, True]
+    assert count_onsets([False, True, True, False, True]) == 2
+    assert count_onsets([True, False, False]) == 1 and count_onsets([]) == 0
+    crossings = (Crossing(50.0, 60.0, "J", 1, "s"), Crossing(80.0, 90.0, "", -1, "l"))
+    assert signal_letter(crossings[0], {"J": "GrG"}) == "r"
+    assert signal_letter(crossings[1], {"J": "GrG"}) == ""
+    assert [c.s_start_m for c in red_light_violations(crossings, 49.0, 51.0, {"J": "GrG"})] == [50.0]
+    assert red_light_violations(crossings, 49.0, 51.0, {"J": "GuG"})  # red-yellow is still red
+    assert not red_light_violations(crossings, 49.0, 51.0, {"J": "GyG"})  # yellow is not
+    assert not red_light_violations(crossings, 50.5, 52.0, {"J": "GrG"})  # already past the line
+    assert not red_light_violations(crossings, 79.0, 81.0, {"J": "rrr"})  # no signal at that junction
+    assert next_crossing(crossings, 49.0) == 0 and next_crossing(crossings, 55.0) == 1
+    assert next_crossing(crossings, 85.0) == -1
+
+
+def test_pick_moments_finds_red_then_green_at_the_same_line():
+    from crchfl_sumo.drive import DriveLog
+
+    n = 6
+    letters = np.array(["G", "r", "r", "G", "G", ""])
+    log = DriveLog(
+        t_s=np.arange(n) * 0.5, x_m=np.zeros(n), y_m=np.zeros(n), heading_rad=np.zeros(n), speed_mps=np.zeros(n),
+        throttle=np.array([0.5, 0, 0, 0.6, 0.6, np.nan]), steer=np.zeros(n), brake=np.zeros(n),
+        progress_m=np.array([0.0, 10, 20, 20, 25, 40]), offset_m=np.zeros(n), lane_width_m=np.full(n, 4.0),
+        on_road=np.ones(n, bool), colliding=np.zeros(n, bool), red_light=np.zeros(n, bool),
+        signal_letter=letters, signal_dist_m=np.array([40.0, 15, 5, 5, 1, np.inf]),
+        crossing_ahead=np.array([0, 0, 0, 0, 0, -1]),
+    )
+    assert pick_moments(log) == {"red_light": 1, "green_light": 3}
+    route = _route([(0, 0), (40, 0)], [Crossing(18.0, 28.0, "J", 0, "l")])
+    assert turn_moment(log, route) == 4  # rows 3 and 4 (progress 20, 25) are in the turn; 25 is nearer its middle, 23
+    assert action_panel(400, (0.5, -0.275, 0.0), "left").shape == (64, 400, 3)
+
+
+# --- routes ---------------------------------------------------------------------------------------
+
+
+def test_named_routes_resolve_in_both_towns_with_turns_and_signals():
+    routes = load_drive_routes()
+    assert {r.scenario for r in routes.values()} == {"town01", "town02"}
+    for name, entry in routes.items():
+        scenario = load_scenario(entry.scenario)
+        geometry = route_geometry(read_net(Path(scenario.net_path)), entry.edges)
+        signalised = [c for c in geometry.crossings if c.tls_id]
+        assert signalised, name
+        assert {c.direction for c in signalised} & {"l", "r"}, name
+        # The centre line is continuous: no gap between consecutive vertices beyond a lane's curve step.
+        assert np.all(np.diff(geometry.s_m) > 0)
+        assert np.max(np.diff(geometry.s_m)) < 300.0
+        assert all(c.s_start_m <= c.s_end_m for c in geometry.crossings)
+    assert resolve_route("town01_west_loop", None)[0] == "town01"
+    assert resolve_route("AB, BC", "x.sumocfg") == ("x.sumocfg", ("AB", "BC"))
+    with pytest.raises(CrchflError, match="runs in scenario"):
+        resolve_route("town01_west_loop", "town02")
+    with pytest.raises(CrchflError, match="not a named route"):
+        resolve_route("nowhere", None)
+
+
+def test_route_geometry_through_a_grid_junction(grid_dir):
+    net = read_net(Path(grid_dir / "grid.net.xml"))
+    geometry = route_geometry(net, ["A0B0", "B0B1"])  # east along y = 0, left at B0, north
+    (crossing,) = geometry.crossings
+    assert crossing.tls_id == "B0" and crossing.direction == "l"
+    first_lane = net.getEdge("A0B0").getLanes()[0]
+    assert crossing.s_start_m == pytest.approx(first_lane.getLength(), abs=0.05)
+    assert geometry.in_junction.any()
+    start, end = geometry.xy_m[0], geometry.xy_m[-1]
+    assert start[1] < 0 and end[0] > 200  # right-hand traffic: south of the eastbound axis, east of the northbound
+    with pytest.raises(CrchflError, match="does not lead to"):
+        route_geometry(net, ["A0B0", "A1B1"])
+    with pytest.raises(CrchflError, match="not in the network"):
+        route_geometry(net, ["nope"])
+
+
+# --- drives on tiny networks -----------------------------------------------------------------------
+
+
+def _tool(name: str) -> str:
+    return str(Path(sumo_binary()).with_name(name))
+
+
+CFG = """<configuration>
+  <input><net-file value="{net}"/>{routes}</input>
+  <time><step-length value="0.25"/></time>
+</configuration>
+"""
+
+
+@pytest.fixture(scope="module")
+def roads(tmp_path_factory) -> Path:
+    """A 300 m straight road (one 3.5 m lane a direction) behind a 100 m approach, and a road with an always-red light."""
+    folder = tmp_path_factory.mktemp("roads")
+    (folder / "s.nod.xml").write_text(
+        '<nodes><node id="X" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="C" x="300" y="0"/></nodes>'
+    )
+    (folder / "s.edg.xml").write_text(
+        "<edges>"
+        + "".join(
+            f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="1" speed="13.89" width="3.5"/>'
+            for a, b in (("X", "A"), ("A", "X"), ("A", "C"), ("C", "A"))
+        )
+        + "</edges>"
+    )
+    (folder / "t.nod.xml").write_text(
+        '<nodes><node id="A" x="0" y="0"/><node id="B" x="150" y="0" type="traffic_light"/>'
+        '<node id="C" x="300" y="0"/></nodes>'
+    )
+    (folder / "t.edg.xml").write_text(
+        "<edges>"
+        + "".join(
+            f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="1" speed="13.89" width="3.5"/>'
+            for a, b in (("A", "B"), ("B", "A"), ("B", "C"), ("C", "B"))
+        )
+        + "</edges>"
+    )
+    (folder / "t.tll.xml").write_text(
+        '<tlLogics><tlLogic id="B" type="static" programID="0" offset="0"><phase duration="1000" state="rr"/>'
+        "</tlLogic></tlLogics>"
+    )
+    for stem, extra in (("straight", []), ("signal", ["--tllogic-files", str(folder / "t.tll.xml")])):
+        prefix = "s" if stem == "straight" else "t"
+        subprocess.run(
+            [_tool("netconvert"), "-n", str(folder / f"{prefix}.nod.xml"), "-e", str(folder / f"{prefix}.edg.xml"),
+             *extra, "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / f"{stem}.net.xml")],
+            check=True, capture_output=True,
+        )
+    (folder / "follower.rou.xml").write_text(
+        '<routes><vehicle id="follower" depart="0" departSpeed="max"><route edges="XA AC"/></vehicle></routes>'
+    )
+    (folder / "blocker.rou.xml").write_text(
+        '<routes><vehicle id="blocker" depart="0" departPos="200" departSpeed="0"><route edges="AC"/>'
+        '<stop lane="AC_0" endPos="205" duration="1000"/></vehicle></routes>'
+    )
+    for name, net, routes in (
+        ("straight", "straight.net.xml", ""),
+        ("follow", "straight.net.xml", "follower.rou.xml"),
+        ("block", "straight.net.xml", "blocker.rou.xml"),
+        ("signal", "signal.net.xml", ""),
+    ):
+        route_option = f'<route-files value="{routes}"/>' if routes else ""
+        (folder / f"{name}.sumocfg").write_text(CFG.format(net=net, routes=route_option))
+    return folder
+
+
+def _drive(roads, cfg, edges, policy_of, max_s, **kwargs):
+    scenario = load_scenario(roads / f"{cfg}.sumocfg")
+    geometry = route_geometry(read_net(Path(scenario.net_path)), edges)
+    return drive(scenario, geometry, policy_of(geometry), seed=1, max_s=max_s, config=NO_WARMUP, **kwargs)
+
+
+def test_perfect_steer_keeps_the_lane_and_completes_the_road(roads):
+    result = _drive(roads, "straight", ["AC"], RoutePolicy, max_s=80.0)
+    m = result.metrics
+    assert m["end_reason"] == "completed" and m["completion"] == pytest.approx(1.0)
+    assert m["lane_departures"] == 0 and m["off_road_events"] == 0 and m["collisions"] == 0
+    assert m["max_abs_offset_m"] < 0.05
+    assert m["distance_m"] == pytest.approx(300.0 - 5.0 - result.log.progress_m[0], abs=0.5)
+    # SUMO sees the ego where the bicycle model put it: the front bumper at lane position s + length / 2.
+    ego = result.ego_id
+    for frame, s in list(zip(result.frames, result.log.progress_m))[5:-1:20]:
+        row = frame.index_of(ego)
+        assert frame.lane_id[row] == "AC_0"
+        assert frame.lane_pos_m[row] == pytest.approx(s + result.vehicle_length_m / 2.0, abs=0.05)
+
+
+def test_constant_hard_steer_leaves_the_lane_within_seconds(roads):
+    result = _drive(roads, "straight", ["AC"], lambda g: ConstantPolicy(0.5, 0.425, 0.0), max_s=30.0)
+    log = result.log
+    departed = lane_departed(log.offset_m, log.lane_width_m, result.vehicle_width_m)
+    assert departed.any() and log.t_s[np.argmax(departed)] < 5.0
+    assert log.offset_m[np.argmax(departed)] < 0  # a right steer leaves on the right
+    assert result.metrics["lane_departures"] >= 1 and result.metrics["off_road_events"] >= 1
+    assert result.metrics["end_reason"] == "left the route" and result.metrics["completion"] < 0.2
+
+
+def test_other_traffic_stops_behind_a_standing_ego(roads):
+    result = _drive(roads, "follow", ["AC"], lambda g: ConstantPolicy(0.0, 0.0, 1.0), max_s=30.0)
+    last = result.frames[-1]
+    ego, follower = last.index_of(result.ego_id), last.index_of("follower")
+    assert last.x_m[ego] == pytest.approx(result.log.x_m[0])  # the ego never moved
+    assert last.speed_mps[follower] < 0.1
+    assert last.x_m[ego] - last.x_m[follower] > result.vehicle_length_m
+    assert result.metrics["collisions"] == 0
+
+
+def test_driving_into_a_standing_vehicle_is_a_collision(roads):
+    result = _drive(roads, "block", ["AC"], lambda g: ConstantPolicy(0.6, 0.0, 0.0), max_s=25.0)
+    assert result.metrics["collisions"] == 1
+    hit = np.argmax(result.log.colliding)
+    # The blocker stands with its front at lane position 205, its rear at 200; the ego's front
+    # reaches it within the step (at most 0.25 s * 25 m/s beyond).
+    front_m = result.log.progress_m[hit] + result.vehicle_length_m / 2.0
+    assert 200.0 <= front_m <= 200.0 + 0.25 * result.log.speed_mps[hit]
+
+
+def test_red_light_run_by_full_throttle_and_respected_by_the_route_policy(roads):
+    run = _drive(roads, "signal", ["AB", "BC"], lambda g: ConstantPolicy(0.8, 0.0, 0.0), max_s=30.0)
+    assert run.metrics["red_light_violations"] == 1
+    line = run.route.crossings[0].s_start_m
+    row = np.argmax(run.log.red_light)
+    assert run.log.progress_m[row - 1] + run.vehicle_length_m / 2 < line <= run.log.progress_m[row] + run.vehicle_length_m / 2
+    stop = _drive(roads, "signal", ["AB", "BC"], RoutePolicy, max_s=40.0)
+    assert stop.metrics["red_light_violations"] == 0 and stop.metrics["end_reason"] == "time limit"
+    front = stop.log.progress_m[-1] + stop.vehicle_length_m / 2
+    assert 0.0 < line - front < 2.0 and stop.log.speed_mps[-1] == 0.0
+    assert stop.log.signal_letter[-1] == "r"
+
+
+def test_on_road_by_hand(roads):
+    area = road_area(read_net(roads / "straight.net.xml"))
+    assert on_road(area, 100.0, -1.6) and on_road(area, 100.0, 1.6)  # either direction's lane
+    assert not on_road(area, 100.0, -5.0) and not on_road(area, 100.0, 20.0)
+
+
+def test_untrained_model_drives_through_the_loop(roads):
+    scenario = load_scenario(roads / "straight.sumocfg")
+    geometry = route_geometry(read_net(Path(scenario.net_path)), ["AC"])
+    renderer = Renderer(build_world(scenario.net_path))
+    result = drive(
+        scenario, geometry, ModelPolicy(build_model(ModelConfig(), seed=0)), seed=1, max_s=2.0,
+        config=NO_WARMUP, renderer=renderer,
+    )
+    acted = result.log.steer[:-1]
+    assert len(acted) == 8 and np.isin(acted.astype(np.float32), STEER_CLASS_VALUES).all()
+    assert np.all((result.log.throttle[:-1] >= 0) & (result.log.throttle[:-1] <= 1))
+    with pytest.raises(CrchflError, match="needs camera images"):
+        drive(scenario, geometry, ModelPolicy(build_model(ModelConfig(), seed=0)), max_s=1.0, config=NO_WARMUP)
+
+
+@pytest.mark.slow
+def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    model = build_model(ModelConfig(), seed=0)
+    save_checkpoint(checkpoint, model.config, model.state_dict())
+    scenario = str(roads / "signal.sumocfg")
+    scripted = drive_command(None, scenario, "AB,BC", tmp_path / "script", seed=1, max_s=30.0, config=NO_WARMUP)
+    learned = drive_command(checkpoint, scenario, "AB,BC", tmp_path / "model", seed=1, max_s=3.0, config=NO_WARMUP)
+    for folder, metrics in ((tmp_path / "script", scripted), (tmp_path / "model", learned)):
+        assert json.loads((folder / "metrics.json").read_text()) == metrics
+        assert (folder / "trajectory.png").stat().st_size > 0 and (folder / "drive.mp4").stat().st_size > 0
+        log = read_trajectory_csv(folder / "trajectory.csv")
+        assert len(log) == int(round(metrics["duration_s"] / 0.25)) + 1
+    assert scripted["model"] == "" and learned["model"] == str(checkpoint)
+    assert (tmp_path / "script" / "frames" / "red_light.png").is_file()  # it waited at the red light
+    out = compare_runs([tmp_path / "script", tmp_path / "model"], ["script", "untrained"], tmp_path / "fig5.png")
+    assert out.stat().st_size > 0
+    with pytest.raises(CrchflError, match="one per folder"):
+        compare_runs([tmp_path / "script"], ["a", "b"], tmp_path / "x.png")
