@@ -247,9 +247,8 @@ def _option_value(options: list[str] | tuple[str, ...], name: str) -> str | None
     return values[-1] if values else None
 
 
-def sumo_binary(gui: bool = False) -> str:
-    """Path of the sumo binary (from the eclipse-sumo package, else PATH)."""
-    name = "sumo-gui" if gui else "sumo"
+def sumo_binary(name: str = "sumo") -> str:
+    """Path of a SUMO binary (sumo, netconvert, duarouter ...): the eclipse-sumo package's, else PATH's."""
     try:
         import sumo  # the eclipse-sumo wheel
 

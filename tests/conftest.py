@@ -11,7 +11,7 @@ from crchfl_sumo.scenario import sumo_binary
 
 
 def _tool(name: str) -> str:
-    return str(Path(sumo_binary()).with_name(name))
+    return sumo_binary(name)
 
 
 ROUTES = """<routes>

@@ -16,9 +16,8 @@ FIXTURE = Path(__file__).parent / "data" / "motorway_ramps.osm"
 @pytest.fixture(scope="module")
 def osm_scenario(tmp_path_factory):
     folder = tmp_path_factory.mktemp("osm")
-    bin_dir = Path(sumo_binary()).parent
     subprocess.run(
-        [str(bin_dir / "netconvert"), "--osm-files", str(FIXTURE), "-o", str(folder / "osm.net.xml"),
+        [sumo_binary("netconvert"), "--osm-files", str(FIXTURE), "-o", str(folder / "osm.net.xml"),
          "--ramps.guess", "--geometry.remove", "--no-turnarounds"],
         check=True, capture_output=True,
     )

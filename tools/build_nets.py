@@ -27,7 +27,6 @@ import argparse
 import math
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import sumolib
+
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.scenario import sumo_binary as scenario_sumo_binary
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "crchfl_sumo" / "scenarios"
 TYPE_FILE = SCENARIOS_DIR / "street.typ.xml"
@@ -278,19 +280,11 @@ def write_plain(plain: Plain, folder: Path, stem: str) -> tuple[Path, Path]:
 
 
 def sumo_binary(name: str) -> str:
-    """A SUMO binary from the eclipse-sumo package, else from PATH."""
+    """A SUMO binary (the package's lookup), or exit with the install hint."""
     try:
-        import sumo
-
-        candidate = Path(sumo.SUMO_HOME) / "bin" / name
-        if candidate.exists():
-            return str(candidate)
-    except ImportError:
-        pass
-    found = shutil.which(name)
-    if found is None:
-        sys.exit(f"{name} not found: pip install eclipse-sumo")
-    return found
+        return scenario_sumo_binary(name)
+    except CrchflError as exc:
+        sys.exit(str(exc))
 
 
 def sumo_tool(name: str) -> str:
