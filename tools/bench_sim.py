@@ -29,11 +29,10 @@ from crchfl_sumo.sim import Simulation
 
 
 def build_scenario(folder: Path, grid: int, period_s: float, end_s: float) -> Path:
-    bin_dir = Path(sumo_binary()).parent
     net = folder / "grid.net.xml"
     subprocess.run(
         [
-            str(bin_dir / "netgenerate"),
+            sumo_binary("netgenerate"),
             "--grid",
             f"--grid.number={grid}",
             "--grid.length=150",
@@ -112,7 +111,7 @@ def main() -> int:
     runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("a", "b", "b5", "c")}
     vehicles = []
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = build_scenario(Path(tmp), args.grid, period_s=0.4, end_s=2000)
+        cfg = build_scenario(Path(tmp), args.grid, period_s=0.25, end_s=2000)
         scenario = load_scenario(cfg)
         command = Simulation(scenario, seed=1).command()
         watch5 = {str(i) for i in range(5)}  # the first five vehicles, as a data run watches its own
