@@ -374,8 +374,9 @@ def town_trips(town: Town, net_file: Path, vtypes: Path, work: Path) -> list[ET.
     """Background trips in the town's own frame (randomTrips.py, fixed seed)."""
     trips = work / f"{town.name}.trips.xml"
     period_s = 1.0
+    # -r: with --intermediate randomTrips also routes the trips, by default into the current folder.
     run([sys.executable, sumo_tool("randomTrips.py"), "-n", str(net_file), "-a", str(vtypes), "-o", str(trips),
-         "--seed", str(SEED), "--begin", "0", "--end", str(town.background_vehicles * period_s),
+         "-r", str(work / f"{town.name}.unused.rou.xml"), "--seed", str(SEED), "--begin", "0", "--end", str(town.background_vehicles * period_s),
          "--period", str(period_s), "--length", "--intermediate", str(town.intermediate),
          "--prefix", f"{town.prefix}_bg_", "--random-departpos",
          "--trip-attributes", 'type="background" departSpeed="0"'])
