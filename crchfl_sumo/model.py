@@ -61,13 +61,13 @@ class ModelConfig:
     """Settings of the driving network.
 
     size: "compact" (default, ~0.5 M parameters) or "paper" (~39.4 M, ~150 MiB).
-    image_height, image_width: camera image size in pixels (default 66 x 200,
-        PilotNet's input); at least 48 x 64.
+    image_height, image_width: camera image size in pixels (default 64 x 128,
+        the default of camera.CameraConfig); at least 48 x 64.
     """
 
     size: Literal["compact", "paper"] = "compact"
-    image_height: int = 66
-    image_width: int = 200
+    image_height: int = 64
+    image_width: int = 128
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:

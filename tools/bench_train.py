@@ -1,14 +1,17 @@
 """Benchmark: training many vehicle models vs one sequential loop vs one centralized model.
 
 In one run, on the same synthetic samples (vehicle sizes in the proportions of
-the paper's data set, FACTS.md), measures training throughput of
-  (a) train_vehicles with multi_vehicle="vmap" (the batched trainer),
-  (b) train_vehicles with multi_vehicle="sequential" (the plain per-vehicle loop),
-  (c) one centralized model on all samples (LocalTrainer.train_epoch),
-and prints samples/s, the ratios a/c, a/b, b/c, and the achieved GFLOP/s of
-each against a large float32 matmul measured in the same run.
+the paper's data set, FACTS.md), measures one epoch of training throughput of
+  (a) train_vehicles, our multi-vehicle trainer, with each multi_vehicle method
+      ("sequential", the default, and "vmap": functional_call + vmap over
+      stacked parameters),
+  (b) the plain sequential per-vehicle loop (a fresh model and optimizers per
+      vehicle, written out here without train_vehicles),
+  (c) one centralized model on all samples,
+and prints samples/s, the ratios a/c and a/b for each method, and the achieved
+GFLOP/s against a large float32 matmul measured in the same run.
 
-Usage: python tools/bench_train.py [--scale 0.05] [--height 66] [--width 200] [--repeats 2]
+Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 2]
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from crchfl_sumo.local import LocalTrainer, TrainConfig, branch_losses, train_vehicles
+from crchfl_sumo.local import LocalTrainer, TrainConfig, branch_losses, resolve_device, train_vehicles
 from crchfl_sumo.model import DrivingModel, ModelConfig, build_model
 from crchfl_sumo.samples import Samples
 
@@ -65,8 +68,8 @@ def timed(function) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=0.05, help="fraction of the paper's per-vehicle sample counts")
-    parser.add_argument("--height", type=int, default=66)
-    parser.add_argument("--width", type=int, default=200)
+    parser.add_argument("--height", type=int, default=ModelConfig.image_height)
+    parser.add_argument("--width", type=int, default=ModelConfig.image_width)
     parser.add_argument("--repeats", type=int, default=2, help="timed repeats of each method (best is kept)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     args = parser.parse_args()
@@ -81,15 +84,31 @@ def main() -> None:
     states = [state] * len(vehicles)
     configs = {m: TrainConfig(device=args.device, multi_vehicle=m) for m in ("vmap", "sequential")}
 
+    device = resolve_device(args.device)
+    vehicles_on_device = [s.to(device) for s in vehicles]
+    everything_on_device = everything.to(device)
+
     def run_multi(method: str) -> None:
-        train_vehicles(states, vehicles, 1, model_config, configs[method], seed=1)
+        train_vehicles(states, vehicles_on_device, 1, model_config, configs[method], seed=1)
+
+    def run_plain_loop() -> None:
+        for v, samples in enumerate(vehicles_on_device):
+            model = DrivingModel(model_config)
+            model.load_state_dict(state)
+            trainer = LocalTrainer(model.to(device), configs["sequential"])
+            trainer.train_epoch(samples, torch.Generator().manual_seed(v))
+            trainer.state()
 
     def run_central() -> None:
-        trainer = LocalTrainer(build_model(model_config, seed=0), configs["sequential"])
-        trainer.model.to(trainer.device if args.device != "auto" else torch.device("cuda" if torch.cuda.is_available() else "cpu"))
-        trainer.train_epoch(everything, torch.Generator().manual_seed(1))
+        trainer = LocalTrainer(build_model(model_config, seed=0).to(device), configs["sequential"])
+        trainer.train_epoch(everything_on_device, torch.Generator().manual_seed(1))
 
-    runs = {"a vmap": lambda: run_multi("vmap"), "b sequential": lambda: run_multi("sequential"), "c centralized": run_central}
+    runs = {
+        "a sequential": lambda: run_multi("sequential"),
+        "a vmap": lambda: run_multi("vmap"),
+        "b plain loop": run_plain_loop,
+        "c centralized": run_central,
+    }
     # Warm-up once each, then interleave the timed repeats so load changes hit all methods alike.
     for function in runs.values():
         function()
@@ -100,15 +119,18 @@ def main() -> None:
 
     flops = train_flops_per_sample(model_config, TrainConfig().batch_size)
     peak = matmul_gflops()
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
     print(f"vehicles {counts} = {total} samples, image {args.height}x{args.width}, batch 32, 1 epoch, best of {args.repeats}")
     print(f"train FLOPs per sample {flops / 1e9:.3f} GFLOP; float32 matmul 2048^3: {peak:.1f} GFLOP/s")
     rate = {name: total / seconds for name, seconds in best_s.items()}
     for name, samples_per_s in rate.items():
         gflops = samples_per_s * flops / 1e9
-        print(f"{name:14s} {samples_per_s:8.1f} samples/s  {gflops:6.1f} GFLOP/s  ({100 * gflops / peak:4.1f}% of matmul)")
-    a, b, c = rate["a vmap"], rate["b sequential"], rate["c centralized"]
-    print(f"a/c = {a / c:.3f}   a/b = {a / b:.3f}   b/c = {b / c:.3f}")
+        print(f"{name:15s} {samples_per_s:8.1f} samples/s  {gflops:6.1f} GFLOP/s  ({100 * gflops / peak:4.1f}% of matmul)")
+    b, c = rate["b plain loop"], rate["c centralized"]
+    for method in ("sequential", "vmap"):
+        a = rate[f"a {method}"]
+        print(f"a={method:10s}  a/c = {a / c:.3f}   a/b = {a / b:.3f}")
+    print(f"b/c = {b / c:.3f}; train_vehicles default method: {TrainConfig().multi_vehicle}")
 
 
 if __name__ == "__main__":
