@@ -1,0 +1,226 @@
+"""`crchfl-sumo run`: results folder, checkpoints, kill-and-resume equality, SUMO clock."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.checkpoint import load_checkpoint
+from crchfl_sumo.config import from_mapping
+from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.run import RunConfig, builtin_experiments, load_run_config, read_inputs, run_command, run_federation_dir
+
+PAPER_VEHICLES = [
+    ("t01_data_0", "town01", "edge01"),
+    ("t01_data_1", "town01", "edge01"),
+    ("t02_data_0", "town02", "edge02"),
+    ("t02_data_1", "town02", "edge02"),
+    ("t02_data_2", "town02", "edge02"),
+]
+
+
+def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0) -> Path:
+    """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard."""
+    rng = np.random.default_rng(seed)
+    header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
+    writer = DatasetWriter(root, header)
+
+    def data(n):
+        zeros = np.zeros(n)
+        return ShardData(
+            rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8),
+            rng.random((n, 3), dtype=np.float32),
+            rng.integers(0, 7, n),
+            np.arange(n) * 0.25,
+            zeros,
+            zeros,
+            zeros,
+        )
+
+    for i, ((vehicle, town, edge), n) in enumerate(zip(vehicles, samples)):
+        writer.add(f"{town}-train-{i}.h5", data(n), vehicle=vehicle, town=town, edge=edge, split="train")
+    writer.add("town01-test-0.h5", data(test_samples), vehicle="t01_test_0", town="town01", edge="edge01", split="test")
+    return root
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny models on a shared 2-core machine: more threads only contend (measured 100x slower)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("data"), PAPER_VEHICLES)
+
+
+def _config(dataset: Path, **federation) -> dict:
+    return {
+        "dataset": str(dataset),
+        "federation": {"scheme": "hfl", "edge_interval": 1, "cloud_rounds": 2, **federation},
+        "ledger": {"nominal_model_mb": 10.0},
+        "model": {"image_height": 48, "image_width": 64},
+        "train": {"device": "cpu", "deterministic": True},
+        "clock": {"kind": "constant"},
+    }
+
+
+class SumTrainer:
+    """Cheap stand-in for TorchTrainer: the loop and its files do not depend on what learning does."""
+
+    def initial_state(self):
+        return {"w": torch.zeros(3, dtype=torch.float64)}
+
+    def train(self, states, samples, epochs, seed):
+        return [{"w": s["w"] + epochs * len(x) + (seed % 7)} for s, x in zip(states, samples)]
+
+    def evaluate(self, state):
+        total = float(state["w"].sum())
+        return 100.0 / (1.0 + total), total / (1.0 + total)
+
+
+class Killed(Exception):
+    pass
+
+
+def _kill_after(steps: int):
+    """Raise right after the checkpoint of step number ``steps`` (1 = the first step) was written."""
+
+    def hook(state):
+        if state.steps == steps:
+            raise Killed
+
+    return hook
+
+
+def _files(out: Path) -> dict[str, str]:
+    return {name: (out / name).read_text() for name in ("metrics.jsonl", "ledger.jsonl", "stragglers.jsonl", "summary.json")}
+
+
+def test_run_command_writes_the_results_folder(tmp_path, dataset):
+    path = tmp_path / "run.toml"
+    path.write_text(
+        f'dataset = "{dataset}"\n[federation]\nscheme = "crchfl"\npretrain_batch = 3\npretrain_epochs = 1\n'
+        'edge_interval = 1\ncloud_rounds = 1\n[ledger]\nnominal_model_mb = 10.0\n'
+        '[model]\nimage_height = 48\nimage_width = 64\n[train]\ndevice = "cpu"\n[clock]\nkind = "constant"\n'
+    )
+    seen = []
+    summary = run_command(path, tmp_path / "out", progress=seen.append)
+    out = tmp_path / "out"
+    for name in ("config.toml", "config.json", "checkpoint.pt", "best_model.pt", "final_model.pt"):
+        assert (out / name).is_file(), name
+    assert json.loads((out / "summary.json").read_text()) == summary
+    for key in ("scheme", "cloud_rounds", "edge_aggregations", "consumed_bytes", "budget_bytes", "best_accuracy",
+                "final_accuracy", "best_loss", "sim_time_s"):
+        assert key in summary
+    assert (summary["scheme"], summary["cloud_rounds"], summary["edge_aggregations"]) == ("crchfl", 1, 1)
+    lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [m["stage"] for m in lines] == ["I", "II", "III"]
+    assert lines[-1]["consumed_bytes"] == summary["consumed_bytes"]
+    assert lines[-1]["wireless_bytes"] + lines[-1]["wireline_bytes"] == summary["consumed_bytes"]
+    assert 0.0 <= lines[-1]["accuracy"] <= 1.0
+    assert seen[-1]["done"] and seen[-1]["consumed_bytes"] == summary["consumed_bytes"]
+    model = load_checkpoint(out / "best_model.pt")
+    assert model.model_config.image_height == 48
+    with pytest.raises(CrchflError, match="--resume"):
+        run_command(path, out)
+    # resuming a finished run changes nothing
+    before = _files(out)
+    run_command(path, out, resume=True)
+    assert _files(out) == before
+
+
+def test_torch_run_killed_and_resumed_ends_like_an_uninterrupted_one(tmp_path, dataset):
+    config = from_mapping(
+        RunConfig, _config(dataset, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
+    )
+    inputs = read_inputs(config)
+    whole = run_federation_dir(config, inputs, tmp_path / "whole")
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", after_checkpoint=_kill_after(2))
+    resumed = run_federation_dir(config, inputs, tmp_path / "killed", resume=True)
+    assert resumed == whole
+    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+    a = load_checkpoint(tmp_path / "whole" / "final_model.pt").state_dict
+    b = load_checkpoint(tmp_path / "killed" / "final_model.pt").state_dict
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("kill_at", [1, 2, 4])
+def test_kill_at_any_step_and_resume_gives_the_same_files(tmp_path, dataset, kill_at):
+    config = from_mapping(RunConfig, _config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+    run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(kill_at))
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+
+
+def test_resume_with_other_settings_is_refused(tmp_path, dataset):
+    config = from_mapping(RunConfig, _config(dataset))
+    inputs = read_inputs(config)
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=_kill_after(1))
+    other = from_mapping(RunConfig, _config(dataset, edge_interval=3))
+    with pytest.raises(CrchflError, match="other settings"):
+        run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
+
+
+def test_config_errors_name_the_key(tmp_path, dataset):
+    with pytest.raises(CrchflError, match="data_mode"):
+        from_mapping(RunConfig, {**_config(dataset), "data_mode": "online"})
+    with pytest.raises(CrchflError, match="federation: unknown key"):
+        from_mapping(RunConfig, {**_config(dataset), "federation": {"edge_intervall": 2}})
+    bad = from_mapping(RunConfig, {**_config(dataset), "model": {"image_height": 64, "image_width": 128}})
+    with pytest.raises(CrchflError, match="image_height"):
+        read_inputs(bad)
+
+
+def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
+    config = from_mapping(RunConfig, {**_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+                                      "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0}})
+    summary = run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())
+    plan = json.loads((tmp_path / "out" / "config.json").read_text())["plan"]
+    assert plan is not None and summary["hyper"]["edge_interval"] == plan["edge_interval"]
+    assert summary["hyper"]["pretrain_batch"] <= 10  # the run's vehicles hold 10 samples
+    assert summary["cloud_rounds"] == plan["cloud_rounds"]
+
+
+def test_builtin_experiments_are_the_three_schemes():
+    configs = {name: load_run_config(path) for name, path in builtin_experiments().items()}
+    assert {name: c.federation.scheme for name, c in configs.items()} == {"crchfl": "crchfl", "hfl": "hfl", "sfl": "sfl"}
+    assert configs["crchfl"].federation.use_plan
+    assert all(c.ledger.budget_gb == 20.0 and c.ledger.rule == "paper" for c in configs.values())
+
+
+# ------------------------------------------------------------------ SUMO clock
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_sumo_clock_run_is_deterministic_and_resumes_exactly(tmp_path, dataset, scheme):
+    mapping = _config(dataset, scheme=scheme, cloud_rounds=2, compute_s_per_sample=5.0, deadline_s=120.0)
+    mapping["clock"] = {"kind": "sumo"}
+    config = from_mapping(RunConfig, mapping)
+    inputs = read_inputs(config)
+    summary = run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    assert summary["cloud_rounds"] == 2
+    ledger = [json.loads(line) for line in (tmp_path / "whole" / "ledger.jsonl").read_text().splitlines()[1:]]
+    wireless = [r for r in ledger if r["link"] == "wireless"]
+    assert wireless and all(r["end_s"] > r["start_s"] for r in wireless)
+    # moving vehicles see different rates: the uploads of one round do not all take the same time
+    first = [r["end_s"] - r["start_s"] for r in wireless if r["direction"] == "uplink" and r["cloud_round"] == 1]
+    assert len(set(np.round(first, 6))) > 1
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(1))
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
