@@ -24,11 +24,12 @@ network with sumolib. docs/drive.md defines each of them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -36,7 +37,7 @@ import numpy as np
 
 from .config import from_mapping, read_toml
 from .errors import CrchflError
-from .expert import ExpertConfig, lookahead_m, pedals, resistance_mps2, steer_from_curvature
+from .expert import ExpertConfig, pedals, resistance_mps2, steer_from_curvature
 from .frame import Frame
 from .scenario import Scenario, load_scenario
 from .sim import Simulation
@@ -895,10 +896,11 @@ def drive_command(
         camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
         label = Path(model_path).stem
     renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))
-    result = drive(
-        loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
-        renderer=renderer if model_path is not None else None,
-    )
+    with _single_torch_thread(model_path is not None):
+        result = drive(
+            loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
+            renderer=renderer if model_path is not None else None,
+        )
     metrics = {
         "route": route,
         "scenario": scenario_name,
@@ -909,3 +911,20 @@ def drive_command(
     }
     write_drive_outputs(result, loaded, renderer, Path(out_dir), metrics, label, video=video)
     return metrics
+
+
+@contextlib.contextmanager
+def _single_torch_thread(active: bool):
+    """One torch thread while a model drives: one sample a step gains nothing from more, and on a
+    busy machine the threads' spinning made a step 100 times slower (docs/drive.md)."""
+    if not active:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
