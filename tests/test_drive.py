@@ -201,10 +201,6 @@ def test_route_geometry_through_a_grid_junction(grid_dir):
 # --- drives on tiny networks -----------------------------------------------------------------------
 
 
-def _tool(name: str) -> str:
-    return str(Path(sumo_binary()).with_name(name))
-
-
 CFG = """<configuration>
   <input><net-file value="{net}"/>{routes}</input>
   <time><step-length value="0.25"/></time>
@@ -246,7 +242,7 @@ def roads(tmp_path_factory) -> Path:
     for stem, extra in (("straight", []), ("signal", ["--tllogic-files", str(folder / "t.tll.xml")])):
         prefix = "s" if stem == "straight" else "t"
         subprocess.run(
-            [_tool("netconvert"), "-n", str(folder / f"{prefix}.nod.xml"), "-e", str(folder / f"{prefix}.edg.xml"),
+            [sumo_binary("netconvert"), "-n", str(folder / f"{prefix}.nod.xml"), "-e", str(folder / f"{prefix}.edg.xml"),
              *extra, "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / f"{stem}.net.xml")],
             check=True, capture_output=True,
         )
