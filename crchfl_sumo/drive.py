@@ -721,7 +721,7 @@ def drive(
         s, offset, lane_width = (float(v[0]) for v in project_points(route, state.x_m, state.y_m, -math.inf, first_stop))
         start_s, goal_s = s, route.length_m - config.finish_before_end_m
         t_start = frame.t_s
-        colliding, red = False, False
+        colliding, red, removed = False, False, False
         while True:
             row = frame.index_of(ego)
             frame = with_ego_pose(frame, row, state)
@@ -735,7 +735,9 @@ def drive(
                 "signal_dist_m": route.crossings[index].s_start_m - (s + length / 2.0) if index >= 0 else math.inf,
                 "crossing_ahead": index,
             }
-            if s >= goal_s:
+            if removed:
+                end = "removed by SUMO"
+            elif s >= goal_s:
                 end = "completed"
             elif abs(offset) > config.lost_offset_m:
                 end = "left the route"
@@ -760,16 +762,18 @@ def drive(
                 new_state.heading_rad,
                 new_state.speed_mps,
             )
-            tls_seen = frame.tls_states
+            seen = frame
             frame = sim.step()
-            if ego not in frame.ids:
-                raise CrchflError(f"SUMO removed the ego '{ego}' at t={frame.t_s:.2f} s; a drive needs it to stay")
+            removed = ego not in frame.ids
+            if removed:  # SUMO let it arrive or teleported it: end with the last picture of it
+                log.warning("SUMO removed the ego '%s' at t=%.2f s; the drive ends there", ego, frame.t_s)
+                frame = dataclasses.replace(seen, t_s=frame.t_s, tls_states=frame.tls_states)
             colliding = ego in sim.colliding_vehicles()
             new_s, offset, lane_width = (
                 float(v[0])
                 for v in project_points(route, new_state.x_m, new_state.y_m, s - _SEARCH_BACK_M, s + _SEARCH_AHEAD_M)
             )
-            red = bool(red_light_violations(route.crossings, s + length / 2.0, new_s + length / 2.0, tls_seen))
+            red = bool(red_light_violations(route.crossings, s + length / 2.0, new_s + length / 2.0, seen.tls_states))
             state, s = new_state, new_s
     drive_log = _log_from_rows(rows)
     metrics = drive_metrics(drive_log, start_s, goal_s, width, dt, end)

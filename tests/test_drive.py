@@ -328,6 +328,21 @@ def test_red_light_run_by_full_throttle_and_respected_by_the_route_policy(roads)
     assert stop.log.signal_letter[-1] == "r"
 
 
+def test_an_ego_that_sumo_removes_ends_the_drive(roads, monkeypatch):
+    import crchfl_sumo.drive as drive_module
+
+    class Vanishing(drive_module.Simulation):
+        def step(self):
+            frame = super().step()
+            return frame.select(frame.ids != "ego") if self.t_s >= 3.0 else frame
+
+    monkeypatch.setattr(drive_module, "Simulation", Vanishing)
+    result = _drive(roads, "straight", ["AC"], RoutePolicy, max_s=20.0)
+    assert result.metrics["end_reason"] == "removed by SUMO"
+    assert result.log.t_s[-1] == pytest.approx(3.0 - 0.25)  # inserted at 0.25 s
+    assert len(result.frames) == len(result.log) and np.isnan(result.log.throttle[-1])
+
+
 def test_on_road_by_hand(roads):
     area = road_area(read_net(roads / "straight.net.xml"))
     assert on_road(area, 100.0, -1.6) and on_road(area, 100.0, 1.6)  # either direction's lane
