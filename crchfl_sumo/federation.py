@@ -142,7 +142,9 @@ class FederationConfig:
         if self.scheme == "sfl" and self.cloud_interval != 1:
             raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
         if self.cloud_rounds < 0:
-            raise CrchflError(f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)")
+            raise CrchflError(
+                f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)"
+            )
         if self.pretrain_epochs < 1:
             raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
         if not self.deadline_s > 0:
@@ -205,7 +207,9 @@ class Setup:
             if v not in self.samples or len(self.samples[v]) == 0:
                 raise CrchflError(f"vehicle '{v}' has no training samples; check the data set's train shards")
             if self.config.hierarchical and not 0 <= self.home_site.get(v, NO_SITE) < len(self.edges):
-                raise CrchflError(f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges")
+                raise CrchflError(
+                    f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges"
+                )
 
     def count(self, vehicle: str) -> int:
         return len(self.samples[vehicle])
@@ -297,7 +301,11 @@ def _wireless(outcome: WirelessOutcome) -> Event:
 
 
 def _charge(
-    ledger: Ledger, schedule: Sequence[Transfer], events: Mapping[tuple[str, str, str], Event], rule: str, cloud_round: int
+    ledger: Ledger,
+    schedule: Sequence[Transfer],
+    events: Mapping[tuple[str, str, str], Event],
+    rule: str,
+    cloud_round: int,
 ) -> bool:
     """Charge the schedule's transfers that happened, with their times; False when one does not fit.
 
@@ -313,13 +321,18 @@ def _charge(
         size = planned.size_bytes if rule == "paper" else min(planned.size_bytes, math.ceil(event.sent_bytes))
         if not ledger.can_carry(size):
             return False
-        ledger.charge(dataclasses.replace(planned, size_bytes=size), cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
+        charged = dataclasses.replace(planned, size_bytes=size)
+        ledger.charge(charged, cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
     return True
 
 
 def _bytes_line(ledger: Ledger) -> dict:
     links = ledger.totals("link")
-    return {"wireless_bytes": links["wireless"], "wireline_bytes": links["wireline"], "consumed_bytes": ledger.spent_bytes}
+    return {
+        "wireless_bytes": links["wireless"],
+        "wireline_bytes": links["wireline"],
+        "consumed_bytes": ledger.spent_bytes,
+    }
 
 
 class Federation:
@@ -416,7 +429,7 @@ class Federation:
     def _line(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics=None, **extra) -> dict:
         loss, accuracy = metrics if metrics is not None else (None, None)
         line = {
-            "step": state.steps,
+            "step": state.steps + 1,
             "stage": stage,
             "cloud_round": state.cloud_rounds,
             "edge_aggregations": state.edge_aggregations,
@@ -449,9 +462,10 @@ class Federation:
             if not shares[v]:
                 continue
             edge = state.member[v]
-            out = self._upload(v, edge, state.ready_s[v], shares[v] * sizes.sample_bytes, state.open_s[edge] + cfg.deadline_s)
+            window_end = state.open_s[edge] + cfg.deadline_s
+            out = self._upload(v, edge, state.ready_s[v], shares[v] * sizes.sample_bytes, window_end)
             if out is None:
-                self._straggler(state, v, "I", "no time to upload before the deadline", state.open_s[edge] + cfg.deadline_s)
+                self._straggler(state, v, "I", "no time to upload before the deadline", window_end)
                 continue
             if out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
@@ -550,6 +564,7 @@ class Federation:
             if received:
                 edge_models[e] = fedavg([(trained[v], setup.count(v)) for v in received])
                 edge_weights[e] = float(sum(setup.count(v) for v in received))
+        edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
         models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
         for e in agg_s:
             # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
@@ -591,11 +606,7 @@ class Federation:
         state.edge_aggregations += 1
         state.tau += 1
         received_count = {e: len(vs) for e, vs in received_by.items()}
-        if cfg.evaluate_every_edge:
-            metrics = self._evaluate_edges(edge_models, edge_weights, agg_s)
-            self._line(state, ledger, "II", t_line, metrics, received=received_count)
-        else:
-            self._line(state, ledger, "II", t_line, received=received_count)
+        self._line(state, ledger, "II", t_line, edge_metrics, received=received_count)
         if followed:
             state.cloud_model = cloud_model
             state.cloud_rounds = next_round
@@ -610,7 +621,14 @@ class Federation:
 
     def _straggler(self, state: FederationState, vehicle: str, stage: str, reason: str, t_s: float) -> None:
         state.stragglers.append(
-            {"step": state.steps, "stage": stage, "cloud_round": state.cloud_rounds + 1, "vehicle": vehicle, "reason": reason, "t_s": t_s}
+            {
+                "step": state.steps + 1,
+                "stage": stage,
+                "cloud_round": 0 if stage == "I" else state.cloud_rounds + 1,
+                "vehicle": vehicle,
+                "reason": reason,
+                "t_s": t_s,
+            }
         )
         log.info("step %d: %s straggles (%s) at %.1f s", state.steps, vehicle, reason, t_s)
 
@@ -648,7 +666,8 @@ class Federation:
                 self._straggler(state, v, "III", f"download {out.reason}", out.end_s)
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
-        if not _charge(ledger, cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes), events, setup.rule, next_round):
+        schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)
+        if not _charge(ledger, schedule, events, setup.rule, next_round):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s = models, ready

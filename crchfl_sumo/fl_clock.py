@@ -107,7 +107,9 @@ class ScriptedClock:
                     raise ValueError(f"ScriptedClock: track of {vehicle} must be time-sorted and start at 0")
 
     @classmethod
-    def constant(cls, sites: Mapping[str, int], rate_bps: float, step_s: float = 1.0, macro_rate_bps: float | None = None):
+    def constant(
+        cls, sites: Mapping[str, int], rate_bps: float, step_s: float = 1.0, macro_rate_bps: float | None = None
+    ) -> "ScriptedClock":
         """Every vehicle served by its site at one rate for ever (no mobility)."""
         edge = {v: [Segment(0.0, s, rate_bps)] for v, s in sites.items()}
         macro = {v: [Segment(0.0, 0, rate_bps if macro_rate_bps is None else macro_rate_bps)] for v in sites}

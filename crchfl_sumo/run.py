@@ -174,7 +174,8 @@ def read_inputs(config: RunConfig) -> Inputs:
     if (manifest.image_height, manifest.image_width) != (config.model.image_height, config.model.image_width):
         raise CrchflError(
             f"model.image_height/image_width: {config.model.image_height} x {config.model.image_width} does not "
-            f"match the data set's {manifest.image_height} x {manifest.image_width} ({root}); set them to the data's size"
+            f"match the data set's {manifest.image_height} x {manifest.image_width} ({root}); "
+            "set them to the data's size"
         )
     samples = load_vehicle_samples(root, "train")
     if not samples:
@@ -386,7 +387,9 @@ def _load_state(path: Path, resolved: dict) -> FederationState:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt files
-        raise CrchflError(f"{path}: not a readable federation checkpoint ({exc}); delete the folder to start afresh") from None
+        raise CrchflError(
+            f"{path}: not a readable federation checkpoint ({exc}); delete the folder to start afresh"
+        ) from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CrchflError(f"{path}: not a crchfl-sumo federation checkpoint ({CHECKPOINT_FORMAT})")
     if payload["resolved"] != resolved:

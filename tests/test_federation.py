@@ -361,3 +361,15 @@ def test_state_round_trips_through_its_payload():
     again = type(state).from_payload(state.to_payload())
     assert again.records == state.records and again.metrics == state.metrics
     assert again.cloud_model["w"].tolist() == state.cloud_model["w"].tolist()
+
+
+def test_evaluate_every_edge_reports_the_sample_weighted_edge_metrics():
+    home = {"a": 0, "b": 0, "c": 1}
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1, evaluate_every_edge=True)
+    setup = _setup(config, _hyper(config), {"a": 1, "b": 3, "c": 2}, home, ledger=SMALL)
+    state = _run(setup, ScriptedClock.constant(home, 8e6), FixedTrainer({1: 1.0, 3: 5.0, 2: 10.0}))
+    edge_line, cloud_line = state.metrics
+    # SumTrainer.evaluate: loss 1 / (1 + sum w); e0 = 4 (weight 4), e1 = 10 (weight 2), two entries each
+    assert edge_line["stage"] == "II"
+    assert edge_line["loss"] == pytest.approx((4 * (1 / 9) + 2 * (1 / 21)) / 6)
+    assert cloud_line["loss"] == pytest.approx(1 / (1 + 2 * 6.0))
