@@ -911,6 +911,8 @@ def drive_command(
         "edges": list(edges),
         "model": str(model_path) if model_path is not None else "",
         "seed": int(seed),
+        "vehicle_length_m": result.vehicle_length_m,
+        "vehicle_width_m": result.vehicle_width_m,
         **result.metrics,
     }
     write_drive_outputs(result, loaded, renderer, Path(out_dir), metrics, label, video=video)

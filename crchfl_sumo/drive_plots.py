@@ -165,17 +165,20 @@ def plot_trajectories(
     route: RouteGeometry,
     runs: Mapping[str, tuple[DriveLog, Mapping[str, Any]]],
     path: Path,
-    vehicle_width_m: float = 1.8,
+    box_every_s: float = 2.0,
 ) -> None:
     """One panel per run (label -> (log, metrics)), side by side: the map, the planned route, the path driven.
 
-    Marks: start (circle), end (square), lane departures (orange), off-road
-    (magenta), collisions (black x), red-light violations (red triangle).
+    As in the paper's Fig. 5, boxes (the ego's footprint, every ``box_every_s``)
+    trace the trajectory. Marks: start (circle), end (square), lane departures
+    (orange), off-road (magenta), collisions (black x), red-light violations
+    (red triangle). The ego's size comes from each run's metrics.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
 
     if not runs:
         raise CrchflError("no runs to draw; give at least one drive folder")
@@ -184,13 +187,22 @@ def plot_trajectories(
     ys = np.concatenate([xy[:, 1]] + [lg.y_m for lg, _ in runs.values()])
     margin_m = 20.0
     fig, axes = plt.subplots(1, len(runs), figsize=(5.0 * len(runs), 5.0), squeeze=False)
-    for ax, (label, (drive_log, metrics)) in zip(axes[0], runs.items()):
+    for k, (ax, (label, (drive_log, metrics))) in enumerate(zip(axes[0], runs.items())):
         draw_network(ax, net_path)
         ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", linewidth=6, alpha=0.25, label="planned route", zorder=2)
         ax.plot(drive_log.x_m, drive_log.y_m, color="tab:red", linewidth=1.5, label="driven", zorder=3)
         ax.plot(drive_log.x_m[:1], drive_log.y_m[:1], "o", color="tab:green", zorder=4, label="start")
         ax.plot(drive_log.x_m[-1:], drive_log.y_m[-1:], "s", color="tab:red", zorder=4, label="end")
-        departed = lane_departed(drive_log.offset_m, drive_log.lane_width_m, vehicle_width_m)
+        length_m = float(metrics.get("vehicle_length_m", 5.0))
+        width_m = float(metrics.get("vehicle_width_m", 1.8))
+        step_s = float(drive_log.t_s[1] - drive_log.t_s[0]) if len(drive_log) > 1 else 1.0
+        every = max(1, int(round(box_every_s / step_s)))
+        boxes = [
+            footprint(drive_log.x_m[i], drive_log.y_m[i], drive_log.heading_rad[i], length_m, width_m)
+            for i in range(0, len(drive_log), every)
+        ]
+        ax.add_collection(PolyCollection(boxes, facecolors="none", edgecolors="tab:red", linewidths=0.8, zorder=3))
+        departed = lane_departed(drive_log.offset_m, drive_log.lane_width_m, width_m)
         for mask, style, colour, name in (
             (departed, ".", "orange", "lane departure"),
             (~drive_log.on_road, ".", "magenta", "off road"),
@@ -206,8 +218,16 @@ def plot_trajectories(
             f"departures {metrics.get('lane_departures', 0)}, red {metrics.get('red_light_violations', 0)}",
             fontsize=9,
         )
-        ax.legend(fontsize=7, loc="best")
+        if k == 0 or ax.get_legend_handles_labels()[1] != axes[0][0].get_legend_handles_labels()[1]:
+            ax.legend(fontsize=7, loc="best")  # once, unless this panel has other marks
     save_figure(fig, path)
+
+
+def footprint(x_m: float, y_m: float, heading_rad: float, length_m: float, width_m: float) -> np.ndarray:
+    """Corners [4, 2] of a vehicle's rectangle centred at (x, y), facing ``heading_rad``."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [length_m / 2.0, width_m / 2.0]
+    return local @ np.array([[c, s], [-s, c]]) + [x_m, y_m]
 
 
 # --- a run's files --------------------------------------------------------------------------------
@@ -229,10 +249,7 @@ def write_drive_outputs(
     atomic_write_text(written["metrics"], json.dumps(dict(metrics), indent=2) + "\n")
     write_trajectory_csv(written["trajectory_csv"], result.log)
     written["trajectory_png"] = out_dir / "trajectory.png"
-    plot_trajectories(
-        Path(scenario.net_path), result.route, {label: (result.log, metrics)}, written["trajectory_png"],
-        result.vehicle_width_m,
-    )
+    plot_trajectories(Path(scenario.net_path), result.route, {label: (result.log, metrics)}, written["trajectory_png"])
     if not result.frames:
         return written
     moments = pick_moments(result.log)
