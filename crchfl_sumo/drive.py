@@ -129,10 +129,13 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     objects = []
     for edge_id in edges:
         if not net.hasEdge(edge_id):
-            raise CrchflError(f"route: edge '{edge_id}' is not in the network; check the edge ids (sumo-gui shows them)")
+            raise CrchflError(
+                f"route: edge '{edge_id}' is not in the network; check the edge ids (sumo-gui shows them)"
+            )
         objects.append(net.getEdge(edge_id))
     lanes: list[tuple[Any, bool]] = []  # (sumolib lane, inside a junction)
-    links: list[tuple[int, int, Any]] = []  # (first lane, last lane) positions in ``lanes`` of each crossing, connection
+    # Per crossing: positions in ``lanes`` of its first and last internal lane, and the connection.
+    links: list[tuple[int, int, Any]] = []
     lane = None
     for i, edge in enumerate(objects):
         if i == len(objects) - 1:
@@ -482,7 +485,10 @@ class RoutePolicy:
     """
 
     def __init__(
-        self, route: RouteGeometry, config: RoutePolicyConfig = RoutePolicyConfig(), expert: ExpertConfig = ExpertConfig()
+        self,
+        route: RouteGeometry,
+        config: RoutePolicyConfig = RoutePolicyConfig(),
+        expert: ExpertConfig = ExpertConfig(),
     ) -> None:
         self.route = route
         self.config = config
@@ -563,7 +569,9 @@ class RoutePolicy:
             accel, steer = 0.0, 0.0  # standing: pedals() holds the brake; wheels straight like the expert's
         max_accel, max_decel = float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row])
         # The expert's pedal mapping adds what holding speed costs.
-        throttle, brake = pedals(np.array([v]), np.array([accel]), np.array([max_accel]), np.array([max_decel]), self.expert)
+        throttle, brake = pedals(
+            np.array([v]), np.array([accel]), np.array([max_accel]), np.array([max_decel]), self.expert
+        )
         return (float(throttle[0]), steer, float(brake[0]))
 
 
@@ -580,7 +588,8 @@ class ModelPolicy:
 
         if observation.images is None:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")
-        throttle, steer, brake = predict_actions(self.model, torch.from_numpy(np.ascontiguousarray(observation.images)))
+        images = torch.from_numpy(np.ascontiguousarray(observation.images))
+        throttle, steer, brake = predict_actions(self.model, images)
         return (float(throttle), float(steer), float(brake))
 
 
@@ -669,7 +678,8 @@ class DriveResult:
 def with_ego_pose(frame: Frame, row: int, state: VehicleState) -> Frame:
     """The frame with the ego's row set to the bicycle model's state (what the cameras must show)."""
     columns = {}
-    for name, value in (("x_m", state.x_m), ("y_m", state.y_m), ("heading_rad", state.heading_rad), ("speed_mps", state.speed_mps)):
+    values = {"x_m": state.x_m, "y_m": state.y_m, "heading_rad": state.heading_rad, "speed_mps": state.speed_mps}
+    for name, value in values.items():
         column = getattr(frame, name).copy()
         column[row] = value
         columns[name] = column
@@ -718,7 +728,9 @@ def drive(
         max_accel, max_decel = float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row])
         state = VehicleState(float(frame.x_m[row]), float(frame.y_m[row]), float(frame.heading_rad[row]), 0.0)
         first_stop = route.crossings[0].s_start_m if route.crossings else route.length_m
-        s, offset, lane_width = (float(v[0]) for v in project_points(route, state.x_m, state.y_m, -math.inf, first_stop))
+        s, offset, lane_width = (
+            float(v[0]) for v in project_points(route, state.x_m, state.y_m, -math.inf, first_stop)
+        )
         start_s, goal_s = s, route.length_m - config.finish_before_end_m
         t_start = frame.t_s
         colliding, red, removed = False, False, False
@@ -777,7 +789,10 @@ def drive(
             state, s = new_state, new_s
     drive_log = _log_from_rows(rows)
     metrics = drive_metrics(drive_log, start_s, goal_s, width, dt, end)
-    log.info("drive of %s ended (%s) after %.1f s: completion %.2f", route.edges[0], end, drive_log.t_s[-1], metrics["completion"])
+    log.info(
+        "drive from %s ended (%s) after %.1f s: completion %.2f",
+        route.edges[0], end, drive_log.t_s[-1], metrics["completion"],
+    )
     return DriveResult(drive_log, metrics, frames, route, ego, length, width)
 
 

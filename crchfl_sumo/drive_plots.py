@@ -21,7 +21,16 @@ import cv2
 import numpy as np
 
 from .atomic import atomic_path, atomic_write_text
-from .drive import GREEN_LETTERS, RED_LETTERS, DriveLog, DriveResult, RouteGeometry, lane_departed, read_net, route_geometry
+from .drive import (
+    GREEN_LETTERS,
+    RED_LETTERS,
+    DriveLog,
+    DriveResult,
+    RouteGeometry,
+    lane_departed,
+    read_net,
+    route_geometry,
+)
 from .errors import CrchflError
 from .maps import draw_network, save_figure
 from .mosaic import VideoWriter, mosaic, top_down_view, write_png
@@ -210,11 +219,14 @@ def plot_trajectories(
             (drive_log.red_light, "^", "red", "red light run"),
         ):
             if mask.any():
-                ax.plot(drive_log.x_m[mask], drive_log.y_m[mask], style, color=colour, markersize=6, zorder=5, label=name)
+                ax.plot(
+                    drive_log.x_m[mask], drive_log.y_m[mask], style, color=colour, markersize=6, zorder=5, label=name
+                )
         ax.set_xlim(xs.min() - margin_m, xs.max() + margin_m)
         ax.set_ylim(ys.min() - margin_m, ys.max() + margin_m)
         ax.set_title(
-            f"{label}\ncompletion {100 * metrics.get('completion', 0):.0f} %, collisions {metrics.get('collisions', 0)}, "
+            f"{label}\ncompletion {100 * metrics.get('completion', 0):.0f} %, "
+            f"collisions {metrics.get('collisions', 0)}, "
             f"departures {metrics.get('lane_departures', 0)}, red {metrics.get('red_light_violations', 0)}",
             fontsize=9,
         )
@@ -249,7 +261,8 @@ def write_drive_outputs(
     atomic_write_text(written["metrics"], json.dumps(dict(metrics), indent=2) + "\n")
     write_trajectory_csv(written["trajectory_csv"], result.log)
     written["trajectory_png"] = out_dir / "trajectory.png"
-    plot_trajectories(Path(scenario.net_path), result.route, {label: (result.log, metrics)}, written["trajectory_png"])
+    runs = {label: (result.log, metrics)}
+    plot_trajectories(Path(scenario.net_path), result.route, runs, written["trajectory_png"])
     if not result.frames:
         return written
     moments = pick_moments(result.log)
@@ -297,7 +310,9 @@ def compare_runs(run_dirs: Sequence[str | Path], labels: Sequence[str] | None, o
         if first is None:
             first = key
         elif key != first:
-            raise CrchflError(f"{folder}: drove {key[1]} in {key[0]}, unlike {run_dirs[0]}; compare drives of one route")
+            raise CrchflError(
+                f"{folder}: drove {key[1]} in {key[0]}, unlike {run_dirs[0]}; compare drives of one route"
+            )
         runs[label] = (read_trajectory_csv(folder / "trajectory.csv"), metrics)
     scenario = load_scenario(first[0])
     route = route_geometry(read_net(Path(scenario.net_path)), first[1])

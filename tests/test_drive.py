@@ -86,7 +86,8 @@ def test_bicycle_constant_steer_drives_a_circle_of_radius_wheelbase_over_tan_del
 
 def test_steer_and_pedal_mappings_invert_the_expert():
     for steer in STEER_CLASS_VALUES:
-        assert steer_from_curvature(curvature_from_steer(float(steer)), EXPERT) == pytest.approx(float(steer), abs=1e-12)
+        back = steer_from_curvature(curvature_from_steer(float(steer)), EXPERT)
+        assert back == pytest.approx(float(steer), abs=1e-12)
     speeds = np.array([0.5, 3.0, 8.0, 13.0, 13.0])
     accels = np.array([1.0, 0.0, -2.0, 0.3, -4.0])
     throttle, brake = pedals(speeds, accels, np.full(5, 2.6), np.full(5, 4.5), EXPERT)
@@ -210,7 +211,7 @@ CFG = """<configuration>
 
 @pytest.fixture(scope="module")
 def roads(tmp_path_factory) -> Path:
-    """A 300 m straight road (one 3.5 m lane a direction) behind a 100 m approach, and a road with an always-red light."""
+    """A 300 m straight road (one 3.5 m lane a direction) behind a 100 m approach; a road with an always-red light."""
     folder = tmp_path_factory.mktemp("roads")
     (folder / "s.nod.xml").write_text(
         '<nodes><node id="X" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="C" x="300" y="0"/></nodes>'
@@ -242,8 +243,15 @@ def roads(tmp_path_factory) -> Path:
     for stem, extra in (("straight", []), ("signal", ["--tllogic-files", str(folder / "t.tll.xml")])):
         prefix = "s" if stem == "straight" else "t"
         subprocess.run(
-            [sumo_binary("netconvert"), "-n", str(folder / f"{prefix}.nod.xml"), "-e", str(folder / f"{prefix}.edg.xml"),
-             *extra, "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / f"{stem}.net.xml")],
+            [
+                sumo_binary("netconvert"),
+                "-n", str(folder / f"{prefix}.nod.xml"),
+                "-e", str(folder / f"{prefix}.edg.xml"),
+                *extra,
+                "--no-turnarounds=true",
+                "--offset.disable-normalization=true",
+                "-o", str(folder / f"{stem}.net.xml"),
+            ],
             check=True, capture_output=True,
         )
     (folder / "follower.rou.xml").write_text(
@@ -320,7 +328,8 @@ def test_red_light_run_by_full_throttle_and_respected_by_the_route_policy(roads)
     assert run.metrics["red_light_violations"] == 1
     line = run.route.crossings[0].s_start_m
     row = np.argmax(run.log.red_light)
-    assert run.log.progress_m[row - 1] + run.vehicle_length_m / 2 < line <= run.log.progress_m[row] + run.vehicle_length_m / 2
+    front = run.log.progress_m + run.vehicle_length_m / 2
+    assert front[row - 1] < line <= front[row]
     stop = _drive(roads, "signal", ["AB", "BC"], RoutePolicy, max_s=40.0)
     assert stop.metrics["red_light_violations"] == 0 and stop.metrics["end_reason"] == "time limit"
     front = stop.log.progress_m[-1] + stop.vehicle_length_m / 2
