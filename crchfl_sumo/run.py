@@ -348,6 +348,18 @@ def progress_info(state: FederationState, budget_bytes: int, hyper: Hyper) -> di
     }
 
 
+def progress_postfix(info: dict) -> dict[str, str]:
+    """A progress bar's postfix for ``progress_info``: round, GB used / budget, loss, accuracy."""
+    rounds = info["cloud_rounds"]
+    gib = 1024**3
+    return {
+        "round": f"{info['cloud_round']}/{rounds}" if rounds else str(info["cloud_round"]),
+        "GB": f"{info['consumed_bytes'] / gib:.2f}/{info['budget_bytes'] / gib:.2f}",
+        "loss": "-" if info["loss"] is None else f"{info['loss']:.4f}",
+        "acc": "-" if info["accuracy"] is None else f"{info['accuracy']:.3f}",
+    }
+
+
 def summarize(config: RunConfig, setup: Setup, state: FederationState) -> dict:
     ledger = Ledger(setup.sizes, state.records)
     cloud_lines = [m for m in state.metrics if m["stage"] in ("I", "III")]

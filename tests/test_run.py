@@ -13,7 +13,15 @@ from crchfl_sumo.checkpoint import load_checkpoint
 from crchfl_sumo.config import from_mapping
 from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.run import RunConfig, builtin_experiments, load_run_config, read_inputs, run_command, run_federation_dir
+from crchfl_sumo.run import (
+    RunConfig,
+    builtin_experiments,
+    load_run_config,
+    progress_postfix,
+    read_inputs,
+    run_command,
+    run_federation_dir,
+)
 
 PAPER_VEHICLES = [
     ("t01_data_0", "town01", "edge01"),
@@ -128,6 +136,8 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     assert lines[-1]["wireless_bytes"] + lines[-1]["wireline_bytes"] == summary["consumed_bytes"]
     assert 0.0 <= lines[-1]["accuracy"] <= 1.0
     assert seen[-1]["done"] and seen[-1]["consumed_bytes"] == summary["consumed_bytes"]
+    postfix = progress_postfix(seen[-1])
+    assert postfix["round"] == "1/1" and postfix["GB"].endswith("/20.00") and postfix["loss"] != "-"
     model = load_checkpoint(out / "best_model.pt")
     assert model.model_config.image_height == 48
     with pytest.raises(CrchflError, match="--resume"):
