@@ -39,6 +39,7 @@ from .scenario import Scenario, load_scenario
 log = logging.getLogger(__name__)
 
 MOMENT_RANGE_M = 20.0  # a light counts for the pictures when its stop line is this close
+GREEN_RESPONSE_S = 2.0  # after a light turns green, the picture waits this long at most for the throttle
 PANEL_HEIGHT_PX = 64
 THROTTLE_RGB = (40, 200, 80)
 BRAKE_RGB = (230, 50, 50)
@@ -54,8 +55,9 @@ def pick_moments(drive_log: DriveLog) -> dict[str, int]:
     """Rows of the log for the Fig. 6 pictures; a moment that never happened is left out.
 
     red_light        first step with a red light ahead within MOMENT_RANGE_M
-    green_light      first step with a green light ahead within range after a red one at the
-                     same stop line (the light turned green); else the first green within range
+    green_light      the light at a stop line where it was red shows green: the first step
+                     within GREEN_RESPONSE_S of that with more throttle than brake (else the
+                     step it turned green); without a red before, the first green within range
     t_junction_turn  the step nearest the middle of the first left or right turn driven through
     """
     acted = np.isfinite(drive_log.throttle)
@@ -70,7 +72,16 @@ def pick_moments(drive_log: DriveLog) -> dict[str, int]:
         if np.any(red[:i] & (drive_log.crossing_ahead[:i] == drive_log.crossing_ahead[i]))
     ]
     if after_red:
-        moments["green_light"] = int(after_red[0])
+        # The driver's answer to the green: the first step of pulling away within GREEN_RESPONSE_S.
+        first = int(after_red[0])
+        window = (
+            green
+            & (drive_log.crossing_ahead == drive_log.crossing_ahead[first])
+            & (drive_log.t_s >= drive_log.t_s[first])
+            & (drive_log.t_s <= drive_log.t_s[first] + GREEN_RESPONSE_S)
+            & (drive_log.throttle > drive_log.brake)
+        )
+        moments["green_light"] = int(np.flatnonzero(window)[0]) if window.any() else first
     elif green.any():
         moments["green_light"] = int(np.flatnonzero(green)[0])
     return moments

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -154,6 +155,8 @@ def test_pick_moments_finds_red_then_green_at_the_same_line():
         crossing_ahead=np.array([0, 0, 0, 0, 0, -1]),
     )
     assert pick_moments(log) == {"red_light": 1, "green_light": 3}
+    waiting = dataclasses.replace(log, brake=np.array([0.0, 0.9, 0.9, 0.9, 0.0, np.nan]))
+    assert pick_moments(waiting)["green_light"] == 4  # the first green step with more throttle than brake
     route = _route([(0, 0), (40, 0)], [Crossing(18.0, 28.0, "J", 0, "l")])
     assert turn_moment(log, route) == 4  # rows 3 and 4 (progress 20, 25) are in the turn; 25 is nearer its middle, 23
     assert action_panel(400, (0.5, -0.275, 0.0), "left").shape == (64, 400, 3)
