@@ -19,6 +19,7 @@ from crchfl_sumo.drive import (
     ModelPolicy,
     RouteGeometry,
     RoutePolicy,
+    RoutePolicyConfig,
     VehicleState,
     acceleration_from_pedals,
     bicycle_step,
@@ -184,6 +185,21 @@ def test_named_routes_resolve_in_both_towns_with_turns_and_signals():
         resolve_route("town01_west_loop", "town02")
     with pytest.raises(CrchflError, match="not a named route"):
         resolve_route("nowhere", None)
+
+
+def test_settings_and_route_files_are_checked(tmp_path):
+    with pytest.raises(CrchflError, match="drive.warmup_s"):
+        DriveConfig(warmup_s=-1.0)
+    with pytest.raises(CrchflError, match="drive.lost_offset_m"):
+        DriveConfig(lost_offset_m=0.0)
+    with pytest.raises(CrchflError, match="route_policy.target_speed_mps"):
+        RoutePolicyConfig(target_speed_mps=0.0)
+    routes = tmp_path / "routes.toml"
+    routes.write_text('[routes.a]\nscenario = "town01"\nedges = ["S1_W1"]\nlanes = 2\n')
+    with pytest.raises(CrchflError, match="unknown key"):
+        load_drive_routes(routes)
+    routes.write_text('[routes.a]\nscenario = "town01"\nedges = ["S1_W1", "W1_E1"]\n')
+    assert load_drive_routes(routes)["a"].edges == ("S1_W1", "W1_E1")
 
 
 def test_route_geometry_through_a_grid_junction(grid_dir):
