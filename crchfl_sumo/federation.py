@@ -149,6 +149,11 @@ class FederationConfig:
             raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
         if not self.deadline_s > 0:
             raise CrchflError(f"federation.deadline_s: {self.deadline_s} must be > 0 (inf = no deadline)")
+        if self.handover_policy == "wait" and not math.isfinite(self.deadline_s):
+            raise CrchflError(
+                "federation.handover_policy = 'wait' waits for the vehicle's own edge until the aggregation "
+                "deadline; set a finite federation.deadline_s"
+            )
         if not (math.isfinite(self.compute_s_per_sample) and self.compute_s_per_sample >= 0):
             raise CrchflError(f"federation.compute_s_per_sample: {self.compute_s_per_sample} must be a number >= 0")
 

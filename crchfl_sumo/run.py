@@ -190,6 +190,13 @@ def read_inputs(config: RunConfig) -> Inputs:
 
         scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
         edges = tuple(site.name for site in scenario.edge_sites)
+        named = {v for town in scenario.towns for v in town.data_vehicles}
+        unknown = sorted(set(vehicles) - named)
+        if named and unknown:
+            raise CrchflError(
+                f"{root}: vehicle(s) {', '.join(unknown)} are not data vehicles of scenario {config.scenario!r} "
+                f"({', '.join(sorted(named))}); use the scenario the data set was generated with"
+            )
     else:
         edges = tuple(dict.fromkeys(s.edge for s in shards.values()))
     home = {}

@@ -274,7 +274,7 @@ def test_new_edge_policy_delivers_to_the_edge_serving_at_the_end_of_the_upload()
 
 
 def test_wait_policy_waits_for_the_own_edge():
-    state = _policy_run("wait", _handover_clock(back_s=4.0))
+    state = _policy_run("wait", _handover_clock(back_s=4.0), deadline_s=60.0)
     (a_up,) = [r for r in state.records if r.sender == "a" and r.direction == "uplink"]
     # 0.5 s of the 1.048576 s sent before 1.5 s, the rest after returning at 4 s
     assert a_up.receiver == "e0"
@@ -352,6 +352,8 @@ def test_config_rejects_impossible_combinations():
         FederationConfig(handover_policy="teleport")
     with pytest.raises(CrchflError, match="deadline_s"):
         FederationConfig(deadline_s=0.0)
+    with pytest.raises(CrchflError, match="finite federation.deadline_s"):
+        FederationConfig(handover_policy="wait")
 
 
 def test_state_round_trips_through_its_payload():

@@ -193,6 +193,9 @@ def test_config_errors_name_the_key(tmp_path, dataset):
     bad = from_mapping(RunConfig, {**_config(dataset), "model": {"image_height": 64, "image_width": 128}})
     with pytest.raises(CrchflError, match="image_height"):
         read_inputs(bad)
+    other = write_dataset(tmp_path / "other", [("v0", "town01", "edge01")], samples=(1,))
+    with pytest.raises(CrchflError, match="not data vehicles of scenario 'town02'"):
+        read_inputs(from_mapping(RunConfig, {**_config(other), "scenario": "town02", "clock": {"kind": "sumo"}}))
 
 
 def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
