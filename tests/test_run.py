@@ -206,6 +206,12 @@ def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
     assert plan is not None and summary["hyper"]["edge_interval"] == plan["edge_interval"]
     assert summary["hyper"]["pretrain_batch"] <= 10  # the run's vehicles hold 10 samples
     assert summary["cloud_rounds"] == plan["cloud_rounds"]
+    # a planned run resumes too: the plan is the same when made again
+    with pytest.raises(Killed):
+        run_federation_dir(config, read_inputs(config), tmp_path / "killed", trainer=SumTrainer(),
+                           after_checkpoint=_kill_after(2))
+    run_federation_dir(config, read_inputs(config), tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert _files(tmp_path / "killed") == _files(tmp_path / "out")
 
 
 def test_builtin_experiments_are_the_three_schemes():
