@@ -325,9 +325,11 @@ def _train_vehicles_vmap(
     for step in range(num_steps):
         active = [v for v in range(num_vehicles) if step < len(schedules[v])]
         images, actions, classes, weights = [], [], [], []
+        step_samples = 0
         for v in active:
             indices = schedules[v][step][1].to(device)
             n = len(indices)
+            step_samples += n
             weight = torch.ones(batch_size, device=device)
             if n < batch_size:  # short last batch: pad with sample 0 at weight 0
                 indices = torch.cat([indices, indices.new_zeros(batch_size - n)])
@@ -347,7 +349,7 @@ def _train_vehicles_vmap(
         epoch_of = torch.tensor([schedules[v][step][0] for v in active], device=device)
         sums.index_put_((rows, epoch_of), batch_sums.to(torch.float64), accumulate=True)
         if progress is not None:
-            progress(int(sum(w.sum().item() for w in weights)))
+            progress(step_samples)
 
     new_states = [{name: params[name][v].detach().cpu().clone() for name in names} for v in range(num_vehicles)]
     sums_cpu = sums.cpu().tolist()

@@ -67,10 +67,14 @@ def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles():
     # Ragged on purpose: 70 (two full batches + 6), 33 (one + 1), 0 (idle) and 45 samples.
     vehicles = [_samples(n, seed=10 + i) for i, n in enumerate((70, 33, 0, 45))]
     start = [build_model(SMALL, seed=s).state_dict() for s in (0, 1, 2, 0)]
+    seen = {"sequential": [], "vmap": []}
     results = {
-        method: train_vehicles(start, vehicles, 2, SMALL, TrainConfig(device="cpu", multi_vehicle=method), seed=5)
+        method: train_vehicles(
+            start, vehicles, 2, SMALL, TrainConfig(device="cpu", multi_vehicle=method), seed=5, progress=seen[method].append
+        )
         for method in ("sequential", "vmap")
     }
+    assert sum(seen["sequential"]) == sum(seen["vmap"]) == 2 * (70 + 33 + 45)
     (seq_states, seq_metrics), (vmap_states, vmap_metrics) = results["sequential"], results["vmap"]
     for v in range(4):
         moved = _max_difference(seq_states[v], start[v])
