@@ -17,7 +17,7 @@ import torch
 
 from .config import from_mapping, to_mapping
 from .errors import CrchflError
-from .model import DrivingModel, ModelConfig
+from .model import DrivingModel, ModelConfig, model_from_state
 
 CHECKPOINT_FORMAT = "crchfl-sumo-model/1"
 
@@ -74,9 +74,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 def load_model(path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
     """The model stored in a checkpoint, in eval mode, on ``device``."""
     checkpoint = load_checkpoint(path)
-    model = DrivingModel(checkpoint.model_config)
     try:
-        model.load_state_dict(checkpoint.state_dict)
+        model = model_from_state(checkpoint.model_config, checkpoint.state_dict, device)
     except RuntimeError as exc:
         raise CrchflError(f"{path}: weights do not fit the stored model config ({exc})") from None
-    return model.to(device).eval()
+    return model.eval()

@@ -41,7 +41,7 @@ from torch.nn import functional as F
 from .checkpoint import save_checkpoint
 from .config import to_mapping
 from .errors import CrchflError
-from .model import DrivingModel, ModelConfig, build_model
+from .model import DrivingModel, ModelConfig, build_model, model_from_state
 from .samples import Samples
 
 log = logging.getLogger(__name__)
@@ -228,12 +228,6 @@ class LocalTrainer:
         return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
 
 
-def _model_from_state(model_config: ModelConfig, state: State, device: torch.device) -> DrivingModel:
-    model = DrivingModel(model_config)
-    model.load_state_dict(state)
-    return model.to(device)
-
-
 def train_vehicle(
     state: State,
     samples: Samples,
@@ -245,7 +239,7 @@ def train_vehicle(
 ) -> tuple[State, list[Metrics]]:
     """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
     configure_determinism(config.deterministic)
-    trainer = LocalTrainer(_model_from_state(model_config, state, resolve_device(config.device)), config)
+    trainer = LocalTrainer(model_from_state(model_config, state, resolve_device(config.device)), config)
     generator = torch.Generator().manual_seed(seed)
     metrics = [trainer.train_epoch(samples, generator, progress) for _ in range(epochs)]
     return trainer.state(), metrics
@@ -293,7 +287,8 @@ def _train_vehicles_vmap(
     device = resolve_device(config.device)
     num_vehicles, batch_size = len(states), config.batch_size
     # A weightless copy of the network for functional_call: its parameters are replaced on each call.
-    template = DrivingModel(model_config).to("meta")
+    with torch.device("meta"):
+        template = DrivingModel(model_config)
     names = [name for name, _ in template.named_parameters()]
     params = {name: torch.stack([s[name] for s in states]).to(device, torch.float32) for name in names}
     exp_avg = {name: torch.zeros_like(p) for name, p in params.items()}
@@ -436,7 +431,7 @@ def train_centralized(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.device)
-    model = build_model(model_config, seed) if initial_state is None else _model_from_state(model_config, initial_state, device)
+    model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
     trainer = LocalTrainer(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
     train_on_device, test_on_device = train.to(device), test.to(device)

@@ -148,6 +148,17 @@ def build_model(config: ModelConfig, seed: int) -> DrivingModel:
         torch.random.set_rng_state(generator_state)
 
 
+def model_from_state(
+    config: ModelConfig, state: dict[str, torch.Tensor], device: torch.device | str = "cpu"
+) -> DrivingModel:
+    """A model holding a copy of ``state`` on ``device``; the caller's tensors and RNG are untouched."""
+    with torch.device("meta"):  # no random init: every weight comes from ``state``
+        model = DrivingModel(config)
+    weights = {name: t.detach().to(device=device, dtype=torch.float32, copy=True) for name, t in state.items()}
+    model.load_state_dict(weights, assign=True)
+    return model
+
+
 @torch.no_grad()
 def predict_actions(model: DrivingModel, images: torch.Tensor) -> np.ndarray:
     """uint8 images [B, 4, H, W, 3] (or one sample [4, H, W, 3]) -> float32 [B, 3] or [3].

@@ -12,6 +12,7 @@ from crchfl_sumo.model import (
     ModelConfig,
     build_model,
     count_parameters,
+    model_from_state,
     predict_actions,
     state_size_bytes,
 )
@@ -92,3 +93,20 @@ def test_config_validation_and_round_trip():
     config = ModelConfig("paper", 64, 96)
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {"size": "paper", "image_height": 64, "image_width": 96}
+
+
+def test_model_from_state_copies_weights_and_leaves_the_rng_alone():
+    source = build_model(SMALL, seed=0)
+    state = source.state_dict()
+    rng_before = torch.random.get_rng_state()
+    model = model_from_state(SMALL, state)
+    assert torch.equal(torch.random.get_rng_state(), rng_before)
+    assert all(torch.equal(model.state_dict()[k], state[k]) for k in state)
+    original = {k: v.clone() for k, v in state.items()}
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1.0)  # changing the copy must not change the source
+    assert all(torch.equal(state[k], original[k]) for k in state)
+    assert all(p.requires_grad for p in model.parameters())
+    images = _images(2)
+    assert torch.equal(build_model(SMALL, seed=0)(images)[1], model_from_state(SMALL, state)(images)[1])
