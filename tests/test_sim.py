@@ -87,3 +87,11 @@ def test_signal_ahead_is_read_only_for_watched_vehicles(grid):
     others = np.arange(len(frame)) != row
     assert np.all(frame.tls_ahead_id[others] == "") and np.all(np.isinf(frame.tls_ahead_dist_m[others]))
     assert np.array_equal(frame.x_m, everyone.x_m)  # watching changes nothing else
+
+
+def test_derived_acceleration_equals_sumos_own(grid):
+    # The frame derives acceleration from the speed change; SUMO's getter must agree.
+    with Simulation(grid, seed=4) as sim:
+        for frame in sim.run(40.0):
+            reported = [sim._api.vehicle.getAcceleration(v) for v in frame.ids]
+            assert np.allclose(frame.accel_mps2, reported, atol=1e-9)
