@@ -42,6 +42,10 @@ def _commands():
          _add_dataset, _run_dataset),
         ("dataset-stats", "label statistics, summary figure and example mosaic of a data set",
          _add_dataset_stats, _run_dataset_stats),
+        ("drive", "a model (or 'reference') drives an ego along a route in SUMO: metrics, map, action frames, video",
+         _add_drive, _run_drive),
+        ("drive-compare", "several drives of one route side by side (the paper's Fig. 5)",
+         _add_drive_compare, _run_drive_compare),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
          _add_plan, _run_plan),
     ]
@@ -150,6 +154,49 @@ def _run_dataset_stats(args) -> int:
     stats = write_dataset_stats(args.dir, args.out)
     files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
     print(f"{stats['samples']} samples; steer classes (train) {stats['train']['steer_class_counts']}; {files}")
+    return 0
+
+
+# --- drive --------------------------------------------------------------------------------------
+
+
+def _add_drive(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", help="checkpoint.pt of a trained model, or 'reference' for the scripted route driver")
+    p.add_argument("--route", required=True,
+                   help="named route (scenarios/drive_routes.toml) or edge ids separated by commas")
+    p.add_argument("--scenario", default=None, help="built-in scenario or .sumocfg (named routes bring their own)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    p.add_argument("--max-s", type=float, default=150.0, help="simulated seconds at most (default 150)")
+    p.add_argument("--warmup-s", type=float, default=20.0, help="traffic runs this long before the ego starts (default 20)")
+    p.add_argument("--no-video", action="store_true", help="skip drive.mp4")
+
+
+def _run_drive(args) -> int:
+    from .drive import DriveConfig, drive_command
+
+    m = drive_command(
+        None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
+        args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
+    )
+    print(
+        f"{m['route']}: {m['end_reason']}, completion {100 * m['completion']:.0f}%, collisions {m['collisions']}, "
+        f"lane departures {m['lane_departures']}, off-road {m['off_road_events']}, "
+        f"red lights {m['red_light_violations']}, mean speed {m['mean_speed_mps']:.1f} m/s -> {args.out}"
+    )
+    return 0
+
+
+def _add_drive_compare(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", nargs="+", type=Path, help="folders written by `crchfl-sumo drive` (same route)")
+    p.add_argument("--labels", nargs="+", default=None, help="one label per folder (default: folder names)")
+    p.add_argument("--out", type=Path, required=True, help="output PNG")
+
+
+def _run_drive_compare(args) -> int:
+    from .drive_plots import compare_runs
+
+    print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
     return 0
 
 
