@@ -21,16 +21,8 @@ import cv2
 import numpy as np
 
 from .atomic import atomic_path, atomic_write_text
-from .drive import (
-    GREEN_LETTERS,
-    RED_LETTERS,
-    DriveLog,
-    DriveResult,
-    RouteGeometry,
-    lane_departed,
-    read_net,
-    route_geometry,
-)
+from .drive import DriveLog, DriveResult, lane_departed
+from .route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry
 from .errors import CrchflError
 from .maps import draw_network, save_figure
 from .mosaic import VideoWriter, mosaic, top_down_view, write_png

@@ -13,29 +13,35 @@ import pytest
 
 from crchfl_sumo.checkpoint import save_checkpoint
 from crchfl_sumo.drive import (
-    ConstantPolicy,
-    Crossing,
     DriveConfig,
-    ModelPolicy,
-    RouteGeometry,
-    RoutePolicy,
-    RoutePolicyConfig,
-    VehicleState,
-    acceleration_from_pedals,
-    bicycle_step,
     count_onsets,
-    curvature_from_steer,
     drive,
     drive_command,
     lane_departed,
     load_drive_routes,
+    red_light_violations,
+    resolve_route,
+)
+from crchfl_sumo.dynamics import (
+    VehicleState,
+    acceleration_from_pedals,
+    bicycle_step,
+    curvature_from_steer,
+)
+from crchfl_sumo.policies import (
+    ConstantPolicy,
+    ModelPolicy,
+    RoutePolicy,
+    RoutePolicyConfig,
+)
+from crchfl_sumo.route import (
+    Crossing,
+    RouteGeometry,
     next_crossing,
     on_road,
     point_at,
     project_points,
     read_net,
-    red_light_violations,
-    resolve_route,
     road_area,
     route_geometry,
     signal_letter,

@@ -1,0 +1,199 @@
+"""Driving policies: Observation -> (throttle, steer, brake). A trained model, a scripted
+route follower (pure pursuit on the lane centre, obeying signals), or a constant action.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .errors import CrchflError
+from .expert import ExpertConfig, pedals, steer_from_curvature
+from .frame import Frame
+from .route import RED_LETTERS, YELLOW_LETTERS, Crossing, RouteGeometry, next_crossing, point_at, project_points, signal_letter
+
+Action = tuple[float, float, float]  # (throttle, steer, brake), labels.py conventions
+
+
+# --- policies ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What a policy sees at one step."""
+
+    frame: Frame
+    ego_id: str
+    ego_row: int
+    progress_m: float  # the ego centre's arc position on the route
+    images: np.ndarray | None  # uint8 [4, H, W, 3] when the loop renders, else None
+
+
+Policy = Callable[[Observation], Action]
+
+
+@dataclass(frozen=True)
+class ConstantPolicy:
+    """The same action every step (a test of the loop: a hard steer must leave the lane)."""
+
+    throttle: float = 0.3
+    steer: float = 0.0
+    brake: float = 0.0
+
+    def __call__(self, observation: Observation) -> Action:
+        return (self.throttle, self.steer, self.brake)
+
+
+@dataclass(frozen=True)
+class RoutePolicyConfig:
+    """A scripted driver that knows the route (no images): the reference the models are compared to.
+
+    target_speed_mps        cruise speed
+    lookahead_min_m, lookahead_time_s  pure-pursuit look-ahead max(min, time * speed) on the centre line
+    speed_gain_per_s        desired acceleration per m/s of speed error
+    headway_s, standstill_gap_m  distance kept to a vehicle ahead in the lane: gap >= standstill + headway * v
+    comfort_decel_mps2      deceleration planned for stopping at a light
+    stop_gap_m              the front bumper stops this far before the stop line
+    yield_radius_m          on a minor green ('g') it waits while a vehicle within this distance of
+                            the junction's middle moves towards it (or any vehicle is inside it)
+    """
+
+    target_speed_mps: float = 8.0
+    lookahead_min_m: float = 4.0
+    lookahead_time_s: float = 0.5
+    speed_gain_per_s: float = 1.5
+    headway_s: float = 1.5
+    standstill_gap_m: float = 3.0
+    comfort_decel_mps2: float = 2.5
+    stop_gap_m: float = 1.0
+    yield_radius_m: float = 30.0
+
+    def __post_init__(self) -> None:
+        for name in ("target_speed_mps", "lookahead_min_m", "speed_gain_per_s", "comfort_decel_mps2"):
+            if not getattr(self, name) > 0:
+                raise CrchflError(f"route_policy.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("lookahead_time_s", "headway_s", "standstill_gap_m", "stop_gap_m", "yield_radius_m"):
+            if getattr(self, name) < 0:
+                raise CrchflError(f"route_policy.{name} must be >= 0, got {getattr(self, name)}")
+
+
+class RoutePolicy:
+    """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane.
+
+    Its pedals come from the expert's own mapping (expert.pedals) of the
+    acceleration it wants, its steer from the expert's curvature mapping, so
+    the loop's inverse mappings return exactly what it planned.
+    """
+
+    def __init__(
+        self,
+        route: RouteGeometry,
+        config: RoutePolicyConfig = RoutePolicyConfig(),
+        expert: ExpertConfig = ExpertConfig(),
+    ) -> None:
+        self.route = route
+        self.config = config
+        self.expert = expert
+
+    def steer(self, x_m: float, y_m: float, heading_rad: float, speed_mps: float, progress_m: float) -> float:
+        cfg = self.config
+        look = max(cfg.lookahead_min_m, cfg.lookahead_time_s * speed_mps)
+        tx, ty, _ = point_at(self.route, progress_m + look)
+        dx, dy = tx - x_m, ty - y_m
+        chord = math.hypot(dx, dy)
+        kappa = 2.0 * math.sin(math.atan2(dy, dx) - heading_rad) / chord if chord > 1e-6 else 0.0
+        return float(steer_from_curvature(kappa, self.expert))
+
+    def wanted_accel_mps2(self, observation: Observation) -> float:
+        """Acceleration to cruise, to keep the gap to the vehicle ahead in the lane, and to stop at a light."""
+        cfg = self.config
+        frame, row = observation.frame, observation.ego_row
+        v = float(frame.speed_mps[row])
+        max_accel, max_decel = float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row])
+        half_length = float(frame.length_m[row]) / 2.0
+        s = observation.progress_m
+        wanted = cfg.target_speed_mps
+        others = np.flatnonzero(
+            (np.arange(len(frame)) != row) & (np.hypot(frame.x_m - frame.x_m[row], frame.y_m - frame.y_m[row]) < 60.0)
+        )
+        if len(others):
+            s_o, off_o, width_o = project_points(self.route, frame.x_m[others], frame.y_m[others], s, s + 50.0)
+            ahead = (s_o > s) & (np.abs(off_o) < width_o / 2.0 + frame.width_m[others] / 2.0 - 0.3)
+            if ahead.any():
+                gap = (s_o - s - frame.length_m[others] / 2.0 - half_length)[ahead].min()
+                wanted = min(wanted, max(0.0, (gap - cfg.standstill_gap_m) / max(cfg.headway_s, 1e-3)))
+        accel = cfg.speed_gain_per_s * (wanted - v)
+        index = next_crossing(self.route.crossings, s + half_length)
+        if index >= 0:
+            crossing = self.route.crossings[index]
+            letter = signal_letter(crossing, frame.tls_states)
+            room = crossing.s_start_m - (s + half_length) - cfg.stop_gap_m
+            needed = v * v / (2.0 * room) if room > 0.3 else math.inf
+            # Stop for red; for yellow only when that takes no more than a comfortable deceleration;
+            # on a minor green ('g': yield) while other traffic is in or heading into the junction.
+            yield_now = letter == "g" and self._junction_busy(observation, crossing)
+            if letter in RED_LETTERS or yield_now or (letter in YELLOW_LETTERS and needed <= cfg.comfort_decel_mps2):
+                if room <= 0.3:
+                    accel = -max_decel
+                else:
+                    creep = cfg.speed_gain_per_s * (math.sqrt(cfg.comfort_decel_mps2 * room) - v)
+                    accel = min(accel, creep, -needed if needed >= 0.5 * cfg.comfort_decel_mps2 else math.inf)
+        return float(np.clip(accel, -max_decel, max_accel))
+
+    def _junction_busy(self, observation: Observation, crossing: Crossing) -> bool:
+        """Is another vehicle inside the junction, or moving towards it, other than those in the ego's lane?"""
+        frame, row = observation.frame, observation.ego_row
+        cx, cy, _ = point_at(self.route, 0.5 * (crossing.s_start_m + crossing.s_end_m))
+        dx, dy = cx - frame.x_m, cy - frame.y_m
+        distance = np.hypot(dx, dy)
+        closing = (np.cos(frame.heading_rad) * dx + np.sin(frame.heading_rad) * dy) > 0
+        near = (np.arange(len(frame)) != row) & (
+            (distance < 8.0) | ((distance < self.config.yield_radius_m) & closing & (frame.speed_mps > 0.5))
+        )
+        rows = np.flatnonzero(near)
+        if len(rows) == 0:
+            return False
+        s = observation.progress_m
+        s_o, off_o, width_o = project_points(self.route, frame.x_m[rows], frame.y_m[rows], s - 30.0, s + 30.0)
+        in_my_lane = np.abs(off_o) < width_o / 2.0
+        behind = in_my_lane & (s_o < s)
+        return bool(np.any(~behind & ~(in_my_lane & (s_o > crossing.s_end_m))))
+
+    def __call__(self, observation: Observation) -> Action:
+        frame, row = observation.frame, observation.ego_row
+        v = float(frame.speed_mps[row])
+        steer = self.steer(
+            float(frame.x_m[row]), float(frame.y_m[row]), float(frame.heading_rad[row]), v, observation.progress_m
+        )
+        accel = self.wanted_accel_mps2(observation)
+        if v < self.expert.stop_speed_mps and accel < 0:
+            accel, steer = 0.0, 0.0  # standing: pedals() holds the brake; wheels straight like the expert's
+        max_accel, max_decel = float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row])
+        # The expert's pedal mapping adds what holding speed costs.
+        throttle, brake = pedals(
+            np.array([v]), np.array([accel]), np.array([max_accel]), np.array([max_decel]), self.expert
+        )
+        return (float(throttle[0]), steer, float(brake[0]))
+
+
+class ModelPolicy:
+    """A DrivingModel: the ego's four camera images -> (throttle, steer via the DAC, brake)."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+
+    def __call__(self, observation: Observation) -> Action:
+        import torch
+
+        from .model import predict_actions
+
+        if observation.images is None:
+            raise CrchflError("the model policy needs camera images; give drive() a renderer")
+        images = torch.from_numpy(np.ascontiguousarray(observation.images))
+        throttle, steer, brake = predict_actions(self.model, images)
+        return (float(throttle), float(steer), float(brake))
+
+
