@@ -341,13 +341,21 @@ def _bytes_line(ledger: Ledger) -> dict:
 
 
 class Federation:
-    """Runs the loop of one setup on a clock with a trainer; ``step`` advances one aggregation step."""
+    """Runs the loop of one setup on a clock with a trainer; ``step`` advances one aggregation step.
 
-    def __init__(self, setup: Setup, clock: Clock, trainer: Trainer) -> None:
+    ``data(vehicle, t_s)``: the samples a vehicle trains on when it starts
+    training at ``t_s`` (default: its fixed shard, ``setup.samples``; the
+    online data mode adds what it collected while driving).
+    """
+
+    def __init__(
+        self, setup: Setup, clock: Clock, trainer: Trainer, data: Callable[[str, float], Samples] | None = None
+    ) -> None:
         self.setup = setup
         self.clock = clock
         self.trainer = trainer
         self.config = setup.config
+        self.data = data or (lambda vehicle, t_s: setup.samples[vehicle])
 
     # -- public
 
@@ -391,8 +399,8 @@ class Federation:
 
     # -- pieces
 
-    def _compute_s(self, vehicle: str, epochs: int) -> float:
-        return epochs * self.setup.count(vehicle) * self.config.compute_s_per_sample
+    def _compute_s(self, samples: int, epochs: int) -> float:
+        return epochs * samples * self.config.compute_s_per_sample
 
     def _upload(
         self, vehicle: str, edge: str | None, start_s: float, size: int, window_end_s: float
@@ -423,13 +431,13 @@ class Federation:
         site = self.setup.edges.index(edge)
         return wireless_transfer(self.clock, vehicle, "edge", start_s, size, self.setup.transfer, only_site=site)
 
-    def _train(self, state: FederationState, epochs: int) -> dict[str, State]:
+    def _train(self, state: FederationState, epochs: int) -> tuple[dict[str, State], dict[str, int]]:
+        """Every vehicle's model after ``epochs`` on its data, and the sample counts |T_nk| behind them."""
         vehicles = self.setup.vehicles
+        samples = [self.data(v, state.ready_s[v]) for v in vehicles]
         seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
-        new = self.trainer.train(
-            [state.vehicle_models[v] for v in vehicles], [self.setup.samples[v] for v in vehicles], epochs, seed
-        )
-        return dict(zip(vehicles, new))
+        new = self.trainer.train([state.vehicle_models[v] for v in vehicles], samples, epochs, seed)
+        return dict(zip(vehicles, new)), {v: len(x) for v, x in zip(vehicles, samples)}
 
     def _line(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics=None, **extra) -> dict:
         loss, accuracy = metrics if metrics is not None else (None, None)
@@ -533,14 +541,15 @@ class Federation:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
         epochs = setup.hyper.edge_interval
-        trained = self._train(state, epochs)
+        trained, counts = self._train(state, epochs)
         member = dict(state.member)
         events: dict[tuple[str, str, str], Event] = {}
         uploads: dict[str, WirelessOutcome | None] = {}
         for v in setup.vehicles:
             edge = state.member[v]
             window_end = state.open_s[edge] + cfg.deadline_s
-            out = self._upload(v, edge, state.ready_s[v] + self._compute_s(v, epochs), sizes.model_bytes, window_end)
+            start_s = state.ready_s[v] + self._compute_s(counts[v], epochs)
+            out = self._upload(v, edge, start_s, sizes.model_bytes, window_end)
             uploads[v] = out
             if out is not None and out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
@@ -567,8 +576,8 @@ class Federation:
             agg_s[e] = max(ends)
             received_by[e] = received
             if received:
-                edge_models[e] = fedavg([(trained[v], setup.count(v)) for v in received])
-                edge_weights[e] = float(sum(setup.count(v) for v in received))
+                edge_models[e] = fedavg([(trained[v], counts[v]) for v in received])
+                edge_weights[e] = float(sum(counts[v] for v in received))
         edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
         models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
         for e in agg_s:
@@ -611,7 +620,7 @@ class Federation:
         state.edge_aggregations += 1
         state.tau += 1
         received_count = {e: len(vs) for e, vs in received_by.items()}
-        self._line(state, ledger, "II", t_line, edge_metrics, received=received_count)
+        self._line(state, ledger, "II", t_line, edge_metrics, received=received_count, samples=sum(counts.values()))
         if followed:
             state.cloud_model = cloud_model
             state.cloud_rounds = next_round
@@ -642,12 +651,13 @@ class Federation:
     def _sfl_round(self, state: FederationState, ledger: Ledger) -> None:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         epochs = setup.hyper.edge_interval
-        trained = self._train(state, epochs)
+        trained, counts = self._train(state, epochs)
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], Event] = {}
         ends, received = [], []
         for v in setup.vehicles:
-            out = self._upload(v, None, state.ready_s[v] + self._compute_s(v, epochs), sizes.model_bytes, window_end)
+            start_s = state.ready_s[v] + self._compute_s(counts[v], epochs)
+            out = self._upload(v, None, start_s, sizes.model_bytes, window_end)
             if out is None:
                 ends.append(window_end)
                 self._straggler(state, v, "III", "no time to upload before the deadline", window_end)
@@ -659,7 +669,7 @@ class Federation:
             else:
                 self._straggler(state, v, "III", out.reason, out.end_s)
         cloud_s = max(ends)
-        cloud_model = fedavg([(trained[v], setup.count(v)) for v in received]) if received else state.cloud_model
+        cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
         models, ready = dict(trained), dict(state.ready_s)
         for v in setup.vehicles:
             out = self._download(v, cloud_s, sizes.model_bytes, None)
@@ -679,7 +689,7 @@ class Federation:
         state.open_s = {CLOUD: cloud_s}
         state.cloud_model = cloud_model
         state.cloud_rounds = next_round
-        self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received))
+        self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received), samples=sum(counts.values()))
 
 
 def _better(accuracy: float, loss: float, best_accuracy: float, best_loss: float) -> bool:

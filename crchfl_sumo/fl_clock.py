@@ -147,7 +147,9 @@ class SumoClock:
         channel: ChannelConfig = ChannelConfig(),
         mobility: MobilityConfig = MobilityConfig(),
         macro: MacroLinkConfig = MacroLinkConfig(),
+        collector=None,
     ) -> None:
+        """``collector``: an online.OnlineCollector shown every frame (the ``online`` data mode)."""
         from .sim import Simulation
 
         self.scenario = scenario
@@ -163,6 +165,7 @@ class SumoClock:
             bounds = scenario.bounds
             box = (bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m)
             self._links["macro"] = macro_link_model(macro, box, channel, mobility, np.random.default_rng(seeds[1]))
+        self.collector = collector
         self._t: list[float] = []
         self._rate = {k: {v: [] for v in self.vehicles} for k in self._links}
         self._site = {k: {v: [] for v in self.vehicles} for k in self._links}
@@ -184,6 +187,8 @@ class SumoClock:
 
     def _advance(self) -> None:
         frame = self._sim.step()
+        if self.collector is not None:
+            self.collector.observe(frame)
         keep = np.isin(frame.ids, self.vehicles)
         mine = frame.select(keep)
         self._t.append(float(frame.t_s))
@@ -194,6 +199,12 @@ class SumoClock:
                 i = rows.get(v)
                 self._rate[kind][v].append(0.0 if i is None else float(snapshot.rate_bps[i]))
                 self._site[kind][v].append(NO_SITE if i is None else int(snapshot.site[i]))
+
+    def collected(self, vehicle: str, t_s: float):
+        """The online collector's labelled samples of ``vehicle`` at ``t_s`` (None if none)."""
+        while self._t[-1] < t_s - _EPS_S:
+            self._advance()
+        return self.collector.collected(vehicle, t_s)
 
     def series(self, vehicle: str, kind: LinkKind, from_s: float, to_s: float) -> LinkSeries:
         if kind not in self._links:

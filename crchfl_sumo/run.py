@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping
 
+import numpy as np
 import torch
 
 from .allocation import AllocationConfig, make_plan
@@ -50,6 +51,7 @@ from .ledger import Ledger, LedgerConfig, resolve_sizes
 from .local import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicles
 from .mobility import MacroLinkConfig, MobilityConfig
 from .model import DrivingModel, ModelConfig, build_model, state_size_bytes
+from .online import OnlineConfig
 from .samples import Samples
 from .transfer import TransferConfig
 
@@ -92,13 +94,13 @@ class RunConfig:
         current directory unless absolute; its train shards are the
         vehicles' data, its test shards the test set.
     data_mode: "fixed": each vehicle trains on its generated shard (the
-        paper's setting). ("online", vehicles collecting while they drive,
-        is not implemented.)
+        paper's setting); "online": vehicles also keep collecting samples as
+        they drive (online.py; needs the SUMO clock).
     """
 
     scenario: str = "paper"
     dataset: str = "data/paper"
-    data_mode: str = "fixed"
+    data_mode: Literal["fixed", "online"] = "fixed"
     federation: FederationConfig = field(default_factory=FederationConfig)
     ledger: LedgerConfig = field(default_factory=LedgerConfig)
     allocation: AllocationConfig = field(default_factory=AllocationConfig)
@@ -110,12 +112,15 @@ class RunConfig:
     wireline: WirelineConfig = field(default_factory=WirelineConfig)
     sfl_link: MacroLinkConfig = field(default_factory=MacroLinkConfig)
     transfer: TransferConfig = field(default_factory=TransferConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
 
     def __post_init__(self) -> None:
-        if self.data_mode != "fixed":
+        if self.data_mode not in ("fixed", "online"):
+            raise CrchflError(f"data_mode: {self.data_mode!r} is not one of 'fixed', 'online'")
+        if self.data_mode == "online" and self.clock.kind != "sumo":
             raise CrchflError(
-                f"data_mode: {self.data_mode!r} is not available; only 'fixed' (each vehicle trains on its "
-                "generated shard) is implemented: set data_mode = \"fixed\""
+                "data_mode = 'online' collects samples from the SUMO run; set [clock] kind = \"sumo\" "
+                "or data_mode = \"fixed\""
             )
 
 
@@ -162,6 +167,7 @@ class Inputs:
     edges: tuple[str, ...]
     home_site: Mapping[str, int]
     measured_sample_bytes: int | None
+    root: Path | None = None  # the data set folder (the online mode reads its camera settings)
 
 
 def read_inputs(config: RunConfig) -> Inputs:
@@ -208,7 +214,7 @@ def read_inputs(config: RunConfig) -> Inputs:
             )
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
-    return Inputs(vehicles, samples, test, edges, home, measured)
+    return Inputs(vehicles, samples, test, edges, home, measured, root)
 
 
 def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int) -> tuple[Hyper, dict | None]:
@@ -245,8 +251,49 @@ def make_clock(config: RunConfig, inputs: Inputs):
 
     scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
     kinds = ("edge",) if config.federation.hierarchical else ("macro",)
+    collector = online_collector(config, inputs, scenario) if config.data_mode == "online" else None
     return SumoClock(
-        scenario, inputs.vehicles, config.federation.seed, kinds, config.channel, config.mobility, config.sfl_link
+        scenario,
+        inputs.vehicles,
+        config.federation.seed,
+        kinds,
+        config.channel,
+        config.mobility,
+        config.sfl_link,
+        collector,
+    )
+
+
+def online_collector(config: RunConfig, inputs: Inputs, scenario):
+    """The online mode's collector, rendering and labelling exactly as the data set was made."""
+    from .dataset_io import read_manifest, read_shard
+    from .expert import ExpertConfig
+    from .online import OnlineCollector
+    from .raster import RasterConfig
+    from .raster_world import WorldConfig
+
+    manifest = read_manifest(inputs.root)
+    where = f"{inputs.root}/manifest.json"
+    raster = from_mapping(RasterConfig, manifest.camera.get("raster", {}), f"{where}: camera.raster")
+    world = from_mapping(WorldConfig, manifest.camera.get("world", {}), f"{where}: camera.world")
+    expert = from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    if (raster.camera.height_px, raster.camera.width_px) != (manifest.image_height, manifest.image_width):
+        raise CrchflError(f"{where}: camera settings do not match the image size; regenerate the data set")
+    # each vehicle goes on collecting after the last sample of its shard
+    last_s = {
+        s.vehicle: float(np.max(read_shard(inputs.root, s, verify=False, images=False).t_s, initial=-np.inf))
+        for s in manifest.select("train")
+    }
+    return OnlineCollector(
+        scenario.net_path,
+        inputs.vehicles,
+        last_s,
+        manifest.sample_period_s,
+        scenario.step_length_s,
+        raster,
+        world,
+        expert,
+        config.online,
     )
 
 
@@ -324,7 +371,8 @@ def run_federation_dir(
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         if state is None:
             state = initial_state(setup, trainer, clock.start_s)
-        federation = Federation(setup, clock, trainer)
+        data = _online_data(clock, inputs) if config.data_mode == "online" else None
+        federation = Federation(setup, clock, trainer, data)
 
         def on_step(new: FederationState) -> None:
             _save_state(checkpoint_path, resolved, new)
@@ -338,6 +386,16 @@ def run_federation_dir(
             _write_outputs(out_dir, config, setup, state)
         state = federation.run(state, on_step)
     return summarize(config, setup, state)
+
+
+def _online_data(clock, inputs: Inputs) -> Callable[[str, float], Samples]:
+    """A vehicle's data at t_s in the online mode: its shard and what it had collected by then."""
+
+    def data(vehicle: str, t_s: float) -> Samples:
+        extra = clock.collected(vehicle, t_s)
+        return inputs.samples[vehicle] if extra is None else Samples.concat([inputs.samples[vehicle], extra])
+
+    return data
 
 
 def progress_info(state: FederationState, budget_bytes: int, hyper: Hyper) -> dict:

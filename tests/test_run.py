@@ -187,7 +187,9 @@ def test_resume_with_other_settings_is_refused(tmp_path, dataset):
 
 def test_config_errors_name_the_key(tmp_path, dataset):
     with pytest.raises(CrchflError, match="data_mode"):
-        from_mapping(RunConfig, {**_config(dataset), "data_mode": "online"})
+        from_mapping(RunConfig, {**_config(dataset), "data_mode": "online"})  # needs the SUMO clock
+    with pytest.raises(CrchflError, match="data_mode"):
+        from_mapping(RunConfig, {**_config(dataset), "data_mode": "streaming"})
     with pytest.raises(CrchflError, match="federation: unknown key"):
         from_mapping(RunConfig, {**_config(dataset), "federation": {"edge_intervall": 2}})
     bad = from_mapping(RunConfig, {**_config(dataset), "model": {"image_height": 64, "image_width": 128}})
@@ -241,5 +243,66 @@ def test_sumo_clock_run_is_deterministic_and_resumes_exactly(tmp_path, dataset, 
     assert len(set(np.round(first, 6))) > 1
     with pytest.raises(Killed):
         run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(1))
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+
+
+# ------------------------------------------------------------------ online data mode
+
+
+def _straight_frames(seconds: float, step_s: float = 0.25):
+    from crchfl_sumo.frame import make_frame
+
+    frames = []
+    for k in range(1, int(seconds / step_s) + 1):
+        t = k * step_s
+        frames.append(make_frame(t, ids=["a"], x_m=[10.0 + 8.0 * t], y_m=[0.0], speed_mps=[8.0]))
+    return frames
+
+
+def test_online_collector_labels_after_the_look_ahead_and_keeps_the_newest(grid_dir):
+    from crchfl_sumo.camera import CameraConfig
+    from crchfl_sumo.expert import ExpertConfig, expert_labels, tracks_from_frames
+    from crchfl_sumo.generate import FUTURE_S
+    from crchfl_sumo.online import OnlineCollector, OnlineConfig
+    from crchfl_sumo.raster import RasterConfig
+
+    raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=64))
+    collector = OnlineCollector(
+        grid_dir / "grid.net.xml", ["a"], {"a": 2.0}, 0.5, 0.25, raster=raster, config=OnlineConfig(max_samples=6)
+    )
+    frames = _straight_frames(20.0)
+    for frame in frames:
+        collector.observe(frame)
+    assert collector.collected("a", 2.0 + FUTURE_S) is None  # nothing after 2 s is labelled yet
+    early = collector.collected("a", 4.0 + FUTURE_S)
+    assert len(early) == 4  # 2.5, 3.0, 3.5, 4.0 s
+    late = collector.collected("a", 20.0)
+    assert len(late) == 6  # the newest six of 2.5 .. 10.0 s
+    actions, steer_class = expert_labels(tracks_from_frames(frames)["a"], ExpertConfig())
+    rows = [round(t / 0.25) - 1 for t in (7.5, 8.0, 8.5, 9.0, 9.5, 10.0)]
+    assert np.array_equal(late.actions.numpy(), actions[rows])
+    assert np.array_equal(late.steer_class.numpy(), steer_class[rows])
+    assert late.images.shape == (6, 4, 48, 64, 3)
+
+
+@pytest.mark.slow
+def test_online_mode_grows_the_vehicles_data_and_resumes_exactly(tmp_path):
+    root = tmp_path / "data"
+    write_dataset(root, PAPER_VEHICLES[:1] + PAPER_VEHICLES[2:3], samples=(2, 2))
+    manifest = root / "manifest.json"
+    text = json.loads(manifest.read_text())
+    text["camera"] = {"raster": {"camera": {"height_px": 48, "width_px": 64}}}
+    manifest.write_text(json.dumps(text))
+    mapping = _config(root, scheme="hfl", cloud_rounds=3, compute_s_per_sample=2.0)
+    mapping.update(data_mode="online", online={"max_samples": 10}, clock={"kind": "sumo"})
+    config = from_mapping(RunConfig, mapping)
+    inputs = read_inputs(config)
+    run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    lines = [json.loads(line) for line in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
+    samples = [m["samples"] for m in lines if m["stage"] == "II"]
+    assert samples[0] == 4 and samples[-1] > samples[0] and samples[-1] <= 4 + 2 * 10
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(2))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
     assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
