@@ -1,0 +1,451 @@
+"""`crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume]`: the paper's experiments B and D.
+
+One results folder holds every part (each written by its owning module):
+
+  reproduce.json              the resolved settings, seeds and package versions
+  timings.json                wall seconds of every finished part (also: which parts are finished)
+  data/                       the data set, generated once and shared by every run
+  configs/NAME.toml           the run config each federated run was started with
+  centralized/seed-S/         the centralized upper bound (local.train_centralized)
+  runs/SCHEME/seed-S/         experiment B: CRCHFL, HFL and SFL under one budget (run.py's folder)
+  ablation/ie-K/seed-S/       experiment D: CRCHFL with edge_interval fixed to K
+  drives/ROUTE/LABEL/         closed loop: each scheme's best model, the centralized
+                              model and the scripted reference drive ROUTE (drive.py)
+  figures/, report.md, summary.json   written by report.py from the folders above alone
+
+Resumable: a part recorded in timings.json is not redone; an unfinished
+federated run continues from its checkpoint; an unfinished centralized run
+or drive starts over.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from .atomic import atomic_write_text
+from .config import from_mapping, read_toml, to_mapping
+from .errors import CrchflError
+from .generate import GenerateConfig
+
+log = logging.getLogger(__name__)
+
+SCHEMES = ("crchfl", "hfl", "sfl")
+EXPERIMENTS_DIR = Path(__file__).parent / "scenarios" / "experiments"
+PRESETS = {"quick": EXPERIMENTS_DIR / "reproduce_quick.toml", "full": EXPERIMENTS_DIR / "reproduce_full.toml"}
+REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
+CENTRALIZED = "centralized"
+Progress = Callable[[int, int, str], None]  # (parts done, parts in all, part starting now)
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    """What `reproduce` runs (TOML: reproduce_quick.toml / reproduce_full.toml).
+
+    name: a label for the report ("quick", "full", ...).
+    scenario: the scenario the data set is generated in and the federation runs on.
+    seeds: federated runs per scheme (seeds first_seed, first_seed + 1, ...).
+    schemes: the schemes of experiment B.
+    ablation_edge_intervals: experiment D: CRCHFL with edge_interval fixed to each
+        of these (allocation.fix_edge_interval); empty = no ablation.
+    ablation_seeds: seeds per ablation setting (the first ones of ``seeds``; at most ``seeds``).
+    centralized_epochs: epochs of the centralized upper bound (0 = none); one per seed.
+    drive_routes: named routes (scenarios/drive_routes.toml) each model drives; empty = no drives.
+    drive_max_s: simulated seconds a drive may last at most.
+    drive_seed: SUMO seed of the drives (the same traffic for every model).
+    drive_video: also write each drive's MP4.
+    generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
+    run: settings laid over every built-in scheme config (scenarios/experiments/SCHEME.toml):
+        a partial run config, e.g. ``[run.ledger]``, ``[run.train]``, ``[run.clock]``.
+        ``scenario`` and ``dataset`` are set by reproduce, ``federation.seed`` per run.
+    """
+
+    name: str = "full"
+    scenario: str = "paper"
+    seeds: int = 3
+    first_seed: int = 0
+    schemes: tuple[str, ...] = SCHEMES
+    ablation_edge_intervals: tuple[int, ...] = (2, 3, 4)
+    ablation_seeds: int = 3
+    centralized_epochs: int = 20
+    drive_routes: tuple[str, ...] = ("town01_right_left", "town02_south_loop")
+    drive_max_s: float = 120.0
+    drive_seed: int = 0
+    drive_video: bool = False
+    generate: GenerateConfig = field(default_factory=GenerateConfig)
+    run: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.seeds < 1:
+            raise CrchflError(f"reproduce.seeds: {self.seeds} must be >= 1")
+        if self.first_seed < 0:
+            raise CrchflError(f"reproduce.first_seed: {self.first_seed} must be >= 0")
+        unknown = sorted(set(self.schemes) - set(SCHEMES))
+        if unknown or not self.schemes or len(set(self.schemes)) != len(self.schemes):
+            raise CrchflError(f"reproduce.schemes: {list(self.schemes)}; list each of {', '.join(SCHEMES)} at most once")
+        if any(k < 2 for k in self.ablation_edge_intervals):
+            raise CrchflError(
+                f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be >= 2 "
+                "(the paper requires 0 < cloud_interval < edge_interval)"
+            )
+        if self.ablation_seeds < 0:
+            raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be >= 0")
+        if self.centralized_epochs < 0:
+            raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
+        if not self.drive_max_s > 0:
+            raise CrchflError(f"reproduce.drive_max_s: {self.drive_max_s} must be > 0")
+        for key in ("scenario", "dataset"):
+            if key in self.run:
+                raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use reproduce.{key if key == 'scenario' else 'generate'})")
+        if "seed" in self.run.get("federation", {}):
+            raise CrchflError("reproduce.run.federation.seed: set per run from reproduce.seeds; remove it")
+        for scheme in self.schemes:  # every run config must be valid before anything starts
+            run_config(run_mapping(self, scheme, self.first_seed, Path("data")), f"reproduce.run ({scheme})")
+
+    @property
+    def seed_list(self) -> list[int]:
+        return list(range(self.first_seed, self.first_seed + self.seeds))
+
+    @property
+    def ablation_seed_list(self) -> list[int]:
+        return self.seed_list[: min(self.ablation_seeds, self.seeds)] if self.ablation_edge_intervals else []
+
+
+def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) -> ReproduceConfig:
+    """A preset ("quick", "full") or a TOML file; ``seeds`` overrides the file's ``seeds``."""
+    path = PRESETS.get(str(preset_or_path), Path(preset_or_path))
+    mapping = read_toml(path)
+    if seeds is not None:
+        mapping = {**mapping, "seeds": int(seeds)}
+    return from_mapping(ReproduceConfig, mapping, where=str(path))
+
+
+# ------------------------------------------------------------------ run configs (pure)
+
+
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` laid on top; tables merge key by key, other values are replaced."""
+    merged = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def run_mapping(
+    config: ReproduceConfig, scheme: str, seed: int, data_dir: Path, fix_edge_interval: int | None = None
+) -> dict[str, Any]:
+    """The run config of one federated run: the built-in scheme config, the overrides, data, seed."""
+    mapping = deep_merge(read_toml(EXPERIMENTS_DIR / f"{scheme}.toml"), config.run)
+    mapping = deep_merge(
+        mapping, {"scenario": config.scenario, "dataset": str(data_dir), "federation": {"seed": int(seed)}}
+    )
+    if fix_edge_interval is not None:
+        mapping = deep_merge(mapping, {"allocation": {"fix_edge_interval": int(fix_edge_interval)}})
+    return mapping
+
+
+def run_config(mapping: Mapping[str, Any], where: str):
+    from .run import RunConfig
+
+    return from_mapping(RunConfig, mapping, where=where)
+
+
+def toml_text(mapping: Mapping[str, Any]) -> str:
+    """TOML for a mapping of tables, scalars and lists (what run configs hold); tomllib reads it back equal."""
+    lines: list[str] = []
+    _toml_table(mapping, [], lines)
+    return "\n".join(lines).strip() + "\n"
+
+
+def _toml_table(mapping: Mapping[str, Any], path: list[str], lines: list[str]) -> None:
+    tables = {k: v for k, v in mapping.items() if isinstance(v, Mapping)}
+    if path and (len(tables) < len(mapping) or not tables):
+        lines += ["", "[" + ".".join(_toml_key(p) for p in path) + "]"]
+    for key, value in mapping.items():
+        if not isinstance(value, Mapping):
+            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
+    for key, value in tables.items():
+        _toml_table(value, [*path, key], lines)
+
+
+def _toml_key(key: str) -> str:
+    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    raise CrchflError(f"run config: cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string or list")
+
+
+# ------------------------------------------------------------------ the parts
+
+
+@dataclass(frozen=True)
+class Part:
+    """One unit of work: its key in timings.json (also its folder, relative to the results folder)."""
+
+    key: str
+    kind: str  # "dataset", "centralized", "federated", "ablation", "drive"
+    scheme: str = ""
+    seed: int = 0
+    edge_interval: int | None = None
+    route: str = ""
+
+
+def plan_parts(config: ReproduceConfig) -> list[Part]:
+    """Every part in the order they run: data, upper bound, experiment B, experiment D.
+
+    Drives come after (``drive_parts``): which seed's model drives is known only then.
+    """
+    parts = [Part("data", "dataset")]
+    if config.centralized_epochs:
+        parts += [Part(f"{CENTRALIZED}/seed-{s}", "centralized", CENTRALIZED, s) for s in config.seed_list]
+    for seed in config.seed_list:  # seed by seed, so that a partial result already compares the schemes
+        parts += [Part(f"runs/{scheme}/seed-{seed}", "federated", scheme, seed) for scheme in config.schemes]
+    for seed in config.ablation_seed_list:
+        parts += [
+            Part(f"ablation/ie-{k}/seed-{seed}", "ablation", "crchfl", seed, edge_interval=k)
+            for k in config.ablation_edge_intervals
+        ]
+    return parts
+
+
+def drive_labels(config: ReproduceConfig) -> list[str]:
+    return [*config.schemes, *([CENTRALIZED] if config.centralized_epochs else []), REFERENCE]
+
+
+def drive_parts(config: ReproduceConfig) -> list[Part]:
+    return [
+        Part(f"drives/{route}/{label}", "drive", label, route=route)
+        for route in config.drive_routes
+        for label in drive_labels(config)
+    ]
+
+
+def best_seed(summaries: Mapping[int, Mapping[str, Any]], key: str = "best_accuracy") -> int:
+    """The seed whose run reached the highest ``key`` (ties: the smallest seed; None counts lowest)."""
+    if not summaries:
+        raise CrchflError("no finished run to pick a model from; run the federated parts first")
+    return max(sorted(summaries), key=lambda s: -math.inf if summaries[s].get(key) is None else summaries[s][key])
+
+
+# ------------------------------------------------------------------ orchestration
+
+
+def reproduce(
+    config: ReproduceConfig,
+    out_dir: str | Path,
+    resume: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Run (or finish) every part of ``config`` into ``out_dir``, then write the report; returns summary.json."""
+    out_dir = Path(out_dir).resolve()
+    _start(config, out_dir, resume)
+    parts = plan_parts(config)
+    total = len(parts) + len(drive_parts(config))
+    for index, part in enumerate(parts):
+        if progress is not None:
+            progress(index, total, part.key)
+        _do(part, out_dir, lambda: _run_part(config, out_dir, part))
+    for index, part in enumerate(drive_parts(config), start=len(parts)):
+        if progress is not None:
+            progress(index, total, part.key)
+        _do(part, out_dir, lambda: _drive_part(config, out_dir, part))
+    if progress is not None:
+        progress(total, total, "report")
+    from .report import write_report
+
+    return write_report(out_dir)
+
+
+def reproduce_command(
+    quick: bool = False,
+    out_dir: str | Path | None = None,
+    seeds: int | None = None,
+    resume: bool = False,
+    config_path: str | Path | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML]` does."""
+    preset = "quick" if quick else "full"
+    config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
+    return reproduce(config, out_dir if out_dir is not None else Path("results") / config.name, resume, progress)
+
+
+def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
+    """Write reproduce.json, or check that a resumed folder was started with the same settings."""
+    path = out_dir / "reproduce.json"
+    settings = json.loads(json.dumps(to_mapping(config)))  # tuples as JSON reads them back
+    if path.exists():
+        if not resume:
+            raise CrchflError(f"{out_dir} already holds a reproduction; pass --resume to finish it or choose another --out")
+        earlier = json.loads(path.read_text(encoding="utf-8"))
+        if earlier.get("config") != settings:
+            raise CrchflError(
+                f"{path}: started with other settings (see its 'config'); resume with the same preset, "
+                "--seeds and --config, or choose another --out"
+            )
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record = {
+        "config": settings,
+        "seeds": config.seed_list,
+        "ablation_seeds": config.ablation_seed_list,
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "environment": environment(),
+    }
+    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+
+
+def environment() -> dict[str, Any]:
+    """Package versions and the machine: what the report states next to the running times."""
+    import os
+    import platform
+    from importlib import metadata
+
+    import torch
+
+    versions = {}
+    for name in ("crchfl-sumo", "torch", "numpy", "matplotlib", "cvxpy", "eclipse-sumo", "libsumo", "h5py", "opencv-python-headless"):
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.is_available(),
+        "versions": versions,
+    }
+
+
+def read_timings(out_dir: Path) -> dict[str, float]:
+    path = Path(out_dir) / "timings.json"
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+
+def _do(part: Part, out_dir: Path, work: Callable[[], None]) -> None:
+    """Run ``work`` unless timings.json records the part as finished (and its folder is there)."""
+    if part.key in read_timings(out_dir) and (out_dir / part.key).exists():
+        log.info("%s: finished earlier, kept", part.key)
+        return
+    log.info("%s: starting", part.key)
+    start_s = time.perf_counter()
+    work()
+    elapsed_s = time.perf_counter() - start_s
+    timings = read_timings(out_dir)
+    timings[part.key] = round(elapsed_s, 3)
+    atomic_write_text(out_dir / "timings.json", json.dumps(timings, indent=2) + "\n")
+    log.info("%s: done in %.1f s", part.key, elapsed_s)
+
+
+def _run_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+    if part.kind == "dataset":
+        _make_dataset(config, out_dir / part.key)
+    elif part.kind == "centralized":
+        _centralized(config, out_dir, part.seed, out_dir / part.key)
+    else:
+        _federated(config, out_dir, part)
+
+
+def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
+    from .generate import generate_dataset
+    from .scenario import load_scenario
+
+    gen = config.generate
+    generate_dataset(load_scenario(config.scenario), data_dir, gen.seed, gen.dataset, gen.raster, gen.world, gen.expert)
+
+
+def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
+    """The upper bound: one model trained on every vehicle's data; summary.json beside local.py's files."""
+    from .dataset import load_samples
+    from .local import train_centralized
+
+    run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
+    train = load_samples(out_dir / "data", "train")
+    test = load_samples(out_dir / "data", "test")
+    records = train_centralized(train, test, config.centralized_epochs, folder, run.model, run.train, seed)
+    best = max(records, key=lambda r: (r["accuracy"], -r["loss"]))
+    summary = {
+        "scheme": CENTRALIZED,
+        "seed": seed,
+        "epochs": len(records),
+        "train_samples": len(train),
+        "test_samples": len(test),
+        "best_accuracy": best["accuracy"],
+        "best_loss": best["loss"],
+        "best_epoch": best["epoch"],
+        "final_accuracy": records[-1]["accuracy"],
+        "final_loss": records[-1]["loss"],
+    }
+    atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
+
+
+def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+    """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
+    from .run import run_command
+
+    mapping = run_mapping(config, part.scheme, part.seed, out_dir / "data", part.edge_interval)
+    name = part.key.replace("/", "_")
+    config_path = out_dir / "configs" / f"{name}.toml"
+    atomic_write_text(config_path, toml_text(mapping))
+    run_command(config_path, out_dir / part.key, resume=True)
+
+
+def _drive_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+    from .drive import drive_command
+
+    model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
+    drive_command(
+        model, None, part.route, out_dir / part.key, seed=config.drive_seed, max_s=config.drive_max_s,
+        video=config.drive_video,
+    )
+
+
+def model_for(out_dir: Path, label: str) -> Path:
+    """The model that drives for ``label``: the best_model.pt of the scheme's best seed; for the
+    centralized bound, the last epoch's checkpoint of the seed that ended best."""
+    folder = Path(out_dir) / (CENTRALIZED if label == CENTRALIZED else f"runs/{label}")
+    summaries = {}
+    for path in sorted(folder.glob("seed-*/summary.json")):
+        summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))
+    if label == CENTRALIZED:
+        return folder / f"seed-{best_seed(summaries, 'final_accuracy')}" / "checkpoint.pt"
+    return folder / f"seed-{best_seed(summaries)}" / "best_model.pt"
+
+
+def describe(config: ReproduceConfig) -> str:
+    """One paragraph of what a reproduction runs (for logs and the CLI's start line)."""
+    sizes = [n for town in config.generate.dataset.towns for n in town.train_samples]
+    return (
+        f"{config.name}: {sum(sizes)} training samples over {len(sizes)} vehicles, schemes "
+        f"{', '.join(config.schemes)} x seeds {config.seed_list}, ablation edge_interval "
+        f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
+        f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}"
+    )
+
