@@ -511,7 +511,10 @@ def run_command(
     )
 
 
+BUILTIN_RUNS = ("crchfl", "hfl", "sfl")
+
+
 def builtin_experiments() -> dict[str, Path]:
-    """The built-in run configs (scenarios/experiments/*.toml) by name."""
+    """The built-in run configs of the paper's three schemes (scenarios/experiments/NAME.toml) by name."""
     folder = Path(__file__).parent / "scenarios" / "experiments"
-    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+    return {name: folder / f"{name}.toml" for name in BUILTIN_RUNS}
