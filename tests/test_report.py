@@ -1,0 +1,180 @@
+"""report.py on hand-written results folders: statistics by hand, gains, figures, report.md, summary.json."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.report import (
+    cloud_lines,
+    curve_by_bytes,
+    curve_by_round,
+    mean_std,
+    relative_gain_percent,
+    report_command,
+    timing_groups,
+)
+
+GIB = 1024**3
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def test_mean_std_by_hand():
+    stats = mean_std([0.5, 0.7, None])
+    assert stats["n"] == 2 and stats["mean"] == pytest.approx(0.6)
+    assert stats["std"] == pytest.approx(math.sqrt(0.02))  # ((0.1^2 + 0.1^2) / (2 - 1)) ** 0.5
+    assert mean_std([0.3]) == {"mean": 0.3, "std": None, "n": 1}
+    assert mean_std([]) == {"mean": None, "std": None, "n": 0}
+
+
+def test_relative_gain_percent():
+    assert relative_gain_percent(0.66, 0.6) == pytest.approx(10.0)
+    assert relative_gain_percent(0.5, 0.625) == pytest.approx(-20.0)
+    assert relative_gain_percent(None, 0.5) is None and relative_gain_percent(0.5, 0.0) is None
+
+
+def _lines(accuracies, losses, round_bytes, stage_one=None):
+    """metrics.jsonl lines: an optional stage I line (round 0), then edge (II) and cloud (III) lines."""
+    lines = []
+    if stage_one is not None:
+        acc, loss, spent = stage_one
+        lines.append({"step": 0, "stage": "I", "cloud_round": 0, "consumed_bytes": spent, "accuracy": acc, "loss": loss})
+        base = spent
+    else:
+        base = 0
+    for k, (acc, loss) in enumerate(zip(accuracies, losses), start=1):
+        spent = base + k * round_bytes
+        lines.append({"step": 2 * k - 1, "stage": "II", "cloud_round": k - 1, "consumed_bytes": spent - 1,
+                      "accuracy": None, "loss": None})
+        lines.append({"step": 2 * k, "stage": "III", "cloud_round": k, "consumed_bytes": spent,
+                      "accuracy": acc, "loss": loss})
+    return lines
+
+
+def test_curves_group_by_round_and_average_bytes():
+    a = _lines([0.5, 0.7], [2.0, 1.0], 100)
+    b = _lines([0.7, 0.9, 0.95], [1.0, 0.5, 0.4], 110)
+    assert [m["stage"] for m in cloud_lines(a)] == ["III", "III"]
+    curve = curve_by_round([a, b], "accuracy")
+    assert list(curve["x"]) == [1, 2, 3]
+    assert list(curve["mean"]) == pytest.approx([0.6, 0.8, 0.95])
+    assert curve["std"][0] == pytest.approx(math.sqrt(0.02)) and math.isnan(curve["std"][2])
+    assert list(curve["n"]) == [2, 2, 1]
+    by_bytes = curve_by_bytes([a, b], "loss")
+    assert list(by_bytes["x"]) == pytest.approx([105, 210, 330])
+    assert list(by_bytes["mean"]) == pytest.approx([1.5, 0.75, 0.4])
+
+
+def test_timing_groups():
+    groups = timing_groups({"data": 2.0, "runs/crchfl/seed-0": 3.0, "runs/hfl/seed-0": 4.0, "drives/r/crchfl": 1.5})
+    assert groups == {"data": 2.0, "runs": 7.0, "drives": 1.5, "total": 10.5}
+
+
+# ------------------------------------------------------------------ a whole folder
+
+
+def _write(path: Path, payload) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(payload, list):
+        path.write_text("".join(json.dumps(x) + "\n" for x in payload))
+    else:
+        path.write_text(json.dumps(payload))
+
+
+# best accuracy per scheme and seed; CRCHFL's mean 0.66, HFL's 0.6, SFL's 0.55
+BEST = {"crchfl": (0.64, 0.68), "hfl": (0.58, 0.62), "sfl": (0.5, 0.6)}
+ROUNDS = {"crchfl": 9, "hfl": 9, "sfl": 13}
+
+
+def _fake_run(folder: Path, scheme: str, seed: int, best: float, rounds: int, edge_interval: int = 2) -> None:
+    round_bytes = int(2 * GIB)
+    accuracies = [best * (k + 1) / rounds for k in range(rounds)]
+    losses = [2.0 / (k + 1) for k in range(rounds)]
+    stage_one = (0.1, 2.5, int(1.5 * GIB)) if scheme == "crchfl" else None
+    lines = _lines(accuracies, losses, round_bytes // 10, stage_one)
+    spent = lines[-1]["consumed_bytes"]
+    _write(folder / "metrics.jsonl", lines)
+    _write(folder / "summary.json", {
+        "scheme": scheme, "cloud_rounds": rounds, "edge_aggregations": rounds, "consumed_bytes": spent,
+        "budget_bytes": 20 * GIB, "best_accuracy": best, "final_accuracy": accuracies[-1], "best_loss": losses[-1],
+        "final_loss": losses[-1], "sim_time_s": 100.0 * rounds, "stop_reason": "budget",
+        "bytes_by_stage": {"I": int(1.5 * GIB) if scheme == "crchfl" else 0, "II": 6 * GIB, "III": 12 * GIB},
+        "hyper": {"pretrain_batch": 449 if scheme == "crchfl" else 0, "edge_interval": edge_interval,
+                  "cloud_interval": 1, "cloud_rounds": rounds},
+    })
+
+
+@pytest.fixture()
+def results(tmp_path) -> Path:
+    out = tmp_path / "results"
+    for scheme, bests in BEST.items():
+        for seed, best in enumerate(bests):
+            _fake_run(out / "runs" / scheme / f"seed-{seed}", scheme, seed, best, ROUNDS[scheme])
+    for k in (2, 3, 4):
+        _fake_run(out / "ablation" / f"ie-{k}" / "seed-0", "crchfl", 0, 0.6 + 0.01 * k, 9, edge_interval=k)
+    for seed, (acc, loss) in enumerate(((0.8, 0.6), (0.9, 0.5))):
+        folder = out / "centralized" / f"seed-{seed}"
+        _write(folder / "metrics.jsonl", [{"epoch": 1, "accuracy": acc - 0.1, "loss": loss + 0.2},
+                                          {"epoch": 2, "accuracy": acc, "loss": loss}])
+        _write(folder / "summary.json", {"scheme": "centralized", "epochs": 2, "best_accuracy": acc, "best_loss": loss,
+                                         "final_accuracy": acc, "final_loss": loss})
+    for label, completion in (("crchfl", 1.0), ("hfl", 0.4), ("reference", 1.0)):
+        _write(out / "drives" / "town01_right_left" / label / "metrics.json",
+               {"route": "town01_right_left", "completion": completion, "collisions": 0, "end_reason": "completed"})
+    _write(out / "reproduce.json", {"config": {"name": "test", "seeds": 2}, "seeds": [0, 1], "ablation_seeds": [0],
+                                    "started_utc": "2026-11-23T00:00:00Z",
+                                    "environment": {"python": "3.x", "versions": {"torch": "2.13.0"}}})
+    _write(out / "timings.json", {"data": 1.0, "runs/crchfl/seed-0": 10.0, "ablation/ie-2/seed-0": 5.0})
+    return out
+
+
+def test_report_of_a_folder(results):
+    summary = report_command(results)
+    written = json.loads((results / "summary.json").read_text())
+    assert written == json.loads(json.dumps(summary))
+    crchfl = summary["schemes"]["crchfl"]
+    assert crchfl["best_accuracy"]["mean"] == pytest.approx(0.66)
+    assert crchfl["best_accuracy"]["std"] == pytest.approx(math.sqrt(0.0008))  # 0.02 either side, ddof 1
+    assert crchfl["cloud_rounds"]["mean"] == 9 and summary["schemes"]["sfl"]["cloud_rounds"]["mean"] == 13
+    for scheme in ("crchfl", "hfl", "sfl"):
+        for key in ("cloud_rounds", "best_accuracy", "final_loss", "consumed_bytes", "closed_loop"):
+            assert key in summary["schemes"][scheme]
+    assert crchfl["closed_loop"]["town01_right_left"]["completion"] == 1.0
+    assert summary["schemes"]["sfl"]["closed_loop"] == {}
+    gain = summary["gains"]["best_accuracy"]
+    assert gain["hfl"]["relative_percent"] == pytest.approx(10.0)  # 0.66 over 0.6
+    assert gain["sfl"]["relative_percent"] == pytest.approx(20.0)  # 0.66 over 0.55
+    assert gain["hfl"]["points"] == pytest.approx(6.0)
+    assert summary["gains"]["paper_percent"] == {"hfl": 10.33, "sfl": 12.41}
+    assert summary["centralized"]["best_accuracy"]["mean"] == pytest.approx(0.85)
+    ablation = summary["ablation"]
+    assert list(ablation) == ["ie-2", "ie-3", "ie-4"]
+    assert ablation["ie-2"]["budget_percent"]["I"] == pytest.approx(7.5)
+    assert ablation["ie-2"]["budget_percent"]["unused"] == pytest.approx(2.5)
+    assert summary["running_time_s"]["total"] == pytest.approx(16.0)
+    report = (results / "report.md").read_text()
+    assert set(summary["figures"]) == {"fig3", "fig4", "fig7", "centralized"}  # the drives lack trajectories
+    for path in summary["figures"].values():
+        assert (results / path).read_bytes()[:8] == PNG_MAGIC
+        assert path in report
+    for text in ("+10.33 %", "+12.41 %", "10.00 %", "20.00 %", "0.6600 ± 0.0283", "town01_right_left", "2.13.0"):
+        assert text in report, text
+    assert not list(results.rglob(".*.partial-*"))
+
+
+def test_report_is_rebuilt_the_same(results):
+    report_command(results)
+    first = (results / "summary.json").read_text(), (results / "report.md").read_text()
+    report_command(results)
+    assert ((results / "summary.json").read_text(), (results / "report.md").read_text()) == first
+
+
+def test_report_of_an_empty_folder_says_what_to_run(tmp_path):
+    with pytest.raises(CrchflError, match="reproduce"):
+        report_command(tmp_path)
+    with pytest.raises(CrchflError, match="no such results folder"):
+        report_command(tmp_path / "missing")
