@@ -538,32 +538,83 @@ class Federation:
         return Topology(edges, groups)
 
     def _edge_step(self, state: FederationState, ledger: Ledger) -> None:
+        """Stage II: one edge aggregation; when it is the ``cloud_interval``-th, stage III follows."""
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
-        epochs = setup.hyper.edge_interval
-        trained, counts = self._train(state, epochs)
-        member = dict(state.member)
+        trained, counts = self._train(state, setup.hyper.edge_interval)
         events: dict[tuple[str, str, str], Event] = {}
+        uploads, member = self._vehicle_uploads(state, counts)
+        topology = self._topology(member)
+        agg_s, received_by, edge_models, edge_weights = self._edge_fedavg(
+            state, topology, uploads, trained, counts, events
+        )
+        edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
+        for e in agg_s:
+            # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
+            events[(e, CLOUD, "uplink")] = _wireline(agg_s[e], sizes.model_bytes, setup.wireline)
+        cloud_model, cloud_s, release_s = state.cloud_model, None, agg_s
+        if followed:
+            cloud_s = max(events[(e, CLOUD, "uplink")].end_s for e in agg_s)
+            fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
+            cloud_model = fedavg(fresh) if fresh else state.cloud_model
+            release_s = {}
+            for e in agg_s:
+                events[(CLOUD, e, "downlink")] = _wireline(cloud_s, sizes.model_bytes, setup.wireline)
+                edge_models[e] = cloud_model
+                release_s[e] = events[(CLOUD, e, "downlink")].end_s
+        stage = "III" if followed else "II"
+        models, ready, open_s = self._release(state, topology, release_s, edge_models, trained, events, stage)
+        next_round = state.cloud_rounds + 1
+        schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
+        if followed:
+            schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
+        if not _charge(ledger, schedule, events, setup.rule, cloud_round=next_round):
+            state.stop_reason = "budget"
+            return
+        state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
+        state.edge_models, state.edge_weights = edge_models, edge_weights
+        state.edge_aggregations += 1
+        state.tau += 1
+        received = {e: len(vs) for e, vs in received_by.items()}
+        t_s, samples = max(agg_s.values()), sum(counts.values())
+        self._line(state, ledger, "II", t_s, edge_metrics, received=received, samples=samples)
+        if followed:
+            state.cloud_model = cloud_model
+            state.cloud_rounds = next_round
+            state.tau = 0
+            self._evaluate_cloud(state, ledger, "III", cloud_s)
+
+    def _vehicle_uploads(
+        self, state: FederationState, counts: Mapping[str, int]
+    ) -> tuple[dict[str, WirelessOutcome | None], dict[str, str]]:
+        """Each vehicle's upload after its training, and the membership after them (``new_edge`` moves vehicles)."""
+        setup, cfg = self.setup, self.config
+        member = dict(state.member)
         uploads: dict[str, WirelessOutcome | None] = {}
         for v in setup.vehicles:
             edge = state.member[v]
-            window_end = state.open_s[edge] + cfg.deadline_s
-            start_s = state.ready_s[v] + self._compute_s(counts[v], epochs)
-            out = self._upload(v, edge, start_s, sizes.model_bytes, window_end)
+            start_s = state.ready_s[v] + self._compute_s(counts[v], setup.hyper.edge_interval)
+            out = self._upload(v, edge, start_s, setup.sizes.model_bytes, state.open_s[edge] + cfg.deadline_s)
             uploads[v] = out
             if out is not None and out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
-        # each edge aggregates once its members' uploads ended (or at its deadline)
-        topology = self._topology(member)
+        return uploads, member
+
+    def _edge_fedavg(self, state, topology, uploads, trained, counts, events):
+        """Each edge averages the models that arrived, once its members' uploads ended (at the latest, its deadline).
+
+        Returns (aggregation time, received vehicles, edge models, edge weights) per edge; records the
+        uploads in ``events`` and the stragglers in ``state``.
+        """
         agg_s: dict[str, float] = {}
-        edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         received_by: dict[str, list[str]] = {}
+        edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         for e, vehicles in topology.active():
             ends, received = [], []
             for v in vehicles:
                 out = uploads[v]
-                deadline = state.open_s[state.member[v]] + cfg.deadline_s
                 if out is None:
+                    deadline = state.open_s[state.member[v]] + self.config.deadline_s
                     ends.append(deadline)
                     self._straggler(state, v, "II", "no time to upload before the deadline", deadline)
                     continue
@@ -578,54 +629,27 @@ class Federation:
             if received:
                 edge_models[e] = fedavg([(trained[v], counts[v]) for v in received])
                 edge_weights[e] = float(sum(counts[v] for v in received))
-        edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
+        return agg_s, received_by, edge_models, edge_weights
+
+    def _release(self, state, topology, release_s, edge_models, trained, events, stage):
+        """Each edge sends its model to its vehicles from ``release_s[edge]`` on.
+
+        Returns the vehicles' models (a failed download leaves the vehicle its own trained model),
+        the times they hold them, and the edges' new window openings.
+        """
         models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
-        for e in agg_s:
-            # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
-            events[(e, CLOUD, "uplink")] = _wireline(agg_s[e], sizes.model_bytes, setup.wireline)
-        t_line = max(agg_s.values())
-        cloud_model, cloud_s = state.cloud_model, None
-        if followed:
-            arrive = {e: events[(e, CLOUD, "uplink")].end_s for e in agg_s}
-            cloud_s = max(arrive.values())
-            fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
-            cloud_model = fedavg(fresh) if fresh else state.cloud_model
-            senders = {}
-            for e in agg_s:
-                ev = _wireline(cloud_s, sizes.model_bytes, setup.wireline)
-                events[(CLOUD, e, "downlink")] = ev
-                edge_models[e] = cloud_model
-                senders[e] = ev.end_s
-        else:
-            senders = agg_s
+        size = self.setup.sizes.model_bytes
         for e, vehicles in topology.active():
-            open_s[e] = senders[e]
+            open_s[e] = release_s[e]
             for v in vehicles:
-                out = self._download(v, senders[e], sizes.model_bytes, e)
+                out = self._download(v, release_s[e], size, e)
                 events[(e, v, "downlink")] = _wireless(out)
                 ready[v] = out.end_s
                 if out.ok:
                     models[v] = edge_models[e]
                 else:
-                    self._straggler(state, v, "III" if followed else "II", f"download {out.reason}", out.end_s)
-        next_round = state.cloud_rounds + 1
-        schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
-        if followed:
-            schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, cloud_round=next_round):
-            state.stop_reason = "budget"
-            return
-        state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
-        state.edge_models, state.edge_weights = edge_models, edge_weights
-        state.edge_aggregations += 1
-        state.tau += 1
-        received_count = {e: len(vs) for e, vs in received_by.items()}
-        self._line(state, ledger, "II", t_line, edge_metrics, received=received_count, samples=sum(counts.values()))
-        if followed:
-            state.cloud_model = cloud_model
-            state.cloud_rounds = next_round
-            state.tau = 0
-            self._evaluate_cloud(state, ledger, "III", cloud_s)
+                    self._straggler(state, v, stage, f"download {out.reason}", out.end_s)
+        return models, ready, open_s
 
     def _evaluate_edges(self, models, weights, edges) -> tuple[float, float]:
         """Sample-weighted mean of the edge models' test Loss and Accuracy."""
