@@ -122,8 +122,8 @@ class ScriptedClock:
         segments = self._tracks[kind].get(vehicle, [Segment(0.0, NO_SITE, 0.0)])
         starts = np.array([s.t_s for s in segments])
         index = np.clip(np.searchsorted(starts, t + _EPS_S, side="right") - 1, 0, None)
-        rate = np.array([segments[i].rate_bps for i in index], dtype=np.float64)
-        site = np.array([segments[i].site for i in index], dtype=np.int64)
+        rate = np.array([seg.rate_bps for seg in segments], dtype=np.float64)[index]
+        site = np.array([seg.site for seg in segments], dtype=np.int64)[index]
         return LinkSeries(t, np.where(site >= 0, rate, 0.0), site)
 
 
