@@ -363,6 +363,9 @@ def run_federation_dir(
     state = None
     if resume and checkpoint_path.exists():
         state = _load_state(checkpoint_path, resolved)
+        if state.done:  # finished before: only the derived files may be missing
+            _write_outputs(out_dir, config, setup, state)
+            return summarize(config, setup, state)
         log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
     else:
         if config_text is not None:
@@ -382,8 +385,6 @@ def run_federation_dir(
             if progress is not None:
                 progress(progress_info(new, sizes.budget_bytes, hyper))
 
-        if state.done:
-            _write_outputs(out_dir, config, setup, state)
         state = federation.run(state, on_step)
     return summarize(config, setup, state)
 
