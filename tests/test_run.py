@@ -164,7 +164,7 @@ def test_torch_run_killed_and_resumed_ends_like_an_uninterrupted_one(tmp_path, d
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-@pytest.mark.parametrize("kill_at", [1, 2, 4])
+@pytest.mark.parametrize("kill_at", [1, 2, 4, 5])  # 5: after the final checkpoint
 def test_kill_at_any_step_and_resume_gives_the_same_files(tmp_path, dataset, kill_at):
     config = from_mapping(RunConfig, _config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
     inputs = read_inputs(config)
