@@ -1,0 +1,210 @@
+"""`reproduce`: run configs, part plan, resume rules, and a tiny end-to-end reproduction of every scheme."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.experiment import (
+    ReproduceConfig,
+    best_seed,
+    deep_merge,
+    load_reproduce_config,
+    plan_parts,
+    reproduce,
+    reproduce_command,
+    run_config,
+    run_mapping,
+    toml_text,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny models on a shared 2-core machine: more threads only contend."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_toml_text_reads_back_equal():
+    mapping = {
+        "scenario": "paper",
+        "flag": True,
+        "ratio": 0.1,
+        "deadline_s": math.inf,
+        "counts": [2, 3],
+        "names": ["a b", 'quote"d'],
+        "federation": {"scheme": "crchfl", "seed": 3, "inner": {"x": 1}},
+        "only_tables": {"a": {"b": 2}},
+        "list_of_tables": [{"town": "t1", "n": [1, 2]}],
+    }
+    assert tomllib.loads(toml_text(mapping)) == mapping
+
+
+def test_deep_merge_merges_tables_and_replaces_values():
+    base = {"a": 1, "t": {"x": 1, "y": {"z": 2}}, "l": [1]}
+    assert deep_merge(base, {"t": {"y": {"w": 3}}, "l": [2], "b": 4}) == {
+        "a": 1, "t": {"x": 1, "y": {"z": 2, "w": 3}}, "l": [2], "b": 4,
+    }
+    assert base == {"a": 1, "t": {"x": 1, "y": {"z": 2}}, "l": [1]}  # not modified
+
+
+def test_run_mapping_lays_overrides_data_and_seed_over_the_builtin():
+    config = ReproduceConfig(run={"ledger": {"budget_gb": 10.0}, "clock": {"kind": "constant"}})
+    mapping = run_mapping(config, "crchfl", 7, Path("/data/x"), fix_edge_interval=3)
+    run = run_config(mapping, "test")
+    assert run.dataset == "/data/x" and run.scenario == "paper"
+    assert run.federation.scheme == "crchfl" and run.federation.seed == 7 and run.federation.use_plan
+    assert run.allocation.fix_edge_interval == 3
+    assert run.ledger.budget_gb == 10.0 and run.ledger.model_size == "nominal"  # the built-in's keys stay
+    assert run.clock.kind == "constant"
+    assert run_config(run_mapping(config, "sfl", 0, Path("d")), "t").federation.scheme == "sfl"
+
+
+@pytest.mark.parametrize(
+    "mapping, match",
+    [
+        ({"seeds": 0}, "reproduce.seeds"),
+        ({"schemes": ["crchfl", "fedprox"]}, "reproduce.schemes"),
+        ({"ablation_edge_intervals": [1, 2]}, "ablation_edge_intervals"),
+        ({"run": {"dataset": "x"}}, "reproduce.run.dataset"),
+        ({"run": {"federation": {"seed": 1}}}, "reproduce.run.federation.seed"),
+        ({"run": {"ledger": {"budget_gb": -1.0}}}, "budget_gb"),
+        ({"run": {"federation": {"typo": 1}}}, "typo"),
+    ],
+)
+def test_config_errors_name_the_key(tmp_path, mapping, match):
+    path = tmp_path / "r.toml"
+    path.write_text(toml_text(mapping))
+    with pytest.raises(CrchflError, match=match):
+        load_reproduce_config(path)
+
+
+def test_presets_and_seed_override():
+    quick, full = load_reproduce_config("quick"), load_reproduce_config("full", seeds=4)
+    assert quick.name == "quick" and quick.seed_list == [0, 1] and quick.ablation_seed_list == [0]
+    assert full.seed_list == [0, 1, 2, 3] and full.ablation_seed_list == [0, 1, 2]
+    assert sum(sum(t.train_samples) for t in full.generate.dataset.towns) == 12584  # the paper's split
+    keys = [p.key for p in plan_parts(quick)]
+    assert keys[:3] == ["data", "centralized/seed-0", "centralized/seed-1"]
+    assert keys[3:6] == ["runs/crchfl/seed-0", "runs/hfl/seed-0", "runs/sfl/seed-0"]
+    assert keys[-3:] == ["ablation/ie-2/seed-0", "ablation/ie-3/seed-0", "ablation/ie-4/seed-0"]
+    assert len(keys) == 1 + 2 + 3 * 2 + 3
+
+
+def test_best_seed():
+    assert best_seed({0: {"best_accuracy": 0.5}, 1: {"best_accuracy": 0.7}, 2: {"best_accuracy": 0.7}}) == 1
+    assert best_seed({0: {"best_accuracy": None}, 3: {"best_accuracy": 0.1}}) == 3
+    with pytest.raises(CrchflError):
+        best_seed({})
+
+
+TINY = """
+name = "tiny"
+scenario = "paper"
+seeds = 2
+ablation_seeds = 1
+ablation_edge_intervals = [2, 3]
+centralized_epochs = 1
+drive_routes = ["town01_right_left"]
+drive_max_s = 3.0
+
+[generate.dataset]
+[[generate.dataset.towns]]
+town = "town01"
+train_samples = [3, 3]
+test_samples = [3]
+[[generate.dataset.towns]]
+town = "town02"
+train_samples = [3, 2, 2]
+test_samples = [3]
+
+[generate.raster.camera]
+height_px = 48
+width_px = 64
+
+[run.model]
+image_height = 48
+image_width = 64
+[run.train]
+device = "cpu"
+[run.federation]
+pretrain_epochs = 1
+[run.ledger]
+budget_gb = 5.0
+[run.clock]
+kind = "constant"
+"""
+
+
+@pytest.mark.slow
+def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY)
+    out = tmp_path / "results"
+    seen = []
+    summary = reproduce_command(out_dir=out, config_path=path, progress=lambda i, n, key: seen.append((i, n, key)))
+    assert seen[0] == (0, 16, "data") and seen[-1] == (16, 16, "report")  # 1 + 2 + 6 + 2 + 5 parts
+    assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
+    # 5 GB of 150 MB models: SFL 10 transfers a round (3 rounds), HFL 14 (2 rounds)
+    assert summary["schemes"]["sfl"]["cloud_rounds"]["values"] == [3, 3]
+    assert summary["schemes"]["hfl"]["cloud_rounds"]["values"] == [2, 2]
+    for scheme in ("crchfl", "hfl", "sfl"):
+        stats = summary["schemes"][scheme]
+        assert stats["seeds"] == [0, 1] and stats["best_accuracy"]["n"] == 2
+        assert 0.0 <= stats["best_accuracy"]["mean"] <= 1.0 and stats["best_accuracy"]["std"] is not None
+        assert stats["consumed_bytes"]["mean"] <= stats["budget_bytes"]
+        drive = stats["closed_loop"]["town01_right_left"]
+        assert drive["model"].endswith("best_model.pt") and 0.0 <= drive["completion"] <= 1.0
+        run_summary = json.loads((out / "runs" / scheme / "seed-1" / "summary.json").read_text())
+        assert run_summary["scheme"] == scheme and run_summary["stop_reason"] in ("budget", "cloud_rounds")
+        assert tomllib.loads((out / "configs" / f"runs_{scheme}_seed-1.toml").read_text())["federation"]["seed"] == 1
+    assert set(summary["closed_loop"]["town01_right_left"]) == {"crchfl", "hfl", "sfl", "centralized", "reference"}
+    assert [a["hyper"]["edge_interval"] for a in summary["ablation"].values()] == [2, 3]
+    assert summary["centralized"]["best_accuracy"]["n"] == 2
+    assert set(summary["figures"]) == {"fig3", "fig4", "fig7", "centralized", "fig5_town01_right_left"}
+    for figure in summary["figures"].values():
+        assert (out / figure).is_file()
+    timings = json.loads((out / "timings.json").read_text())
+    assert len(timings) == 16 and all(t["wall_s"] >= 0 for t in timings.values())
+
+    # finished parts are not redone; the report is rebuilt the same
+    with pytest.raises(CrchflError, match="--resume"):
+        reproduce_command(out_dir=out, config_path=path)
+    report = (out / "report.md").read_text()
+    again = reproduce_command(out_dir=out, config_path=path, resume=True)
+    assert json.loads((out / "timings.json").read_text()) == timings
+    assert again == summary and (out / "report.md").read_text() == report
+    # resuming with other settings is refused
+    with pytest.raises(CrchflError, match="other settings"):
+        reproduce_command(out_dir=out, config_path=path, seeds=3, resume=True)
+
+
+@pytest.mark.slow
+def test_an_unfinished_run_resumes_and_a_missing_part_is_redone(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY.replace("seeds = 2", "seeds = 1").replace('drive_routes = ["town01_right_left"]', "drive_routes = []"))
+    config = load_reproduce_config(path)
+    out = tmp_path / "results"
+    reproduce(config, out)
+    timings = json.loads((out / "timings.json").read_text())
+    first = (out / "runs" / "hfl" / "seed-0" / "metrics.jsonl").read_text()
+    # a run killed midway: not recorded as finished, its checkpoint kept
+    del timings["runs/hfl/seed-0"]
+    (out / "timings.json").write_text(json.dumps(timings))
+    reproduce(config, out, resume=True)
+    assert (out / "runs" / "hfl" / "seed-0" / "metrics.jsonl").read_text() == first
+    assert "runs/hfl/seed-0" in json.loads((out / "timings.json").read_text())
