@@ -597,3 +597,23 @@ def write_report(out_dir: str | Path) -> dict[str, Any]:
 def report_command(out_dir: str | Path) -> dict[str, Any]:
     """What `crchfl-sumo report DIR` does: rebuild DIR's figures, report.md and summary.json."""
     return write_report(out_dir)
+
+
+def format_summary(summary: Mapping[str, Any], out_dir: str | Path) -> str:
+    """A few lines for the terminal: each scheme's rounds and accuracy, the gains, where the report is."""
+    lines = []
+    for name, s in summary["schemes"].items():
+        lines.append(
+            f"{NAMES.get(name, name):7s} cloud rounds {_pm(s['cloud_rounds'], 1)}, best accuracy "
+            f"{_pm(s['best_accuracy'])}, final loss {_pm(s['final_loss'])} ({len(s['seeds'])} seeds)"
+        )
+    best = summary["gains"].get("best_accuracy", {})
+    for other, paper in PAPER_GAINS_PERCENT.items():
+        if other in best:
+            lines.append(
+                f"CRCHFL over {NAMES[other]}: {_percent(best[other]['relative_percent'])} best accuracy "
+                f"(paper: +{paper:.2f} %)"
+            )
+    total = summary["running_time_s"]["total"]
+    lines.append(f"running time {total['wall_s'] / 60:.1f} min -> {Path(out_dir) / 'report.md'}")
+    return "\n".join(lines)

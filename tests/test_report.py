@@ -190,3 +190,11 @@ def test_report_of_an_empty_folder_says_what_to_run(tmp_path):
         report_command(tmp_path)
     with pytest.raises(CrchflError, match="no such results folder"):
         report_command(tmp_path / "missing")
+
+
+def test_format_summary_lists_schemes_and_gains(results):
+    from crchfl_sumo.report import format_summary
+
+    text = format_summary(report_command(results), results)
+    assert "CRCHFL over HFL: +10.00 %" in text and "(paper: +12.41 %)" in text
+    assert text.splitlines()[0].startswith("CRCHFL") and str(results / "report.md") in text
