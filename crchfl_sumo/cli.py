@@ -46,6 +46,8 @@ def _commands():
          _add_drive, _run_drive),
         ("drive-compare", "several drives of one route side by side (the paper's Fig. 5)",
          _add_drive_compare, _run_drive_compare),
+        ("run", "federated training (CRCHFL, HFL or SFL) on SUMO's clock: metrics, ledger, checkpoints, summary",
+         _add_run, _run_run),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
          _add_plan, _run_plan),
     ]
@@ -197,6 +199,29 @@ def _run_drive_compare(args) -> int:
     from .drive_plots import compare_runs
 
     print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
+    return 0
+
+
+# --- run ----------------------------------------------------------------------------------------
+
+
+def _add_run(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="run config TOML, or a built-in: crchfl, hfl, sfl")
+    p.add_argument("--out", type=Path, required=True, help="results folder")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+
+
+def _run_run(args) -> int:
+    from .run import progress_postfix, run_command
+
+    with _progress(None, "step") as bar:
+
+        def progress(info) -> None:
+            bar.update(1)
+            bar.set_postfix(progress_postfix(info))  # round, bytes used / budget, loss, accuracy
+
+        summary = run_command(args.config, args.out, args.resume, progress)
+    print(json.dumps(summary, indent=2))
     return 0
 
 

@@ -56,15 +56,6 @@ def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4,
     return root
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny models on a shared 2-core machine: more threads only contend (measured 100x slower)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("data"), PAPER_VEHICLES)
