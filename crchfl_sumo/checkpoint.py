@@ -7,14 +7,13 @@ Layout of the saved dict: ``format`` (CHECKPOINT_FORMAT), ``model_config``
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from .atomic import atomic_path
 from .config import from_mapping, to_mapping
 from .errors import CrchflError
 from .model import DrivingModel, ModelConfig, model_from_state
@@ -37,23 +36,15 @@ def save_checkpoint(
     state_dict: dict[str, torch.Tensor],
     extra: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint to ``path`` via a temp file in the same folder and os.replace."""
-    path = Path(path)
+    """Write a checkpoint to ``path`` atomically (temporary beside it, fsync, os.replace)."""
     payload = {
         "format": CHECKPOINT_FORMAT,
         "model_config": to_mapping(model_config),
         "state_dict": {name: t.detach().cpu().contiguous() for name, t in state_dict.items()},
         "extra": dict(extra or {}),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            torch.save(payload, stream)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as temp:
+        torch.save(payload, temp)
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:

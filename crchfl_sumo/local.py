@@ -27,7 +27,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ import torch
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
+from .atomic import atomic_write_text
 from .checkpoint import save_checkpoint
 from .config import to_mapping
 from .errors import CrchflError
@@ -388,17 +388,6 @@ def _stacked_adam_step(
             exp_avg_sq[name][rows] = v
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    handle, temp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            stream.write(text)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
-
-
 def train_centralized(
     train: Samples,
     test: Samples,
@@ -452,7 +441,7 @@ def train_centralized(
         }
         records.append(record)
         log.info("epoch %d: test loss %.4f, accuracy %.3f", epoch, record["loss"], record["accuracy"])
-        _write_text_atomic(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
+        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
         save_checkpoint(
             out_dir / CHECKPOINT_FILE,
             model_config,
