@@ -239,7 +239,9 @@ def train_vehicle(
 ) -> tuple[State, list[Metrics]]:
     """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
     configure_determinism(config.deterministic)
-    trainer = LocalTrainer(model_from_state(model_config, state, resolve_device(config.device)), config)
+    device = resolve_device(config.device)
+    trainer = LocalTrainer(model_from_state(model_config, state, device), config)
+    samples = samples.to(device)  # once, not every epoch
     generator = torch.Generator().manual_seed(seed)
     metrics = [trainer.train_epoch(samples, generator, progress) for _ in range(epochs)]
     return trainer.state(), metrics

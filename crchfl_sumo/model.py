@@ -84,6 +84,35 @@ class ModelConfig:
         return SIZES[self.size]
 
 
+class GridAveragePool(nn.Module):
+    """Average pooling to a fixed grid, the same windows as nn.AdaptiveAvgPool2d.
+
+    Written as two small matrix products because adaptive_avg_pool2d's CUDA
+    backward has no deterministic implementation, which would make
+    deterministic training fail on a GPU.
+    """
+
+    def __init__(self, grid_hw: tuple[int, int]) -> None:
+        super().__init__()
+        self.grid_hw = grid_hw
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        height, width = x.shape[-2:]
+        rows = _pool_matrix(height, self.grid_hw[0], x)
+        cols = _pool_matrix(width, self.grid_hw[1], x)
+        return rows @ x @ cols.T
+
+
+def _pool_matrix(size: int, cells: int, like: torch.Tensor) -> torch.Tensor:
+    """[cells, size] averaging weights: cell i covers floor(i*size/cells) .. ceil((i+1)*size/cells)."""
+    index = torch.arange(cells, device=like.device)
+    start = (index * size) // cells
+    end = ((index + 1) * size + cells - 1) // cells
+    position = torch.arange(size, device=like.device)
+    inside = (position >= start[:, None]) & (position < end[:, None])
+    return inside.to(like.dtype) / (end - start)[:, None].to(like.dtype)
+
+
 class Branch(nn.Module):
     """Conv stack -> adaptive average pool -> MLP -> ``num_outputs`` values."""
 
@@ -96,7 +125,7 @@ class Branch(nn.Module):
             padding = kernel // 2 if stride == 1 else 0
             layers += [nn.Conv2d(channels, out_channels, kernel, stride, padding), nn.ReLU()]
             channels = out_channels
-        layers += [nn.AdaptiveAvgPool2d(shape.pool_hw), nn.Flatten()]
+        layers += [GridAveragePool(shape.pool_hw), nn.Flatten()]
         width = channels * shape.pool_hw[0] * shape.pool_hw[1]
         for hidden in shape.hidden:
             layers += [nn.Linear(width, hidden), nn.ReLU()]

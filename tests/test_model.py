@@ -9,6 +9,7 @@ from crchfl_sumo.errors import CrchflError
 from crchfl_sumo.labels import STEER_CLASS_VALUES
 from crchfl_sumo.model import (
     DrivingModel,
+    GridAveragePool,
     ModelConfig,
     build_model,
     count_parameters,
@@ -110,3 +111,10 @@ def test_model_from_state_copies_weights_and_leaves_the_rng_alone():
     assert all(p.requires_grad for p in model.parameters())
     images = _images(2)
     assert torch.equal(build_model(SMALL, seed=0)(images)[1], model_from_state(SMALL, state)(images)[1])
+
+
+@pytest.mark.parametrize("height,width", [(5, 13), (1, 5), (7, 22), (2, 8)])
+def test_grid_pool_equals_adaptive_average_pooling(height, width):
+    x = torch.randn(3, 4, height, width)
+    expected = torch.nn.functional.adaptive_avg_pool2d(x, (2, 8))
+    assert torch.allclose(GridAveragePool((2, 8))(x), expected, atol=1e-6)
