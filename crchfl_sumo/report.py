@@ -30,6 +30,9 @@ SCHEME_ORDER = ("crchfl", "hfl", "sfl")
 LABEL_ORDER = (*SCHEME_ORDER, "centralized", "reference")
 NAMES = {"crchfl": "CRCHFL", "hfl": "HFL", "sfl": "SFL", "centralized": "Centralized", "reference": "Reference driver"}
 COLORS = {"crchfl": "tab:red", "hfl": "tab:blue", "sfl": "tab:green", "centralized": "black"}
+# HFL and SFL give the same model after each round when cloud_interval = 1 (FedAvg over edges, then
+# over the cloud, is FedAvg over all vehicles): styles keep a line visible under another.
+STYLES = {"crchfl": ("-", "o"), "hfl": ("--", "s"), "sfl": (":", "^")}
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
 PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}
 STAGES = ("I", "II", "III")
@@ -298,15 +301,27 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def _band(ax, curve: Mapping[str, np.ndarray], label: str, color: str | None, scale_x: float = 1.0) -> None:
-    """Mean line with markers; mean +- std shaded where there is a spread (two seeds or more)."""
+def _band(
+    ax,
+    curve: Mapping[str, np.ndarray],
+    label: str,
+    color: Any,
+    scale_x: float = 1.0,
+    style: tuple[str, str] = ("-", "o"),
+    limits: tuple[float, float] | None = None,
+) -> None:
+    """Mean line with markers; mean +- std shaded where there is a spread (two seeds or more),
+    clipped to ``limits`` (Accuracy cannot leave [0, 1])."""
     x = curve["x"] / scale_x
     n = int(curve["n"].max()) if len(curve["n"]) else 0
-    ax.plot(x, curve["mean"], marker="o", markersize=3, color=color, label=f"{label} (n={n})")
+    ax.plot(x, curve["mean"], linestyle=style[0], marker=style[1], markersize=4, color=color, label=f"{label} (n={n})")
     std = curve["std"]
     if np.any(np.isfinite(std)):
         spread = np.nan_to_num(std)
-        ax.fill_between(x, curve["mean"] - spread, curve["mean"] + spread, color=color, alpha=0.2, linewidth=0)
+        low, high = curve["mean"] - spread, curve["mean"] + spread
+        if limits is not None:
+            low, high = np.clip(low, *limits), np.clip(high, *limits)
+        ax.fill_between(x, low, high, color=color, alpha=0.2, linewidth=0)
 
 
 def _upper_bound(ax, centralized: Mapping[str, Any] | None, key: str) -> None:
@@ -333,8 +348,10 @@ def plot_metric_curves(
         (axes[0], "accuracy", "Accuracy (steer class, test set)", "best_accuracy"),
         (axes[1], "loss", "Loss (test set)", "best_loss"),
     ):
+        limits = (0.0, 1.0) if key == "accuracy" else None
         for name, runs in groups.items():
-            _band(ax, curve(runs, key), (names or NAMES).get(name, name), (colors or COLORS).get(name), scale)
+            _band(ax, curve(runs, key), (names or NAMES).get(name, name), (colors or COLORS).get(name), scale,
+                  STYLES.get(name, ("-", "o")), limits)
         _upper_bound(ax, centralized, bound)
         ax.set_xlabel("FL (cloud) rounds" if against == "rounds" else "consumed bytes [GB]")
         ax.set_ylabel(ylabel)
@@ -365,7 +382,8 @@ def plot_ablation(summary_ablation: Mapping[str, Mapping[str, Any]], runs: Mappi
     for panel, key, ylabel in ((axes[1], "loss", "Loss"), (axes[2], "accuracy", "Accuracy")):
         for i, setting in enumerate(settings):
             metrics = [r["metrics"] for r in runs[setting].values()]
-            _band(panel, curve_by_round(metrics, key), labels[i], cmap(i / max(len(settings) - 1, 1)))
+            _band(panel, curve_by_round(metrics, key), labels[i], cmap(i / max(len(settings) - 1, 1)),
+                  limits=(0.0, 1.0) if key == "accuracy" else None)
         panel.set_xlabel("FL (cloud) rounds")
         panel.set_ylabel(ylabel)
         panel.grid(alpha=0.3)
@@ -386,7 +404,7 @@ def plot_centralized(runs: Mapping[int, Mapping[str, Any]], out_path: Path) -> P
                 by_epoch.setdefault(int(m["epoch"]), []).append(float(m[key]))
         epochs = sorted(by_epoch)
         curve = _curve(np.array(epochs, float), [mean_std(by_epoch[e]) for e in epochs])
-        _band(ax, curve, "centralized", "black")
+        _band(ax, curve, "centralized", "black", limits=(0.0, 1.0) if key == "accuracy" else None)
         ax.set_xlabel("epoch")
         ax.set_ylabel(key.capitalize())
         ax.grid(alpha=0.3)
