@@ -87,7 +87,9 @@ class ReproduceConfig:
             raise CrchflError(f"reproduce.first_seed: {self.first_seed} must be >= 0")
         unknown = sorted(set(self.schemes) - set(SCHEMES))
         if unknown or not self.schemes or len(set(self.schemes)) != len(self.schemes):
-            raise CrchflError(f"reproduce.schemes: {list(self.schemes)}; list each of {', '.join(SCHEMES)} at most once")
+            raise CrchflError(
+                f"reproduce.schemes: {list(self.schemes)}; list each of {', '.join(SCHEMES)} at most once"
+            )
         if any(k < 2 for k in self.ablation_edge_intervals):
             raise CrchflError(
                 f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be >= 2 "
@@ -99,9 +101,9 @@ class ReproduceConfig:
             raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
         if not self.drive_max_s > 0:
             raise CrchflError(f"reproduce.drive_max_s: {self.drive_max_s} must be > 0")
-        for key in ("scenario", "dataset"):
+        for key, instead in (("scenario", "reproduce.scenario"), ("dataset", "reproduce.generate")):
             if key in self.run:
-                raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use reproduce.{key if key == 'scenario' else 'generate'})")
+                raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use {instead})")
         if "seed" in self.run.get("federation", {}):
             raise CrchflError("reproduce.run.federation.seed: set per run from reproduce.seeds; remove it")
         for scheme in self.schemes:  # every run config must be valid before anything starts
@@ -197,7 +199,9 @@ def _toml_value(value: Any) -> str:
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     if isinstance(value, Mapping):
         return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    raise CrchflError(f"run config: cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string or list")
+    raise CrchflError(
+        f"run config: cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string or list"
+    )
 
 
 # ------------------------------------------------------------------ the parts
@@ -301,7 +305,9 @@ def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
     settings = json.loads(json.dumps(to_mapping(config)))  # tuples as JSON reads them back
     if path.exists():
         if not resume:
-            raise CrchflError(f"{out_dir} already holds a reproduction; pass --resume to finish it or choose another --out")
+            raise CrchflError(
+                f"{out_dir} already holds a reproduction; pass --resume to finish it or choose another --out"
+            )
         earlier = json.loads(path.read_text(encoding="utf-8"))
         if earlier.get("config") != settings:
             raise CrchflError(
@@ -329,7 +335,9 @@ def environment() -> dict[str, Any]:
     import torch
 
     versions = {}
-    for name in ("crchfl-sumo", "torch", "numpy", "matplotlib", "cvxpy", "eclipse-sumo", "libsumo", "h5py", "opencv-python-headless"):
+    packages = ("crchfl-sumo", "torch", "numpy", "matplotlib", "cvxpy", "eclipse-sumo", "libsumo", "h5py",
+                "opencv-python-headless")
+    for name in packages:
         try:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:

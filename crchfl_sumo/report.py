@@ -36,6 +36,7 @@ STYLES = {"crchfl": ("-", "o"), "hfl": ("--", "s"), "sfl": (":", "^")}
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
 PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}
 STAGES = ("I", "II", "III")
+HYPER = ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")
 DRIVE_COLUMNS = (
     "completion", "end_reason", "duration_s", "mean_speed_mps", "collisions", "lane_departures",
     "off_road_s", "red_light_violations", "max_abs_offset_m",
@@ -174,7 +175,8 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
                 }
     if not schemes and not ablation:
         raise CrchflError(
-            f"{out_dir}: no finished run (runs/SCHEME/seed-S/summary.json); run `crchfl-sumo reproduce --out {out_dir}` first"
+            f"{out_dir}: no finished run (runs/SCHEME/seed-S/summary.json); "
+            f"run `crchfl-sumo reproduce --out {out_dir}` first"
         )
     reproduce_path = out_dir / "reproduce.json"
     timings_path = out_dir / "timings.json"
@@ -326,7 +328,9 @@ def _band(
 
 def _upper_bound(ax, centralized: Mapping[str, Any] | None, key: str) -> None:
     if centralized and centralized[key]["mean"] is not None:
-        ax.axhline(centralized[key]["mean"], color="black", linestyle="--", linewidth=1, label="centralized (best epoch)")
+        ax.axhline(
+            centralized[key]["mean"], color="black", linestyle="--", linewidth=1, label="centralized (best epoch)"
+        )
 
 
 def plot_metric_curves(
@@ -361,7 +365,9 @@ def plot_metric_curves(
     return _save(fig, out_path)
 
 
-def plot_ablation(summary_ablation: Mapping[str, Mapping[str, Any]], runs: Mapping[str, Mapping[int, Any]], out_path: Path) -> Path:
+def plot_ablation(
+    summary_ablation: Mapping[str, Mapping[str, Any]], runs: Mapping[str, Mapping[int, Any]], out_path: Path
+) -> Path:
     """Fig. 7: (a) the budget split across stages per setting, (b) Loss and (c) Accuracy against rounds."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
@@ -547,22 +553,25 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
         ]
         for route, labels in summary["closed_loop"].items():
             lines += ["", f"### {route}", ""]
-            rows = [[NAMES.get(label, label), *(_fmt(m.get(c), 3) for c in DRIVE_COLUMNS)] for label, m in labels.items()]
+            rows = [
+                [NAMES.get(label, label), *(_fmt(m.get(c), 3) for c in DRIVE_COLUMNS)] for label, m in labels.items()
+            ]
             lines += _table(["model", *DRIVE_COLUMNS], rows)
             key = f"fig5_{route}"
             if key in figures:
-                lines += ["", f"![Fig. 5, {route}](figures/{figures[key]})", "", f"*Fig. 5, {route}* (`figures/{figures[key]}`)"]
+                path = f"figures/{figures[key]}"
+                lines += ["", f"![Fig. 5, {route}]({path})", "", f"*Fig. 5, {route}* (`{path}`)"]
     lines += ["", "## Settings", "", "Reproduction settings (reproduce.json):", "", "```json",
               json.dumps(config, indent=2), "```"]
     hyper_rows = []
     for name, s in schemes.items():
         hyper = s["hyper"] or {}
-        hyper_rows.append([NAMES.get(name, name), *(_fmt(hyper.get(k)) for k in
-                           ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")), ", ".join(map(str, s["seeds"]))])
+        values = (_fmt(hyper.get(k)) for k in HYPER)
+        hyper_rows.append([NAMES.get(name, name), *values, ", ".join(map(str, s["seeds"]))])
     if hyper_rows:
         lines += ["", "Hyper-parameters the runs used (CRCHFL: the optimizer's plan; cloud_rounds 0 = until the "
                   "budget is spent). Each run's full settings: `runs/SCHEME/seed-S/config.json`.", ""]
-        lines += _table(["scheme", "pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds", "seeds"], hyper_rows)
+        lines += _table(["scheme", *HYPER, "seeds"], hyper_rows)
     lines += ["", "## Environment and running time", ""]
     versions = env.get("versions") or {}
     lines += [
@@ -573,7 +582,8 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
     lines += _table(["package", "version"], [[k, _fmt(v)] for k, v in versions.items()])
     lines += [""]
     lines += _table(
-        ["part", "wall time [s]", "CPU time [s]"], [[k, f"{v['wall_s']:.1f}", f"{v['cpu_s']:.1f}"] for k, v in times.items()]
+        ["part", "wall time [s]", "CPU time [s]"],
+        [[k, f"{v['wall_s']:.1f}", f"{v['cpu_s']:.1f}"] for k, v in times.items()],
     )
     lines += ["", "Figures: " + ", ".join(f"`figures/{name}`" for name in figures.values()), ""]
     return "\n".join(lines)

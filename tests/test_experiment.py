@@ -196,7 +196,8 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
 @pytest.mark.slow
 def test_an_unfinished_run_resumes_and_a_missing_part_is_redone(tmp_path):
     path = tmp_path / "tiny.toml"
-    path.write_text(TINY.replace("seeds = 2", "seeds = 1").replace('drive_routes = ["town01_right_left"]', "drive_routes = []"))
+    text = TINY.replace("seeds = 2", "seeds = 1").replace('drive_routes = ["town01_right_left"]', "drive_routes = []")
+    path.write_text(text)
     config = load_reproduce_config(path)
     out = tmp_path / "results"
     reproduce(config, out)

@@ -42,7 +42,9 @@ def _lines(accuracies, losses, round_bytes, stage_one=None):
     lines = []
     if stage_one is not None:
         acc, loss, spent = stage_one
-        lines.append({"step": 0, "stage": "I", "cloud_round": 0, "consumed_bytes": spent, "accuracy": acc, "loss": loss})
+        lines.append(
+            {"step": 0, "stage": "I", "cloud_round": 0, "consumed_bytes": spent, "accuracy": acc, "loss": loss}
+        )
         base = spent
     else:
         base = 0
@@ -139,8 +141,11 @@ def results(tmp_path) -> Path:
     _write(out / "reproduce.json", {"config": {"name": "test", "seeds": 2}, "seeds": [0, 1], "ablation_seeds": [0],
                                     "started_utc": "2026-11-23T00:00:00Z",
                                     "environment": {"python": "3.x", "versions": {"torch": "2.13.0"}}})
-    _write(out / "timings.json", {"data": {"wall_s": 1.0, "cpu_s": 1.5}, "runs/crchfl/seed-0": {"wall_s": 10.0, "cpu_s": 19.0},
-                                  "ablation/ie-2/seed-0": {"wall_s": 5.0, "cpu_s": 9.5}})
+    _write(out / "timings.json", {
+        "data": {"wall_s": 1.0, "cpu_s": 1.5},
+        "runs/crchfl/seed-0": {"wall_s": 10.0, "cpu_s": 19.0},
+        "ablation/ie-2/seed-0": {"wall_s": 5.0, "cpu_s": 9.5},
+    })
     return out
 
 
