@@ -42,6 +42,8 @@ def _commands():
          _add_dataset, _run_dataset),
         ("dataset-stats", "label statistics, summary figure and example mosaic of a data set",
          _add_dataset_stats, _run_dataset_stats),
+        ("train", "centralized training on all shards of a data set (the federated schemes' upper bound)",
+         _add_train, _run_train),
         ("drive", "a model (or 'reference') drives an ego along a route in SUMO: metrics, map, action frames, video",
          _add_drive, _run_drive),
         ("drive-compare", "several drives of one route side by side (the paper's Fig. 5)",
@@ -156,6 +158,39 @@ def _run_dataset_stats(args) -> int:
     stats = write_dataset_stats(args.dir, args.out)
     files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
     print(f"{stats['samples']} samples; steer classes (train) {stats['train']['steer_class_counts']}; {files}")
+    return 0
+
+
+# --- train --------------------------------------------------------------------------------------
+
+
+def _add_train(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
+    p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt")
+    p.add_argument("--epochs", type=int, default=10, help="epochs over all training shards (default 10)")
+    p.add_argument("--size", choices=("compact", "paper"), default="compact", help="model size (default compact)")
+    p.add_argument("--seed", type=int, default=0, help="seed of initialisation and shuffling (default 0)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
+    p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
+
+
+def _run_train(args) -> int:
+    from .dataset import load_samples
+    from .errors import CrchflError
+    from .local import TrainConfig, train_centralized
+    from .model import ModelConfig
+
+    if args.epochs < 1:
+        raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
+    train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+    model_config = ModelConfig(args.size, *train.image_hw)
+    config = TrainConfig(device=args.device, deterministic=args.deterministic)
+    with _progress(args.epochs * len(train), "sample") as bar:
+        records = train_centralized(
+            train, test, args.epochs, args.out, model_config, config, args.seed, progress=bar.update
+        )
+    last = records[-1]
+    print(f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} -> {args.out}")
     return 0
 
 

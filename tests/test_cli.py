@@ -1,0 +1,60 @@
+"""The command line: every subcommand is listed, user errors exit 2 without a traceback."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from crchfl_sumo.cli import build_parser, main
+from test_run import PAPER_VEHICLES, write_dataset
+
+COMMANDS = ["simulate", "render", "dataset", "dataset-stats", "train", "drive", "drive-compare", "run", "plan"]
+
+
+def test_help_lists_every_subcommand():
+    text = build_parser().format_help()
+    for name in COMMANDS:
+        assert name in text
+
+
+def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "2", "--seed", "3"]) == 0
+    lines = (tmp_path / "t" / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["epoch"] for line in lines] == [1, 2]
+    assert "epoch 2" in capsys.readouterr().out
+    from crchfl_sumo.checkpoint import load_checkpoint
+
+    assert load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config.image_height == 48
+
+
+def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):
+    assert main(["train", str(tmp_path / "none"), "--out", str(tmp_path / "t")]) == 2
+    assert "manifest" in capsys.readouterr().err
+
+
+def test_run_with_an_unknown_key_exits_2_naming_it(tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text('scenario = "paper"\ndataset = "d"\n[federation]\nschem = "hfl"\n')
+    assert main(["run", str(config), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "schem" in err and "Traceback" not in err
+
+
+def test_console_script_exits_2_on_user_error(tmp_path):
+    # The installed entry point, as a user runs it: one line on stderr, status 2.
+    result = subprocess.run(
+        [sys.executable, "-m", "crchfl_sumo.cli", "simulate", "nowhere", "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 2
+    assert result.stderr.startswith("crchfl-sumo: error: nowhere: not a built-in scenario")
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("argv", [["train", "x", "--out", "y", "--epochs", "0"]])
+def test_bad_numbers_exit_2(argv, capsys):
+    assert main(argv) == 2
+    assert "--epochs must be >= 1" in capsys.readouterr().err
