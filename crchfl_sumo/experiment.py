@@ -30,6 +30,7 @@ from typing import Any, Callable, Mapping
 
 from .atomic import atomic_write_text
 from .config import from_mapping, read_toml, to_mapping
+from .drive import DriveConfig
 from .errors import CrchflError
 from .generate import GenerateConfig
 
@@ -59,6 +60,7 @@ class ReproduceConfig:
     drive_max_s: simulated seconds a drive may last at most.
     drive_seed: SUMO seed of the drives (the same traffic for every model).
     drive_video: also write each drive's MP4.
+    drive: the drives' settings (DriveConfig: warm-up, insertion, end conditions).
     generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
     run: settings laid over every built-in scheme config (scenarios/experiments/SCHEME.toml):
         a partial run config, e.g. ``[run.ledger]``, ``[run.train]``, ``[run.clock]``.
@@ -77,6 +79,7 @@ class ReproduceConfig:
     drive_max_s: float = 120.0
     drive_seed: int = 0
     drive_video: bool = False
+    drive: DriveConfig = field(default_factory=DriveConfig)
     generate: GenerateConfig = field(default_factory=GenerateConfig)
     run: dict[str, Any] = field(default_factory=dict)
 
@@ -432,7 +435,7 @@ def _drive_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
     drive_command(
         model, None, part.route, out_dir / part.key, seed=config.drive_seed, max_s=config.drive_max_s,
-        video=config.drive_video,
+        config=config.drive, video=config.drive_video,
     )
 
 
