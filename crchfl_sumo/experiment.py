@@ -295,11 +295,16 @@ def reproduce_command(
     resume: bool = False,
     config_path: str | Path | None = None,
     progress: Progress | None = None,
-) -> dict[str, Any]:
-    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML]` does."""
+) -> tuple[Path, dict[str, Any]]:
+    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML]` does.
+
+    ``config_path`` replaces the preset; DIR defaults to results/NAME (NAME: the config's name).
+    Returns the results folder and its summary.json.
+    """
     preset = "quick" if quick else "full"
     config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
-    return reproduce(config, out_dir if out_dir is not None else Path("results") / config.name, resume, progress)
+    out_dir = Path(out_dir) if out_dir is not None else Path("results") / config.name
+    return out_dir, reproduce(config, out_dir, resume, progress)
 
 
 def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:

@@ -159,7 +159,10 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     path.write_text(TINY)
     out = tmp_path / "results"
     seen = []
-    summary = reproduce_command(out_dir=out, config_path=path, progress=lambda i, n, key: seen.append((i, n, key)))
+    folder, summary = reproduce_command(
+        out_dir=out, config_path=path, progress=lambda i, n, key: seen.append((i, n, key))
+    )
+    assert folder == out
     assert seen[0] == (0, 16, "data") and seen[-1] == (16, 16, "report")  # 1 + 2 + 6 + 2 + 5 parts
     assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
     # 5 GB of 150 MB models: SFL 10 transfers a round (3 rounds), HFL 14 (2 rounds)
@@ -188,7 +191,7 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     with pytest.raises(CrchflError, match="--resume"):
         reproduce_command(out_dir=out, config_path=path)
     report = (out / "report.md").read_text()
-    again = reproduce_command(out_dir=out, config_path=path, resume=True)
+    _, again = reproduce_command(out_dir=out, config_path=path, resume=True)
     assert json.loads((out / "timings.json").read_text()) == timings
     assert again == summary and (out / "report.md").read_text() == report
     # resuming with other settings is refused
