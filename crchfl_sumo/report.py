@@ -447,6 +447,12 @@ def _fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def _seeds(stats: Mapping[str, Any]) -> str:
+    """The seed count; runs still going (no stop_reason yet: a reproduction in progress) are named."""
+    unfinished = sum(reason is None for reason in stats["stop_reason"])
+    return f"{len(stats['seeds'])}" + (f" ({unfinished} unfinished)" if unfinished else "")
+
+
 def _percent(value: float | None) -> str:
     return "-" if value is None else f"{value:+.2f} %"
 
@@ -486,7 +492,7 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
         rows.append([
             NAMES.get(name, name), _pm(s["cloud_rounds"], 1), _pm(s["best_accuracy"]), _pm(s["final_accuracy"]),
             _pm(s["best_loss"]), _pm(s["final_loss"]), _pm(s["consumed_bytes"], 2, 1 / GIB),
-            _fmt(s["budget_bytes"] / GIB if s["budget_bytes"] else None, 2), str(len(s["seeds"])),
+            _fmt(s["budget_bytes"] / GIB if s["budget_bytes"] else None, 2), _seeds(s),
         ])
     central = summary["centralized"]
     if central:
@@ -535,7 +541,7 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
             rows.append([
                 setting[3:], _fmt(hyper.get("pretrain_batch")), _fmt(hyper.get("cloud_interval")),
                 _pm(s["cloud_rounds"], 1), *(_fmt(pct[p], 1) for p in (*STAGES, "unused")),
-                _pm(s["best_accuracy"]), _pm(s["final_loss"]), str(len(s["seeds"])),
+                _pm(s["best_accuracy"]), _pm(s["final_loss"]), _seeds(s),
             ])
         lines += _table(
             ["edge_interval", "pretrain batch", "cloud_interval", "cloud rounds", "stage I %", "stage II %",

@@ -183,6 +183,14 @@ def test_report_of_a_folder(results):
     assert not list(results.rglob(".*.partial-*"))
 
 
+def test_unfinished_runs_are_named_in_the_table(results):
+    path = results / "runs" / "hfl" / "seed-1" / "summary.json"
+    summary = json.loads(path.read_text())
+    path.write_text(json.dumps({**summary, "stop_reason": None}))
+    report_command(results)
+    assert "| 2 (1 unfinished) |" in (results / "report.md").read_text()
+
+
 def test_report_is_rebuilt_the_same(results):
     report_command(results)
     first = (results / "summary.json").read_text(), (results / "report.md").read_text()
