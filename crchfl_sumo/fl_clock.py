@@ -119,6 +119,7 @@ class ScriptedClock:
         first = math.floor(from_s / self.step_s + _EPS_S)
         last = max(math.ceil(to_s / self.step_s - _EPS_S), first)
         t = np.arange(first, last + 1, dtype=np.float64) * self.step_s
+        t[0] = min(t[0], from_s)  # times within _EPS_S count as equal: the series must still cover from_s
         segments = self._tracks[kind].get(vehicle, [Segment(0.0, NO_SITE, 0.0)])
         starts = np.array([s.t_s for s in segments])
         index = np.clip(np.searchsorted(starts, t + _EPS_S, side="right") - 1, 0, None)
@@ -217,8 +218,10 @@ class SumoClock:
         first = max(int(np.searchsorted(t, from_s + _EPS_S, side="right")) - 1, 0)
         last = int(np.searchsorted(t, to_s - _EPS_S, side="left"))
         sl = slice(first, last + 1)
+        times = t[sl].copy()
+        times[0] = min(times[0], from_s)  # times within _EPS_S count as equal: the series must still cover from_s
         return LinkSeries(
-            t[sl].copy(),
+            times,
             np.asarray(self._rate[kind][vehicle][sl], dtype=np.float64),
             np.asarray(self._site[kind][vehicle][sl], dtype=np.int64),
         )
