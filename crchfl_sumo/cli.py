@@ -34,6 +34,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _commands():
     """(name, help, add_arguments, run) for each subcommand, in the order --help lists them."""
     return [
+        ("reproduce", "the paper's experiments B and D with closed-loop drives: runs, figures, report.md, summary.json",
+         _add_reproduce, _run_reproduce),
+        ("report", "rebuild the figures, report.md and summary.json of a reproduce results folder",
+         _add_report, _run_report),
         ("simulate", "run a scenario with edge association and link rates; write trace, summary, plots",
          _add_simulate, _run_simulate),
         ("render", "draw one vehicle's four camera images and a top-down map: PNG per step and an MP4",
@@ -64,6 +68,48 @@ def _progress(total: int, unit: str = "step"):
 
 def _scenario_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="built-in scenario name (town01, town02, paper, paper_linked) or a .sumocfg path")
+
+
+# --- reproduce and report -----------------------------------------------------------------------
+
+
+def _add_reproduce(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="reduced size, about 5 minutes on 2 cores (docs/reproduce.md)")
+    p.add_argument("--out", type=Path, default=None, help="results folder (default results/quick or results/full)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per scheme (default: quick 2, full 3)")
+    p.add_argument("--resume", action="store_true", help="finish the reproduction in --out; finished parts are kept")
+    p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
+
+
+def _run_reproduce(args) -> int:
+    from .experiment import reproduce_command
+    from .report import format_summary
+
+    bars = {}
+
+    def progress(done: int, total: int, part: str) -> None:
+        bar = bars.setdefault("bar", _progress(total, "part"))
+        bar.update(done - bar.n)
+        bar.set_description(part)
+
+    try:
+        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, progress)
+    finally:
+        if "bar" in bars:
+            bars["bar"].close()
+    print(format_summary(summary, out))
+    return 0
+
+
+def _add_report(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="results folder of `crchfl-sumo reproduce`")
+
+
+def _run_report(args) -> int:
+    from .report import format_summary, report_command
+
+    print(format_summary(report_command(args.dir), args.dir))
+    return 0
 
 
 # --- simulate -----------------------------------------------------------------------------------
