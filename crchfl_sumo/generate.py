@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -144,8 +145,14 @@ def generate_dataset(
     world: WorldConfig = WorldConfig(),
     expert: ExpertConfig = ExpertConfig(),
     progress: Progress | None = None,
+    timings_s: dict[str, float] | None = None,
 ) -> Manifest:
-    """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest."""
+    """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest.
+
+    ``timings_s``, when given, receives the wall seconds spent in each stage:
+    simulate, world (static world build), label, render, write.
+    """
+    clock = _StageClock(timings_s)
     plan = shard_plan(sizes)
     vehicles = assign_vehicles(scenario, plan)
     header = Manifest(
@@ -165,22 +172,27 @@ def generate_dataset(
         return writer.manifest
     log.info("%d of %d shards to write", len(pending), len(plan))
     needed = {vehicles[p.file]: p.samples for p in pending}
-    frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress)
-    tracks = tracks_from_frames(frames)
-    renderer = Renderer(build_world(scenario.net_path, world), raster)
+    with clock("simulate"):
+        frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress)
+    with clock("label"):
+        tracks = tracks_from_frames(frames)
+    with clock("world"):
+        renderer = Renderer(build_world(scenario.net_path, world), raster)
     total = sum(needed.values())
     done = 0
     for shard in pending:
         vehicle = vehicles[shard.file]
         track = tracks[vehicle]
-        actions, steer_class = expert_labels(track, expert)
+        with clock("label"):
+            actions, steer_class = expert_labels(track, expert)
         frame_rows = sampled[vehicle]
         rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
         images = np.empty((len(rows), *renderer.shape), np.uint8)
-        for k, i in enumerate(frame_rows):
-            images[k] = renderer.render(frames[i], [vehicle])[0]
-            if progress is not None and k % 50 == 0:
-                progress("render", done + k, total)
+        with clock("render"):
+            for k, i in enumerate(frame_rows):
+                images[k] = renderer.render(frames[i], [vehicle])[0]
+                if progress is not None and k % 50 == 0:
+                    progress("render", done + k, total)
         data = ShardData(
             images=images,
             actions=actions[rows],
@@ -191,7 +203,8 @@ def generate_dataset(
             heading_rad=track.heading_rad[rows],
         )
         edge = nearest_site(scenario.edge_sites, data.x_m, data.y_m)
-        writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
+        with clock("write"):
+            writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
         done += len(rows)
         if progress is not None:
             progress("render", done, total)
@@ -216,6 +229,22 @@ def load_generate_config(path: str | Path | None, seed: int | None = None) -> Ge
     if seed is not None:
         config = GenerateConfig(int(seed), config.dataset, config.raster, config.world, config.expert)
     return config
+
+
+class _StageClock:
+    """``with clock("stage"):`` adds the block's wall seconds to ``timings_s[stage]`` (no-op without)."""
+
+    def __init__(self, timings_s: dict[str, float] | None):
+        self._timings_s = timings_s
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self._timings_s is not None:
+                self._timings_s[stage] = self._timings_s.get(stage, 0.0) + time.perf_counter() - start
 
 
 class _StageBars:

@@ -45,7 +45,10 @@ def test_nearest_site_takes_the_majority():
 def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     scenario = paper_scenario()
     sizes = from_mapping(DatasetConfig, SIZES)
-    full = generate_dataset(scenario, tmp_path / "full", seed=3, sizes=sizes, raster=RASTER)
+    stages: dict[str, float] = {}
+    full = generate_dataset(scenario, tmp_path / "full", seed=3, sizes=sizes, raster=RASTER, timings_s=stages)
+    assert set(stages) == {"simulate", "world", "label", "render", "write"}
+    assert all(seconds > 0 for seconds in stages.values())
     assert [(s.vehicle, s.split, s.samples, s.edge) for s in full.shards] == [
         ("t01_test_0", "test", 4, "edge01"),
         ("t01_data_0", "train", 6, "edge01"),

@@ -39,20 +39,17 @@ def sizes_for(args: argparse.Namespace) -> DatasetConfig:
 
 def timed_generation(args: argparse.Namespace, out: Path) -> None:
     scenario = load_scenario(args.scenario)
-    marks: dict[str, float] = {}
-
-    def progress(stage: str, done: int, total: int) -> None:
-        marks.setdefault(stage, time.perf_counter())
-
+    stages: dict[str, float] = {}
     start = time.perf_counter()
-    manifest = generate_dataset(scenario, out, seed=args.seed, sizes=sizes_for(args), progress=progress)
-    end = time.perf_counter()
-    render_start = marks.get("render", end)
+    manifest = generate_dataset(scenario, out, seed=args.seed, sizes=sizes_for(args), timings_s=stages)
+    total = time.perf_counter() - start
     n = manifest.samples
-    print(f"generation: {n} samples in {end - start:.1f} s ({n / (end - start):.0f} samples/s)")
-    print(f"  simulate (+ scenario load): {render_start - start:.1f} s")
-    print(f"  label + render + write (+ world build): {end - render_start:.1f} s "
-          f"({n / max(end - render_start, 1e-9):.0f} samples/s)")
+    print(f"generation: {n} samples in {total:.1f} s ({n / total:.0f} samples/s end to end)")
+    for stage in ("simulate", "world", "label", "render", "write"):
+        seconds = stages.get(stage, 0.0)
+        print(f"  {stage:9s} {seconds:6.1f} s  {100 * seconds / total:5.1f} %  ({n / max(seconds, 1e-9):8.0f} samples/s)")
+    other = total - sum(stages.values())
+    print(f"  {'other':9s} {other:6.1f} s  {100 * other / total:5.1f} %  (scenario load, planning, manifest)")
     print(f"  image size {manifest.image_height}x{manifest.image_width}, 4 cameras")
 
 
