@@ -610,20 +610,14 @@ class Federation:
         received_by: dict[str, list[str]] = {}
         edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         for e, vehicles in topology.active():
-            ends, received = [], []
-            for v in vehicles:
-                out = uploads[v]
-                if out is None:
-                    deadline = state.open_s[state.member[v]] + self.config.deadline_s
-                    ends.append(deadline)
-                    self._straggler(state, v, "II", "no time to upload before the deadline", deadline)
-                    continue
-                events[(v, e, "uplink")] = _wireless(out)
-                ends.append(out.end_s)
-                if out.ok:
-                    received.append(v)
-                else:
-                    self._straggler(state, v, "II", out.reason, out.end_s)
+            ends, received = self._gather_uploads(
+                state,
+                {v: uploads[v] for v in vehicles},
+                e,
+                "II",
+                lambda v: state.open_s[state.member[v]] + self.config.deadline_s,
+                events,
+            )
             agg_s[e] = max(ends)
             received_by[e] = received
             if received:
@@ -657,6 +651,27 @@ class Federation:
         total = sum(w for _, w in results) or 1.0
         return (sum(m[0] * w for m, w in results) / total, sum(m[1] * w for m, w in results) / total)
 
+    def _gather_uploads(self, state, uploads, receiver: str, stage: str, missed_at, events):
+        """Arrival time of each vehicle's upload to ``receiver`` and the vehicles whose model arrived.
+
+        An upload that could not start before the deadline (None) ends at
+        ``missed_at(vehicle)``; it and every failed upload are recorded as
+        stragglers. Started uploads are recorded in ``events``.
+        """
+        ends, received = [], []
+        for v, out in uploads.items():
+            if out is None:
+                ends.append(missed_at(v))
+                self._straggler(state, v, stage, "no time to upload before the deadline", ends[-1])
+                continue
+            events[(v, receiver, "uplink")] = _wireless(out)
+            ends.append(out.end_s)
+            if out.ok:
+                received.append(v)
+            else:
+                self._straggler(state, v, stage, out.reason, out.end_s)
+        return ends, received
+
     def _straggler(self, state: FederationState, vehicle: str, stage: str, reason: str, t_s: float) -> None:
         state.stragglers.append(
             {
@@ -678,20 +693,13 @@ class Federation:
         trained, counts = self._train(state, epochs)
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], Event] = {}
-        ends, received = [], []
-        for v in setup.vehicles:
-            start_s = state.ready_s[v] + self._compute_s(counts[v], epochs)
-            out = self._upload(v, None, start_s, sizes.model_bytes, window_end)
-            if out is None:
-                ends.append(window_end)
-                self._straggler(state, v, "III", "no time to upload before the deadline", window_end)
-                continue
-            events[(v, CLOUD, "uplink")] = _wireless(out)
-            ends.append(out.end_s)
-            if out.ok:
-                received.append(v)
-            else:
-                self._straggler(state, v, "III", out.reason, out.end_s)
+        uploads = {
+            v: self._upload(
+                v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.model_bytes, window_end
+            )
+            for v in setup.vehicles
+        }
+        ends, received = self._gather_uploads(state, uploads, CLOUD, "III", lambda v: window_end, events)
         cloud_s = max(ends)
         cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
         models, ready = dict(trained), dict(state.ready_s)
