@@ -69,10 +69,9 @@ PAPER_LOCAL_SAMPLES = 2 * 2928 + 2586 + 2587 + 1555  # FACTS.md: the paper's fiv
 class AllocationConfig:
     """Settings of the resource optimizer (TOML table ``[allocation]``).
 
-    alpha, gamma, d: the weights of problem P. Provisional defaults: alpha
-        and gamma from the sister project CarlaFLCAV, d chosen so that the
-        discount 1 - d / (I_e I_c T) is 0.5 to 0.9 over the plans of interest
-        (docs/allocation.md); ``crchfl-sumo calibrate`` is meant to replace them.
+    alpha, gamma, d: the weights of problem P. Defaults: `crchfl-sumo calibrate`
+        on the paper scenario, seed 0, at the stated pilot size (fit 1.27, 0.275,
+        9.30; alpha clipped to 1), data and residuals in docs/calibration.md.
     vehicles_per_edge: the planning topology (paper: Town01 2, Town02 3).
     local_samples: s = sum_k |T_nk|, all vehicles' training samples (paper: 12584).
     max_edge_interval, max_cloud_interval: search bounds of I_e and I_c.
@@ -86,9 +85,9 @@ class AllocationConfig:
     solver: CVXPY solver for the continuous problem.
     """
 
-    alpha: float = 0.1
-    gamma: float = 0.5
-    d: float = 5.0
+    alpha: float = 1.0
+    gamma: float = 0.275
+    d: float = 9.3
     vehicles_per_edge: tuple[int, ...] = (2, 3)
     local_samples: int = PAPER_LOCAL_SAMPLES
     max_edge_interval: int = 10
