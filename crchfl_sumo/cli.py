@@ -54,6 +54,8 @@ def _commands():
          _add_drive_compare, _run_drive_compare),
         ("run", "federated training (CRCHFL, HFL or SFL) on SUMO's clock: metrics, ledger, checkpoints, summary",
          _add_run, _run_run),
+        ("calibrate", "fit alpha, gamma, d of problem P from short pilot runs (docs/calibration.md)",
+         _add_calibrate, _run_calibrate),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
          _add_plan, _run_plan),
     ]
@@ -303,6 +305,25 @@ def _run_run(args) -> int:
 
         summary = run_command(args.config, args.out, args.resume, progress)
     print(json.dumps(summary, indent=2))
+    return 0
+
+
+# --- calibrate ----------------------------------------------------------------------------------
+
+
+def _add_calibrate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("calibration.toml"),
+                   help="calibration file to write; it is a valid `plan --config` (default calibration.toml)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pilot data, models and shuffling (default 0)")
+    p.add_argument("--scenario", default="paper", help="scenario the pilot data set is generated in (default paper)")
+    p.add_argument("--dataset", type=Path, default=None, help="use this data set instead of generating OUT.data/")
+
+
+def _run_calibrate(args) -> int:
+    from .calibration import calibrate_command
+
+    fit = calibrate_command(args.out, args.seed, args.scenario, args.dataset)
+    print(f"alpha {fit.alpha:.3f}  gamma {fit.gamma:.3f}  d {fit.d:.2f} -> {args.out}")
     return 0
 
 
