@@ -2,23 +2,10 @@
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
-import numpy as np
-
 from .atomic import atomic_path
-
-
-@functools.lru_cache(maxsize=4)
-def lane_polylines(net_path: Path) -> tuple[np.ndarray, ...]:
-    """Every non-internal lane's centre line as an [N, 2] array (read once per network)."""
-    import sumolib
-
-    net = sumolib.net.readNet(str(net_path))
-    return tuple(
-        np.asarray(lane.getShape(), dtype=np.float64) for edge in net.getEdges() for lane in edge.getLanes()
-    )
+from .scenario import lane_polylines
 
 
 def draw_network(ax, net_path: Path, color: str = "0.75", linewidth: float = 1.0) -> None:

@@ -263,6 +263,18 @@ def sumo_binary(name: str = "sumo") -> str:
     return found
 
 
+def sumo_tool_script(name: str) -> str:
+    """Path of a script in SUMO's tools folder (randomTrips.py ...), from the eclipse-sumo package."""
+    try:
+        import sumo
+    except ImportError:
+        raise CrchflError(f"SUMO's {name} needs the eclipse-sumo package: pip install eclipse-sumo") from None
+    script = Path(sumo.SUMO_HOME) / "tools" / name
+    if not script.is_file():
+        raise CrchflError(f"{script} not found; reinstall eclipse-sumo")
+    return str(script)
+
+
 # --- reading a network ---------------------------------------------------------------------
 
 
@@ -280,21 +292,27 @@ def read_net_bounds(net_path: Path) -> Bounds:
     raise CrchflError(f"{net_path}: no <location> element: not a SUMO network; rebuild it with netconvert")
 
 
-def lane_points(net_path: Path, spacing_m: float = 10.0) -> np.ndarray:
-    """Points every ``spacing_m`` along every non-internal lane of the network, [P, 2]."""
+@functools.lru_cache(maxsize=4)
+def lane_polylines(net_path: Path) -> tuple[np.ndarray, ...]:
+    """Every non-internal lane's centre line as an [N, 2] array (the network is read once)."""
     import sumolib
 
     try:
         net = sumolib.net.readNet(str(net_path))
     except Exception as exc:  # sumolib raises assorted errors on bad input
         raise CrchflError(f"{net_path}: could not read the network ({exc}); rebuild it with netconvert") from None
+    return tuple(
+        np.asarray(lane.getShape(), dtype=np.float64) for edge in net.getEdges() for lane in edge.getLanes()
+    )
+
+
+def lane_points(net_path: Path, spacing_m: float = 10.0) -> np.ndarray:
+    """Points every ``spacing_m`` along every non-internal lane of the network, [P, 2]."""
     points = []
-    for edge in net.getEdges():
-        for lane in edge.getLanes():
-            shape = np.asarray(lane.getShape(), dtype=np.float64)
-            for a, b in zip(shape[:-1], shape[1:]):
-                n = max(1, int(math.ceil(np.hypot(*(b - a)) / spacing_m)))
-                t = np.arange(n)[:, None] / n
-                points.append(a + t * (b - a))
-            points.append(shape[-1:])
+    for shape in lane_polylines(Path(net_path)):
+        for a, b in zip(shape[:-1], shape[1:]):
+            n = max(1, int(math.ceil(np.hypot(*(b - a)) / spacing_m)))
+            t = np.arange(n)[:, None] / n
+            points.append(a + t * (b - a))
+        points.append(shape[-1:])
     return np.concatenate(points) if points else np.zeros((0, 2))

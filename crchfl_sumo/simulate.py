@@ -5,7 +5,7 @@ DIR/handovers.csv  every change of serving edge (t_s, vehicle, from, to; '' = no
 DIR/summary.json   vehicles, steps, handovers, mean_rate_bps, coverage_fraction, ...
 DIR/map.png        network, edge sites with coverage circles, trajectories coloured by edge
 DIR/rate.png       rate over time: each edge's mean and the named data vehicles
-DIR/config.toml-like snapshot in summary.json ("config")
+(summary.json also holds the settings used, under "config".)
 
 The run itself (``simulate``) returns a ``Trace`` of arrays; summarising is a
 pure function of it; writing is the edge.
@@ -14,6 +14,7 @@ pure function of it; writing is the edge.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ import numpy as np
 from .atomic import atomic_write_text
 from .channel import ChannelConfig
 from .config import from_mapping, read_toml, to_mapping
+from .errors import CrchflError
 from .maps import draw_network, save_figure
 from .mobility import NO_SITE, LinkModel, MobilityConfig
 from .scenario import Scenario, load_scenario
@@ -44,9 +46,7 @@ class SimulateConfig:
 
 def load_simulate_config(path: str | Path | None, seed: int | None = None) -> SimulateConfig:
     cfg = SimulateConfig() if path is None else from_mapping(SimulateConfig, read_toml(path), where=str(path))
-    if seed is not None:
-        cfg = SimulateConfig(seed=seed, edge_sites=cfg.edge_sites, channel=cfg.channel, mobility=cfg.mobility)
-    return cfg
+    return cfg if seed is None else dataclasses.replace(cfg, seed=seed)
 
 
 @dataclass(frozen=True)
@@ -228,8 +228,6 @@ def run_simulate_command(
     progress_factory=None,
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary."""
-    from .errors import CrchflError
-
     if duration_s < 0:
         raise CrchflError(f"--duration-s must be >= 0, got {duration_s}")
     cfg = load_simulate_config(config_path, seed)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -14,6 +13,8 @@ from pathlib import Path
 
 import pytest
 import sumolib
+
+from crchfl_sumo.scenario import sumo_binary
 
 try:
     import tomllib
@@ -269,13 +270,6 @@ def test_sumocfg_is_relative_with_fixed_seed_and_quarter_second_steps(name):
 
 
 # ---------------------------------------------------------------- build and run
-
-
-def sumo_binary(name: str) -> str:
-    import sumo
-
-    candidate = Path(sumo.SUMO_HOME) / "bin" / name
-    return str(candidate) if candidate.exists() else shutil.which(name)
 
 
 @pytest.mark.slow

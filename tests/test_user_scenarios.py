@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crchfl_sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 from crchfl_sumo.simulate import SimulateConfig, simulate, summarize
 
 FIXTURE = Path(__file__).parent / "data" / "motorway_ramps.osm"
@@ -21,10 +21,8 @@ def osm_scenario(tmp_path_factory):
          "--ramps.guess", "--geometry.remove", "--no-turnarounds"],
         check=True, capture_output=True,
     )
-    import sumo
-
     subprocess.run(
-        [sys.executable, str(Path(sumo.SUMO_HOME) / "tools" / "randomTrips.py"), "-n", str(folder / "osm.net.xml"),
+        [sys.executable, sumo_tool_script("randomTrips.py"), "-n", str(folder / "osm.net.xml"),
          "-o", str(folder / "trips.trips.xml"), "-r", str(folder / "osm.rou.xml"), "-e", "120", "-p", "1.5",
          "--seed", "7", "--validate", "--fringe-factor", "10"],
         check=True, capture_output=True,

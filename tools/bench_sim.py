@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from crchfl_sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 from crchfl_sumo.sim import Simulation
 
 
@@ -43,9 +43,7 @@ def build_scenario(folder: Path, grid: int, period_s: float, end_s: float) -> Pa
         check=True,
         capture_output=True,
     )
-    import sumo
-
-    random_trips = Path(sumo.SUMO_HOME) / "tools" / "randomTrips.py"
+    random_trips = sumo_tool_script("randomTrips.py")
     subprocess.run(
         [
             sys.executable,

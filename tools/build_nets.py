@@ -38,6 +38,7 @@ import sumolib
 
 from crchfl_sumo.errors import CrchflError
 from crchfl_sumo.scenario import sumo_binary as scenario_sumo_binary
+from crchfl_sumo.scenario import sumo_tool_script
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "crchfl_sumo" / "scenarios"
 TYPE_FILE = SCENARIOS_DIR / "street.typ.xml"
@@ -288,9 +289,11 @@ def sumo_binary(name: str) -> str:
 
 
 def sumo_tool(name: str) -> str:
-    import sumo
-
-    return str(Path(sumo.SUMO_HOME) / "tools" / name)
+    """A script of SUMO's tools folder (the package's lookup), or exit with the install hint."""
+    try:
+        return sumo_tool_script(name)
+    except CrchflError as exc:
+        sys.exit(str(exc))
 
 
 def run(cmd: list[str]) -> None:
