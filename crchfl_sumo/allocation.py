@@ -21,8 +21,9 @@ open, all documented in docs/allocation.md:
   the pair-dependent numbers as ``cp.Parameter``).
 * x <= s: vehicles cannot upload more samples than they hold.
 * Local epochs are not free: a wall-clock budget W bounds the whole training,
-  T * round_time(I_e, I_c) + stage_one_time(x) <= W, with a measured epoch
-  time and mean link rates (from the mobility model) as parameters.
+  T * round_time(I_e, I_c) + stage_one_time(x) <= W. In a run, the epoch time
+  is the loop's compute model and the wireless rate is measured on the run's
+  mobility (plan_timing.py); `plan --scenario` measures the rate the same way.
 * T >= 1 stands for the paper's 0 < T (T is an integer).
 
 Solution, the paper's way: search every integer pair (I_e, I_c) within the
@@ -76,12 +77,15 @@ class AllocationConfig:
     local_samples: s = sum_k |T_nk|, all vehicles' training samples (paper: 12584).
     max_edge_interval, max_cloud_interval: search bounds of I_e and I_c.
     fix_edge_interval: fix I_e (the paper's ablation used 2, 3, 4); None searches.
-    epoch_time_s: measured time of one local epoch [s] (vehicles train in parallel).
+    epoch_time_s: time of one local epoch [s] (vehicles train in parallel).
     training_time_budget_s: wall-clock budget W of the whole training [s].
     wireless_rate_bps, wireline_rate_bps: mean per-vehicle wireless rate and
-        edge-cloud backhaul rate [bit/s], from the mobility/channel model.
+        edge-cloud backhaul rate [bit/s].
     pretrain_time_per_sample_s: cloud pretraining compute per uploaded sample
         over all pretraining epochs [s].
+        In a run (and in `plan --scenario` for the rate) these four come from the
+        run itself, not from here: plan_timing.py.
+    rate_window_s: simulated seconds of mobility over which the wireless rate is measured.
     solver: CVXPY solver for the continuous problem.
     """
 
@@ -98,6 +102,7 @@ class AllocationConfig:
     wireless_rate_bps: float = 20e6
     wireline_rate_bps: float = 1e9
     pretrain_time_per_sample_s: float = 0.05
+    rate_window_s: float = 300.0
     solver: str = "CLARABEL"
 
     def __post_init__(self) -> None:
@@ -126,14 +131,14 @@ class AllocationConfig:
                 f"allocation.fix_edge_interval must be >= 2 (the paper requires 0 < cloud_interval < edge_interval), "
                 f"got {self.fix_edge_interval}"
             )
-        for key in ("epoch_time_s", "training_time_budget_s", "wireless_rate_bps", "wireline_rate_bps"):
+        for key in ("training_time_budget_s", "wireless_rate_bps", "wireline_rate_bps", "rate_window_s"):
             value = getattr(self, key)
             if not math.isfinite(value) or value <= 0:
                 raise CrchflError(f"allocation.{key} must be a positive number, got {value}")
-        if not math.isfinite(self.pretrain_time_per_sample_s) or self.pretrain_time_per_sample_s < 0:
-            raise CrchflError(
-                f"allocation.pretrain_time_per_sample_s must be >= 0, got {self.pretrain_time_per_sample_s}"
-            )
+        for key in ("epoch_time_s", "pretrain_time_per_sample_s"):  # zero: training takes no time
+            value = getattr(self, key)
+            if not math.isfinite(value) or value < 0:
+                raise CrchflError(f"allocation.{key} must be a number >= 0, got {value}")
         if self.solver not in cp.installed_solvers():
             raise CrchflError(
                 f"allocation.solver {self.solver!r} is not installed; installed: {', '.join(cp.installed_solvers())}"
@@ -183,6 +188,8 @@ class Plan:
     transfers_per_round: float  # M
     round_time_s: float
     training_time_s: float
+    epoch_time_s: float  # the timing the wall-clock bound assumed
+    wireless_rate_bps: float
     pairs_searched: int
     compile_s: float
     solve_s: float
@@ -425,6 +432,8 @@ def make_plan(
         transfers_per_round=round_bytes[ic] / (2 * sizes.model_bytes),
         round_time_s=rs,
         training_time_s=rounds * rs + stage_one_s,
+        epoch_time_s=config.epoch_time_s,
+        wireless_rate_bps=config.wireless_rate_bps,
         pairs_searched=len(feasible),
         compile_s=compile_s,
         solve_s=solve_s,
@@ -476,7 +485,8 @@ def format_plan(plan: Plan) -> str:
     lines.append(f"    {'unused':<6}{unused / 2**20:12.1f} MB  {plan.stage_percent['unused']:5.1f} %")
     lines.append(
         f"  one cloud round: {plan.round_bytes / 2**20:.1f} MB (M = {plan.transfers_per_round:g}), "
-        f"{plan.round_time_s:.0f} s; training {plan.training_time_s:.0f} s"
+        f"{plan.round_time_s:.0f} s; training {plan.training_time_s:.0f} s "
+        f"(epoch {plan.epoch_time_s:.1f} s, wireless {plan.wireless_rate_bps / 1e6:.2f} Mbit/s)"
     )
     lines.append(
         f"  solver: {plan.pairs_searched} pairs, compile {plan.compile_s * 1e3:.1f} ms, "
@@ -500,17 +510,26 @@ def plan_command(
     config_path: str | Path | None = None,
     as_json: bool = False,
     fix_edge_interval: int | None = None,
+    scenario: str | None = None,
+    seed: int = 0,
 ) -> str | dict[str, Any]:
-    """``crchfl-sumo plan [--budget-gb G] [--config CONFIG] [--json] [--fix-edge-interval N]``.
+    """``crchfl-sumo plan [--budget-gb G] [--config CONFIG] [--json] [--fix-edge-interval N] [--scenario S]``.
 
     Returns the printable text, or with ``as_json`` a JSON-ready dict.
-    Command-line values override the config file.
+    Command-line values override the config file. With ``scenario`` the
+    wireless rate is measured on that scenario's mobility (its data vehicles'
+    edge links over ``rate_window_s``, seeded by ``seed``) instead of read from the config.
     """
     allocation, ledger = load_plan_configs(config_path)
     if budget_gb is not None:
         ledger = dataclasses.replace(ledger, budget_gb=budget_gb)
     if fix_edge_interval is not None:
         allocation = dataclasses.replace(allocation, fix_edge_interval=fix_edge_interval)
+    if scenario is not None:
+        from .plan_timing import planning_rate_bps, scenario_rates_bps
+
+        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s)
+        allocation = dataclasses.replace(allocation, wireless_rate_bps=planning_rate_bps(rates, allocation.rate_window_s))
     plan = make_plan(allocation, ledger)
     if as_json:
         return json.loads(json.dumps(plan.to_dict()))

@@ -337,12 +337,16 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
     p.add_argument("--fix-edge-interval", type=int, default=None, metavar="N",
                    help="fix edge_interval (the paper's ablation: 2, 3, 4)")
+    p.add_argument("--scenario", default=None,
+                   help="measure the wireless rate on this scenario's mobility (its data vehicles' edge links) "
+                        "instead of taking [allocation] wireless_rate_bps")
+    p.add_argument("--seed", type=int, default=0, help="SUMO and channel seed of --scenario (default 0)")
 
 
 def _run_plan(args) -> int:
     from .allocation import plan_command
 
-    out = plan_command(args.budget_gb, args.config, args.json, args.fix_edge_interval)
+    out = plan_command(args.budget_gb, args.config, args.json, args.fix_edge_interval, args.scenario, args.seed)
     print(json.dumps(out, indent=2) if args.json else out)
     return 0
 

@@ -188,7 +188,7 @@ def test_infeasible_inputs_name_the_key():
     with pytest.raises(CrchflError, match="alpha"):
         dataclasses.replace(PAPER_LIKE, alpha=1.5)
     with pytest.raises(CrchflError, match="epoch_time_s"):
-        dataclasses.replace(PAPER_LIKE, epoch_time_s=0.0)
+        dataclasses.replace(PAPER_LIKE, epoch_time_s=-1.0)
     with pytest.raises(CrchflError, match="vehicles_per_edge"):
         dataclasses.replace(PAPER_LIKE, vehicles_per_edge=(0, 0))
     with pytest.raises(CrchflError, match="measured_sample_bytes"):
