@@ -52,6 +52,7 @@ from .local import TrainConfig, configure_determinism, evaluate, resolve_device,
 from .mobility import MacroLinkConfig, MobilityConfig
 from .model import DrivingModel, ModelConfig, build_model, state_size_bytes
 from .online import OnlineConfig
+from .plan_timing import measured_rates_bps, run_timing
 from .samples import Samples
 from .transfer import TransferConfig
 
@@ -217,16 +218,24 @@ def read_inputs(config: RunConfig) -> Inputs:
     return Inputs(vehicles, samples, test, edges, home, measured, root)
 
 
-def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int) -> tuple[Hyper, dict | None]:
-    """The four hyper-parameters: the config's, or (CRCHFL, use_plan) the optimizer's for this run's topology."""
+def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int, clock: Clock) -> tuple[Hyper, dict | None]:
+    """The four hyper-parameters: the config's, or (CRCHFL, use_plan) the optimizer's for this run.
+
+    The plan takes the run's topology, its sample counts, and its timing: the
+    loop's compute model and the wireless rate measured on ``clock`` (plan_timing.py).
+    """
     fed = config.federation
     if not fed.use_plan:
         return Hyper(fed.pretrain_batch, fed.edge_interval, fed.cloud_interval, fed.cloud_rounds), None
     per_edge = tuple(sum(1 for v in inputs.vehicles if inputs.home_site[v] == i) for i in range(len(inputs.edges)))
-    allocation = dataclasses.replace(
-        config.allocation,
-        vehicles_per_edge=per_edge,
-        local_samples=sum(len(inputs.samples[v]) for v in inputs.vehicles),
+    counts = {v: len(inputs.samples[v]) for v in inputs.vehicles}
+    allocation = run_timing(
+        dataclasses.replace(config.allocation, vehicles_per_edge=per_edge, local_samples=sum(counts.values())),
+        samples_per_vehicle=counts,
+        compute_s_per_sample=fed.compute_s_per_sample,
+        pretrain_epochs=fed.pretrain_epochs,
+        rates_bps=measured_rates_bps(clock, inputs.vehicles, config.allocation.rate_window_s),
+        wireline_rate_bps=config.wireline.rate_bps,
     )
     plan = make_plan(
         allocation, config.ledger, real_model_bytes=model_bytes, measured_sample_bytes=inputs.measured_sample_bytes
@@ -338,40 +347,40 @@ def run_federation_dir(
     trainer = trainer or TorchTrainer(config.model, config.train, inputs.test, fed.seed)
     first = trainer.initial_state()
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
-    hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first))
-    resolved = {
-        "config": to_mapping(config),
-        "hyper": dataclasses.asdict(hyper),
-        "plan": plan,
-        "sizes": dataclasses.asdict(sizes),
-        "vehicles": list(inputs.vehicles),
-        "edges": list(inputs.edges),
-    }
-    resolved = json.loads(json.dumps(resolved))  # inf and tuples as JSON reads them back
-    setup = Setup(
-        config=fed,
-        hyper=hyper,
-        vehicles=inputs.vehicles,
-        samples=inputs.samples,
-        home_site=inputs.home_site,
-        edges=inputs.edges,
-        sizes=sizes,
-        rule=config.ledger.rule,
-        wireline=config.wireline,
-        transfer=config.transfer,
-    )
-    state = None
-    if resume and checkpoint_path.exists():
-        state = _load_state(checkpoint_path, resolved)
-        if state.done:  # finished before: only the derived files may be missing
-            _write_outputs(out_dir, config, setup, state)
-            return summarize(config, setup, state)
-        log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
-    else:
-        if config_text is not None:
-            atomic_write_text(out_dir / "config.toml", config_text)
-        atomic_write_text(out_dir / "config.json", json.dumps(resolved, indent=2) + "\n")
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
+        hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
+        resolved = {
+            "config": to_mapping(config),
+            "hyper": dataclasses.asdict(hyper),
+            "plan": plan,
+            "sizes": dataclasses.asdict(sizes),
+            "vehicles": list(inputs.vehicles),
+            "edges": list(inputs.edges),
+        }
+        resolved = json.loads(json.dumps(resolved))  # inf and tuples as JSON reads them back
+        setup = Setup(
+            config=fed,
+            hyper=hyper,
+            vehicles=inputs.vehicles,
+            samples=inputs.samples,
+            home_site=inputs.home_site,
+            edges=inputs.edges,
+            sizes=sizes,
+            rule=config.ledger.rule,
+            wireline=config.wireline,
+            transfer=config.transfer,
+        )
+        state = None
+        if resume and checkpoint_path.exists():
+            state = _load_state(checkpoint_path, resolved)
+            if state.done:  # finished before: only the derived files may be missing
+                _write_outputs(out_dir, config, setup, state)
+                return summarize(config, setup, state)
+            log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
+        else:
+            if config_text is not None:
+                atomic_write_text(out_dir / "config.toml", config_text)
+            atomic_write_text(out_dir / "config.json", json.dumps(resolved, indent=2) + "\n")
         if state is None:
             state = initial_state(setup, trainer, clock.start_s)
         data = _online_data(clock, inputs) if config.data_mode == "online" else None

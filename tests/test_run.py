@@ -199,6 +199,9 @@ def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
     assert plan is not None and summary["hyper"]["edge_interval"] == plan["edge_interval"]
     assert summary["hyper"]["pretrain_batch"] <= 10  # the run's vehicles hold 10 samples
     assert summary["cloud_rounds"] == plan["cloud_rounds"]
+    # the plan's timing is the run's: the constant clock's rate, the loop's compute model on the largest shard
+    assert plan["wireless_rate_bps"] == config.clock.constant_rate_bps
+    assert plan["epoch_time_s"] == pytest.approx(3 * config.federation.compute_s_per_sample)
     # a planned run resumes too: the plan is the same when made again
     with pytest.raises(Killed):
         run_federation_dir(config, read_inputs(config), tmp_path / "killed", trainer=SumTrainer(),
