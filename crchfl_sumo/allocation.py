@@ -86,6 +86,8 @@ class AllocationConfig:
         In a run (and in `plan --scenario` for the rate) these four come from the
         run itself, not from here: plan_timing.py.
     rate_window_s: simulated seconds of mobility over which the wireless rate is measured.
+    calibration_file: a `crchfl-sumo calibrate` output (path relative to the
+        current directory); its alpha, gamma and d replace the three above.
     solver: CVXPY solver for the continuous problem.
     """
 
@@ -103,6 +105,7 @@ class AllocationConfig:
     wireline_rate_bps: float = 1e9
     pretrain_time_per_sample_s: float = 0.05
     rate_window_s: float = 300.0
+    calibration_file: str | None = None
     solver: str = "CLARABEL"
 
     def __post_init__(self) -> None:
@@ -495,6 +498,27 @@ def format_plan(plan: Plan) -> str:
     return "\n".join(lines)
 
 
+def calibrated(config: AllocationConfig) -> AllocationConfig:
+    """``config`` with alpha, gamma, d from its ``calibration_file`` (unchanged without one)."""
+    if config.calibration_file is None:
+        return config
+    path = Path(config.calibration_file)
+    if not path.is_file():
+        raise CrchflError(
+            f"allocation.calibration_file: {path} not found; write it with `crchfl-sumo calibrate --out {path}` "
+            "or fix the path (relative to the current directory)"
+        )
+    table = read_toml(path).get("allocation", {})
+    missing = [key for key in ("alpha", "gamma", "d") if key not in table]
+    if missing:
+        raise CrchflError(
+            f"allocation.calibration_file: {path} has no {', '.join(missing)} in its [allocation] table; "
+            "point it at a file written by `crchfl-sumo calibrate`"
+        )
+    weights = from_mapping(AllocationConfig, {k: table[k] for k in ("alpha", "gamma", "d")}, f"{path}: allocation")
+    return dataclasses.replace(config, alpha=weights.alpha, gamma=weights.gamma, d=weights.d, calibration_file=None)
+
+
 def load_plan_configs(config_path: str | Path | None) -> tuple[AllocationConfig, LedgerConfig]:
     """Read the ``[allocation]`` and ``[ledger]`` tables of a TOML file (other tables are left to their owners)."""
     if config_path is None:
@@ -521,6 +545,7 @@ def plan_command(
     edge links over ``rate_window_s``, seeded by ``seed``) instead of read from the config.
     """
     allocation, ledger = load_plan_configs(config_path)
+    allocation = calibrated(allocation)
     if budget_gb is not None:
         ledger = dataclasses.replace(ledger, budget_gb=budget_gb)
     if fix_edge_interval is not None:

@@ -31,7 +31,7 @@ from typing import Any, Callable, Literal, Mapping
 import numpy as np
 import torch
 
-from .allocation import AllocationConfig, make_plan
+from .allocation import AllocationConfig, calibrated, make_plan
 from .atomic import atomic_path, atomic_write_text
 from .channel import ChannelConfig, WirelineConfig
 from .checkpoint import save_checkpoint
@@ -230,7 +230,7 @@ def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int, clock: Cl
     per_edge = tuple(sum(1 for v in inputs.vehicles if inputs.home_site[v] == i) for i in range(len(inputs.edges)))
     counts = {v: len(inputs.samples[v]) for v in inputs.vehicles}
     allocation = run_timing(
-        dataclasses.replace(config.allocation, vehicles_per_edge=per_edge, local_samples=sum(counts.values())),
+        dataclasses.replace(calibrated(config.allocation), vehicles_per_edge=per_edge, local_samples=sum(counts.values())),
         samples_per_vehicle=counts,
         compute_s_per_sample=fed.compute_s_per_sample,
         pretrain_epochs=fed.pretrain_epochs,

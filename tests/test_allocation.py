@@ -237,3 +237,31 @@ def test_plan_command_text_json_and_config(tmp_path):
 def test_format_plan_lists_stage_shares():
     text = format_plan(make_plan(PAPER_LIKE, LedgerConfig()))
     assert "7.7 %" in text and "cloud_rounds    9" in text
+
+
+def test_calibration_file_supplies_the_weights(tmp_path):
+    from crchfl_sumo.allocation import calibrated
+    from crchfl_sumo.calibration import Fit, calibration_toml
+
+    # the file exactly as `calibrate` writes it (the record's values do not matter here)
+    data = {"metric": "loss", "local_samples": 10, "test_samples": 4, "epochs": 2, "reference_samples": [4, 10],
+            "reference_scores": [-2.0, -1.0], "pretrain_samples": [2], "pretrain_scores": [-1.5],
+            "hfl": [{"edge_interval": 2, "cloud_interval": 1, "cloud_rounds": 1, "score": -1.2}]}
+    fit = Fit(0.4, 0.3, 2.5, (1.0, 2.0, 0.5), 0.0, 0.0, 0.0)
+    path = tmp_path / "calibration.toml"
+    path.write_text(calibration_toml(fit, data, {"pretrain_effective": [1.0], "hfl_effective": [2.0]}, 0, "paper"))
+    config = calibrated(dataclasses.replace(PAPER_LIKE, calibration_file=str(path)))
+    assert (config.alpha, config.gamma, config.d) == (0.4, 0.3, 2.5)
+    assert config.epoch_time_s == PAPER_LIKE.epoch_time_s and config.calibration_file is None
+    assert calibrated(PAPER_LIKE) is PAPER_LIKE
+    # plan reads it from a config file's [allocation] table
+    cfg = tmp_path / "plan.toml"
+    cfg.write_text(f'[allocation]\ncalibration_file = "{path}"\n')
+    assert plan_command(config_path=cfg, as_json=True)["objective"] == pytest.approx(
+        make_plan(calibrated(AllocationConfig(calibration_file=str(path))), LedgerConfig()).objective
+    )
+    with pytest.raises(CrchflError, match="allocation.calibration_file: .* not found"):
+        calibrated(AllocationConfig(calibration_file=str(tmp_path / "missing.toml")))
+    (tmp_path / "partial.toml").write_text("[allocation]\nalpha = 0.5\n")
+    with pytest.raises(CrchflError, match="no gamma, d"):
+        calibrated(AllocationConfig(calibration_file=str(tmp_path / "partial.toml")))

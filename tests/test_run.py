@@ -300,3 +300,16 @@ def test_online_mode_grows_the_vehicles_data_and_resumes_exactly(tmp_path):
         run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(2))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
     assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+
+
+def test_a_planned_run_reads_the_calibration_file(tmp_path, dataset):
+    calibration = tmp_path / "calibration.toml"
+    calibration.write_text("[allocation]\nalpha = 0.0\ngamma = 0.5\nd = 1.0\n")  # uploaded samples worth nothing
+    config = from_mapping(RunConfig, {**_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+                                      "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0},
+                                      "allocation": {"calibration_file": str(calibration)}})
+    run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())
+    plan = json.loads((tmp_path / "out" / "config.json").read_text())["plan"]
+    # objective = alpha x + gamma s (T - d / (I_e I_c)) with the file's weights and the run's s = 10 samples
+    t, ie, ic = plan["cloud_rounds"], plan["edge_interval"], plan["cloud_interval"]
+    assert plan["objective"] == pytest.approx(0.5 * 10 * (t - 1.0 / (ie * ic)))
