@@ -6,7 +6,8 @@
 Reads crchfl_sumo/scenarios/town01/town01.{nod,edg}.xml,
 town02/town02.{nod,edg}.xml and street.typ.xml, and writes, for each of the
 scenarios town01, town02, paper (both towns in one network, no road between
-them) and paper_linked (the same plus a two-way road from Town01 to Town02):
+them), paper_linked (the same plus a two-way road from Town01 to Town02) and
+scale200 (four copies of Town01 with 200 data vehicles and eight edge sites):
 
     <name>.net.xml      netconvert's network
     vtypes.add.xml      vehicle types
@@ -24,6 +25,7 @@ come from the eclipse-sumo package (sumo.SUMO_HOME), else from PATH.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import re
@@ -33,6 +35,7 @@ import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import sumolib
 
@@ -359,8 +362,12 @@ def expand_splits(nodes: list[str], town: Town) -> list[str]:
     return out
 
 
-def ego_routes_xml(net: sumolib.net.Net, loops: dict[str, list[str]]) -> str:
-    """Named vehicles, each on its own loop route repeated for EGO_DRIVE_S at the limit."""
+def ego_routes_xml(net: sumolib.net.Net, loops: dict[str, list[str]],
+                   depart_pos_m: dict[str, float] | None = None) -> str:
+    """Named vehicles, each on its own loop route repeated for EGO_DRIVE_S at the limit.
+
+    depart_pos_m: where on its first edge a vehicle starts [m] (SUMO's default: its start).
+    """
     lines = ['<?xml version="1.0" encoding="UTF-8"?>', "<!-- Written by tools/build_nets.py. -->", "<routes>"]
     for vid, nodes in loops.items():
         edges = loop_edges(net, nodes)
@@ -368,7 +375,8 @@ def ego_routes_xml(net: sumolib.net.Net, loops: dict[str, list[str]]) -> str:
         repeat = math.ceil(EGO_DRIVE_S * SPEED_LIMIT_MPS / length_m)
         lines.append(f'    <route id="{vid}_loop" edges="{" ".join(edges)}" repeat="{repeat}"/>')
     for vid in loops:
-        lines.append(f'    <vehicle id="{vid}" type="ego" route="{vid}_loop" depart="0.00" departSpeed="0"/>')
+        pos = "" if depart_pos_m is None else f' departPos="{depart_pos_m[vid]:.2f}"'
+        lines.append(f'    <vehicle id="{vid}" type="ego" route="{vid}_loop" depart="0.00"{pos} departSpeed="0"/>')
     lines.append("</routes>")
     return "\n".join(lines) + "\n"
 
@@ -462,7 +470,13 @@ def bbox_m(net: sumolib.net.Net, prefix: str | None) -> tuple[float, float, floa
     return min(xs), min(ys), max(xs), max(ys)
 
 
-def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: list[TownEntry], prefixed: bool) -> str:
+def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: list[TownEntry], prefixed: bool,
+                  site_fractions: dict[str, tuple[tuple[str, float, float], ...]] | None = None) -> str:
+    """scenario.toml: edge sites and towns.
+
+    site_fractions: per town, (name suffix, x, y) of each of its sites as
+    fractions of the town's box; default: one site at the town's centre.
+    """
     def qlist(items: list[str]) -> str:
         return "[" + ", ".join(f'"{i}"' for i in items) + "]"
 
@@ -474,8 +488,11 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
     boxes = [bbox_m(net, e.town.prefix if prefixed else None) for e in entries]
     for entry, box in zip(entries, boxes):
         # The paper's names: Edge01 serves Town01, Edge02 Town02.
-        lines += ["", "[[edge_sites]]", f'name = "edge{entry.town.name.removeprefix("town")}"',
-                  f"x_m = {(box[0] + box[2]) / 2:.2f}", f"y_m = {(box[1] + box[3]) / 2:.2f}", "height_m = 10.0"]
+        site = f'edge{entry.town.name.removeprefix("town")}'
+        for suffix, fx, fy in (site_fractions or {}).get(entry.town.name, (("", 0.5, 0.5),)):
+            lines += ["", "[[edge_sites]]", f'name = "{site}{suffix}"',
+                      f"x_m = {box[0] + fx * (box[2] - box[0]):.2f}", f"y_m = {box[1] + fy * (box[3] - box[1]):.2f}",
+                      "height_m = 10.0"]
     for entry, box in zip(entries, boxes):
         lines += ["", "[[towns]]", f'name = "{entry.town.name}"',
                   f"xmin_m = {box[0]:.2f}", f"ymin_m = {box[1]:.2f}", f"xmax_m = {box[2]:.2f}", f"ymax_m = {box[3]:.2f}",
@@ -483,11 +500,147 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
     return "\n".join(lines) + "\n"
 
 
+# ---------------------------------------------------------------- scale200
+
+# scale200: 200 data vehicles, the federated clients of one run. One Town01
+# holds about 80 vehicles before its short northern blocks lock up (measured:
+# 80 + 1 drove 30 min without a teleport, 100 + 1 did not), so the scenario
+# holds four copies of Town01 (2 x 2, 205.6 m apart as paper's towns, no
+# roads between them), each with 50 data vehicles, its test vehicle and 10
+# background vehicles: about 83 m of lane per vehicle.
+SCALE_NAME = "scale200"
+# (town name, id prefix, x offset, y offset [m])
+SCALE_COPIES = (("town01a", "t1a", 0.0, 0.0), ("town01b", "t1b", 600.0, 0.0),
+                ("town01c", "t1c", 0.0, 534.2), ("town01d", "t1d", 600.0, 534.2))
+SCALE_DATA_PER_TOWN = 50
+SCALE_BACKGROUND_PER_TOWN = 10  # the first 10 of Town01's background trips
+# Two edge sites per town, at the centres of its west and east halves ((name
+# suffix, x, y) as fractions of the town's box): the clients spread over 8
+# cells and hand over between the halves.
+SCALE_SITES = (("_w", 0.25, 0.5), ("_e", 0.75, 0.5))
+START_GAP_M = 12.0  # named vehicles start at least this far apart on an edge (5 m car, 2.5 m gap, slack)
+START_MIN_POS_M = 6.0  # and at least one car length from the edge's start
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0  # start offsets i * GOLDEN (mod 1) spread evenly along a loop
+
+
+def scale_towns() -> list[Town]:
+    """The four Town01 copies of scale200, each with its data and test vehicles."""
+    return [dataclasses.replace(TOWN01, name=name, prefix=prefix, loops={},
+                                data_vehicles=[f"{prefix}_data_{i:02d}" for i in range(SCALE_DATA_PER_TOWN)],
+                                test_vehicles=[f"{prefix}_test_0"])
+            for name, prefix, _, _ in SCALE_COPIES]
+
+
+def simple_cycles(plain: Plain) -> list[list[str]]:
+    """Every simple cycle of three or more nodes of a two-way road graph, in both
+    directions, as closed node lists starting at their smallest node id; sorted."""
+    adjacent: dict[str, set[str]] = {n.get("id"): set() for n in plain.nodes}
+    for edge in plain.edges:
+        adjacent[edge.get("from")].add(edge.get("to"))
+    found = []
+
+    def walk(path: list[str]) -> None:
+        for nxt in sorted(adjacent[path[-1]]):
+            if nxt == path[0] and len(path) >= 3:
+                found.append(path + [nxt])
+            elif nxt > path[0] and nxt not in path:
+                walk(path + [nxt])
+
+    for start in sorted(adjacent):
+        walk([start])
+    return sorted(found, key=lambda c: (len(c), c))
+
+
+def signal_turns(net: sumolib.net.Net, edges: list[str]) -> set[str]:
+    """Turn directions ('l', 'r', 's') a closed loop of edges takes at signalised junctions."""
+    out = set()
+    for a, b in zip(edges, edges[1:] + edges[:1]):
+        if net.getEdge(a).getToNode().getType() == "traffic_light":
+            (conn,) = net.getEdge(a).getConnections(net.getEdge(b))
+            out.add(conn.getDirection())
+    return out
+
+
+def town_loops(net: sumolib.net.Net, prefix: str, plain: Plain) -> list[list[str]]:
+    """The town's simple loops (node ids prefixed) that turn both left and right at signals."""
+    loops = []
+    for nodes in simple_cycles(plain):
+        nodes = [f"{prefix}_{n}" for n in nodes]
+        if {"l", "r"} <= signal_turns(net, loop_edges(net, nodes)):
+            loops.append(nodes)
+    return loops
+
+
+def evenly(items: list, n: int) -> list:
+    """n items spread evenly over the list (each about n / len(items) times when n is larger)."""
+    return [items[i * len(items) // n] for i in range(n)]
+
+
+def started_at(loop: list[str], start: int) -> list[str]:
+    """A closed node list rotated to start at its node `start` (index into the open list)."""
+    body = loop[:-1]
+    return body[start:] + body[:start] + [body[start]]
+
+
+def start_on_loop(net: sumolib.net.Net, loop: list[str], fraction: float,
+                  occupied: dict[str, list[float]]) -> tuple[list[str], float]:
+    """Where a vehicle starts on a closed loop: the first free point at or after
+    `fraction` of the loop's length.
+
+    Returns the loop rotated to start with that point's edge and the position
+    on it [m]; `occupied` (edge -> start positions) receives it.
+    """
+    edges = loop_edges(net, loop)
+    lengths = [net.getEdge(e).getLength() for e in edges]
+    total_m = sum(lengths)
+    offset_m = fraction * total_m
+    for _ in range(math.ceil(total_m)):
+        k, pos = 0, offset_m % total_m
+        while pos > lengths[k]:
+            pos -= lengths[k]
+            k += 1
+        if (START_MIN_POS_M <= pos <= lengths[k] - 1.0
+                and all(abs(pos - other) >= START_GAP_M for other in occupied.get(edges[k], []))):
+            occupied.setdefault(edges[k], []).append(pos)
+            return started_at(loop, k), pos
+        offset_m += 1.0
+    raise ValueError(f"no free start on the loop {loop}")
+
+
+def copied_trips(trips: list[ET.Element], prefix: str) -> list[ET.Element]:
+    """Town01 trips (ids t01_bg_N) moved into the copy whose ids start with `prefix`_."""
+    out = mapped_trips(trips, lambda edge, _: f"{prefix}_{edge}", prefix)
+    for trip in out:
+        trip.set("id", f"{prefix}_{trip.get('id').removeprefix(TOWN01.prefix + '_')}")
+    return out
+
+
+def scale_routes_xml(net: sumolib.net.Net, plain: Plain, towns: list[Town]) -> str:
+    """scale200's named vehicles, all starting at once: in each town its test
+    vehicle on Town01's test loop, and each data vehicle on one of the town's
+    loops, spread along it (start offsets by the golden ratio)."""
+    routes: dict[str, list[str]] = {}
+    depart_pos_m: dict[str, float] = {}
+    occupied: dict[str, list[float]] = {}
+    i = 0  # vehicle number across towns: its start offset
+    for town in towns:
+        (vid,) = town.test_vehicles
+        test_loop = [f"{town.prefix}_{n}" for n in TOWN01.loops["t01_test_0"]]
+        routes[vid], depart_pos_m[vid] = start_on_loop(net, test_loop, 0.0, occupied)
+        loops = evenly(town_loops(net, town.prefix, plain), len(town.data_vehicles))
+        for vid, loop in zip(town.data_vehicles, loops):
+            routes[vid], depart_pos_m[vid] = start_on_loop(net, loop, (i * GOLDEN) % 1.0, occupied)
+            i += 1
+    return ego_routes_xml(net, routes, depart_pos_m)
+
+
 # ---------------------------------------------------------------- scenarios
 
 
-def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, list[str]],
-                   trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path, out_root: Path) -> None:
+def build_scenario(name: str, description: str, plain: Plain, named_routes: Callable[[sumolib.net.Net], str],
+                   trips: list[ET.Element], entries: list[TownEntry], prefixed: bool, work: Path, out_root: Path,
+                   site_fractions: dict[str, tuple[tuple[str, float, float], ...]] | None = None) -> None:
+    """Build one scenario folder; named_routes(net) gives the named vehicles' route file."""
     folder = out_root / name
     folder.mkdir(parents=True, exist_ok=True)
     nod, edg = write_plain(with_corner_shapes(plain, lane_width_m()), work, name)
@@ -498,7 +651,7 @@ def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, l
     vtypes = folder / "vtypes.add.xml"
     write_text(vtypes, VTYPES_XML)
     ego_tmp = work / f"{name}.ego.rou.xml"
-    ego_tmp.write_text(ego_routes_xml(net, loops), encoding="utf-8")
+    ego_tmp.write_text(named_routes(net), encoding="utf-8")
     bg_tmp = work / f"{name}.bg.rou.xml"
     duarouter(net_tmp, trips, vtypes, bg_tmp, work)
     check_background_lengths(net_tmp, bg_tmp)
@@ -510,7 +663,7 @@ def build_scenario(name: str, description: str, plain: Plain, loops: dict[str, l
     replace_into(bg_tmp, folder / f"{name}.bg.rou.xml",
                  f"Written by tools/build_nets.py: randomTrips.py with seed {SEED}, then duarouter")
     write_text(folder / f"{name}.sumocfg", sumocfg_xml(name))
-    write_text(folder / "scenario.toml", scenario_toml(description, name, net, entries, prefixed))
+    write_text(folder / "scenario.toml", scenario_toml(description, name, net, entries, prefixed, site_fractions))
 
 
 def build_all(out_root: Path = SCENARIOS_DIR) -> None:
@@ -530,7 +683,8 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
             trips[town.name] = town_trips(town, net_file, vtypes, work)
             entry = TownEntry(town, 0.0, 0.0, town.data_vehicles, town.test_vehicles)
             build_scenario(town.name, f"CARLA {town.name.capitalize()} modelled in SUMO, one edge server at its centre",
-                           plains[town.name], town.loops, trips[town.name], [entry], prefixed=False, work=work, out_root=out_root)
+                           plains[town.name], lambda net, loops=town.loops: ego_routes_xml(net, loops), trips[town.name],
+                           [entry], prefixed=False, work=work, out_root=out_root)
 
         def prefixed_loops(town: Town, linked: bool) -> dict[str, list[str]]:
             out = {}
@@ -567,7 +721,17 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
             else:
                 description = "Town01 and Town02 side by side in one network, no road between them"
             entries = [TownEntry(t, *PAPER_OFFSETS_M[t.name], data[t.name], t.test_vehicles) for t in towns]
-            build_scenario(name, description, plain, loops, all_trips, entries, prefixed=True, work=work, out_root=out_root)
+            build_scenario(name, description, plain, lambda net, loops=loops: ego_routes_xml(net, loops), all_trips,
+                           entries, prefixed=True, work=work, out_root=out_root)
+
+        towns01 = scale_towns()
+        copies = [placed(plains["town01"], t.prefix, dx, dy) for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
+        copy_trips = [trip for t in towns01 for trip in copied_trips(trips["town01"][:SCALE_BACKGROUND_PER_TOWN], t.prefix)]
+        entries = [TownEntry(t, dx, dy, t.data_vehicles, t.test_vehicles) for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
+        build_scenario(SCALE_NAME, "Four copies of Town01, 200 data vehicles (federated clients), eight edge sites",
+                       merged(*copies), lambda net: scale_routes_xml(net, plains["town01"], towns01), copy_trips, entries,
+                       prefixed=True, work=work, out_root=out_root,
+                       site_fractions={t.name: SCALE_SITES for t in towns01})
 
 
 def main(argv: list[str] | None = None) -> None:
