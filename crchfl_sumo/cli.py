@@ -292,6 +292,14 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="run config TOML, or a built-in: crchfl, hfl, sfl")
     p.add_argument("--out", type=Path, required=True, help="results folder")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    _backend_arguments(p)
+
+
+def _backend_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", choices=("local", "ray"), default=None,
+                   help="where training runs: in this process (local) or as Ray tasks; overrides [backend] kind")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster to join: 'auto' (this machine's) or HOST:PORT; default: start a local Ray runtime")
 
 
 def _run_run(args) -> int:
@@ -303,7 +311,7 @@ def _run_run(args) -> int:
             bar.update(1)
             bar.set_postfix(progress_postfix(info))  # round, bytes used / budget, loss, accuracy
 
-        summary = run_command(args.config, args.out, args.resume, progress)
+        summary = run_command(args.config, args.out, args.resume, progress, args.backend, args.address)
     print(json.dumps(summary, indent=2))
     return 0
 

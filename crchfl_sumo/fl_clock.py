@@ -67,6 +67,11 @@ class Clock(Protocol):
         """Samples of ``vehicle``'s link: the first at or before ``from_s``, the last at or after ``to_s``."""
         ...
 
+    def handovers(self, until_s: float) -> int:
+        """Changes of serving site (site to site, not to or from no coverage) of the federated vehicles
+        on the run's link (edge; SFL: macro) up to ``until_s``."""
+        ...
+
 
 # ------------------------------------------------------------------ scripted
 
@@ -127,6 +132,13 @@ class ScriptedClock:
         site = np.array([seg.site for seg in segments], dtype=np.int64)[index]
         return LinkSeries(t, np.where(site >= 0, rate, 0.0), site)
 
+    def handovers(self, until_s: float) -> int:
+        count = 0
+        for segments in self._tracks["edge"].values():
+            sites = [s.site for s in segments if s.t_s <= until_s + _EPS_S]
+            count += sum(1 for a, b in zip(sites, sites[1:]) if a != b and a != NO_SITE and b != NO_SITE)
+        return count
+
 
 # ------------------------------------------------------------------ SUMO
 
@@ -156,7 +168,7 @@ class SumoClock:
         self.scenario = scenario
         self.vehicles = tuple(vehicles)
         self.step_s = scenario.step_length_s
-        self._sim = Simulation(scenario, seed=seed, watch=())
+        self._sim = Simulation(scenario, seed=seed, watch=(), keep_demand=self.vehicles)
         # Separate seeds per link kind, so adding the macro link leaves the edge link unchanged.
         seeds = np.random.SeedSequence([seed, 7919]).spawn(2)
         self._links: dict[str, LinkModel] = {}
@@ -170,6 +182,7 @@ class SumoClock:
         self._t: list[float] = []
         self._rate = {k: {v: [] for v in self.vehicles} for k in self._links}
         self._site = {k: {v: [] for v in self.vehicles} for k in self._links}
+        self._handover_t: dict[str, list[float]] = {k: [] for k in self._links}  # site-to-site changes
         self.start_s = 0.0
 
     def __enter__(self) -> "SumoClock":
@@ -195,11 +208,20 @@ class SumoClock:
         self._t.append(float(frame.t_s))
         for kind, links in self._links.items():
             snapshot = links.step(mine)
+            self._handover_t[kind].extend(
+                h.t_s for h in snapshot.handovers if h.from_site != NO_SITE and h.to_site != NO_SITE
+            )
             rows = {str(v): i for i, v in enumerate(snapshot.ids)}
             for v in self.vehicles:
                 i = rows.get(v)
                 self._rate[kind][v].append(0.0 if i is None else float(snapshot.rate_bps[i]))
                 self._site[kind][v].append(NO_SITE if i is None else int(snapshot.site[i]))
+
+    def handovers(self, until_s: float) -> int:
+        while self._t[-1] < until_s - _EPS_S:
+            self._advance()
+        kind = "edge" if "edge" in self._links else "macro"
+        return sum(1 for t in self._handover_t[kind] if t <= until_s + _EPS_S)
 
     def collected(self, vehicle: str, t_s: float):
         """The online collector's labelled samples of ``vehicle`` at ``t_s`` (None if none)."""

@@ -33,6 +33,7 @@ import torch
 
 from .allocation import AllocationConfig, calibrated, make_plan
 from .atomic import atomic_path, atomic_write_text
+from .backend import BackendConfig, Executor
 from .channel import ChannelConfig, WirelineConfig
 from .checkpoint import save_checkpoint
 from .config import from_mapping, read_toml, to_mapping
@@ -48,12 +49,21 @@ from .federation import (
 )
 from .fl_clock import Clock, ScriptedClock
 from .ledger import Ledger, LedgerConfig, resolve_sizes
-from .local import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicles
+from .local import (
+    TrainConfig,
+    configure_determinism,
+    evaluate,
+    resolve_device,
+    train_vehicle,
+    train_vehicles,
+    vehicle_seed,
+)
 from .mobility import MacroLinkConfig, MobilityConfig
 from .model import DrivingModel, ModelConfig, build_model, state_size_bytes
 from .online import OnlineConfig
 from .plan_timing import measured_rates_bps, run_timing
 from .samples import Samples
+from .scenario import SumoConfig
 from .transfer import TransferConfig
 
 log = logging.getLogger(__name__)
@@ -114,6 +124,8 @@ class RunConfig:
     sfl_link: MacroLinkConfig = field(default_factory=MacroLinkConfig)
     transfer: TransferConfig = field(default_factory=TransferConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
+    sumo: SumoConfig = field(default_factory=SumoConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
 
     def __post_init__(self) -> None:
         if self.data_mode not in ("fixed", "online"):
@@ -123,6 +135,19 @@ class RunConfig:
                 "data_mode = 'online' collects samples from the SUMO run; set [clock] kind = \"sumo\" "
                 "or data_mode = \"fixed\""
             )
+        if self.clock.kind != "sumo" and self.sumo != SumoConfig():
+            raise CrchflError("[sumo] changes the SUMO run; set [clock] kind = \"sumo\" or remove the [sumo] table")
+        if self.backend.kind == "ray":
+            if self.train.multi_vehicle == "vmap":
+                raise CrchflError(
+                    "train.multi_vehicle = 'vmap' trains every vehicle in one process; the ray backend trains each "
+                    "vehicle as its own task: set multi_vehicle = \"sequential\" or backend kind \"local\""
+                )
+            if self.train.device == "cuda":
+                raise CrchflError(
+                    "train.device = 'cuda': Ray tasks ask for CPUs only (GPU tasks are not built); "
+                    "use device \"cpu\" or \"auto\", or backend kind \"local\""
+                )
 
 
 def load_run_config(path: str | Path) -> RunConfig:
@@ -153,6 +178,65 @@ class TorchTrainer:
         self._eval_model.load_state_dict(state)
         metrics = evaluate(self._eval_model, self.test, self.config)
         return metrics.loss, metrics.accuracy
+
+
+class RayTrainer(TorchTrainer):
+    """TorchTrainer whose vehicles train, and whose models are evaluated, as tasks of ``executor``.
+
+    Vehicle i of a call trains alone with ``vehicle_seed(seed, i)``, exactly as
+    ``train_vehicles`` trains it sequentially, and every task uses the driver's
+    number of torch threads, so the results are bit-identical to the local
+    backend's. Samples and the test set go to the object store once.
+    """
+
+    def __init__(self, model_config, config, test, seed, executor: Executor) -> None:
+        super().__init__(model_config, dataclasses.replace(config, device="cpu"), test, seed)
+        self.executor = executor
+        self.threads = torch.get_num_threads()
+        self._test_ref = executor.put(test)
+        self._sample_refs: dict[int, tuple[Samples, Any]] = {}  # id -> (the object, kept alive; its handle)
+
+    def _samples_ref(self, samples: Samples, refs: dict) -> Any:
+        key = id(samples)
+        if key not in refs:
+            known = self._sample_refs.get(key)
+            refs[key] = known if known is not None else (samples, self.executor.put(samples))
+        return refs[key][1]
+
+    def train(self, states, samples, epochs, seed):
+        refs: dict[int, tuple[Samples, Any]] = {}
+        args = [
+            (state, self._samples_ref(x, refs), epochs, self.model_config, self.config, vehicle_seed(seed, i), self.threads)
+            for i, (state, x) in enumerate(zip(states, samples))
+        ]
+        self._sample_refs = refs  # handles of samples no longer trained on are released
+        return self.executor.map(train_vehicle_task, args)
+
+    def evaluate(self, state) -> tuple[float, float]:
+        args = (state, self._test_ref, self.model_config, self.config, self.threads)
+        return self.executor.map(evaluate_task, [args])[0]
+
+
+def train_vehicle_task(state, samples, epochs, model_config, config, seed, threads):
+    """One vehicle's local training (a backend task): its new state."""
+    torch.set_num_threads(threads)
+    return train_vehicle(state, samples, epochs, model_config, config, seed)[0]
+
+
+def evaluate_task(state, test, model_config, config, threads) -> tuple[float, float]:
+    """(Loss, Accuracy) of ``state`` on the test set (a backend task)."""
+    torch.set_num_threads(threads)
+    configure_determinism(config.deterministic)
+    model = DrivingModel(model_config)
+    model.load_state_dict(state)
+    metrics = evaluate(model, test, config)
+    return metrics.loss, metrics.accuracy
+
+
+def make_trainer(config: RunConfig, inputs: Inputs, executor: Executor):
+    """The run's Trainer: in this process (local backend) or as tasks (ray)."""
+    args = (config.model, config.train, inputs.test, config.federation.seed)
+    return RayTrainer(*args, executor) if executor.is_ray else TorchTrainer(*args)
 
 
 # ------------------------------------------------------------------ inputs
@@ -193,9 +277,9 @@ def read_inputs(config: RunConfig) -> Inputs:
     shards = {s.vehicle: s for s in manifest.select("train")}
     vehicles = tuple(shards)
     if config.clock.kind == "sumo":
-        from .scenario import load_scenario
+        from .scenario import configured_scenario
 
-        scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
+        scenario = configured_scenario(config.scenario, config.sumo, config.mobility.coverage_radius_m)
         edges = tuple(site.name for site in scenario.edge_sites)
         named = {v for town in scenario.towns for v in town.data_vehicles}
         unknown = sorted(set(vehicles) - named)
@@ -207,7 +291,11 @@ def read_inputs(config: RunConfig) -> Inputs:
     else:
         edges = tuple(dict.fromkeys(s.edge for s in shards.values()))
     home = {}
+    if config.clock.kind == "sumo" and config.sumo.replaces_sites:
+        home = nearest_sites(root, manifest, scenario.edge_sites)
     for v, shard in shards.items():
+        if v in home:
+            continue
         if shard.edge not in edges:
             raise CrchflError(
                 f"{root}: vehicle {v} was recorded at edge {shard.edge!r}, which scenario {config.scenario!r} "
@@ -216,6 +304,19 @@ def read_inputs(config: RunConfig) -> Inputs:
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
     return Inputs(vehicles, samples, test, edges, home, measured, root)
+
+
+def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:
+    """Each vehicle's home: the site nearest its first recorded sample (the run's sites are not the data set's)."""
+    from .dataset_io import read_shard
+
+    xy = np.array([(site.x_m, site.y_m) for site in sites])
+    home = {}
+    for shard in manifest.select("train"):
+        data = read_shard(root, shard, verify=False, images=False)
+        first = int(np.argmin(data.t_s))
+        home[shard.vehicle] = int(np.argmin(np.hypot(xy[:, 0] - data.x_m[first], xy[:, 1] - data.y_m[first])))
+    return home
 
 
 def resolve_hyper(config: RunConfig, inputs: Inputs, model_bytes: int, clock: Clock) -> tuple[Hyper, dict | None]:
@@ -256,9 +357,9 @@ def make_clock(config: RunConfig, inputs: Inputs):
         )
         return _NoContext(clock)
     from .fl_clock import SumoClock
-    from .scenario import load_scenario
+    from .scenario import configured_scenario
 
-    scenario = load_scenario(config.scenario, None, config.mobility.coverage_radius_m)
+    scenario = configured_scenario(config.scenario, config.sumo, config.mobility.coverage_radius_m)
     kinds = ("edge",) if config.federation.hierarchical else ("macro",)
     collector = online_collector(config, inputs, scenario) if config.data_mode == "online" else None
     return SumoClock(
@@ -334,23 +435,36 @@ def run_federation_dir(
 ) -> dict:
     """Run (or resume) the federation of ``config`` on ``inputs`` into ``out_dir``; returns the summary.
 
-    ``trainer`` defaults to TorchTrainer, ``clock_factory`` to ``make_clock``
-    (both injectable for tests). ``after_checkpoint`` is called right after
-    each checkpoint is written, before the other files are (tests kill a run there).
+    ``trainer`` defaults to the one of ``config.backend`` (make_trainer),
+    ``clock_factory`` to ``make_clock`` (both injectable for tests).
+    ``after_checkpoint`` is called right after each checkpoint is written,
+    before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
     checkpoint_path = out_dir / "checkpoint.pt"
     if checkpoint_path.exists() and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
+    if trainer is None:
+        with Executor(config.backend) as executor:
+            return run_federation_dir(
+                config,
+                inputs,
+                out_dir,
+                resume=resume,
+                config_text=config_text,
+                trainer=make_trainer(config, inputs, executor),
+                clock_factory=clock_factory,
+                progress=progress,
+                after_checkpoint=after_checkpoint,
+            )
     out_dir.mkdir(parents=True, exist_ok=True)
     fed = config.federation
-    trainer = trainer or TorchTrainer(config.model, config.train, inputs.test, fed.seed)
     first = trainer.initial_state()
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
         resolved = {
-            "config": to_mapping(config),
+            "config": resolved_config(config),
             "hyper": dataclasses.asdict(hyper),
             "plan": plan,
             "sizes": dataclasses.asdict(sizes),
@@ -374,8 +488,8 @@ def run_federation_dir(
         if resume and checkpoint_path.exists():
             state = _load_state(checkpoint_path, resolved)
             if state.done:  # finished before: only the derived files may be missing
-                _write_outputs(out_dir, config, setup, state)
-                return summarize(config, setup, state)
+                _write_outputs(out_dir, config, setup, state, _handovers(clock, state))
+                return summarize(config, setup, state, _handovers(clock, state))
             log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
         else:
             if config_text is not None:
@@ -390,12 +504,27 @@ def run_federation_dir(
             _save_state(checkpoint_path, resolved, new)
             if after_checkpoint is not None:
                 after_checkpoint(new)
-            _write_outputs(out_dir, config, setup, new)
+            _write_outputs(out_dir, config, setup, new, _handovers(clock, new))
             if progress is not None:
                 progress(progress_info(new, sizes.budget_bytes, hyper))
 
         state = federation.run(state, on_step)
-    return summarize(config, setup, state)
+        return summarize(config, setup, state, _handovers(clock, state))
+
+
+def resolved_config(config: RunConfig) -> dict:
+    """The settings a run's results depend on: all but [backend] (where it runs), and [sumo] only when set."""
+    mapping = to_mapping(config)
+    del mapping["backend"]
+    if config.sumo == SumoConfig():
+        del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
+    return mapping
+
+
+def _handovers(clock, state: FederationState) -> int | None:
+    """The clock's handovers up to the run's latest simulated time (None for a clock that does not count them)."""
+    count = getattr(clock, "handovers", None)
+    return None if count is None else count(sim_time_s(state))
 
 
 def _online_data(clock, inputs: Inputs) -> Callable[[str, float], Samples]:
@@ -437,7 +566,7 @@ def progress_postfix(info: dict) -> dict[str, str]:
     }
 
 
-def summarize(config: RunConfig, setup: Setup, state: FederationState) -> dict:
+def summarize(config: RunConfig, setup: Setup, state: FederationState, handovers: int | None = None) -> dict:
     ledger = Ledger(setup.sizes, state.records)
     cloud_lines = [m for m in state.metrics if m["stage"] in ("I", "III")]
     final = cloud_lines[-1] if cloud_lines else None
@@ -460,6 +589,7 @@ def summarize(config: RunConfig, setup: Setup, state: FederationState) -> dict:
         "final_loss": None if final is None else final["loss"],
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
+        "handovers": handovers,
         "stop_reason": state.stop_reason,
         "hyper": dataclasses.asdict(setup.hyper),
         "vehicles": list(setup.vehicles),
@@ -489,7 +619,9 @@ def _load_state(path: Path, resolved: dict) -> FederationState:
     return FederationState.from_payload(payload["state"])
 
 
-def _write_outputs(out_dir: Path, config: RunConfig, setup: Setup, state: FederationState) -> None:
+def _write_outputs(
+    out_dir: Path, config: RunConfig, setup: Setup, state: FederationState, handovers: int | None = None
+) -> None:
     atomic_write_text(out_dir / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in state.metrics))
     atomic_write_text(out_dir / "stragglers.jsonl", "".join(json.dumps(s) + "\n" for s in state.stragglers))
     Ledger(setup.sizes, state.records).save(out_dir / "ledger.jsonl")
@@ -497,7 +629,8 @@ def _write_outputs(out_dir: Path, config: RunConfig, setup: Setup, state: Federa
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:
         save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})
-    atomic_write_text(out_dir / "summary.json", json.dumps(summarize(config, setup, state), indent=2) + "\n")
+    summary = summarize(config, setup, state, handovers)
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
 
 
 def run_command(
@@ -505,20 +638,41 @@ def run_command(
     out_dir: str | Path,
     resume: bool = False,
     progress: Progress | None = None,
+    backend: str | None = None,
+    address: str | None = None,
 ) -> dict:
-    """What `crchfl-sumo run CONFIG --out DIR [--resume]` does; returns the summary.
+    """What `crchfl-sumo run CONFIG --out DIR [--resume] [--backend B] [--address A]` does; returns the summary.
 
     CONFIG is a TOML file or the name of a built-in experiment (crchfl, hfl, sfl).
     """
-    config_path = Path(config_path)
-    builtins = builtin_experiments()
-    if not config_path.is_file() and str(config_path) in builtins:
-        config_path = builtins[str(config_path)]
-    config = load_run_config(config_path)
+    config_path = resolve_config_path(config_path)
+    config = with_backend(load_run_config(config_path), backend, address)
     inputs = read_inputs(config)
     return run_federation_dir(
         config, inputs, out_dir, resume=resume, config_text=config_path.read_text(encoding="utf-8"), progress=progress
     )
+
+
+def resolve_config_path(config_path: str | Path) -> Path:
+    """A run config file, or the file of a built-in experiment name."""
+    config_path = Path(config_path)
+    builtins = builtin_experiments()
+    if not config_path.is_file() and str(config_path) in builtins:
+        return builtins[str(config_path)]
+    return config_path
+
+
+def with_backend(config: RunConfig, kind: str | None, address: str | None) -> RunConfig:
+    """``config`` with the command line's --backend / --address in place of its [backend] table."""
+    if kind is None and address is None:
+        return config
+    kind = kind or config.backend.kind
+    if address is not None and kind != "ray":
+        raise CrchflError(f"--address {address}: joining a cluster needs --backend ray")
+    if kind == "local":
+        address = ""  # the config's cluster address means nothing without Ray
+    backend = dataclasses.replace(config.backend, kind=kind, address=config.backend.address if address is None else address)
+    return dataclasses.replace(config, backend=backend)
 
 
 BUILTIN_RUNS = ("crchfl", "hfl", "sfl")

@@ -11,6 +11,7 @@ What remains becomes command-line options for sumo/libsumo.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -25,7 +26,7 @@ import numpy as np
 
 from .config import from_mapping, read_toml
 from .errors import CrchflError
-from .sites import EdgeSite, place_edge_sites
+from .sites import EdgeSite, _farthest_point_init, _kmeans, place_edge_sites
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,8 @@ class Scenario:
     towns: tuple[Town, ...]
     description: str = ""
     dropped_options: tuple[str, ...] = field(default=(), compare=False)
+    demand_scale: float = 1.0  # SumoConfig.scale: applied by sim.Simulation
+    speed_limit_mps: float = math.inf  # SumoConfig.speed_limit_mps: applied by sim.Simulation
 
     def town_of(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
         """Town name per position ('' outside every town)."""
@@ -103,6 +106,64 @@ class Scenario:
         for town in self.towns:
             names[town.contains(x_m, y_m) & (names == "")] = town.name
         return names.astype(str)
+
+
+@dataclass(frozen=True)
+class SumoConfig:
+    """How a run's SUMO differs from its scenario's own (TOML ``[sumo]``): the mobility study's knobs.
+
+    scale: traffic density: SUMO's demand scale of the background traffic
+        (0.5 = half the vehicles, 2 = twice as many). Every vehicle type known
+        when SUMO starts is scaled except the types of the federated and the
+        scenario's named vehicles, so those always drive.
+    speed_limit_mps: a cap on every lane's speed limit and on every vehicle's
+        top speed [m/s] (inf = the network's own limits).
+    edge_sites: explicit edge servers replacing the scenario's.
+    edge_site_count: this many edge servers placed by k-means over the
+        network's lanes instead of the scenario's (0 = the scenario's).
+        A run with other sites than the data set's maps each vehicle to the
+        site nearest its first recorded sample (run.read_inputs).
+    """
+
+    scale: float = 1.0
+    speed_limit_mps: float = math.inf
+    edge_sites: tuple[EdgeSite, ...] = ()
+    edge_site_count: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise CrchflError(f"sumo.scale: {self.scale} must be a number > 0 (1 = the scenario's traffic)")
+        if not self.speed_limit_mps > 0:
+            raise CrchflError(f"sumo.speed_limit_mps: {self.speed_limit_mps} must be > 0 (inf = no cap)")
+        if self.edge_site_count < 0:
+            raise CrchflError(f"sumo.edge_site_count: {self.edge_site_count} must be >= 0 (0 = the scenario's sites)")
+        if self.edge_sites and self.edge_site_count:
+            raise CrchflError("sumo: give either edge_sites or edge_site_count, not both")
+        names = [site.name for site in self.edge_sites]
+        if len(set(names)) != len(names):
+            raise CrchflError(f"sumo.edge_sites: site names must be distinct, got {names}")
+
+    @property
+    def replaces_sites(self) -> bool:
+        return bool(self.edge_sites) or self.edge_site_count > 0
+
+
+def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_radius_m: float) -> Scenario:
+    """The scenario as ``sumo`` changes it: its edge sites, traffic density and speed cap."""
+    scenario = load_scenario(name_or_path, sumo.edge_sites or None, coverage_radius_m)
+    if sumo.edge_site_count:
+        sites = place_edge_site_count(lane_points(scenario.net_path), sumo.edge_site_count)
+        scenario = dataclasses.replace(scenario, edge_sites=sites)
+    return dataclasses.replace(scenario, demand_scale=sumo.scale, speed_limit_mps=sumo.speed_limit_mps)
+
+
+def place_edge_site_count(road_points_m: np.ndarray, count: int) -> tuple[EdgeSite, ...]:
+    """``count`` sites by the same deterministic k-means as sites.place_edge_sites, named edge00, edge01, ..."""
+    points = np.asarray(road_points_m, dtype=np.float64).reshape(-1, 2)
+    if count > len(points):
+        raise CrchflError(f"sumo.edge_site_count: {count} sites for a network of {len(points)} road points; use fewer")
+    centres = _kmeans(points, _farthest_point_init(points, count), 30)
+    return tuple(EdgeSite(f"edge{i:02d}", float(x), float(y)) for i, (x, y) in enumerate(centres))
 
 
 def builtin_names() -> list[str]:

@@ -57,9 +57,15 @@ class Simulation:
         api: ModuleType | None = None,
         extra_options: tuple[str, ...] = (),
         watch: Collection[str] | None = None,
+        keep_demand: Collection[str] = (),
     ) -> None:
-        """``watch``: the vehicles whose lane and signal ahead are read each step (None: all)."""
+        """``watch``: the vehicles whose lane and signal ahead are read each step (None: all).
+
+        ``keep_demand``: vehicles whose types the scenario's ``demand_scale``
+        leaves alone (the scenario's named vehicles are always kept).
+        """
         self.scenario = scenario
+        self._keep_demand = tuple(keep_demand)
         self._watch = None if watch is None else frozenset(watch)
         self.seed = int(seed)
         self._api = api
@@ -122,7 +128,31 @@ class Simulation:
         self._tls_ids = tuple(sorted(api.trafficlight.getIDList()))
         for tls in self._tls_ids:
             api.trafficlight.subscribe(tls, [tc.TL_RED_YELLOW_GREEN_STATE])
+        if self.scenario.demand_scale != 1.0:
+            self._scale_demand(self.scenario.demand_scale)
+        if math.isfinite(self.scenario.speed_limit_mps):
+            cap = self.scenario.speed_limit_mps
+            for lane in api.lane.getIDList():
+                api.lane.setMaxSpeed(lane, min(api.lane.getMaxSpeed(lane), cap))
         return self
+
+    def _scale_demand(self, scale: float) -> None:
+        """Scale the demand of every vehicle type known now except the kept vehicles' types (SUMO's vType scale)."""
+        api = self._api
+        named = [v for town in self.scenario.towns for v in (*town.data_vehicles, *town.test_vehicles)]
+        kept_types = set()
+        for vehicle_id in dict.fromkeys([*self._keep_demand, *named]):
+            try:  # vehicles SUMO has loaded (departed or not) answer; later ones are not known yet
+                kept_types.add(api.vehicle.getTypeID(vehicle_id))
+            except api.TraCIException:
+                if vehicle_id in self._keep_demand:
+                    raise CrchflError(
+                        f"sumo.scale: vehicle '{vehicle_id}' is not loaded when SUMO starts, so its type cannot "
+                        "be kept out of the scaling; leave sumo.scale at 1 for this scenario"
+                    ) from None
+        for type_id in api.vehicletype.getIDList():
+            if type_id not in kept_types:
+                api.vehicletype.setScale(type_id, api.vehicletype.getScale(type_id) * scale)
 
     def __exit__(self, *exc_info) -> None:
         self.close()
@@ -148,7 +178,10 @@ class Simulation:
         api.simulationStep()
         self._steps += 1
         sim = api.simulation.getSubscriptionResults()
+        capped = math.isfinite(self.scenario.speed_limit_mps)
         for vehicle_id in sim[tc.VAR_DEPARTED_VEHICLES_IDS]:
+            if capped:  # the lanes are capped too; this stops a speed factor > 1 from exceeding the cap
+                api.vehicle.setMaxSpeed(vehicle_id, min(api.vehicle.getMaxSpeed(vehicle_id), self.scenario.speed_limit_mps))
             vtype = api.vehicle.getTypeID(vehicle_id)
             self._static[vehicle_id] = (
                 api.vehicletype.getLength(vtype),

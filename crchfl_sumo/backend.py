@@ -1,0 +1,221 @@
+"""Where work runs: in this process (``local``) or as Ray tasks (``ray``), behind one small API.
+
+A run trains its vehicles and evaluates its models through an ``Executor``;
+a sweep runs its independent runs through one. Both ask for the same two
+things: ``put`` a large object once (a vehicle's samples, the test set) and
+``map`` a function over argument tuples, results in order.
+
+* ``local``: ``map`` calls the function in this process; ``map(...,
+  isolate=True)`` gives every call its own fresh process (spawned, one task
+  per child), since libsumo holds one simulation per process. A child that
+  dies is retried in a new process up to ``max_retries`` times.
+* ``ray``: every call is a Ray task. Ray reruns a task whose worker died up
+  to ``max_retries`` times (an exception raised by the task itself is not
+  retried: it would raise again). Results are awaited with a timeout: when
+  no task finishes within ``task_timeout_s``, the tasks are cancelled and a
+  CrchflError says so, so a lost worker or node never hangs a run.
+
+Ray is an optional extra (``pip install 'crchfl-sumo[ray]'``) imported only
+when the ray backend is used.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import math
+import multiprocessing
+import os
+from dataclasses import dataclass
+from typing import Any, Callable, Literal, Sequence
+
+from .errors import CrchflError
+
+log = logging.getLogger(__name__)
+
+INSTALL_HINT = "--backend ray needs Ray: pip install 'crchfl-sumo[ray]'"
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """Execution backend (TOML ``[backend]``; ``--backend``/``--address`` override it).
+
+    kind: "local" (this process; separate processes for sweep runs) or "ray".
+    address: Ray only: "" starts a local Ray runtime for the command and stops
+        it at the end; "auto" joins the cluster running on this machine
+        (``ray start --head``); "HOST:PORT" joins that cluster.
+    num_cpus: CPUs of a local Ray runtime, and the number of parallel
+        processes of a local sweep; 0 = all of this machine's.
+    max_retries: how often a task whose worker process died is run again.
+    task_timeout_s: the longest the backend waits for the next task to
+        finish before it gives up (cancels the tasks and raises) [s].
+    """
+
+    kind: Literal["local", "ray"] = "local"
+    address: str = ""
+    num_cpus: int = 0
+    max_retries: int = 2
+    task_timeout_s: float = 3600.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("local", "ray"):
+            raise CrchflError(f"backend.kind: {self.kind!r} is not one of 'local', 'ray'")
+        if self.address and self.kind != "ray":
+            raise CrchflError(f"backend.address: {self.address!r} joins a Ray cluster; set backend.kind = \"ray\"")
+        if self.num_cpus < 0:
+            raise CrchflError(f"backend.num_cpus: {self.num_cpus} must be >= 0 (0 = all CPUs)")
+        if self.max_retries < 0:
+            raise CrchflError(f"backend.max_retries: {self.max_retries} must be >= 0")
+        if not self.task_timeout_s > 0:
+            raise CrchflError(f"backend.task_timeout_s: {self.task_timeout_s} must be > 0 (inf = wait for ever)")
+
+    @property
+    def workers(self) -> int:
+        """Parallel processes of a local isolated map."""
+        return self.num_cpus or os.cpu_count() or 1
+
+
+def import_ray():
+    """The ray module, or a CrchflError that says how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise CrchflError(INSTALL_HINT) from None
+    return ray
+
+
+class Executor:
+    """Runs tasks on the backend of ``config``; use as a context manager (a Ray runtime it started is stopped)."""
+
+    def __init__(self, config: BackendConfig) -> None:
+        self.config = config
+        self._ray = None
+        self._started_ray = False
+
+    def __enter__(self) -> "Executor":
+        if self.config.kind == "ray":
+            ray = import_ray()
+            if not ray.is_initialized():
+                options: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
+                if self.config.address:
+                    options["address"] = self.config.address
+                elif self.config.num_cpus:
+                    options["num_cpus"] = self.config.num_cpus
+                try:
+                    ray.init(**options)
+                except ConnectionError as exc:
+                    raise CrchflError(
+                        f"backend.address {self.config.address!r}: no Ray cluster there ({exc}); "
+                        "start one with `ray start --head` or leave --address out for a local runtime"
+                    ) from None
+                self._started_ray = True
+            self._ray = ray
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._started_ray:
+            self._ray.shutdown()
+            self._started_ray = False
+
+    @property
+    def is_ray(self) -> bool:
+        return self._ray is not None
+
+    def put(self, obj: Any) -> Any:
+        """A handle to pass as a task argument in place of ``obj`` (Ray: stored once in the object store)."""
+        return self._ray.put(obj) if self.is_ray else obj
+
+    def map(
+        self,
+        fn: Callable[..., Any],
+        args: Sequence[tuple],
+        *,
+        isolate: bool = False,
+        num_cpus: float = 1,
+    ) -> list:
+        """``[fn(*a) for a in args]`` on the backend, in order.
+
+        ``isolate``: every call in a fresh process (local: spawned children;
+        Ray: a worker that exits after the task). ``num_cpus``: CPUs a Ray
+        task reserves.
+        """
+        args = list(args)
+        if not args:
+            return []
+        if self.is_ray:
+            return self._map_ray(fn, args, isolate, num_cpus)
+        if isolate:
+            return _map_processes(fn, args, self.config)
+        return [fn(*a) for a in args]
+
+    def _map_ray(self, fn, args: list[tuple], isolate: bool, num_cpus: float) -> list:
+        ray, cfg = self._ray, self.config
+        options: dict[str, Any] = {"max_retries": cfg.max_retries, "num_cpus": num_cpus}
+        if isolate:
+            options["max_calls"] = 1  # the worker process exits after one task: one SUMO per process
+        remote = ray.remote(**options)(fn)
+        refs = [remote.remote(*a) for a in args]
+        pending = list(refs)
+        timeout = None if math.isinf(cfg.task_timeout_s) else cfg.task_timeout_s
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1, timeout=timeout)
+                if not done:
+                    raise CrchflError(
+                        f"no Ray task finished within backend.task_timeout_s = {cfg.task_timeout_s:g} s "
+                        f"({len(pending)} of {len(refs)} unfinished); a worker or node may be lost: check "
+                        "`ray status`, or raise backend.task_timeout_s for longer tasks"
+                    )
+                ray.get(done)  # a failed task raises now, not after the others
+            return ray.get(refs)
+        except ray.exceptions.RayTaskError as exc:  # the task itself raised: the same error here
+            _cancel(ray, pending)
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, CrchflError):
+                raise CrchflError(str(cause)) from None
+            raise
+        except ray.exceptions.RayError as exc:  # a worker or node died more often than retried, ran out of memory
+            _cancel(ray, pending)
+            raise CrchflError(
+                f"a Ray task was lost ({type(exc).__name__}: {exc}) after backend.max_retries = {cfg.max_retries} "
+                "reruns; check memory and the nodes (`ray status`) or raise backend.max_retries"
+            ) from None
+        except BaseException:
+            _cancel(ray, pending)
+            raise
+
+
+def _cancel(ray, refs) -> None:
+    for ref in refs:
+        ray.cancel(ref, force=True)
+
+
+# ------------------------------------------------------------------ local processes
+
+
+def _map_processes(fn, args: list[tuple], config: BackendConfig) -> list:
+    """Each call in its own spawned process, ``config.workers`` at a time; a dead child's call is retried."""
+    results: dict[int, Any] = {}
+    attempts = dict.fromkeys(range(len(args)), 0)
+    context = multiprocessing.get_context("spawn")
+    while len(results) < len(args):
+        todo = [i for i in range(len(args)) if i not in results]
+        with cf.ProcessPoolExecutor(
+            min(config.workers, len(todo)), mp_context=context, max_tasks_per_child=1
+        ) as pool:
+            futures = {pool.submit(fn, *args[i]): i for i in todo}
+            for future in cf.as_completed(futures):
+                i = futures[future]
+                try:
+                    results[i] = future.result()
+                except cf.process.BrokenProcessPool:
+                    # a child died (killed, out of memory): every unfinished call of this pool is tried again
+                    attempts[i] += 1
+                    if attempts[i] > config.max_retries:
+                        raise CrchflError(
+                            f"a worker process died {attempts[i]} times running task {i} and "
+                            f"backend.max_retries = {config.max_retries}; check memory or raise backend.max_retries"
+                        ) from None
+        if len(results) < len(args):
+            log.info("a worker process died; retrying %d task(s) in new processes", len(args) - len(results))
+    return [results[i] for i in range(len(args))]

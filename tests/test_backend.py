@@ -1,0 +1,176 @@
+"""Execution backends: local and Ray give the same run; lost workers are retried; nothing hangs."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from crchfl_sumo.backend import INSTALL_HINT, BackendConfig, Executor, import_ray
+from crchfl_sumo.checkpoint import load_checkpoint
+from crchfl_sumo.config import from_mapping
+from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir, with_backend
+from test_run import PAPER_VEHICLES, _config, _files, write_dataset
+
+TESTS = str(Path(__file__).parent)
+
+
+# ------------------------------------------------------------------ tasks (importable by worker processes)
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def die_once(marker: str) -> str:
+    """Kill the worker process on the first call (the marker file records it); answer on the next."""
+    if not os.path.exists(marker):
+        Path(marker).touch()
+        os._exit(1)
+    return f"pid {os.getpid()}"
+
+
+def die_always() -> None:
+    os._exit(1)
+
+
+def sleep_s(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+def user_error() -> None:
+    raise CrchflError("dataset: no such folder; check the path")
+
+
+def tensor_sum(t: torch.Tensor) -> float:
+    return float(t.sum())
+
+
+# ------------------------------------------------------------------ settings and the local backend
+
+
+def test_backend_config_rejects_bad_values():
+    with pytest.raises(CrchflError, match="backend.kind"):
+        BackendConfig(kind="dask")
+    with pytest.raises(CrchflError, match="backend.address"):
+        BackendConfig(address="auto")  # only Ray joins clusters
+    with pytest.raises(CrchflError, match="max_retries"):
+        BackendConfig(max_retries=-1)
+    with pytest.raises(CrchflError, match="task_timeout_s"):
+        BackendConfig(task_timeout_s=0)
+    with pytest.raises(CrchflError, match="unknown key"):
+        from_mapping(RunConfig, {"backend": {"kind": "ray", "adress": "auto"}})
+
+
+def test_run_config_backend_table_and_command_line_override(tmp_path):
+    config = from_mapping(RunConfig, {"backend": {"kind": "ray", "address": "auto", "max_retries": 5}})
+    assert (config.backend.kind, config.backend.address, config.backend.max_retries) == ("ray", "auto", 5)
+    local = with_backend(config, "local", None)
+    assert local.backend.kind == "local" and local.backend.max_retries == 5
+    with pytest.raises(CrchflError, match="--backend ray"):
+        with_backend(from_mapping(RunConfig, {}), None, "auto")
+    assert with_backend(from_mapping(RunConfig, {}), "ray", "host:6379").backend.address == "host:6379"
+    with pytest.raises(CrchflError, match="vmap"):
+        from_mapping(RunConfig, {"backend": {"kind": "ray"}, "train": {"multi_vehicle": "vmap"}})
+
+
+def test_missing_ray_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # makes `import ray` fail as if it were not installed
+    with pytest.raises(CrchflError) as info:
+        import_ray()
+    assert str(info.value) == INSTALL_HINT and "pip install 'crchfl-sumo[ray]'" in INSTALL_HINT
+    with pytest.raises(CrchflError, match="crchfl-sumo\\[ray\\]"):
+        with Executor(BackendConfig(kind="ray")):
+            pass
+
+
+def test_local_map_keeps_order_and_put_is_the_object():
+    with Executor(BackendConfig()) as executor:
+        t = torch.arange(4.0)
+        assert executor.put(t) is t
+        assert executor.map(square, [(i,) for i in range(5)]) == [0, 1, 4, 9, 16]
+        assert executor.map(tensor_sum, [(executor.put(t),)]) == [6.0]
+        assert executor.map(square, []) == []
+
+
+def test_local_isolated_tasks_run_in_other_processes_and_a_dead_one_is_retried(tmp_path):
+    with Executor(BackendConfig(num_cpus=2)) as executor:
+        results = executor.map(die_once, [(str(tmp_path / "a"),), (str(tmp_path / "b"),)], isolate=True)
+    assert len(results) == 2 and all(r.startswith("pid ") and r != f"pid {os.getpid()}" for r in results)
+    with Executor(BackendConfig(num_cpus=1, max_retries=1)) as executor:
+        with pytest.raises(CrchflError, match="died 2 times.*max_retries = 1"):
+            executor.map(die_always, [()], isolate=True)
+
+
+# ------------------------------------------------------------------ Ray
+
+
+@pytest.fixture(scope="module")
+def ray_runtime():
+    ray = pytest.importorskip("ray")
+    before = os.environ.get("PYTHONPATH")
+    # the workers import this module's tasks
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (TESTS, before) if p)
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR", log_to_driver=False)
+    finally:
+        if before is None:
+            del os.environ["PYTHONPATH"]
+        else:
+            os.environ["PYTHONPATH"] = before
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_map_keeps_order_and_resolves_put_objects(ray_runtime):
+    with Executor(BackendConfig(kind="ray")) as executor:
+        assert executor.is_ray
+        assert executor.map(square, [(i,) for i in range(6)]) == [0, 1, 4, 9, 16, 25]
+        handle = executor.put(torch.arange(5.0))
+        assert executor.map(tensor_sum, [(handle,), (handle,)]) == [10.0, 10.0]
+    assert ray_runtime.is_initialized()  # a runtime the executor did not start is left running
+
+
+def test_ray_worker_that_dies_is_retried(ray_runtime, tmp_path):
+    with Executor(BackendConfig(kind="ray", max_retries=2)) as executor:
+        assert executor.map(die_once, [(str(tmp_path / "marker"),)])[0].startswith("pid ")
+    with Executor(BackendConfig(kind="ray", max_retries=0)) as executor:
+        with pytest.raises(CrchflError, match="max_retries = 0"):
+            executor.map(die_always, [()])
+
+
+def test_ray_task_that_never_finishes_times_out_instead_of_hanging(ray_runtime):
+    with Executor(BackendConfig(kind="ray", task_timeout_s=1.0)) as executor:
+        with pytest.raises(CrchflError, match="task_timeout_s = 1 s"):
+            executor.map(sleep_s, [(60.0,)])
+    with Executor(BackendConfig(kind="ray")) as executor:
+        assert executor.map(square, [(3,)]) == [9]  # the runtime still works
+
+
+def test_ray_task_user_error_arrives_as_crchfl_error(ray_runtime):
+    with Executor(BackendConfig(kind="ray")) as executor:
+        with pytest.raises(CrchflError, match="^dataset: no such folder; check the path$"):
+            executor.map(user_error, [()])
+
+
+def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(5, 3, 4, 2, 3))
+    mapping = _config(data, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
+    mapping["federation"]["evaluate_every_edge"] = True
+    local = from_mapping(RunConfig, mapping)
+    ray = from_mapping(RunConfig, {**mapping, "backend": {"kind": "ray"}})
+    a = run_federation_dir(local, read_inputs(local), tmp_path / "local")
+    b = run_federation_dir(ray, read_inputs(ray), tmp_path / "ray")
+    assert a == b
+    assert _files(tmp_path / "local") == _files(tmp_path / "ray")
+    wa = load_checkpoint(tmp_path / "local" / "final_model.pt").state_dict
+    wb = load_checkpoint(tmp_path / "ray" / "final_model.pt").state_dict
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    # a run started on one backend resumes on the other: the backend is not part of the run's settings
+    assert (tmp_path / "local" / "config.json").read_text() == (tmp_path / "ray" / "config.json").read_text()
