@@ -168,7 +168,11 @@ class SumoClock:
         self.scenario = scenario
         self.vehicles = tuple(vehicles)
         self.step_s = scenario.step_length_s
-        self._sim = Simulation(scenario, seed=seed, watch=(), keep_demand=self.vehicles)
+        # The link models need only the federated vehicles; the online collector also what their cameras see.
+        around_m = 0.0 if collector is None else collector.neighbourhood_m
+        self._sim = Simulation(
+            scenario, seed=seed, watch=(), keep_demand=self.vehicles, focus=self.vehicles, around_m=around_m
+        )
         # Separate seeds per link kind, so adding the macro link leaves the edge link unchanged.
         seeds = np.random.SeedSequence([seed, 7919]).spawn(2)
         self._links: dict[str, LinkModel] = {}

@@ -33,7 +33,7 @@ from .dataset_io import DatasetWriter, Manifest, ShardData, label_schema
 from .errors import CrchflError
 from .expert import ExpertConfig, expert_labels, tracks_from_frames
 from .frame import Frame
-from .raster import RasterConfig, Renderer
+from .raster import RasterConfig, Renderer, neighbourhood_m
 from .raster_world import WorldConfig, build_world
 from .scenario import Scenario, load_scenario
 from .sim import Simulation
@@ -83,10 +83,12 @@ def record_run(
     needed: dict[str, int],
     sample_period_s: float,
     progress: Progress | None = None,
+    around_m: float = 0.0,
 ) -> tuple[list[Frame], dict[str, list[int]]]:
     """Simulate until each vehicle in ``needed`` has its samples (plus FUTURE_S).
 
-    Returns every step's Frame and, per vehicle, the indices of its sampled frames.
+    Returns every step's Frame (the needed vehicles and those within
+    ``around_m`` of one) and, per vehicle, the indices of its sampled frames.
     """
     step_s = scenario.step_length_s
     every = int(round(sample_period_s / step_s))
@@ -101,7 +103,7 @@ def record_run(
     sampled: dict[str, list[int]] = {v: [] for v in needed}
     seen: set[str] = set()
     done_at: int | None = None
-    with Simulation(scenario, seed=seed, watch=set(needed)) as sim:
+    with Simulation(scenario, seed=seed, watch=set(needed), focus=set(needed), around_m=around_m) as sim:
         for step in range(max_steps):
             frame = sim.step()
             frames.append(frame)
@@ -173,7 +175,7 @@ def generate_dataset(
     log.info("%d of %d shards to write", len(pending), len(plan))
     needed = {vehicles[p.file]: p.samples for p in pending}
     with clock("simulate"):
-        frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress)
+        frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster))
     with clock("label"):
         tracks = tracks_from_frames(frames)
     with clock("world"):

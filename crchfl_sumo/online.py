@@ -27,7 +27,7 @@ from .errors import CrchflError
 from .expert import ExpertConfig, Track, expert_labels
 from .frame import Frame
 from .generate import FUTURE_S
-from .raster import RasterConfig, Renderer
+from .raster import RasterConfig, Renderer, neighbourhood_m
 from .raster_world import WorldConfig, build_world
 from .samples import Samples
 
@@ -78,6 +78,7 @@ class OnlineCollector:
         self._every, self._step_s = every, step_s
         self._start_after_s = {v: float(start_after_s.get(v, -math.inf)) for v in self.vehicles}
         self._renderer = Renderer(build_world(net_path, world), raster)
+        self.neighbourhood_m = neighbourhood_m(raster)  # what a frame must hold around each vehicle
         self._expert = expert
         self._max = config.max_samples
         self._rows: dict[str, dict[str, list[float]]] = {v: {c: [] for c in ("t_s", *_COLUMNS)} for v in self.vehicles}

@@ -209,6 +209,17 @@ class CameraReach:
         return (dist <= self.reach_m + radii) & ((azimuth <= self.half_azimuth_rad + widening) | (dist <= radii))
 
 
+# A vehicle is drawn when its centre lies within max_object_distance_m plus its half diagonal of the
+# ego's centre; SUMO measures between front bumpers, which adds up to half of each length. 40 m covers
+# vehicles up to 26 m long (a longer one at the very edge of the view could be missed).
+NEIGHBOURHOOD_MARGIN_M = 40.0
+
+
+def neighbourhood_m(config: RasterConfig) -> float:
+    """Radius around a rendered vehicle (front bumper) that holds every vehicle its cameras may draw."""
+    return config.max_object_distance_m + NEIGHBOURHOOD_MARGIN_M
+
+
 class Renderer:
     """Renders frames of one world with one camera rig; holds only precomputed tables."""
 

@@ -7,10 +7,16 @@ simulations in separate processes). The same code also runs over TraCI (pass
 How state is read, and why (measured, docs/benchmarks.md): simulation-wide
 counters and signal states come through subscriptions; vehicle state through
 three in-process getters a vehicle (position, angle, speed). In SUMO 1.28
-per-vehicle subscriptions cost SUMO time that grows faster than the number of
-vehicles, and a network-wide context subscription costs several times what
-three libsumo getters do. Lane and signal ahead need a route walk inside SUMO,
+variable subscriptions on every vehicle cost SUMO time that grows faster than
+the number of vehicles, and a network-wide context subscription costs several
+times what three libsumo getters do. Lane and signal ahead need a route walk inside SUMO,
 so they are read only for the vehicles a caller watches.
+
+Most callers need only a few vehicles and their surroundings (the federated
+vehicles for the link models, the sampled ones and what their cameras see).
+With ``focus`` the frame holds only those vehicles and, through one context
+subscription each (a circle of ``around_m`` that SUMO evaluates in C++), their
+neighbours; the getters then run for tens of vehicles instead of all of them.
 """
 
 from __future__ import annotations
@@ -58,8 +64,14 @@ class Simulation:
         extra_options: tuple[str, ...] = (),
         watch: Collection[str] | None = None,
         keep_demand: Collection[str] = (),
+        focus: Collection[str] | None = None,
+        around_m: float = 0.0,
     ) -> None:
         """``watch``: the vehicles whose lane and signal ahead are read each step (None: all).
+
+        ``focus``: None, the frame holds every vehicle; otherwise only these
+        vehicles and every vehicle within ``around_m`` of one of them (distance
+        between SUMO's front-bumper positions; 0: the focus vehicles alone).
 
         ``keep_demand``: vehicles whose types the scenario's ``demand_scale``
         leaves alone (the scenario's named vehicles are always kept).
@@ -67,6 +79,10 @@ class Simulation:
         self.scenario = scenario
         self._keep_demand = tuple(keep_demand)
         self._watch = None if watch is None else frozenset(watch)
+        if not (math.isfinite(around_m) and around_m >= 0):
+            raise ValueError(f"Simulation: around_m must be a finite distance >= 0, got {around_m}")
+        self._focus = None if focus is None else frozenset(focus)
+        self._around_m = float(around_m)
         self.seed = int(seed)
         self._api = api
         self._extra_options = tuple(extra_options)
@@ -180,6 +196,9 @@ class Simulation:
         sim = api.simulation.getSubscriptionResults()
         capped = math.isfinite(self.scenario.speed_limit_mps)
         for vehicle_id in sim[tc.VAR_DEPARTED_VEHICLES_IDS]:
+            if self._focus is not None and self._around_m > 0 and vehicle_id in self._focus:
+                # any variable will do: SUMO then reports the ids within the circle, this step on
+                api.vehicle.subscribeContext(vehicle_id, tc.CMD_GET_VEHICLE_VARIABLE, self._around_m, [tc.VAR_SPEED])
             if capped:  # the lanes are capped too; this stops a speed factor > 1 from exceeding the cap
                 api.vehicle.setMaxSpeed(vehicle_id, min(api.vehicle.getMaxSpeed(vehicle_id), self.scenario.speed_limit_mps))
             vtype = api.vehicle.getTypeID(vehicle_id)
@@ -249,9 +268,17 @@ class Simulation:
         """Vehicles SUMO found in a collision during the last step."""
         return tuple(self._api.simulation.getCollidingVehiclesIDList())
 
+    def _frame_ids(self) -> Collection[str]:
+        vehicle = self._api.vehicle
+        if self._focus is None:
+            return vehicle.getIDList()
+        if self._around_m > 0:  # each subscribed focus vehicle reports itself and its neighbours
+            return set().union(*vehicle.getAllContextSubscriptionResults().values())
+        return self._focus.intersection(vehicle.getIDList())
+
     def _read_frame(self, tc) -> Frame:
         vehicle = self._api.vehicle
-        ids = sorted(vehicle.getIDList())
+        ids = sorted(self._frame_ids())
         n = len(ids)
         front = np.array(list(map(vehicle.getPosition, ids)), dtype=np.float64).reshape(-1, 2)
         heading = sumo_angle_to_heading_rad(np.fromiter(map(vehicle.getAngle, ids), np.float64, count=n))

@@ -113,3 +113,28 @@ def test_label_signs_follow_sumo_turns():
         turns["left"] += int(left.sum())
         turns["right"] += int(right.sum())
     assert turns["left"] > 3 and turns["right"] > 3
+
+
+def test_neighbourhood_frames_render_what_full_frames_render():
+    """record_run keeps only the sampled vehicles and their neighbourhood: their images must not change."""
+    from crchfl_sumo.generate import record_run
+    from crchfl_sumo.raster import Renderer, neighbourhood_m
+    from crchfl_sumo.raster_world import WorldConfig, build_world
+    from crchfl_sumo.sim import Simulation
+
+    scenario = load_scenario("town01")
+    raster = RasterConfig(camera=CameraConfig(height_px=32, width_px=64))
+    needed = {"t01_data_0": 30, "t01_data_1": 30}
+    frames, sampled = record_run(scenario, 5, needed, 1.0, around_m=neighbourhood_m(raster))
+    with Simulation(scenario, seed=5) as sim:
+        full = [sim.step() for _ in range(len(frames))]
+    renderer = Renderer(build_world(scenario.net_path, WorldConfig()), raster)
+    drawn_others = 0
+    for vehicle, rows in sampled.items():
+        assert len(rows) == 30
+        for i in rows:
+            assert full[i].t_s == frames[i].t_s and len(frames[i]) < len(full[i])
+            np.testing.assert_array_equal(renderer.render(frames[i], [vehicle]), renderer.render(full[i], [vehicle]))
+            alone = frames[i].select(frames[i].ids == vehicle)
+            drawn_others += int(not np.array_equal(renderer.render(alone, [vehicle]), renderer.render(frames[i], [vehicle])))
+    assert drawn_others >= 3  # some images did show other vehicles (5 of 60 with this seed)

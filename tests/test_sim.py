@@ -95,3 +95,38 @@ def test_derived_acceleration_equals_sumos_own(grid):
         for frame in sim.run(40.0):
             reported = [sim._api.vehicle.getAcceleration(v) for v in frame.ids]
             assert np.allclose(frame.accel_mps2, reported, atol=1e-9)
+
+
+def _fronts(frame):
+    half = frame.length_m / 2.0
+    return np.stack([frame.x_m + half * np.cos(frame.heading_rad), frame.y_m + half * np.sin(frame.heading_rad)], 1)
+
+
+def test_focus_frames_hold_the_focus_vehicles_and_their_neighbours():
+    town = load_scenario("town01")
+    focus = {"t01_data_0", "t01_data_1"}
+    radius = 60.0
+    with Simulation(town, seed=3) as sim:
+        full = list(sim.run(120.0))
+    with Simulation(town, seed=3, focus=focus, around_m=radius) as sim:
+        near = list(sim.run(120.0))
+    with Simulation(town, seed=3, focus=focus) as sim:
+        alone = list(sim.run(120.0))
+    checked = 0
+    for whole, part, only in zip(full, near, alone):
+        fronts = _fronts(whole)
+        is_focus = np.isin(whole.ids, list(focus))
+        assert list(only.ids) == list(whole.ids[is_focus])
+        if not is_focus.any():
+            assert len(part) == 0
+            continue
+        distance = np.hypot(*(fronts[:, None, :] - fronts[is_focus][None, :, :]).transpose(2, 0, 1)).min(axis=1)
+        assert not np.any(np.abs(distance - radius) < 1e-6)  # nothing on the circle: the check is exact
+        assert list(part.ids) == list(whole.ids[distance <= radius])
+        rows = np.searchsorted(whole.ids, part.ids)
+        for name in ("x_m", "y_m", "heading_rad", "speed_mps", "length_m", "width_m"):
+            assert np.array_equal(getattr(part, name), getattr(whole, name)[rows])
+        mine = np.isin(part.ids, list(focus))
+        assert np.array_equal(part.accel_mps2[mine], whole.accel_mps2[rows][mine])  # always in view: same history
+        checked += int((~mine).sum())
+    assert checked > 50  # the focus vehicles did meet others

@@ -7,8 +7,11 @@ vehicles on the road (randomTrips, fixed seed), then in one run times:
   (c) the same Simulation class over TraCI (a socket per call batch).
 Prints wall and CPU times (CPU time is the steadier figure on a shared
 machine), vehicles per step, and the ratios b/a (target <= 1.5) and c/b
-(target >= 5). (b) is run twice: signal ahead read for every vehicle, and for
-five watched vehicles as a data-generation run does.
+(target >= 5). (b) is run four ways: every vehicle in the frame with the signal
+ahead read for all of them, or for five watched vehicles; and frames that hold
+only five focus vehicles, alone (as the federation's SUMO clock reads its
+federated vehicles) or with every vehicle within 100 m of one (as data
+generation reads the sampled vehicles and what their cameras may draw).
 
     python tools/bench_sim.py [--steps 1200] [--grid 10] [--repeat 3]
 """
@@ -88,11 +91,11 @@ def time_plain_sumo(command: list[str], steps: int, step_length_s: float) -> tup
     return time.perf_counter() - wall, _children_cpu_s() - cpu
 
 
-def time_frames(scenario, steps: int, api=None, watch=None) -> tuple[float, float, float]:
-    """(wall s, CPU s of this process and its children, mean vehicles) of a Frame per step."""
+def time_frames(scenario, steps: int, api=None, watch=None, focus=None, around_m=0.0) -> tuple[float, float, float]:
+    """(wall s, CPU s of this process and its children, mean vehicles per frame) of a Frame per step."""
     # Start-up included, as it is in the plain sumo run.
     wall, cpu = time.perf_counter(), time.process_time() + _children_cpu_s()
-    with Simulation(scenario, seed=1, api=api, watch=watch) as sim:
+    with Simulation(scenario, seed=1, api=api, watch=watch, focus=focus, around_m=around_m) as sim:
         counts = [len(sim.step()) for _ in range(steps)]
     return time.perf_counter() - wall, time.process_time() + _children_cpu_s() - cpu, statistics.mean(counts)
 
@@ -106,8 +109,8 @@ def main() -> int:
 
     import traci
 
-    runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("a", "b", "b5", "c")}
-    vehicles = []
+    runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("a", "b", "b5", "f5", "n5", "c")}
+    vehicles, near = [], []
     with tempfile.TemporaryDirectory() as tmp:
         cfg = build_scenario(Path(tmp), args.grid, period_s=0.25, end_s=2000)
         scenario = load_scenario(cfg)
@@ -119,6 +122,10 @@ def main() -> int:
             runs["b"].append((wall, cpu))
             vehicles.append(mean_vehicles)
             runs["b5"].append(time_frames(scenario, args.steps, watch=watch5)[:2])
+            runs["f5"].append(time_frames(scenario, args.steps, watch=(), focus=watch5)[:2])
+            wall, cpu, mean_near = time_frames(scenario, args.steps, watch=watch5, focus=watch5, around_m=100.0)
+            runs["n5"].append((wall, cpu))
+            near.append(mean_near)
             if not runs["c"]:  # TraCI is an order of magnitude slower: one run of it is enough
                 runs["c"].append(time_frames(scenario, args.steps, api=traci)[:2])
     med = {k: (statistics.median(w for w, _ in v), statistics.median(c for _, c in v)) for k, v in runs.items()}
@@ -126,17 +133,22 @@ def main() -> int:
         "a": "(a) sumo binary alone",
         "b": "(b) libsumo, Frame, signal ahead for all",
         "b5": "(b5) libsumo, Frame, signal ahead for 5",
+        "f5": "(f5) libsumo, Frame of 5 focus vehicles",
+        "n5": "(n5) libsumo, Frame of 5 + 100 m, signal 5",
         "c": "(c) TraCI, Frame, signal ahead for all",
     }
     print(f"scenario: {args.grid}x{args.grid} signalised grid, {args.steps} steps of 0.25 s, "
           f"median of {args.repeat} (TraCI: one run)")
-    print(f"vehicles running: mean {statistics.mean(vehicles):.0f} per step")
+    print(f"vehicles running: mean {statistics.mean(vehicles):.0f} per step; "
+          f"in the 5 + 100 m frames: mean {statistics.mean(near):.0f}")
     print(f"{'':44s} {'wall s':>8s} {'CPU s':>8s}")
     for key, label in labels.items():
         print(f"{label:44s} {med[key][0]:8.2f} {med[key][1]:8.2f}")
     for name, num, den, target in (
         ("b/a  (ours vs plain sumo, target <= 1.5)", "b", "a", None),
         ("b5/a (ours, 5 watched, vs plain sumo)", "b5", "a", None),
+        ("f5/a (ours, 5 focus: FL clock, target <= 1.5)", "f5", "a", None),
+        ("n5/a (ours, 5 + 100 m: data gen., target <= 1.5)", "n5", "a", None),
         ("c/b  (TraCI vs ours, target >= 5)", "c", "b", None),
     ):
         print(f"ratio {name:42s} wall {med[num][0] / med[den][0]:5.2f}   CPU {med[num][1] / med[den][1]:5.2f}")
