@@ -179,11 +179,26 @@ class RoutePolicy:
         return (float(throttle[0]), steer, float(brake[0]))
 
 
-class ModelPolicy:
-    """A DrivingModel: the ego's four camera images -> (throttle, steer via the DAC, brake)."""
+def one_pedal(throttle: float, brake: float) -> tuple[float, float]:
+    """Keep the stronger of the two predicted pedals and release the other.
 
-    def __init__(self, model) -> None:
+    The expert never presses both (expert.pedals: one of them is always 0),
+    so a prediction of both is the model hedging between the two; the
+    stronger one is its choice. A tie brakes.
+    """
+    return (throttle, 0.0) if throttle > brake else (0.0, brake)
+
+
+class ModelPolicy:
+    """A DrivingModel: the ego's four camera images -> (throttle, steer via the DAC, brake).
+
+    ``one_pedal``: apply only the stronger pedal (``one_pedal``), as the
+    expert does; False passes both through to the dynamics.
+    """
+
+    def __init__(self, model, one_pedal: bool = True) -> None:
         self.model = model
+        self.one_pedal = one_pedal
 
     def __call__(self, observation: Observation) -> Action:
         import torch
@@ -193,7 +208,9 @@ class ModelPolicy:
         if observation.images is None:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")
         images = torch.from_numpy(np.ascontiguousarray(observation.images))
-        throttle, steer, brake = predict_actions(self.model, images)
-        return (float(throttle), float(steer), float(brake))
+        throttle, steer, brake = (float(v) for v in predict_actions(self.model, images))
+        if self.one_pedal:
+            throttle, brake = one_pedal(throttle, brake)
+        return (throttle, steer, brake)
 
 

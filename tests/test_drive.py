@@ -394,6 +394,7 @@ def test_untrained_model_drives_through_the_loop(roads):
     acted = result.log.steer[:-1]
     assert len(acted) == 8 and np.isin(acted.astype(np.float32), STEER_CLASS_VALUES).all()
     assert np.all((result.log.throttle[:-1] >= 0) & (result.log.throttle[:-1] <= 1))
+    assert not np.any((result.log.throttle[:-1] > 0) & (result.log.brake[:-1] > 0))  # one pedal at a time
     with pytest.raises(CrchflError, match="needs camera images"):
         drive(scenario, geometry, ModelPolicy(build_model(ModelConfig(), seed=0)), max_s=1.0, config=NO_WARMUP)
 
@@ -417,3 +418,12 @@ def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
     assert out.stat().st_size > 0
     with pytest.raises(CrchflError, match="one per folder"):
         compare_runs([tmp_path / "script"], ["a", "b"], tmp_path / "x.png")
+
+
+def test_one_pedal_keeps_the_stronger_pedal():
+    from crchfl_sumo.policies import one_pedal
+
+    assert one_pedal(0.46, 0.45) == (0.46, 0.0)  # a hedging model still drives off
+    assert one_pedal(0.2, 0.7) == (0.0, 0.7)
+    assert one_pedal(0.5, 0.5) == (0.0, 0.5)  # a tie brakes
+    assert one_pedal(0.0, 0.0) == (0.0, 0.0)
