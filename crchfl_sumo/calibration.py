@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
@@ -178,10 +179,13 @@ def _train_and_score(
     train_config: TrainConfig,
     seed: int,
     metric: str,
-) -> tuple[State, float]:
+) -> tuple[float, float]:
+    """(test score, wall seconds of the training alone)."""
+    started = time.perf_counter()
     new_state, _ = train_vehicle(state, train, epochs, model_config, train_config, seed)
+    train_s = time.perf_counter() - started
     model = model_from_state(model_config, new_state, torch.device("cpu"))
-    return new_state, _score(evaluate(model, test, train_config), metric)
+    return _score(evaluate(model, test, train_config), metric), train_s
 
 
 def _prefix(samples: Samples, count: int, rng: np.random.Generator) -> Samples:
@@ -246,9 +250,11 @@ def run_pilots(
 
     reference_sizes = sorted({max(1, round(f * total)) for f in config.reference_fractions})
     reference_scores = []
+    train_s = 0.0  # wall time of the reference training alone: this machine's speed (not part of the fit)
     for size in reference_sizes:
         subset = _prefix(everything, size, rng)
-        _, score = _train_and_score(initial, subset, test, config.epochs, model_config, train_config, seed, metric)
+        score, seconds = _train_and_score(initial, subset, test, config.epochs, model_config, train_config, seed, metric)
+        train_s += seconds
         reference_scores.append(score)
         log.info("calibrate: reference S=%d score %.4f", size, score)
 
@@ -258,7 +264,7 @@ def run_pilots(
     for x in uploaded:
         shares = split_pretrain_batch(x, counts)
         batch = Samples.concat([_prefix(vehicle_samples[v], n, rng) for v, n in sorted(shares.items()) if n])
-        _, score = _train_and_score(initial, batch, test, config.epochs, model_config, train_config, seed + 1, metric)
+        score, _ = _train_and_score(initial, batch, test, config.epochs, model_config, train_config, seed + 1, metric)
         pretrain_scores.append(score)
         log.info("calibrate: pretraining x=%d score %.4f", x, score)
 
@@ -280,6 +286,7 @@ def run_pilots(
         "pretrain_samples": uploaded,
         "pretrain_scores": pretrain_scores,
         "hfl": hfl,
+        "train_s_per_sample_epoch": train_s / (config.epochs * sum(reference_sizes)),
     }
 
 
@@ -345,6 +352,8 @@ def calibration_toml(fit: Fit, data: Mapping[str, Any], derived: Mapping[str, An
     lines.append(f"hfl_scores = {_toml_value([r['score'] for r in data['hfl']])}")
     for key in ("pretrain_effective", "hfl_effective"):
         lines.append(f"{key} = {_toml_value(derived[key])}")
+    if "train_s_per_sample_epoch" in data:  # measured, so it differs from run to run; the fit does not use it
+        lines.append(f"train_s_per_sample_epoch = {_toml_value(data['train_s_per_sample_epoch'])}")
     return "\n".join(lines) + "\n"
 
 

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import tomllib
+
 import numpy as np
 import pytest
 import torch
@@ -93,12 +95,14 @@ def test_calibration_file_is_read_by_plan(tmp_path):
         "reference_samples": [1, 2, 5, 10], "reference_scores": [-3.0, -2.5, -2.0, -1.9],
         "pretrain_samples": [2], "pretrain_scores": [-2.6],
         "hfl": [{"edge_interval": 2, "cloud_interval": 1, "cloud_rounds": 1, "score": -2.1}],
+        "train_s_per_sample_epoch": 0.0025,
     }
     derived = {"pretrain_effective": [1.5], "hfl_effective": [6.0]}
     path = tmp_path / "calibration.toml"
     path.write_text(calibration_toml(fit, data, derived, seed=3, scenario="paper"))
     allocation, _ = load_plan_configs(path)
     assert (allocation.alpha, allocation.gamma, allocation.d) == (0.25, 0.8, 1.75)
+    assert tomllib.loads(path.read_text())["calibration"]["train_s_per_sample_epoch"] == 0.0025
 
 
 def test_calibration_file_holds_admissible_values_only(tmp_path):
@@ -144,6 +148,8 @@ def test_run_pilots_tiny_end_to_end_is_seeded():
     torch.set_num_threads(1)
     first = run_pilots(vehicles, test, config, seed=1)
     again = run_pilots(vehicles, test, config, seed=1)
+    # everything but the measured training speed is seeded
+    assert first.pop("train_s_per_sample_epoch") > 0 and again.pop("train_s_per_sample_epoch") > 0
     assert first == again
     assert first["reference_samples"] == [3, 5, 8, 10] and first["pretrain_samples"] == [5]
     assert [r["edge_interval"] for r in first["hfl"]] == [1, 2]
