@@ -54,6 +54,8 @@ def _commands():
          _add_drive_compare, _run_drive_compare),
         ("run", "federated training (CRCHFL, HFL or SFL) on SUMO's clock: metrics, ledger, checkpoints, summary",
          _add_run, _run_run),
+        ("sweep", "a grid of runs over config settings (mobility studies): a table and plots against each parameter",
+         _add_sweep, _run_sweep),
         ("calibrate", "fit alpha, gamma, d of problem P from short pilot runs (docs/calibration.md)",
          _add_calibrate, _run_calibrate),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
@@ -313,6 +315,26 @@ def _run_run(args) -> int:
 
         summary = run_command(args.config, args.out, args.resume, progress, args.backend, args.address)
     print(json.dumps(summary, indent=2))
+    return 0
+
+
+# --- sweep --------------------------------------------------------------------------------------
+
+
+def _add_sweep(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="base run config TOML, or a built-in: crchfl, hfl, sfl")
+    p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
+                   help="a dotted config key and its values, e.g. sumo.scale=0.5,1,2 (repeat for a grid)")
+    p.add_argument("--out", type=Path, required=True, help="sweep folder (rerun the same command to resume)")
+    _backend_arguments(p)
+
+
+def _run_sweep(args) -> int:
+    from .sweep import sweep_command
+
+    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)
+    print((args.out / "results.md").read_text(encoding="utf-8"), end="")
+    print(f"{len(rows)} runs -> {args.out}")
     return 0
 
 

@@ -1,4 +1,8 @@
-"""Execution backends: local and Ray give the same run; lost workers are retried; nothing hangs."""
+"""Execution backends: local and Ray give the same run; lost workers are retried; nothing hangs.
+
+Worker processes import this module for its tasks, so its top imports stay
+light (torch and the run modules are imported inside the tests that use them).
+"""
 
 from __future__ import annotations
 
@@ -8,14 +12,10 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from crchfl_sumo.backend import INSTALL_HINT, BackendConfig, Executor, import_ray
-from crchfl_sumo.checkpoint import load_checkpoint
 from crchfl_sumo.config import from_mapping
 from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir, with_backend
-from test_run import PAPER_VEHICLES, _config, _files, write_dataset
 
 TESTS = str(Path(__file__).parent)
 
@@ -48,7 +48,7 @@ def user_error() -> None:
     raise CrchflError("dataset: no such folder; check the path")
 
 
-def tensor_sum(t: torch.Tensor) -> float:
+def tensor_sum(t) -> float:
     return float(t.sum())
 
 
@@ -64,11 +64,15 @@ def test_backend_config_rejects_bad_values():
         BackendConfig(max_retries=-1)
     with pytest.raises(CrchflError, match="task_timeout_s"):
         BackendConfig(task_timeout_s=0)
+    from crchfl_sumo.run import RunConfig
+
     with pytest.raises(CrchflError, match="unknown key"):
         from_mapping(RunConfig, {"backend": {"kind": "ray", "adress": "auto"}})
 
 
 def test_run_config_backend_table_and_command_line_override(tmp_path):
+    from crchfl_sumo.run import RunConfig, with_backend
+
     config = from_mapping(RunConfig, {"backend": {"kind": "ray", "address": "auto", "max_retries": 5}})
     assert (config.backend.kind, config.backend.address, config.backend.max_retries) == ("ray", "auto", 5)
     local = with_backend(config, "local", None)
@@ -91,6 +95,8 @@ def test_missing_ray_says_how_to_install(monkeypatch):
 
 
 def test_local_map_keeps_order_and_put_is_the_object():
+    import torch
+
     with Executor(BackendConfig()) as executor:
         t = torch.arange(4.0)
         assert executor.put(t) is t
@@ -129,6 +135,8 @@ def ray_runtime():
 
 
 def test_ray_map_keeps_order_and_resolves_put_objects(ray_runtime):
+    import torch
+
     with Executor(BackendConfig(kind="ray")) as executor:
         assert executor.is_ray
         assert executor.map(square, [(i,) for i in range(6)]) == [0, 1, 4, 9, 16, 25]
@@ -160,6 +168,12 @@ def test_ray_task_user_error_arrives_as_crchfl_error(ray_runtime):
 
 
 def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
+    import torch
+
+    from crchfl_sumo.checkpoint import load_checkpoint
+    from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir
+    from test_run import PAPER_VEHICLES, _config, _files, write_dataset
+
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(5, 3, 4, 2, 3))
     mapping = _config(data, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
     mapping["federation"]["evaluate_every_edge"] = True
@@ -174,3 +188,15 @@ def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
     # a run started on one backend resumes on the other: the backend is not part of the run's settings
     assert (tmp_path / "local" / "config.json").read_text() == (tmp_path / "ray" / "config.json").read_text()
+
+
+def test_sweep_runs_on_ray_give_the_local_rows(ray_runtime, tmp_path):
+    from crchfl_sumo.sweep import parse_param, run_sweep
+    from test_run import PAPER_VEHICLES, _config, write_dataset
+
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    base = _config(data, scheme="hfl", cloud_rounds=1)
+    params = [parse_param("federation.edge_interval=1,2")]
+    local = run_sweep(base, params, tmp_path / "local", BackendConfig(num_cpus=2))
+    remote = run_sweep(base, params, tmp_path / "ray", BackendConfig(kind="ray"))
+    assert local == remote and [r["cloud_rounds"] for r in remote] == [1, 1]

@@ -1,0 +1,369 @@
+"""`crchfl-sumo sweep CONFIG --param PATH=V1,V2 [--param ...] --out DIR`: a grid of runs, a table and plots.
+
+A parameter is a dotted path into the run config's TOML (``sumo.scale``,
+``mobility.coverage_radius_m``, ``federation.deadline_s``, ``ledger.budget_gb``
+...) and a comma-separated list of values, each read as a TOML value
+(``0.5``, ``inf``, ``"hfl"`` or plain ``hfl``, ``[1, 2]``, ``{name = "a", x_m = 1.0, y_m = 2.0}``;
+commas inside brackets, braces or quotes do not split). The grid is every
+combination of the values; every point is checked by the same validation as
+a run config before anything runs, and an unknown path is an error naming
+the ``--param``.
+
+DIR receives (every file written atomically):
+
+  sweep.json        the base config, the parameters and the points
+  runs/NAME/        one run folder per point (``run``'s files); NAME is made
+                    from the point's values, so a rerun finds it again
+  results.csv       one row per point: its values, accuracy, rounds, handovers,
+  results.md        stragglers, bytes per link kind, stop reason
+  plots/PATH.png    each metric against each swept parameter
+
+The runs are independent tasks on the backend (``--backend local``: one
+process each, as many at a time as CPUs; ``ray``: one Ray task each, every
+task in a fresh worker process, since libsumo holds one simulation per
+process). Each run trains in its own process with one torch thread.
+
+Rerunning the command resumes the sweep: a point whose run has finished is
+not run again, an interrupted one continues from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import itertools
+import json
+import logging
+import math
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .atomic import atomic_write_text
+from .backend import BackendConfig, Executor
+from .config import from_mapping, read_toml
+from .errors import CrchflError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised only on Python 3.10
+    import tomli as tomllib
+
+log = logging.getLogger(__name__)
+
+RUNS_DIR = "runs"
+SUMMARY_COLUMNS = (
+    "best_accuracy",
+    "final_accuracy",
+    "cloud_rounds",
+    "edge_aggregations",
+    "handovers",
+    "stragglers",
+    "wireless_bytes",
+    "wireline_bytes",
+    "consumed_bytes",
+    "sim_time_s",
+    "stop_reason",
+)
+
+
+@dataclass(frozen=True)
+class Param:
+    """One swept setting: its dotted path in the run config and its values."""
+
+    path: str
+    values: tuple[Any, ...]
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        return tuple(self.path.split("."))
+
+
+@dataclass(frozen=True)
+class Point:
+    """One grid point: its folder name, the value of each parameter, the run config mapping."""
+
+    name: str
+    values: dict[str, Any]
+    mapping: dict
+
+
+# ------------------------------------------------------------------ parsing and the grid
+
+
+def parse_param(text: str) -> Param:
+    """``PATH=V1,V2,...`` -> Param; values are TOML values, a word that is not one is a string."""
+    path, sep, values = text.partition("=")
+    path = path.strip()
+    if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*", path):
+        raise CrchflError(f"--param {text!r}: expected PATH=V1,V2,... with a dotted config key, e.g. sumo.scale=0.5,1,2")
+    if path.split(".")[0] == "backend":
+        raise CrchflError(f"--param {text!r}: [backend] says where runs go, not what they do; use --backend")
+    parts = split_values(values)
+    if not parts:
+        raise CrchflError(f"--param {text!r}: no values after '='")
+    parsed = tuple(parse_value(part) for part in parts)
+    if len({json.dumps(v, sort_keys=True) for v in parsed}) != len(parsed):
+        raise CrchflError(f"--param {text!r}: a value is given twice")
+    return Param(path, parsed)
+
+
+def split_values(text: str) -> list[str]:
+    """Split on commas that are not inside brackets, braces or quotes."""
+    parts, depth, quote, current = [], 0, None, []
+    for char in text:
+        if quote:
+            quote = None if char == quote else quote
+        elif char in "\"'":
+            quote = char
+        elif char in "[{":
+            depth += 1
+        elif char in "]}":
+            depth -= 1
+        elif char == "," and depth == 0:
+            parts.append("".join(current).strip())
+            current = []
+            continue
+        current.append(char)
+    parts.append("".join(current).strip())
+    return [p for p in parts if p]
+
+
+def parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text  # a bare word: hfl, sumo ...
+
+
+def set_path(mapping: dict, keys: tuple[str, ...], value: Any, where: str) -> dict:
+    """A copy of ``mapping`` with the table path ``keys`` set to ``value`` (missing tables are created)."""
+    out = dict(mapping)
+    head, rest = keys[0], keys[1:]
+    if not rest:
+        out[head] = value
+        return out
+    table = out.get(head, {})
+    if not isinstance(table, dict):
+        raise CrchflError(f"{where}: {head!r} is a value, not a table, in the config")
+    out[head] = set_path(table, rest, value, where)
+    return out
+
+
+def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[Point]:
+    """Every combination of the parameters' values over ``base`` (the first parameter varies slowest).
+
+    Each value is checked on its own first (so a bad path or value names its
+    --param), then every point as a whole.
+    """
+    from .run import RunConfig
+
+    paths = [p.path for p in params]
+    if len(set(paths)) != len(paths):
+        raise CrchflError(f"--param: a path is swept twice ({', '.join(paths)}); give each once")
+    for param in params:
+        label = f"--param {param.path}"
+        for value in param.values:
+            where_value = f"{label}={format_value(value)}"
+            try:
+                from_mapping(RunConfig, set_path(base, param.keys, value, label), where=f"{where_value}: config")
+            except CrchflError as exc:  # a settings class's own check does not know the --param: name it
+                message = str(exc)
+                raise CrchflError(message if message.startswith(where_value) else f"{where_value}: {message}") from None
+    points = []
+    for combination in itertools.product(*(p.values for p in params)):
+        mapping = base
+        for param, value in zip(params, combination):
+            mapping = set_path(mapping, param.keys, value, f"--param {param.path}")
+        values = dict(zip(paths, combination))
+        name = point_name(values)
+        from_mapping(RunConfig, mapping, where=f"{where} with {name}")
+        points.append(Point(name, values, mapping))
+    return points
+
+
+def format_value(value: Any) -> str:
+    """A value as TOML writes it (inline)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON escapes are valid TOML basic-string escapes
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(format_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{_key(k)} = {format_value(v)}" for k, v in value.items()) + "}"
+    raise CrchflError(f"cannot write {value!r} as TOML")
+
+
+def point_name(values: dict[str, Any]) -> str:
+    """A folder name from a point's values, the same for the same values: ``path=value`` joined by ``__``.
+
+    Values that are not short scalars (lists, tables) are named by a hash of their TOML.
+    """
+    parts = []
+    for path, value in values.items():
+        text = format_value(value).strip('"')
+        if isinstance(value, (list, tuple, dict)) or not re.fullmatch(r"[A-Za-z0-9.+\-_]{1,40}", text):
+            text = hashlib.sha1(format_value(value).encode()).hexdigest()[:10]
+        parts.append(f"{path}={text}")
+    return "__".join(parts) or "base"
+
+
+def toml_text(mapping: dict, prefix: str = "") -> str:
+    """A TOML document of a config mapping (tables as [headers], lists of tables inline); tomllib reads it back."""
+    lines, tables = [], []
+    for key, value in mapping.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        else:
+            lines.append(f"{_key(key)} = {format_value(value)}")
+    for key, value in tables:
+        name = f"{prefix}{_key(key)}"
+        lines += ["", f"[{name}]", toml_text(value, f"{name}.").rstrip("\n")]
+    return "\n".join(line for line in lines if line is not None) + "\n"
+
+
+def _key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+# ------------------------------------------------------------------ running
+
+
+def run_point(mapping: dict, out_dir: str) -> dict:
+    """One grid point's run (a backend task, in its own process): its summary.
+
+    Resumes the run in ``out_dir`` if one is there; a finished one returns its summary at once.
+    """
+    import torch
+
+    from .run import RunConfig, read_inputs, run_federation_dir
+
+    torch.set_num_threads(1)  # several runs share the machine's cores
+    config = from_mapping(RunConfig, mapping, where=f"{out_dir}/config.toml")
+    return run_federation_dir(config, read_inputs(config), out_dir, resume=True, config_text=toml_text(mapping))
+
+
+def finished_summary(run_dir: Path) -> dict | None:
+    """The summary of a finished run in ``run_dir`` (None if there is none or it is still going)."""
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return None
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError:
+        return None
+    return summary if summary.get("stop_reason") else None
+
+
+def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: BackendConfig, where: str = "config") -> list[dict]:
+    """Run every point not finished yet, then write the table and the plots; returns the rows."""
+    from .sweep_plots import plot_sweep
+
+    out_dir = Path(out_dir)
+    base = _absolute_paths({k: v for k, v in base.items() if k != "backend"})
+    points = expand_grid(base, params, where)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(
+        out_dir / "sweep.json",
+        json.dumps(
+            {
+                "base": base,
+                "params": [{"path": p.path, "values": list(p.values)} for p in params],
+                "points": [{"name": p.name, "values": p.values} for p in points],
+            },
+            indent=2,
+            default=str,
+        )
+        + "\n",
+    )
+    summaries = {p.name: finished_summary(out_dir / RUNS_DIR / p.name) for p in points}
+    todo = [p for p in points if summaries[p.name] is None]
+    log.info("sweep: %d points, %d finished, %d to run", len(points), len(points) - len(todo), len(todo))
+    with Executor(backend) as executor:
+        results = executor.map(run_point, [(p.mapping, str(out_dir / RUNS_DIR / p.name)) for p in todo], isolate=True)
+    summaries.update({p.name: s for p, s in zip(todo, results)})
+    rows = [table_row(p, summaries[p.name]) for p in points]
+    write_table(out_dir, rows, [p.path for p in params])
+    plot_sweep(rows, params, out_dir / "plots")
+    return rows
+
+
+def _absolute_paths(base: dict) -> dict:
+    """Data set and scenario file paths made absolute: the runs may work in another directory."""
+    out = dict(base)
+    from .run import RunConfig
+
+    defaults = RunConfig()
+    dataset = Path(out.get("dataset", defaults.dataset))
+    out["dataset"] = str(dataset.resolve())
+    scenario = out.get("scenario", defaults.scenario)
+    if Path(scenario).exists():
+        out["scenario"] = str(Path(scenario).resolve())
+    return out
+
+
+def table_row(point: Point, summary: dict) -> dict:
+    """A point's values and the metrics of its run's summary."""
+    links = summary.get("bytes_by_link", {})
+    metrics = {
+        **{k: summary.get(k) for k in SUMMARY_COLUMNS},
+        "wireless_bytes": links.get("wireless"),
+        "wireline_bytes": links.get("wireline"),
+    }
+    return {"point": point.name, **point.values, **metrics}
+
+
+def write_table(out_dir: Path, rows: list[dict], paths: list[str]) -> None:
+    """results.csv and results.md: one row per point."""
+    columns = ["point", *paths, *SUMMARY_COLUMNS]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow([_cell(row.get(c), csv_cell=True) for c in columns])
+    atomic_write_text(out_dir / "results.csv", buffer.getvalue())
+    shown = [c for c in columns if c != "point"]
+    lines = ["| " + " | ".join(shown) + " |", "|" + " --- |" * len(shown)]
+    lines += ["| " + " | ".join(_cell(row.get(c)) for c in shown) + " |" for row in rows]
+    atomic_write_text(out_dir / "results.md", "\n".join(lines) + "\n")
+
+
+def _cell(value: Any, csv_cell: bool = False) -> str:
+    if value is None:
+        return "" if csv_cell else "-"
+    if isinstance(value, float) and not csv_cell:
+        return f"{value:.4g}"
+    if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+        return str(value)
+    return format_value(value)
+
+
+def sweep_command(
+    config_path: str | Path,
+    param_texts: list[str],
+    out_dir: str | Path,
+    backend: str | None = None,
+    address: str | None = None,
+) -> list[dict]:
+    """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--backend B] [--address A]` does."""
+    from .run import load_run_config, resolve_config_path, with_backend
+
+    if not param_texts:
+        raise CrchflError("sweep: give at least one --param PATH=V1,V2,...")
+    config_path = resolve_config_path(config_path)
+    base = read_toml(config_path)
+    config = with_backend(load_run_config(config_path), backend, address)
+    params = [parse_param(text) for text in param_texts]
+    return run_sweep(base, params, out_dir, config.backend, where=str(config_path))
