@@ -49,7 +49,7 @@ def plot_sweep(rows: Sequence[dict], params: Sequence, out_dir: Path) -> list[Pa
             ax.set_title(title)
             ax.set_xlabel(param.path)
             ax.grid(alpha=0.3)
-            if not all(_is_number(v) for v in param.values):
+            if not all(_is_number(v) for v in param.values) or len(param.values) <= 8:
                 ax.set_xticks(list(xs.values()), [_short(v) for v in param.values], rotation=20)
         legend_ax = axes.flat[len(PANELS)]
         legend_ax.axis("off")
