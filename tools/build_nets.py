@@ -726,11 +726,13 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
 
         towns01 = scale_towns()
         copies = [placed(plains["town01"], t.prefix, dx, dy) for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
-        copy_trips = [trip for t in towns01 for trip in copied_trips(trips["town01"][:SCALE_BACKGROUND_PER_TOWN], t.prefix)]
-        entries = [TownEntry(t, dx, dy, t.data_vehicles, t.test_vehicles) for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
+        background = trips["town01"][:SCALE_BACKGROUND_PER_TOWN]
+        copy_trips = [trip for t in towns01 for trip in copied_trips(background, t.prefix)]
+        entries = [TownEntry(t, dx, dy, t.data_vehicles, t.test_vehicles)
+                   for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
         build_scenario(SCALE_NAME, "Four copies of Town01, 200 data vehicles (federated clients), eight edge sites",
-                       merged(*copies), lambda net: scale_routes_xml(net, plains["town01"], towns01), copy_trips, entries,
-                       prefixed=True, work=work, out_root=out_root,
+                       merged(*copies), lambda net: scale_routes_xml(net, plains["town01"], towns01), copy_trips,
+                       entries, prefixed=True, work=work, out_root=out_root,
                        site_fractions={t.name: SCALE_SITES for t in towns01})
 
 

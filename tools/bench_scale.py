@@ -1,0 +1,395 @@
+"""Benchmark one federation with 200 clients (scenario scale200): where the time and the memory go.
+
+    nice -n 10 python tools/bench_scale.py [--samples 8] [--test-samples 50] [--scheme hfl]
+                                           [--rounds 3] [--cloud-interval 2] [--out DIR] [--profile N]
+
+1. Data: generates a data set for all 200 data vehicles of scale200 (the
+   clients): --samples training samples each, --test-samples per test
+   vehicle (4), 64 x 128 images. It runs in a child process, so that its peak
+   memory (every SUMO frame is kept) is measured apart from the federation's.
+   Prints the wall time per generation stage.
+2. Federation: one run (--scheme hfl, or crchfl with stage I pretraining on
+   --pretrain-batch uploaded samples) on SUMO's clock with all 200 clients,
+   compact model, charged at its real size (physical rule, 1 TB budget: the
+   run stops at --rounds cloud rounds, not at the budget), --cloud-interval
+   edge aggregations of one local epoch per cloud round. The wall time is split at the library's public seams: SUMO's
+   step (a Frame), the link models, the rest of the clock (per-vehicle link
+   series), local training, FedAvg, evaluation, checkpoint and output files,
+   and the loop itself (transfers over the links, ledger, bookkeeping).
+3. Prints per-client figures (time per client per round, bytes per client),
+   rounds reached, handovers, stragglers, the wall time of every step (a
+   cost that grows with the round shows there) and peak memory
+   (ru_maxrss of each process).
+
+--profile N also prints the N functions with the most own time in the
+federation (cProfile; it slows the run down).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import cProfile
+import functools
+import io
+import json
+import multiprocessing
+import pstats
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+SCENARIO = "scale200"
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far [MiB] (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+# ------------------------------------------------------------------ data (child process)
+
+
+def dataset_sizes(samples: int, test_samples: int):
+    from crchfl_sumo.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.scenario import load_scenario
+
+    towns = load_scenario(SCENARIO).towns
+    return DatasetConfig(
+        towns=tuple(
+            TownSplit(t.name, (samples,) * len(t.data_vehicles), (test_samples,) * len(t.test_vehicles)) for t in towns
+        )
+    )
+
+
+def generate(data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
+    """Child process: generate the data set; its wall time per stage and peak memory."""
+    torch.set_num_threads(1)
+    from crchfl_sumo.generate import generate_dataset
+    from crchfl_sumo.scenario import load_scenario
+
+    stages: dict[str, float] = {}
+    start = time.perf_counter()
+    manifest = generate_dataset(
+        load_scenario(SCENARIO), data_dir, seed=seed, sizes=dataset_sizes(samples, test_samples), timings_s=stages
+    )
+    return {
+        "total_s": time.perf_counter() - start,
+        "stages_s": stages,
+        "samples": manifest.samples,
+        "train_shards": len(manifest.select("train")),
+        "test_shards": len(manifest.select("test")),
+        "peak_rss_mib": peak_rss_mib(),
+    }
+
+
+# ------------------------------------------------------------------ timing seams
+
+
+class Stopwatch:
+    """Wall seconds and calls per named part; ``wrap`` times a function under a name."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = collections.defaultdict(float)
+        self.calls: dict[str, int] = collections.defaultdict(int)
+
+    @contextlib.contextmanager
+    def part(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - start
+            self.calls[name] += 1
+
+    def wrap(self, name: str, function):
+        @functools.wraps(function)
+        def timed(*args, **kwargs):
+            with self.part(name):
+                return function(*args, **kwargs)
+
+        return timed
+
+
+class TimedTrainer:
+    """The run's trainer with its training and evaluation timed."""
+
+    def __init__(self, inner, watch: Stopwatch) -> None:
+        self.inner = inner
+        self.initial_state = inner.initial_state
+        self.train = watch.wrap("local training", inner.train)
+        self.evaluate = watch.wrap("evaluation", inner.evaluate)
+
+
+class TimedClock:
+    """A clock (context manager) whose link series are timed; everything else is the clock's own."""
+
+    def __init__(self, inner, watch: Stopwatch) -> None:
+        self.inner = inner
+        self.watch = watch
+
+    def __enter__(self):
+        with self.watch.part("SUMO start"):
+            self.inner.__enter__()
+        for name in ("series", "handovers", "collected"):  # every way the run asks the clock for time
+            if hasattr(self.inner, name):
+                setattr(self.inner, name, self.watch.wrap("clock (all)", getattr(self.inner, name)))
+        return self.inner
+
+    def __exit__(self, *exc_info):
+        return self.inner.__exit__(*exc_info)
+
+
+@contextlib.contextmanager
+def patched(owner, name: str, replacement):
+    """``owner.name`` replaced for the duration (the benchmark's timing seams)."""
+    original = getattr(owner, name)
+    setattr(owner, name, replacement)
+    try:
+        yield original
+    finally:
+        setattr(owner, name, original)
+
+
+# ------------------------------------------------------------------ federation
+
+
+def run_config(args: argparse.Namespace, data_dir: Path):
+    from crchfl_sumo.config import from_mapping
+    from crchfl_sumo.run import RunConfig
+
+    federation = {"scheme": args.scheme, "edge_interval": 1, "cloud_interval": args.cloud_interval,
+                  "cloud_rounds": args.rounds, "seed": args.seed}
+    if args.scheme == "crchfl":  # fixed hyper-parameters: the optimizer would spend the whole 1 TB budget
+        federation["pretrain_batch"] = args.pretrain_batch
+    mapping = {
+        "scenario": SCENARIO,
+        "dataset": str(data_dir),
+        "federation": federation,
+        "ledger": {"rule": "physical", "model_size": "real", "sample_size": "measured", "budget_gb": 1024.0},
+        "model": {"size": "compact"},
+        "clock": {"kind": "sumo"},
+    }
+    return from_mapping(RunConfig, mapping, where="bench_scale")
+
+
+def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
+    from crchfl_sumo import federation as federation_module
+    from crchfl_sumo import run as run_module
+    from crchfl_sumo.mobility import LinkModel
+    from crchfl_sumo.sim import Simulation
+
+    watch = Stopwatch()
+    config = run_config(args, data_dir)
+    with watch.part("load data set"):
+        inputs = run_module.read_inputs(config)
+    rss_inputs = peak_rss_mib()
+    trainer = TimedTrainer(
+        run_module.TorchTrainer(config.model, config.train, inputs.test, config.federation.seed), watch
+    )
+    clocks = []
+
+    def clock_factory():
+        clocks.append(TimedClock(run_module.make_clock(config, inputs), watch))
+        return clocks[-1]
+
+    step_ends = [time.perf_counter()]
+    step_parts = [dict(watch.seconds)]  # the stopwatch after every step
+
+    def progress(info: dict) -> None:
+        step_ends.append(time.perf_counter())
+        step_parts.append(dict(watch.seconds))
+
+    profiler = cProfile.Profile() if args.profile else None
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
+        stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
+        stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
+        for name in ("_save_state", "_write_outputs"):  # run.py's per-step files
+            if hasattr(run_module, name):
+                timed = watch.wrap("checkpoint + outputs", getattr(run_module, name))
+                stack.enter_context(patched(run_module, name, timed))
+        start = time.perf_counter()
+        if profiler is not None:
+            profiler.enable()
+        summary = run_module.run_federation_dir(
+            config, inputs, out_dir, trainer=trainer, clock_factory=clock_factory, progress=progress
+        )
+        if profiler is not None:
+            profiler.disable()
+        total_s = time.perf_counter() - start
+    clock = clocks[-1].inner
+    return {
+        "config": config,
+        "inputs": inputs,
+        "summary": summary,
+        "total_s": total_s,
+        "watch": watch,
+        "step_s": [b - a for a, b in zip(step_ends, step_ends[1:])],
+        "step_parts": [{k: b.get(k, 0.0) - a.get(k, 0.0) for k in b} for a, b in zip(step_parts, step_parts[1:])],
+        "link_handovers": link_handovers(clock, inputs.vehicles),
+        "clock_steps": int(round((clock.t_s - clock.start_s) / clock.step_s)) + 1,
+        "rss_inputs_mib": rss_inputs,
+        "profile": profiler,
+    }
+
+
+def link_handovers(clock, vehicles, back_within_s: float = 5.0) -> tuple[int, int]:
+    """Site-to-site changes of the clients' serving edge site over the simulated span the run used,
+    and how many of them went back to the site served before within ``back_within_s`` (ping-pong)."""
+    count = back = 0
+    for v in vehicles:
+        link = clock.series(v, "edge", clock.start_s, clock.t_s)
+        changes = [(t, a, b) for t, a, b in zip(link.t_s[1:], link.site[:-1], link.site[1:]) if a != b and a >= 0 and b >= 0]
+        count += len(changes)
+        back += sum(1 for (t0, a0, _), (t1, _, b1) in zip(changes, changes[1:]) if b1 == a0 and t1 - t0 <= back_within_s)
+    return count, back
+
+
+def ledger_figures(out_dir: Path, vehicles) -> dict:
+    """Bytes per client and upload times from ledger.jsonl; membership changes between aggregations."""
+    lines = (out_dir / "ledger.jsonl").read_text(encoding="utf-8").splitlines()
+    records = [json.loads(line) for line in lines[1:]]
+    clients = set(vehicles)
+    wireless = [r for r in records if r["link"] == "wireless"]
+    up = [r for r in wireless if r["sender"] in clients]
+    down = [r for r in wireless if r["receiver"] in clients]
+    edge_of: dict[str, list[str]] = collections.defaultdict(list)
+    for r in up:
+        edge_of[r["sender"]].append(r["receiver"])
+    moves = sum(sum(1 for a, b in zip(edges, edges[1:]) if a != b) for edges in edge_of.values())
+    return {
+        "up_bytes": sum(r["size_bytes"] for r in up),
+        "down_bytes": sum(r["size_bytes"] for r in down),
+        "wireline_bytes": sum(r["size_bytes"] for r in records if r["link"] == "wireline"),
+        "uploads": len(up),
+        "downloads": len(down),
+        "upload_s": [r["end_s"] - r["start_s"] for r in up],
+        "download_s": [r["end_s"] - r["start_s"] for r in down],
+        "edge_moves": moves,
+    }
+
+
+# ------------------------------------------------------------------ report
+
+
+def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> None:
+    config, inputs, summary, watch = fed["config"], fed["inputs"], fed["summary"], fed["watch"]
+    clients = len(inputs.vehicles)
+    train_samples = sum(len(inputs.samples[v]) for v in inputs.vehicles)
+    print(f"scenario {SCENARIO}: {clients} clients over {len(inputs.edges)} edge sites; torch threads "
+          f"{torch.get_num_threads()}")
+
+    print(f"\n1. data set: {data['samples']} samples ({data['train_shards']} train shards x {args.samples}, "
+          f"{data['test_shards']} test shards x {args.test_samples}), 64 x 128, in {data['total_s']:.1f} s")
+    for stage in ("simulate", "world", "label", "render", "write"):
+        seconds = data["stages_s"].get(stage, 0.0)
+        print(f"   {stage:9s} {seconds:7.1f} s  {100 * seconds / data['total_s']:5.1f} %")
+    other = data["total_s"] - sum(data["stages_s"].values())
+    print(f"   {'other':9s} {other:7.1f} s  {100 * other / data['total_s']:5.1f} %  (scenario load, plan, manifest)")
+    print(f"   peak memory of the generating process: {data['peak_rss_mib']:.0f} MiB")
+
+    rounds, aggregations = summary["cloud_rounds"], summary["edge_aggregations"]
+    hyper = summary["hyper"]
+    total = fed["total_s"]
+    print(f"\n2. federation: {config.federation.scheme}, edge_interval {hyper['edge_interval']}, cloud_interval "
+          f"{hyper['cloud_interval']}, pretrain_batch {hyper['pretrain_batch']}; {train_samples} training samples, "
+          f"{len(inputs.test)} test samples")
+    print(f"   reached {rounds} cloud rounds, {aggregations} edge aggregations, {len(fed['step_s'])} steps "
+          f"(stop: {summary['stop_reason']}), {summary['sim_time_s']:.1f} simulated s "
+          f"({fed['clock_steps']} SUMO steps of 244 vehicles)")
+    print(f"   wall {total:.1f} s (data set load {watch.seconds['load data set']:.1f} s before it):")
+    s = watch.seconds
+    clock_rest = s["clock (all)"] - s["clock: SUMO step"] - s["clock: link models"]
+    parts = [
+        ("SUMO start", s["SUMO start"], "libsumo load of the network and routes"),
+        ("clock: SUMO step", s["clock: SUMO step"], f"{watch.calls['clock: SUMO step']} steps -> Frames"),
+        ("clock: link models", s["clock: link models"], "association, handover, rates of 200 clients"),
+        ("clock: series", clock_rest, f"{watch.calls['clock (all)']} link-series requests, per-vehicle appends"),
+        ("local training", s["local training"], f"{watch.calls['local training']} calls x {clients} clients"
+         + (" (and stage I's pretraining)" if hyper["pretrain_batch"] else "")),
+        ("FedAvg", s["FedAvg"], f"{watch.calls['FedAvg']} averages"),
+        ("evaluation", s["evaluation"], f"{watch.calls['evaluation']} test-set evaluations"),
+        ("checkpoint + outputs", s["checkpoint + outputs"], "checkpoint.pt, ledger, metrics, models, summary per step"),
+    ]
+    loop = total - sum(seconds for _, seconds, _ in parts)
+    parts.append(("loop (transfers, ledger)", loop, "the rest: transfers over the series, ledger, bookkeeping"))
+    for name, seconds, note in parts:
+        print(f"   {name:26s} {seconds:7.2f} s  {100 * seconds / total:5.1f} %  {note}")
+    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs  loop")
+    for k, (wall, part) in enumerate(zip(fed["step_s"], fed["step_parts"]), start=1):
+        known = ("local training", "clock (all)", "FedAvg", "evaluation", "checkpoint + outputs")
+        print(f"                 {k:4d} {wall:6.2f} {part.get('local training', 0):9.2f} "
+              f"{part.get('clock (all)', 0):6.2f} "
+              f"{part.get('FedAvg', 0) + part.get('evaluation', 0):12.2f} {part.get('checkpoint + outputs', 0):19.2f} "
+              f"{wall - sum(part.get(x, 0) for x in known):5.2f}")
+
+    ledger = ledger_figures(out_dir, inputs.vehicles)
+    per_round = max(rounds, 1)
+    mib = 1024 * 1024
+    print("\n3. per client")
+    print(f"   local training {1e3 * s['local training'] / (clients * max(aggregations, 1)):.1f} ms per client per "
+          f"edge aggregation ({train_samples // clients} samples, {hyper['edge_interval']} epoch); "
+          f"{1e3 * s['local training'] / (clients * per_round):.1f} ms per client per cloud round")
+    print(f"   SUMO clock {1e3 * s['clock (all)'] / (clients * per_round):.1f} ms per client per cloud round; "
+          f"whole federation {1e3 * total / (clients * per_round):.1f} ms per client per cloud round")
+    print(f"   model {summary['model_bytes'] / mib:.2f} MiB (real size, compact); per client per cloud round: "
+          f"up {ledger['up_bytes'] / clients / per_round / mib:.2f} MiB, down "
+          f"{ledger['down_bytes'] / clients / per_round / mib:.2f} MiB wireless "
+          f"({ledger['uploads']} uploads, {ledger['downloads']} downloads in all); wireline "
+          f"{ledger['wireline_bytes'] / mib:.1f} MiB in all")
+    if ledger["upload_s"]:
+        up_s, down_s = sorted(ledger["upload_s"]), sorted(ledger["download_s"])
+        print(f"   simulated transfer time: upload median {up_s[len(up_s) // 2]:.2f} s (max {up_s[-1]:.2f} s), "
+              f"download median {down_s[len(down_s) // 2]:.2f} s (max {down_s[-1]:.2f} s)")
+    stragglers = [json.loads(line) for line in (out_dir / "stragglers.jsonl").read_text().splitlines()]
+    reasons = collections.Counter(x["reason"] for x in stragglers)
+    handovers, back = fed["link_handovers"]
+    print(f"   handovers: {handovers} site-to-site changes of the clients' serving site over the run's "
+          f"{summary['sim_time_s']:.0f} simulated s (one per client every "
+          f"{clients * summary['sim_time_s'] / max(handovers, 1):.0f} s; {back} back to the previous site within 5 s); "
+          f"{ledger['edge_moves']} changes of edge membership between aggregations (new_edge policy)")
+    print(f"   stragglers: {len(stragglers)} {dict(reasons)}")
+
+    checkpoint = out_dir / "checkpoint.pt"
+    print("\n4. memory")
+    print(f"   peak of the federation process: {peak_rss_mib():.0f} MiB (after loading the data set: "
+          f"{fed['rss_inputs_mib']:.0f} MiB); data generation (child): {data['peak_rss_mib']:.0f} MiB")
+    images = sum(x.images.nelement() * x.images.element_size() for x in inputs.samples.values())
+    print(f"   training images in memory {images / mib:.1f} MiB; checkpoint.pt {checkpoint.stat().st_size / mib:.1f} "
+          f"MiB; ledger.jsonl {(out_dir / 'ledger.jsonl').stat().st_size / 1024:.0f} KiB")
+
+    if fed["profile"] is not None:
+        text = io.StringIO()
+        pstats.Stats(fed["profile"], stream=text).sort_stats("tottime").print_stats(args.profile)
+        print("\n5. profile (own time)\n" + text.getvalue())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=8, help="training samples per client (default 8)")
+    parser.add_argument("--test-samples", type=int, default=50, help="samples per test vehicle (default 50)")
+    parser.add_argument("--scheme", choices=("hfl", "crchfl"), default="hfl")
+    parser.add_argument("--rounds", type=int, default=3, help="cloud rounds (default 3)")
+    parser.add_argument("--cloud-interval", type=int, default=2, help="edge aggregations per cloud round (default 2)")
+    parser.add_argument("--pretrain-batch", type=int, default=200, help="crchfl: samples uploaded for pretraining")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, help="keep the data set and the run here (default: a temp folder)")
+    parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = args.out or Path(tmp)
+        data_dir, out_dir = root / "data", root / "run"
+        with multiprocessing.get_context("spawn").Pool(1) as pool:
+            data = pool.apply(generate, (str(data_dir), args.samples, args.test_samples, args.seed))
+        fed = federate(args, data_dir, out_dir)
+        report(args, data, fed, out_dir)
+
+
+if __name__ == "__main__":
+    main()
