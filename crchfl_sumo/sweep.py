@@ -30,6 +30,7 @@ not run again, an interrupted one continues from its checkpoint.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
 import itertools
@@ -255,16 +256,30 @@ def run_point(mapping: dict, out_dir: str) -> dict:
     return run_federation_dir(config, read_inputs(config), out_dir, resume=True, config_text=toml_text(mapping))
 
 
-def finished_summary(run_dir: Path) -> dict | None:
-    """The summary of a finished run in ``run_dir`` (None if there is none or it is still going)."""
+def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
+    """The summary of a finished run of ``mapping`` in ``run_dir`` (None if there is none or it is still going).
+
+    A finished run made with other settings (the base config changed since) is an error, never a stale row.
+    """
+    from .run import RunConfig, resolved_config
+
     path = run_dir / "summary.json"
     if not path.is_file():
         return None
     try:
         summary = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError:
+        recorded = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))["config"]
+    except (OSError, KeyError, json.JSONDecodeError):
+        return None  # not finished writing: the run resumes and rewrites them
+    if not summary.get("stop_reason"):
         return None
-    return summary if summary.get("stop_reason") else None
+    wanted = json.loads(json.dumps(resolved_config(from_mapping(RunConfig, mapping))))
+    if recorded != wanted:
+        raise CrchflError(
+            f"{run_dir} holds a run made with other settings than this sweep's point (see its config.json); "
+            "sweep into another --out or delete that folder"
+        )
+    return summary
 
 
 def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: BackendConfig, where: str = "config") -> list[dict]:
@@ -272,8 +287,10 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
     from .sweep_plots import plot_sweep
 
     out_dir = Path(out_dir)
-    base = _absolute_paths({k: v for k, v in base.items() if k != "backend"})
-    points = expand_grid(base, params, where)
+    base = {k: v for k, v in base.items() if k != "backend"}
+    points = [
+        dataclasses.replace(p, mapping=_absolute_paths(p.mapping)) for p in expand_grid(base, params, where)
+    ]
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
         out_dir / "sweep.json",
@@ -288,7 +305,7 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
         )
         + "\n",
     )
-    summaries = {p.name: finished_summary(out_dir / RUNS_DIR / p.name) for p in points}
+    summaries = {p.name: finished_summary(out_dir / RUNS_DIR / p.name, p.mapping) for p in points}
     todo = [p for p in points if summaries[p.name] is None]
     log.info("sweep: %d points, %d finished, %d to run", len(points), len(points) - len(todo), len(todo))
     with Executor(backend) as executor:
