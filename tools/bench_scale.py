@@ -199,10 +199,12 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
 
     step_ends = [time.perf_counter()]
     step_parts = [dict(watch.seconds)]  # the stopwatch after every step
+    step_rss = []
 
     def progress(info: dict) -> None:
         step_ends.append(time.perf_counter())
         step_parts.append(dict(watch.seconds))
+        step_rss.append(peak_rss_mib())
 
     profiler = cProfile.Profile() if args.profile else None
     with contextlib.ExitStack() as stack:
@@ -231,6 +233,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         "watch": watch,
         "step_s": [b - a for a, b in zip(step_ends, step_ends[1:])],
         "step_parts": [{k: b.get(k, 0.0) - a.get(k, 0.0) for k in b} for a, b in zip(step_parts, step_parts[1:])],
+        "step_rss_mib": step_rss,
         "link_handovers": link_handovers(clock, inputs.vehicles),
         "clock_steps": int(round((clock.t_s - clock.start_s) / clock.step_s)) + 1,
         "rss_inputs_mib": rss_inputs,
@@ -320,13 +323,13 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     parts.append(("loop (transfers, ledger)", loop, "the rest: transfers over the series, ledger, bookkeeping"))
     for name, seconds, note in parts:
         print(f"   {name:26s} {seconds:7.2f} s  {100 * seconds / total:5.1f} %  {note}")
-    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs  loop")
-    for k, (wall, part) in enumerate(zip(fed["step_s"], fed["step_parts"]), start=1):
+    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs  loop  peak MiB")
+    for k, (wall, part, rss) in enumerate(zip(fed["step_s"], fed["step_parts"], fed["step_rss_mib"]), start=1):
         known = ("local training", "clock (all)", "FedAvg", "evaluation", "checkpoint + outputs")
         print(f"                 {k:4d} {wall:6.2f} {part.get('local training', 0):9.2f} "
               f"{part.get('clock (all)', 0):6.2f} "
               f"{part.get('FedAvg', 0) + part.get('evaluation', 0):12.2f} {part.get('checkpoint + outputs', 0):19.2f} "
-              f"{wall - sum(part.get(x, 0) for x in known):5.2f}")
+              f"{wall - sum(part.get(x, 0) for x in known):5.2f} {rss:9.0f}")
 
     ledger = ledger_figures(out_dir, inputs.vehicles)
     per_round = max(rounds, 1)
