@@ -26,6 +26,7 @@ import logging
 import math
 import multiprocessing
 import os
+import sys
 from dataclasses import dataclass
 from typing import Any, Callable, Literal, Sequence
 
@@ -197,19 +198,20 @@ def _map_processes(fn, args: list[tuple], config: BackendConfig) -> list:
     """Each call in its own spawned process, ``config.workers`` at a time; a dead child's call is retried."""
     results: dict[int, Any] = {}
     attempts = dict.fromkeys(range(len(args)), 0)
-    context = multiprocessing.get_context("spawn")
+    options: dict[str, Any] = {"mp_context": multiprocessing.get_context("spawn")}
+    if sys.version_info >= (3, 11):  # older: children are reused, one task after the other (SUMO is closed between)
+        options["max_tasks_per_child"] = 1
     while len(results) < len(args):
         todo = [i for i in range(len(args)) if i not in results]
-        with cf.ProcessPoolExecutor(
-            min(config.workers, len(todo)), mp_context=context, max_tasks_per_child=1
-        ) as pool:
+        with cf.ProcessPoolExecutor(min(config.workers, len(todo)), **options) as pool:
             futures = {pool.submit(fn, *args[i]): i for i in todo}
             for future in cf.as_completed(futures):
                 i = futures[future]
                 try:
                     results[i] = future.result()
                 except cf.process.BrokenProcessPool:
-                    # a child died (killed, out of memory): every unfinished call of this pool is tried again
+                    # a child died (killed, out of memory): the pool is broken, so every unfinished
+                    # call of it, the dead one's and those beside it, is tried again in a new pool
                     attempts[i] += 1
                     if attempts[i] > config.max_retries:
                         raise CrchflError(
