@@ -503,9 +503,10 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
 # ---------------------------------------------------------------- scale200
 
 # scale200: 200 data vehicles, the federated clients of one run. One Town01
-# holds about 80 vehicles before its short northern blocks lock up (measured:
-# 80 + 1 drove 30 min without a teleport, 100 + 1 did not), so the scenario
-# holds four copies of Town01 (2 x 2, 205.6 m apart as paper's towns, no
+# holds about 80 vehicles before its short northern blocks lock up (measured
+# on paper_linked's network: 80 data vehicles in Town01 drove 30 min without
+# a teleport, 100 did not; docs/scenarios.md), so the scenario holds four
+# copies of Town01 (2 x 2, 205.6 m apart as paper's towns, no
 # roads between them), each with 50 data vehicles, its test vehicle and 10
 # background vehicles: about 83 m of lane per vehicle.
 SCALE_NAME = "scale200"
@@ -618,16 +619,24 @@ def copied_trips(trips: list[ET.Element], prefix: str) -> list[ET.Element]:
 def scale_routes_xml(net: sumolib.net.Net, plain: Plain, towns: list[Town]) -> str:
     """scale200's named vehicles, all starting at once: in each town its test
     vehicle on Town01's test loop, and each data vehicle on one of the town's
-    loops, spread along it (start offsets by the golden ratio)."""
+    loops, spread along it (start offsets by the golden ratio).
+
+    The data vehicles of all towns together take every loop shape: the shapes
+    are spread evenly over all of them, and town k takes every len(towns)-th
+    from the k-th on.
+    """
     routes: dict[str, list[str]] = {}
     depart_pos_m: dict[str, float] = {}
     occupied: dict[str, list[float]] = {}
+    count = len(town_loops(net, towns[0].prefix, plain))
+    shapes = evenly(list(range(count)), sum(len(t.data_vehicles) for t in towns))
     i = 0  # vehicle number across towns: its start offset
-    for town in towns:
+    for k, town in enumerate(towns):
         (vid,) = town.test_vehicles
         test_loop = [f"{town.prefix}_{n}" for n in TOWN01.loops["t01_test_0"]]
         routes[vid], depart_pos_m[vid] = start_on_loop(net, test_loop, 0.0, occupied)
-        loops = evenly(town_loops(net, town.prefix, plain), len(town.data_vehicles))
+        own = town_loops(net, town.prefix, plain)
+        loops = [own[j] for j in shapes[k::len(towns)]]
         for vid, loop in zip(town.data_vehicles, loops):
             routes[vid], depart_pos_m[vid] = start_on_loop(net, loop, (i * GOLDEN) % 1.0, occupied)
             i += 1
