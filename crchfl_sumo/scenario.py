@@ -26,7 +26,7 @@ import numpy as np
 
 from .config import from_mapping, read_toml
 from .errors import CrchflError
-from .sites import EdgeSite, _farthest_point_init, _kmeans, place_edge_sites
+from .sites import EdgeSite, place_edge_site_count, place_edge_sites
 
 log = logging.getLogger(__name__)
 
@@ -155,15 +155,6 @@ def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_rad
         sites = place_edge_site_count(lane_points(scenario.net_path), sumo.edge_site_count)
         scenario = dataclasses.replace(scenario, edge_sites=sites)
     return dataclasses.replace(scenario, demand_scale=sumo.scale, speed_limit_mps=sumo.speed_limit_mps)
-
-
-def place_edge_site_count(road_points_m: np.ndarray, count: int) -> tuple[EdgeSite, ...]:
-    """``count`` sites by the same deterministic k-means as sites.place_edge_sites, named edge00, edge01, ..."""
-    points = np.asarray(road_points_m, dtype=np.float64).reshape(-1, 2)
-    if count > len(points):
-        raise CrchflError(f"sumo.edge_site_count: {count} sites for a network of {len(points)} road points; use fewer")
-    centres = _kmeans(points, _farthest_point_init(points, count), 30)
-    return tuple(EdgeSite(f"edge{i:02d}", float(x), float(y)) for i, (x, y) in enumerate(centres))
 
 
 def builtin_names() -> list[str]:

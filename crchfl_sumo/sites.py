@@ -55,6 +55,15 @@ def place_edge_sites(
     return tuple(EdgeSite(f"edge{i:02d}", float(x), float(y)) for i, (x, y) in enumerate(centres))
 
 
+def place_edge_site_count(road_points_m: np.ndarray, count: int, iterations: int = 30) -> tuple[EdgeSite, ...]:
+    """``count`` sites by the same deterministic k-means as ``place_edge_sites``, named edge00, edge01, ..."""
+    points = np.asarray(road_points_m, dtype=np.float64).reshape(-1, 2)
+    if count > len(points):
+        raise CrchflError(f"sumo.edge_site_count: {count} sites for a network of {len(points)} road points; use fewer")
+    centres = _kmeans(points, _farthest_point_init(points, count), iterations)
+    return tuple(EdgeSite(f"edge{i:02d}", float(x), float(y)) for i, (x, y) in enumerate(centres))
+
+
 def _distance_to_nearest(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1)).min(axis=1)
 

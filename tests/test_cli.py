@@ -9,7 +9,7 @@ import pytest
 from crchfl_sumo.cli import build_parser, main
 from test_run import PAPER_VEHICLES, write_dataset
 
-COMMANDS = ["reproduce", "report", "calibrate", "simulate", "render", "dataset", "dataset-stats", "train", "drive", "drive-compare", "run", "plan"]
+COMMANDS = ["reproduce", "report", "calibrate", "simulate", "render", "dataset", "dataset-stats", "train", "drive", "drive-compare", "run", "plan", "sweep"]
 
 
 def test_help_lists_every_subcommand():
