@@ -183,16 +183,19 @@ class SumoClock:
             box = (bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m)
             self._links["macro"] = macro_link_model(macro, box, channel, mobility, np.random.default_rng(seeds[1]))
         self.collector = collector
-        self._t: list[float] = []
-        self._rate = {k: {v: [] for v in self.vehicles} for k in self._links}
-        self._site = {k: {v: [] for v in self.vehicles} for k in self._links}
+        self._column = {v: i for i, v in enumerate(self.vehicles)}
+        # One row per step, one column per vehicle, grown by doubling: a series is a slice, not a list copy.
+        self._steps = 0
+        self._t = np.zeros(64)
+        self._rate = {k: np.zeros((64, len(self.vehicles))) for k in self._links}
+        self._site = {k: np.full((64, len(self.vehicles)), NO_SITE, dtype=np.int64) for k in self._links}
         self._handover_t: dict[str, list[float]] = {k: [] for k in self._links}  # site-to-site changes
         self.start_s = 0.0
 
     def __enter__(self) -> "SumoClock":
         self._sim.__enter__()
         self._advance()  # the first frame: the federation starts at its time
-        self.start_s = self._t[0]
+        self.start_s = float(self._t[0])
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -201,7 +204,7 @@ class SumoClock:
     @property
     def t_s(self) -> float:
         """Simulated time of the latest step."""
-        return self._t[-1]
+        return float(self._t[self._steps - 1])
 
     def _advance(self) -> None:
         frame = self._sim.step()
@@ -209,48 +212,54 @@ class SumoClock:
             self.collector.observe(frame)
         keep = np.isin(frame.ids, self.vehicles)
         mine = frame.select(keep)
-        self._t.append(float(frame.t_s))
+        if self._steps == len(self._t):
+            self._grow()
+        row = self._steps
+        self._t[row] = float(frame.t_s)
+        columns = [self._column[str(v)] for v in mine.ids]  # absent vehicles keep 0 bit/s and no site
         for kind, links in self._links.items():
             snapshot = links.step(mine)
             self._handover_t[kind].extend(
                 h.t_s for h in snapshot.handovers if h.from_site != NO_SITE and h.to_site != NO_SITE
             )
-            rows = {str(v): i for i, v in enumerate(snapshot.ids)}
-            for v in self.vehicles:
-                i = rows.get(v)
-                self._rate[kind][v].append(0.0 if i is None else float(snapshot.rate_bps[i]))
-                self._site[kind][v].append(NO_SITE if i is None else int(snapshot.site[i]))
+            self._rate[kind][row, columns] = snapshot.rate_bps
+            self._site[kind][row, columns] = snapshot.site
+        self._steps += 1
+
+    def _grow(self) -> None:
+        rows = len(self._t)
+        self._t = np.concatenate([self._t, np.zeros(rows)])
+        for kind in self._links:
+            self._rate[kind] = np.concatenate([self._rate[kind], np.zeros_like(self._rate[kind])])
+            self._site[kind] = np.concatenate([self._site[kind], np.full_like(self._site[kind], NO_SITE)])
 
     def handovers(self, until_s: float) -> int:
-        while self._t[-1] < until_s - _EPS_S:
+        while self.t_s < until_s - _EPS_S:
             self._advance()
         kind = "edge" if "edge" in self._links else "macro"
         return sum(1 for t in self._handover_t[kind] if t <= until_s + _EPS_S)
 
     def collected(self, vehicle: str, t_s: float):
         """The online collector's labelled samples of ``vehicle`` at ``t_s`` (None if none)."""
-        while self._t[-1] < t_s - _EPS_S:
+        while self.t_s < t_s - _EPS_S:
             self._advance()
         return self.collector.collected(vehicle, t_s)
 
     def series(self, vehicle: str, kind: LinkKind, from_s: float, to_s: float) -> LinkSeries:
         if kind not in self._links:
             raise ValueError(f"SumoClock: link kind {kind!r} was not requested")
-        if vehicle not in self._rate[kind]:
+        column = self._column.get(vehicle)
+        if column is None:
             raise CrchflError(f"vehicle '{vehicle}' is not one of the clock's vehicles {list(self.vehicles)}")
-        while self._t[-1] < to_s - _EPS_S:
+        while self.t_s < to_s - _EPS_S:
             self._advance()
-        t = np.asarray(self._t)
+        t = self._t[: self._steps]
         first = max(int(np.searchsorted(t, from_s + _EPS_S, side="right")) - 1, 0)
         last = int(np.searchsorted(t, to_s - _EPS_S, side="left"))
         sl = slice(first, last + 1)
         times = t[sl].copy()
         times[0] = min(times[0], from_s)  # times within _EPS_S count as equal: the series must still cover from_s
-        return LinkSeries(
-            times,
-            np.asarray(self._rate[kind][vehicle][sl], dtype=np.float64),
-            np.asarray(self._site[kind][vehicle][sl], dtype=np.int64),
-        )
+        return LinkSeries(times, self._rate[kind][sl, column].copy(), self._site[kind][sl, column].copy())
 
 
 # ------------------------------------------------------------------ transfers
