@@ -23,7 +23,6 @@ reads directly; ``[calibration]`` records the pilot data, sizes and residuals.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +35,7 @@ from scipy.optimize import curve_fit
 from .aggregate import weighted_average
 from .allocation import split_pretrain_batch
 from .atomic import atomic_write_text
+from .config import toml_value
 from .errors import CrchflError
 from .local import State, TrainConfig, evaluate, train_vehicle
 from .model import ModelConfig, build_model, model_from_state
@@ -308,52 +308,38 @@ def fit_pilots(data: Mapping[str, Any]) -> tuple[Fit, dict[str, list[float]]]:
 # ------------------------------------------------------------------ file and command
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        if math.isnan(value):
-            return "nan"
-        return repr(float(value)) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-
-
 def calibration_toml(fit: Fit, data: Mapping[str, Any], derived: Mapping[str, Any], seed: int, scenario: str) -> str:
     """The calibration file: ``[allocation]`` (read by `plan --config`) and ``[calibration]`` (the record)."""
     alpha, gamma, d = admissible(fit.alpha, fit.gamma, fit.d)
     lines = [
         "# Written by `crchfl-sumo calibrate` (docs/calibration.md).",
         "[allocation]",
-        f"alpha = {_toml_value(alpha)}",
-        f"gamma = {_toml_value(gamma)}",
-        f"d = {_toml_value(d)}",
+        f"alpha = {toml_value(alpha)}",
+        f"gamma = {toml_value(gamma)}",
+        f"d = {toml_value(d)}",
         "",
         "[calibration]",
-        f"scenario = {_toml_value(scenario)}",
+        f"scenario = {toml_value(scenario)}",
         f"seed = {seed}",
-        f"fitted_alpha = {_toml_value(fit.alpha)}",
-        f"fitted_gamma = {_toml_value(fit.gamma)}",
-        f"fitted_d = {_toml_value(fit.d)}",
-        f"curve_a_b_c = {_toml_value(list(fit.curve))}",
-        f"curve_rms = {_toml_value(fit.curve_rms)}",
-        f"alpha_rms_samples = {_toml_value(fit.alpha_rms)}",
-        f"gamma_rms_samples = {_toml_value(fit.gamma_rms)}",
+        f"fitted_alpha = {toml_value(fit.alpha)}",
+        f"fitted_gamma = {toml_value(fit.gamma)}",
+        f"fitted_d = {toml_value(fit.d)}",
+        f"curve_a_b_c = {toml_value(list(fit.curve))}",
+        f"curve_rms = {toml_value(fit.curve_rms)}",
+        f"alpha_rms_samples = {toml_value(fit.alpha_rms)}",
+        f"gamma_rms_samples = {toml_value(fit.gamma_rms)}",
     ]
     for key in ("metric", "local_samples", "test_samples", "epochs", "reference_samples", "reference_scores",
                 "pretrain_samples", "pretrain_scores"):
-        lines.append(f"{key} = {_toml_value(data[key])}")
-    lines.append(f"hfl_edge_interval = {_toml_value([r['edge_interval'] for r in data['hfl']])}")
-    lines.append(f"hfl_cloud_interval = {_toml_value([r['cloud_interval'] for r in data['hfl']])}")
-    lines.append(f"hfl_cloud_rounds = {_toml_value([r['cloud_rounds'] for r in data['hfl']])}")
-    lines.append(f"hfl_scores = {_toml_value([r['score'] for r in data['hfl']])}")
+        lines.append(f"{key} = {toml_value(data[key])}")
+    lines.append(f"hfl_edge_interval = {toml_value([r['edge_interval'] for r in data['hfl']])}")
+    lines.append(f"hfl_cloud_interval = {toml_value([r['cloud_interval'] for r in data['hfl']])}")
+    lines.append(f"hfl_cloud_rounds = {toml_value([r['cloud_rounds'] for r in data['hfl']])}")
+    lines.append(f"hfl_scores = {toml_value([r['score'] for r in data['hfl']])}")
     for key in ("pretrain_effective", "hfl_effective"):
-        lines.append(f"{key} = {_toml_value(derived[key])}")
+        lines.append(f"{key} = {toml_value(derived[key])}")
     if "train_s_per_sample_epoch" in data:  # measured, so it differs from run to run; the fit does not use it
-        lines.append(f"train_s_per_sample_epoch = {_toml_value(data['train_s_per_sample_epoch'])}")
+        lines.append(f"train_s_per_sample_epoch = {toml_value(data['train_s_per_sample_epoch'])}")
     return "\n".join(lines) + "\n"
 
 

@@ -1,14 +1,18 @@
-"""TOML -> frozen dataclasses, with unknown keys and wrong types rejected.
+"""TOML -> frozen dataclasses, with unknown keys and wrong types rejected; and mappings -> TOML text.
 
 Each module owns the frozen dataclass of its own settings (``channel.ChannelConfig``,
 ``mobility.MobilityConfig`` ...). This module only knows how to fill any such
 dataclass from a mapping, so that a typo in a config file is an error naming the
-file and the dotted key, never a silently ignored setting.
+file and the dotted key, never a silently ignored setting; and how to write a
+mapping back as TOML (the configs a run, a sweep or a calibration writes).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+import numbers
 import sys
 import types
 import typing
@@ -19,6 +23,8 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised only on Python 3.10
     import tomli as tomllib
+
+import numpy as np
 
 from .errors import CrchflError
 
@@ -127,3 +133,51 @@ def _convert(hint: Any, value: Any, where: str) -> Any:
             raise CrchflError(f"{where}: expected a path string, got {value!r}")
         return Path(value)
     return value
+
+
+# ------------------------------------------------------------------ writing TOML
+
+
+def toml_text(mapping: Mapping[str, Any]) -> str:
+    """TOML for a mapping of tables, scalars and lists (what configs hold); tomllib reads it back equal."""
+    lines: list[str] = []
+    _toml_table(mapping, [], lines)
+    return "\n".join(lines).strip() + "\n"
+
+
+def _toml_table(mapping: Mapping[str, Any], path: list[str], lines: list[str]) -> None:
+    tables = {k: v for k, v in mapping.items() if isinstance(v, Mapping)}
+    if path and (len(tables) < len(mapping) or not tables):
+        lines += ["", "[" + ".".join(toml_key(p) for p in path) + "]"]
+    for key, value in mapping.items():
+        if not isinstance(value, Mapping):
+            lines.append(f"{toml_key(key)} = {toml_value(value)}")
+    for key, value in tables.items():
+        _toml_table(value, [*path, key], lines)
+
+
+def toml_key(key: str) -> str:
+    """A bare key where TOML allows one, else a quoted key."""
+    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
+
+
+def toml_value(value: Any) -> str:
+    """One value as inline TOML (numpy scalars too)."""
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        value = float(value)
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + " }"
+    raise CrchflError(f"cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string, list or table")

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from .atomic import atomic_write_text
-from .config import from_mapping, read_toml, to_mapping
+from .config import from_mapping, read_toml, to_mapping, toml_text
 from .drive import DriveConfig
 from .errors import CrchflError
 from .generate import GenerateConfig
@@ -161,50 +161,6 @@ def run_config(mapping: Mapping[str, Any], where: str):
     from .run import RunConfig
 
     return from_mapping(RunConfig, mapping, where=where)
-
-
-def toml_text(mapping: Mapping[str, Any]) -> str:
-    """TOML for a mapping of tables, scalars and lists (what run configs hold); tomllib reads it back equal."""
-    lines: list[str] = []
-    _toml_table(mapping, [], lines)
-    return "\n".join(lines).strip() + "\n"
-
-
-def _toml_table(mapping: Mapping[str, Any], path: list[str], lines: list[str]) -> None:
-    tables = {k: v for k, v in mapping.items() if isinstance(v, Mapping)}
-    if path and (len(tables) < len(mapping) or not tables):
-        lines += ["", "[" + ".".join(_toml_key(p) for p in path) + "]"]
-    for key, value in mapping.items():
-        if not isinstance(value, Mapping):
-            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
-    for key, value in tables.items():
-        _toml_table(value, [*path, key], lines)
-
-
-def _toml_key(key: str) -> str:
-    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # a JSON string is a valid TOML basic string
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, Mapping):
-        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    raise CrchflError(
-        f"run config: cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string or list"
-    )
 
 
 # ------------------------------------------------------------------ the parts

@@ -36,7 +36,6 @@ import io
 import itertools
 import json
 import logging
-import math
 import re
 import sys
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from typing import Any
 
 from .atomic import atomic_write_text
 from .backend import BackendConfig, Executor
-from .config import from_mapping, read_toml
+from .config import from_mapping, read_toml, toml_text, toml_value
 from .errors import CrchflError
 
 if sys.version_info >= (3, 11):
@@ -168,7 +167,7 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     for param in params:
         label = f"--param {param.path}"
         for value in param.values:
-            where_value = f"{label}={format_value(value)}"
+            where_value = f"{label}={toml_value(value)}"
             try:
                 from_mapping(RunConfig, set_path(base, param.keys, value, label), where=f"{where_value}: config")
             except CrchflError as exc:  # a settings class's own check does not know the --param: name it
@@ -186,27 +185,6 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     return points
 
 
-def format_value(value: Any) -> str:
-    """A value as TOML writes it (inline)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # JSON escapes are valid TOML basic-string escapes
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(format_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{_key(k)} = {format_value(v)}" for k, v in value.items()) + "}"
-    raise CrchflError(f"cannot write {value!r} as TOML")
-
-
 def point_name(values: dict[str, Any]) -> str:
     """A folder name from a point's values, the same for the same values: ``path=value`` joined by ``__``.
 
@@ -214,29 +192,11 @@ def point_name(values: dict[str, Any]) -> str:
     """
     parts = []
     for path, value in values.items():
-        text = format_value(value).strip('"')
+        text = toml_value(value).strip('"')
         if isinstance(value, (list, tuple, dict)) or not re.fullmatch(r"[A-Za-z0-9.+\-_]{1,40}", text):
-            text = hashlib.sha1(format_value(value).encode()).hexdigest()[:10]
+            text = hashlib.sha1(toml_value(value).encode()).hexdigest()[:10]
         parts.append(f"{path}={text}")
     return "__".join(parts) or "base"
-
-
-def toml_text(mapping: dict, prefix: str = "") -> str:
-    """A TOML document of a config mapping (tables as [headers], lists of tables inline); tomllib reads it back."""
-    lines, tables = [], []
-    for key, value in mapping.items():
-        if isinstance(value, dict):
-            tables.append((key, value))
-        else:
-            lines.append(f"{_key(key)} = {format_value(value)}")
-    for key, value in tables:
-        name = f"{prefix}{_key(key)}"
-        lines += ["", f"[{name}]", toml_text(value, f"{name}.").rstrip("\n")]
-    return "\n".join(line for line in lines if line is not None) + "\n"
-
-
-def _key(key: str) -> str:
-    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
 
 
 # ------------------------------------------------------------------ running
@@ -364,7 +324,7 @@ def _cell(value: Any, csv_cell: bool = False) -> str:
         return f"{value:.4g}"
     if isinstance(value, (str, int, float)) and not isinstance(value, bool):
         return str(value)
-    return format_value(value)
+    return toml_value(value)
 
 
 def sweep_command(

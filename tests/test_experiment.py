@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 
 import pytest
 
 from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.config import toml_text
 from crchfl_sumo.experiment import (
     ReproduceConfig,
     best_seed,
@@ -20,28 +20,12 @@ from crchfl_sumo.experiment import (
     reproduce_command,
     run_config,
     run_mapping,
-    toml_text,
 )
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-
-def test_toml_text_reads_back_equal():
-    mapping = {
-        "scenario": "paper",
-        "flag": True,
-        "ratio": 0.1,
-        "deadline_s": math.inf,
-        "counts": [2, 3],
-        "names": ["a b", 'quote"d'],
-        "federation": {"scheme": "crchfl", "seed": 3, "inner": {"x": 1}},
-        "only_tables": {"a": {"b": 2}},
-        "list_of_tables": [{"town": "t1", "n": [1, 2]}],
-    }
-    assert tomllib.loads(toml_text(mapping)) == mapping
 
 
 def test_deep_merge_merges_tables_and_replaces_values():

@@ -5,10 +5,7 @@ over the cells and hand them over."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 from collections import Counter
 from functools import lru_cache
@@ -21,8 +18,9 @@ from sumolib.geomhelper import positionAtShapeOffset
 
 from crchfl_sumo.channel import ChannelConfig
 from crchfl_sumo.mobility import LinkModel, MobilityConfig
-from crchfl_sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.scenario import load_scenario
 from crchfl_sumo.sim import Simulation
+from test_towns import half_hour_statistics
 
 REPO = Path(__file__).resolve().parents[1]
 FOLDER = REPO / "crchfl_sumo" / "scenarios" / "scale200"
@@ -128,28 +126,8 @@ def test_a_minute_spreads_the_clients_over_the_eight_cells_and_hands_them_over()
 
 
 @pytest.mark.slow
-def test_build_reproduces_the_committed_files(tmp_path, monkeypatch):
-    spec = importlib.util.spec_from_file_location("build_nets", REPO / "tools" / "build_nets.py")
-    build_nets = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "build_nets", build_nets)  # dataclasses look their module up
-    spec.loader.exec_module(build_nets)
-    build_nets.build_all(tmp_path)
-    built = sorted(p.name for p in (tmp_path / "scale200").iterdir())
-    assert built == sorted(p.name for p in FOLDER.iterdir())
-    for name in built:
-        assert (tmp_path / "scale200" / name).read_bytes() == (FOLDER / name).read_bytes(), name
-
-
-@pytest.mark.slow
 def test_half_an_hour_without_teleports_or_collisions(tmp_path):
-    stats = tmp_path / "stats.xml"
-    subprocess.run(
-        [sumo_binary("sumo"), "-c", str(FOLDER / "scale200.sumocfg"), "--end", "1800",
-         "--no-step-log", "true", "--collision.action", "warn", "--collision.check-junctions", "true",
-         "--statistic-output", str(stats)],
-        check=True, capture_output=True,
-    )
-    root = ET.parse(stats).getroot()
+    root = half_hour_statistics(FOLDER / "scale200.sumocfg", tmp_path)
     vehicles = root.find("vehicles").attrib
     assert int(root.find("teleports").get("total")) == 0
     assert int(root.find("safety").get("collisions")) == 0

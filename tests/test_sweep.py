@@ -18,7 +18,7 @@ else:  # pragma: no cover
 
 from crchfl_sumo.backend import BackendConfig
 from crchfl_sumo.cli import main
-from crchfl_sumo.config import from_mapping
+from crchfl_sumo.config import from_mapping, toml_text
 from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.errors import CrchflError
 from crchfl_sumo.fl_clock import ScriptedClock, Segment
@@ -31,7 +31,6 @@ from crchfl_sumo.sweep import (
     point_name,
     run_sweep,
     split_values,
-    toml_text,
 )
 from test_run import PAPER_VEHICLES, Killed, _config, _files, _kill_after, write_dataset
 
@@ -91,17 +90,6 @@ def test_point_names_are_stable_and_lists_are_hashed():
     assert sites.startswith("sumo.edge_sites=") and len(sites) == len("sumo.edge_sites=") + 10
     assert sites != point_name({"sumo.edge_sites": [{"name": "a", "x_m": 1.0, "y_m": 3.0}]})
     assert point_name({"federation.deadline_s": math.inf}) == "federation.deadline_s=inf"
-
-
-def test_toml_text_round_trips_a_config_mapping():
-    mapping = {
-        "scenario": "paper",
-        "dataset": 'data "quoted"',
-        "federation": {"scheme": "hfl", "deadline_s": math.inf, "use_plan": False, "seed": 3},
-        "sumo": {"scale": 0.5, "edge_sites": [{"name": "a", "x_m": 1.0, "y_m": 2.5}]},
-        "allocation": {"nested": {"x": [1, 2]}},
-    }
-    assert tomllib.loads(toml_text(mapping)) == mapping
 
 
 # ------------------------------------------------------------------ running and resuming

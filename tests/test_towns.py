@@ -279,7 +279,7 @@ def test_build_reproduces_the_committed_files(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "build_nets", build_nets)  # dataclasses look their module up
     spec.loader.exec_module(build_nets)
     build_nets.build_all(tmp_path)
-    for name in SCENARIOS:
+    for name in (*SCENARIOS, "scale200"):
         built = sorted(p.name for p in (tmp_path / name).iterdir())
         assert built == sorted(p.name for p in (SCENARIOS_DIR / name).iterdir() if not p.name.startswith(f"{name}.nod")
                                and not p.name.startswith(f"{name}.edg"))
@@ -287,17 +287,22 @@ def test_build_reproduces_the_committed_files(tmp_path, monkeypatch):
             assert (tmp_path / name / file_name).read_bytes() == (SCENARIOS_DIR / name / file_name).read_bytes(), file_name
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", SCENARIOS)
-def test_half_an_hour_without_teleports_or_collisions(name, tmp_path):
+def half_hour_statistics(sumocfg: Path, tmp_path: Path) -> ET.Element:
+    """SUMO's statistic output after 30 simulated minutes of ``sumocfg`` (collisions checked at junctions too)."""
     stats = tmp_path / "stats.xml"
     subprocess.run(
-        [sumo_binary("sumo"), "-c", str(SCENARIOS_DIR / name / f"{name}.sumocfg"), "--end", "1800",
+        [sumo_binary("sumo"), "-c", str(sumocfg), "--end", "1800",
          "--no-step-log", "true", "--collision.action", "warn", "--collision.check-junctions", "true",
          "--statistic-output", str(stats)],
         check=True, capture_output=True,
     )
-    root = ET.parse(stats).getroot()
+    return ET.parse(stats).getroot()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_half_an_hour_without_teleports_or_collisions(name, tmp_path):
+    root = half_hour_statistics(SCENARIOS_DIR / name / f"{name}.sumocfg", tmp_path)
     vehicles = root.find("vehicles").attrib
     assert int(root.find("teleports").get("total")) == 0
     assert int(root.find("safety").get("collisions")) == 0
