@@ -180,6 +180,7 @@ def run_config(args: argparse.Namespace, data_dir: Path):
 def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     from crchfl_sumo import federation as federation_module
     from crchfl_sumo import run as run_module
+    from crchfl_sumo.trainers import TorchTrainer
     from crchfl_sumo.mobility import LinkModel
     from crchfl_sumo.sim import Simulation
 
@@ -189,7 +190,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         inputs = run_module.read_inputs(config)
     rss_inputs = peak_rss_mib()
     trainer = TimedTrainer(
-        run_module.TorchTrainer(config.model, config.train, inputs.test, config.federation.seed), watch
+        TorchTrainer(config.model, config.train, inputs.test, config.federation.seed), watch
     )
     clocks = []
 

@@ -1,0 +1,95 @@
+"""The federation loop's Trainer on top of local.py: in this process, or each vehicle as a backend task.
+
+``federation.Trainer`` asks for an initial state, local training of several
+vehicles and a test-set evaluation. ``TorchTrainer`` does them here;
+``RayTrainer`` sends every vehicle's training and every evaluation to an
+``Executor`` (backend.py) and returns bit-identical results.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+from .backend import Executor
+from .local import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicle, train_vehicles, vehicle_seed
+from .model import DrivingModel, ModelConfig, build_model
+from .samples import Samples
+
+
+class TorchTrainer:
+    """The loop's Trainer on top of local.py: DrivingModel state dicts, Table II training, test-set metrics."""
+
+    def __init__(self, model_config: ModelConfig, config: TrainConfig, test: Samples, seed: int) -> None:
+        configure_determinism(config.deterministic)
+        self.model_config, self.config, self.seed = model_config, config, seed
+        self.device = resolve_device(config.device)
+        self.test = test.to(self.device)
+        self._eval_model = DrivingModel(model_config).to(self.device)
+
+    def initial_state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().cpu().clone() for k, v in build_model(self.model_config, self.seed).state_dict().items()}
+
+    def train(self, states, samples, epochs, seed):
+        new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
+        return new
+
+    def evaluate(self, state) -> tuple[float, float]:
+        self._eval_model.load_state_dict(state)
+        metrics = evaluate(self._eval_model, self.test, self.config)
+        return metrics.loss, metrics.accuracy
+
+
+class RayTrainer(TorchTrainer):
+    """TorchTrainer whose vehicles train, and whose models are evaluated, as tasks of ``executor``.
+
+    Vehicle i of a call trains alone with ``vehicle_seed(seed, i)``, exactly as
+    ``train_vehicles`` trains it sequentially, and every task uses the driver's
+    number of torch threads, so the results are bit-identical to the local
+    backend's. Samples and the test set go to the object store once.
+    """
+
+    def __init__(self, model_config, config, test, seed, executor: Executor) -> None:
+        super().__init__(model_config, dataclasses.replace(config, device="cpu"), test, seed)
+        self.executor = executor
+        self.threads = torch.get_num_threads()
+        self._test_ref = executor.put(test)
+        self._sample_refs: dict[int, tuple[Samples, Any]] = {}  # id -> (the object, kept alive; its handle)
+
+    def _samples_ref(self, samples: Samples, refs: dict) -> Any:
+        key = id(samples)
+        if key not in refs:
+            known = self._sample_refs.get(key)
+            refs[key] = known if known is not None else (samples, self.executor.put(samples))
+        return refs[key][1]
+
+    def train(self, states, samples, epochs, seed):
+        refs: dict[int, tuple[Samples, Any]] = {}
+        args = [
+            (state, self._samples_ref(x, refs), epochs, self.model_config, self.config, vehicle_seed(seed, i), self.threads)
+            for i, (state, x) in enumerate(zip(states, samples))
+        ]
+        self._sample_refs = refs  # handles of samples no longer trained on are released
+        return self.executor.map(train_vehicle_task, args)
+
+    def evaluate(self, state) -> tuple[float, float]:
+        args = (state, self._test_ref, self.model_config, self.config, self.threads)
+        return self.executor.map(evaluate_task, [args])[0]
+
+
+def train_vehicle_task(state, samples, epochs, model_config, config, seed, threads):
+    """One vehicle's local training (a backend task): its new state."""
+    torch.set_num_threads(threads)
+    return train_vehicle(state, samples, epochs, model_config, config, seed)[0]
+
+
+def evaluate_task(state, test, model_config, config, threads) -> tuple[float, float]:
+    """(Loss, Accuracy) of ``state`` on the test set (a backend task)."""
+    torch.set_num_threads(threads)
+    configure_determinism(config.deterministic)
+    model = DrivingModel(model_config)
+    model.load_state_dict(state)
+    metrics = evaluate(model, test, config)
+    return metrics.loss, metrics.accuracy
