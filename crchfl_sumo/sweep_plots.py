@@ -27,7 +27,10 @@ PANELS = (
 
 
 def plot_sweep(rows: Sequence[dict], params: Sequence, out_dir: Path) -> list[Path]:
-    """One figure per parameter in ``out_dir`` (``PATH.png``); returns their paths."""
+    """One figure per parameter with two or more values in ``out_dir`` (``PATH.png``); returns their paths.
+
+    A parameter given a single value is a fixed setting: it gets no figure and does not split the lines.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -36,8 +39,9 @@ def plot_sweep(rows: Sequence[dict], params: Sequence, out_dir: Path) -> list[Pa
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
-    for param in params:
-        others = [p.path for p in params if p.path != param.path]
+    swept = [p for p in params if len(p.values) > 1]
+    for param in swept:
+        others = [p.path for p in swept if p.path != param.path]
         xs = axis_positions(param.values)
         fig, axes = plt.subplots(2, 4, figsize=(16, 7), constrained_layout=True)
         for ax, (key, title) in zip(axes.flat, PANELS):
