@@ -256,7 +256,7 @@ class FederationState:
     def to_payload(self) -> dict:
         """Plain dict of tensors and JSON-like values (torch.load(weights_only=True) reads it back)."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["records"] = [dataclasses.asdict(r) for r in self.records]
+        out["records"] = [r.to_dict() for r in self.records]
         return out
 
     @classmethod
