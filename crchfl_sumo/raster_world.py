@@ -62,6 +62,9 @@ class WorldConfig:
     levels            textures at metres_per_pixel * 1, 2, 4 ...: far pixels sample
                       coarse levels, whose lines are >= 1 texel wide (mip-mapping),
                       so that markings do not break up with distance
+    max_texture_mpx   largest base texture [million pixels] painted; painting needs
+                      about 11 bytes a pixel at its peak (scale200's 122 Mpx: 1.4 GB),
+                      so a larger network is refused with the resolution that fits
     """
 
     metres_per_pixel: float = 0.1
@@ -73,6 +76,7 @@ class WorldConfig:
     dash_length_m: float = 3.0
     dash_gap_m: float = 6.0
     levels: int = 4
+    max_texture_mpx: float = 400.0
 
     def __post_init__(self):
         if not 1 <= self.levels <= 8:
@@ -84,7 +88,7 @@ class WorldConfig:
         for name in ("margin_m", "sidewalk_width_m", "kerb_width_m"):
             if getattr(self, name) < 0.0:
                 raise CrchflError(f"world.{name}: {getattr(self, name)} must be >= 0")
-        for name in ("marking_width_m", "stop_line_width_m", "dash_length_m", "dash_gap_m"):
+        for name in ("marking_width_m", "stop_line_width_m", "dash_length_m", "dash_gap_m", "max_texture_mpx"):
             if getattr(self, name) <= 0.0:
                 raise CrchflError(f"world.{name}: {getattr(self, name)} must be > 0")
 
@@ -317,8 +321,17 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
     x_min, y_min, x_max, y_max = _bounds(geometry)
     mpp = config.metres_per_pixel
     x0, y1 = x_min - config.margin_m, y_max + config.margin_m
-    width_px = int(math.ceil((x_max - x_min + 2 * config.margin_m) / mpp)) + 1
-    height_px = int(math.ceil((y_max - y_min + 2 * config.margin_m) / mpp)) + 1
+    width_m, height_m = x_max - x_min + 2 * config.margin_m, y_max - y_min + 2 * config.margin_m
+    width_px = int(math.ceil(width_m / mpp)) + 1
+    height_px = int(math.ceil(height_m / mpp)) + 1
+    if width_px * height_px > config.max_texture_mpx * 1e6:
+        raise CrchflError(
+            f"world.metres_per_pixel: the network's ground ({width_m:.0f} x {height_m:.0f} m with the margin) at "
+            f"{mpp:g} m/px is {width_px * height_px / 1e6:.3g} million pixels, over world.max_texture_mpx = "
+            f"{config.max_texture_mpx:g} (painting needs about {width_px * height_px * 11 / 2**30:.2g} GB); set "
+            f"[world] metres_per_pixel = {_fitting_mpp(width_m, height_m, config.max_texture_mpx):g} or more, "
+            "or raise max_texture_mpx if the memory is there"
+        )
     raster_from_world = np.array([[1.0 / mpp, 0.0, -x0 / mpp], [0.0, -1.0 / mpp, y1 / mpp]])
     textures = []
     for level in range(config.levels):
@@ -327,6 +340,14 @@ def paint_world(geometry: RoadGeometry, config: WorldConfig | None = None) -> Wo
         textures.append(_paint_level(geometry, config, raster_from_world / shrink, *size_px))
     textures = tuple(textures)
     return World(textures, raster_from_world, tuple(geometry.signal_heads), config)
+
+
+def _fitting_mpp(width_m: float, height_m: float, max_mpx: float) -> float:
+    """The finest resolution (to 1 mm) whose texture, as paint_world sizes it, has at most ``max_mpx`` Mpx."""
+    mpp = math.ceil(math.sqrt(width_m * height_m / (max_mpx * 1e6)) * 1000) / 1000
+    while (math.ceil(width_m / mpp) + 1) * (math.ceil(height_m / mpp) + 1) > max_mpx * 1e6:
+        mpp += 0.001
+    return round(mpp, 3)
 
 
 def _paint_level(

@@ -348,3 +348,13 @@ def test_settings_round_trip_through_toml_mappings():
         WorldConfig(levels=0)
     with pytest.raises(CrchflError, match="interpolation"):
         from_mapping(RasterConfig, {"interpolation": "cubic"}, "raster")
+
+
+def test_too_large_a_ground_texture_is_refused_with_a_resolution_that_fits():
+    geometry = straight_geometry()
+    small = WorldConfig(max_texture_mpx=0.05)
+    with pytest.raises(CrchflError, match=r"world.metres_per_pixel: .* over world.max_texture_mpx = 0.05") as info:
+        paint_world(geometry, small)
+    suggested = float(info.value.args[0].split("metres_per_pixel = ")[1].split(" ")[0])
+    world = paint_world(geometry, WorldConfig(metres_per_pixel=suggested, max_texture_mpx=0.05))
+    assert world.textures[0].shape[0] * world.textures[0].shape[1] <= 0.05e6
