@@ -14,6 +14,9 @@ serving one by ``handover_margin_db`` at every step for ``time_to_trigger_s``
 (3GPP event A3 with hysteresis and time-to-trigger). Fast fading is left out
 of the comparison, as real handovers compare layer-3 filtered power: fading
 decorrelates within milliseconds and would only make vehicles ping-pong.
+With ``l3_filter_s`` > 0 the compared power is also smoothed over time
+(TS 38.331 layer-3 filtering), which damps the seconds-long swings of the
+LOS state and shadowing that the margin and time-to-trigger alone let through.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class MobilityConfig:
     min_rx_power_dbm: float = -100.0  # about -8 dB SNR with the default channel
     handover_margin_db: float = 3.0  # A3 offset + hysteresis
     time_to_trigger_s: float = 0.48  # one of TS 38.331's TimeToTrigger values
+    l3_filter_s: float = 0.0  # time constant of the layer-3 filter on the compared power; 0 = off
 
     def __post_init__(self) -> None:
         if not self.coverage_radius_m > 0:
@@ -54,6 +58,8 @@ class MobilityConfig:
             raise CrchflError(f"mobility.handover_margin_db must be >= 0, got {self.handover_margin_db}")
         if not self.time_to_trigger_s >= 0:
             raise CrchflError(f"mobility.time_to_trigger_s must be >= 0, got {self.time_to_trigger_s}")
+        if not (math.isfinite(self.l3_filter_s) and self.l3_filter_s >= 0):
+            raise CrchflError(f"mobility.l3_filter_s must be a time >= 0 (0 = no filter), got {self.l3_filter_s}")
         if not math.isfinite(self.min_rx_power_dbm):
             raise CrchflError(f"mobility.min_rx_power_dbm must be a finite number, got {self.min_rx_power_dbm}")
 
@@ -104,6 +110,7 @@ class _State:
     y_m: np.ndarray
     los_z: np.ndarray  # [V, S] Gaussian behind the spatially consistent LOS state
     shadow_z: np.ndarray  # [V, S] unit-variance shadowing process
+    filtered_dbm: np.ndarray  # [V, S] layer-3 filtered received power (NaN: no history)
     serving: np.ndarray  # [V]
     beats_since_s: np.ndarray  # [V, S] since when a site beats the serving one by the margin (NaN: not now)
     fade_gain: np.ndarray  # [V, K] Rayleigh power gains of the current blocks
@@ -120,6 +127,7 @@ class _State:
             y_m=f,
             los_z=np.zeros((0, n_sites)),
             shadow_z=np.zeros((0, n_sites)),
+            filtered_dbm=np.zeros((0, n_sites)),
             serving=np.zeros(0, dtype=np.int64),
             beats_since_s=np.zeros((0, n_sites)),
             fade_gain=np.ones((0, n_blocks)),
@@ -146,6 +154,7 @@ class _State:
             y_m=np.where(is_new, y_m, take(self.y_m, 0.0)),
             los_z=take(self.los_z, 0.0, (s,)),
             shadow_z=take(self.shadow_z, 0.0, (s,)),
+            filtered_dbm=take(self.filtered_dbm, np.nan, (s,)),
             serving=take(self.serving, NO_SITE),
             beats_since_s=take(self.beats_since_s, np.nan, (s,)),
             fade_gain=take(self.fade_gain, 1.0, (k,)),
@@ -235,8 +244,10 @@ class LinkModel:
         shadowing_db = sigma_db * shadow_z if cfg.shadowing else 0.0
         rx_dbm = ch.received_power_dbm(path_loss, shadowing_db, cfg)  # [V, S]
 
-        eligible = (d2d_m <= mob.coverage_radius_m) & (rx_dbm >= mob.min_rx_power_dbm)
-        serving, beats_since_s = associate(prev.serving, prev.beats_since_s, rx_dbm, eligible, t_s, mob)
+        # Association compares the (optionally layer-3 filtered) power; the rate below uses this step's.
+        filtered_dbm = l3_filter(prev.filtered_dbm, rx_dbm, dt_s, mob.l3_filter_s)
+        eligible = (d2d_m <= mob.coverage_radius_m) & (filtered_dbm >= mob.min_rx_power_dbm)
+        serving, beats_since_s = associate(prev.serving, prev.beats_since_s, filtered_dbm, eligible, t_s, mob)
 
         rows = np.arange(n)
         has_site = serving >= 0
@@ -267,6 +278,7 @@ class LinkModel:
             y_m=np.asarray(frame.y_m, dtype=np.float64).copy(),
             los_z=los_z,
             shadow_z=shadow_z,
+            filtered_dbm=filtered_dbm,
             serving=serving,
             beats_since_s=beats_since_s,
             fade_gain=gains,
@@ -304,6 +316,19 @@ class LinkModel:
         blocks = np.where(redraw, fresh_blocks, prev.fade_blocks)
         until_s = np.where(redraw, t_s + fresh_blocks * coherence_s, prev.fade_until_s)
         return gains, blocks, until_s
+
+
+def l3_filter(previous_dbm: np.ndarray, measured_dbm: np.ndarray, dt_s: float, time_constant_s: float) -> np.ndarray:
+    """Layer-3 filter F = F_prev + a (M - F_prev), a = 1 - exp(-dt / tau), in dB (pure).
+
+    The time-continuous form of TS 38.331's F_n = (1 - a) F_n-1 + a M_n, so that
+    steps of any length filter alike; tau = 0 passes M through, and a link
+    without history (NaN) starts at its measurement.
+    """
+    if time_constant_s <= 0.0:
+        return measured_dbm
+    weight = 1.0 - math.exp(-dt_s / time_constant_s)
+    return np.where(np.isnan(previous_dbm), measured_dbm, previous_dbm + weight * (measured_dbm - previous_dbm))
 
 
 def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: MobilityConfig):
