@@ -83,12 +83,13 @@ def record_run(
     needed: dict[str, int],
     sample_period_s: float,
     progress: Progress | None = None,
-    around_m: float = 0.0,
+    around_m: float | None = None,
 ) -> tuple[list[Frame], dict[str, list[int]]]:
     """Simulate until each vehicle in ``needed`` has its samples (plus FUTURE_S).
 
-    Returns every step's Frame (the needed vehicles and those within
-    ``around_m`` of one) and, per vehicle, the indices of its sampled frames.
+    Returns every step's Frame (every vehicle, or with ``around_m`` only the
+    needed vehicles and those within it of one) and, per vehicle, the indices
+    of its sampled frames.
     """
     step_s = scenario.step_length_s
     every = int(round(sample_period_s / step_s))
@@ -103,7 +104,8 @@ def record_run(
     sampled: dict[str, list[int]] = {v: [] for v in needed}
     seen: set[str] = set()
     done_at: int | None = None
-    with Simulation(scenario, seed=seed, watch=set(needed), focus=set(needed), around_m=around_m) as sim:
+    focus = None if around_m is None else set(needed)  # without a radius, no vehicle may go missing
+    with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0) as sim:
         for step in range(max_steps):
             frame = sim.step()
             frames.append(frame)
