@@ -34,6 +34,7 @@ from .errors import CrchflError
 
 log = logging.getLogger(__name__)
 
+OnResult = Callable[[int, Any], None]  # (index of the call, its result)
 INSTALL_HINT = "--backend ray needs Ray: pip install 'crchfl-sumo[ray]'"
 
 
@@ -133,29 +134,38 @@ class Executor:
         *,
         isolate: bool = False,
         num_cpus: float = 1,
+        on_result: OnResult | None = None,
     ) -> list:
         """``[fn(*a) for a in args]`` on the backend, in order.
 
         ``isolate``: every call in a fresh process (local: spawned children;
         Ray: a worker that exits after the task). ``num_cpus``: CPUs a Ray
-        task reserves.
+        task reserves. ``on_result(i, result)``: called in this process as
+        each call finishes (in the order they finish), so that a caller can
+        record finished work before the slowest call is done.
         """
         args = list(args)
         if not args:
             return []
         if self.is_ray:
-            return self._map_ray(fn, args, isolate, num_cpus)
+            return self._map_ray(fn, args, isolate, num_cpus, on_result)
         if isolate:
-            return _map_processes(fn, args, self.config)
-        return [fn(*a) for a in args]
+            return _map_processes(fn, args, self.config, on_result)
+        results = []
+        for i, a in enumerate(args):
+            results.append(fn(*a))
+            if on_result is not None:
+                on_result(i, results[-1])
+        return results
 
-    def _map_ray(self, fn, args: list[tuple], isolate: bool, num_cpus: float) -> list:
+    def _map_ray(self, fn, args: list[tuple], isolate: bool, num_cpus: float, on_result: OnResult | None) -> list:
         ray, cfg = self._ray, self.config
         options: dict[str, Any] = {"max_retries": cfg.max_retries, "num_cpus": num_cpus}
         if isolate:
             options["max_calls"] = 1  # the worker process exits after one task: one SUMO per process
         remote = ray.remote(**options)(fn)
         refs = [remote.remote(*a) for a in args]
+        index = {ref: i for i, ref in enumerate(refs)}
         pending = list(refs)
         timeout = None if math.isinf(cfg.task_timeout_s) else cfg.task_timeout_s
         try:
@@ -167,7 +177,10 @@ class Executor:
                         f"({len(pending)} of {len(refs)} unfinished); a worker or node may be lost: check "
                         "`ray status`, or raise backend.task_timeout_s for longer tasks"
                     )
-                ray.get(done)  # a failed task raises now, not after the others
+                finished = ray.get(done)  # a failed task raises now, not after the others
+                if on_result is not None:
+                    for ref, result in zip(done, finished):
+                        on_result(index[ref], result)
             return ray.get(refs)
         except ray.exceptions.RayTaskError as exc:  # the task itself raised: the same error here
             _cancel(ray, pending)
@@ -194,8 +207,12 @@ def _cancel(ray, refs) -> None:
 # ------------------------------------------------------------------ local processes
 
 
-def _map_processes(fn, args: list[tuple], config: BackendConfig) -> list:
-    """Each call in its own spawned process, ``config.workers`` at a time; a dead child's call is retried."""
+def _map_processes(fn, args: list[tuple], config: BackendConfig, on_result: OnResult | None = None) -> list:
+    """Each call in its own spawned process, ``config.workers`` at a time; a dead child's call is retried.
+
+    A call that raises cancels the calls not yet started (those running are
+    waited for) and the error is raised here.
+    """
     results: dict[int, Any] = {}
     attempts = dict.fromkeys(range(len(args)), 0)
     options: dict[str, Any] = {"mp_context": multiprocessing.get_context("spawn")}
@@ -205,19 +222,26 @@ def _map_processes(fn, args: list[tuple], config: BackendConfig) -> list:
         todo = [i for i in range(len(args)) if i not in results]
         with cf.ProcessPoolExecutor(min(config.workers, len(todo)), **options) as pool:
             futures = {pool.submit(fn, *args[i]): i for i in todo}
-            for future in cf.as_completed(futures):
-                i = futures[future]
-                try:
-                    results[i] = future.result()
-                except cf.process.BrokenProcessPool:
-                    # a child died (killed, out of memory): the pool is broken, so every unfinished
-                    # call of it, the dead one's and those beside it, is tried again in a new pool
-                    attempts[i] += 1
-                    if attempts[i] > config.max_retries:
-                        raise CrchflError(
-                            f"a worker process died {attempts[i]} times running task {i} and "
-                            f"backend.max_retries = {config.max_retries}; check memory or raise backend.max_retries"
-                        ) from None
+            try:
+                for future in cf.as_completed(futures):
+                    i = futures[future]
+                    try:
+                        results[i] = future.result()
+                    except cf.process.BrokenProcessPool:
+                        # a child died (killed, out of memory): the pool is broken, so every unfinished
+                        # call of it, the dead one's and those beside it, is tried again in a new pool
+                        attempts[i] += 1
+                        if attempts[i] > config.max_retries:
+                            raise CrchflError(
+                                f"a worker process died {attempts[i]} times running task {i} and backend."
+                                f"max_retries = {config.max_retries}; check memory or raise backend.max_retries"
+                            ) from None
+                        continue
+                    if on_result is not None:
+                        on_result(i, results[i])
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)  # not the queued calls too before raising
+                raise
         if len(results) < len(args):
             log.info("a worker process died; retrying %d task(s) in new processes", len(args) - len(results))
     return [results[i] for i in range(len(args))]

@@ -83,6 +83,8 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", type=int, default=None, help="seeds per scheme (default: quick 2, full 3)")
     p.add_argument("--resume", action="store_true", help="finish the reproduction in --out; finished parts are kept")
     p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="parts run at a time, each in its own process (default 1; the number of cores is fastest)")
 
 
 def _run_reproduce(args) -> int:
@@ -97,7 +99,7 @@ def _run_reproduce(args) -> int:
         bar.set_description(part)
 
     try:
-        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, progress)
+        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, progress, args.jobs)
     finally:
         if "bar" in bars:
             bars["bar"].close()

@@ -1,4 +1,4 @@
-"""`crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume]`: the paper's experiments B and D.
+"""`crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--jobs N]`: the paper's experiments B and D.
 
 One results folder holds every part (each written by its owning module):
 
@@ -15,7 +15,8 @@ One results folder holds every part (each written by its owning module):
 
 Resumable: a part recorded in timings.json is not redone; an unfinished
 federated run continues from its checkpoint; an unfinished centralized run
-or drive starts over.
+or drive starts over. ``--jobs N`` runs N independent parts at a time in
+worker processes; only this process writes timings.json.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ EXPERIMENTS_DIR = Path(__file__).parent / "scenarios" / "experiments"
 PRESETS = {"quick": EXPERIMENTS_DIR / "reproduce_quick.toml", "full": EXPERIMENTS_DIR / "reproduce_full.toml"}
 REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
 CENTRALIZED = "centralized"
-Progress = Callable[[int, int, str], None]  # (parts done, parts in all, part starting now)
+Progress = Callable[[int, int, str], None]  # (parts done, parts in all, the part starting; jobs > 1: just done)
 
 
 @dataclass(frozen=True)
@@ -223,20 +224,51 @@ def reproduce(
     out_dir: str | Path,
     resume: bool = False,
     progress: Progress | None = None,
+    jobs: int = 1,
 ) -> dict[str, Any]:
-    """Run (or finish) every part of ``config`` into ``out_dir``, then write the report; returns summary.json."""
+    """Run (or finish) every part of ``config`` into ``out_dir``, then write the report; returns summary.json.
+
+    ``jobs`` > 1 runs that many parts at a time, each in its own process
+    (libsumo holds one simulation per process) with ``cpu_count // jobs``
+    torch threads: first the data set, then the centralized, experiment B
+    and experiment D parts, then the drives. The results are those of
+    ``jobs`` = 1 (each part is seeded on its own); losses may differ in the
+    last digits when the thread count differs.
+    """
+    if jobs < 1:
+        raise CrchflError(f"--jobs: {jobs} must be >= 1 (parts run at a time)")
     out_dir = Path(out_dir).resolve()
     _start(config, out_dir, resume)
     parts = plan_parts(config)
     total = len(parts) + len(drive_parts(config))
-    for index, part in enumerate(parts):
+    done = [0]
+
+    def run_stage(stage: list[Part]) -> None:
+        todo = [part for part in stage if not _finished(part, out_dir)]
+        done[0] += len(stage) - len(todo)
+        if jobs == 1 or len(todo) < 2:
+            for part in todo:
+                if progress is not None:
+                    progress(done[0], total, part.key)
+                _record(out_dir, part, _timed_part(config, out_dir, part, 1))
+                done[0] += 1
+            return
+        from .backend import BackendConfig, Executor
+
+        def finished(i: int, elapsed: dict[str, float]) -> None:
+            _record(out_dir, todo[i], elapsed)
+            done[0] += 1
+            if progress is not None:
+                progress(done[0], total, todo[i].key)
+
         if progress is not None:
-            progress(index, total, part.key)
-        _do(part, out_dir, lambda: _run_part(config, out_dir, part))
-    for index, part in enumerate(drive_parts(config), start=len(parts)):
-        if progress is not None:
-            progress(index, total, part.key)
-        _do(part, out_dir, lambda: _drive_part(config, out_dir, part))
+            progress(done[0], total, f"{len(todo)} parts, {jobs} at a time")
+        with Executor(BackendConfig(num_cpus=jobs)) as executor:  # a killed part is retried (resumed) twice
+            executor.map(_timed_part, [(config, out_dir, p, jobs) for p in todo], isolate=True, on_result=finished)
+
+    run_stage(parts[:1])  # the data set, read by every other part
+    run_stage(parts[1:])
+    run_stage(drive_parts(config))  # which seed's model drives is known only now
     if progress is not None:
         progress(total, total, "report")
     from .report import write_report
@@ -251,8 +283,9 @@ def reproduce_command(
     resume: bool = False,
     config_path: str | Path | None = None,
     progress: Progress | None = None,
+    jobs: int = 1,
 ) -> tuple[Path, dict[str, Any]]:
-    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML]` does.
+    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML] [--jobs N]` does.
 
     ``config_path`` replaces the preset; DIR defaults to results/NAME (NAME: the config's name).
     Returns the results folder and its summary.json.
@@ -260,7 +293,7 @@ def reproduce_command(
     preset = "quick" if quick else "full"
     config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
     out_dir = Path(out_dir) if out_dir is not None else Path("results") / config.name
-    return out_dir, reproduce(config, out_dir, resume, progress)
+    return out_dir, reproduce(config, out_dir, resume, progress, jobs)
 
 
 def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
@@ -321,29 +354,48 @@ def read_timings(out_dir: Path) -> dict[str, dict[str, float]]:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
 
 
-def _do(part: Part, out_dir: Path, work: Callable[[], None]) -> None:
-    """Run ``work`` unless timings.json records the part as finished (and its folder is there)."""
+def _finished(part: Part, out_dir: Path) -> bool:
+    """Finished: timings.json records the part and its folder exists."""
     if part.key in read_timings(out_dir) and (out_dir / part.key).exists():
         log.info("%s: finished earlier, kept", part.key)
-        return
+        return True
+    return False
+
+
+def _timed_part(config: ReproduceConfig, out_dir: Path, part: Part, jobs: int) -> dict[str, float]:
+    """Run one part (in this process, or as a worker process of ``jobs`` > 1); its wall and CPU seconds."""
+    if jobs > 1:
+        import os
+
+        import torch
+
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // jobs))  # the parts share the cores
     log.info("%s: starting", part.key)
-    start_s, start_cpu_s = time.perf_counter(), time.process_time()
-    work()
-    # CPU time beside wall time: on a shared machine it is disturbed less by other jobs
-    elapsed = {"wall_s": round(time.perf_counter() - start_s, 3), "cpu_s": round(time.process_time() - start_cpu_s, 3)}
-    timings = read_timings(out_dir)
-    timings[part.key] = elapsed
-    atomic_write_text(out_dir / "timings.json", json.dumps(timings, indent=2) + "\n")
-    log.info("%s: done in %.1f s (CPU %.1f s)", part.key, elapsed["wall_s"], elapsed["cpu_s"])
-
-
-def _run_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+    start_unix, start_s, start_cpu_s = time.time(), time.perf_counter(), time.process_time()
     if part.kind == "dataset":
         _make_dataset(config, out_dir / part.key)
     elif part.kind == "centralized":
         _centralized(config, out_dir, part.seed, out_dir / part.key)
+    elif part.kind == "drive":
+        _drive_part(config, out_dir, part)
     else:
         _federated(config, out_dir, part)
+    # CPU time beside wall time: on a shared machine it is disturbed less by other jobs; the start
+    # time lets the report tell the elapsed time from the sum of parts that ran side by side
+    return {
+        "wall_s": round(time.perf_counter() - start_s, 3),
+        "cpu_s": round(time.process_time() - start_cpu_s, 3),
+        "start_unix": round(start_unix, 3),
+        "jobs": jobs,
+    }
+
+
+def _record(out_dir: Path, part: Part, elapsed: dict[str, float]) -> None:
+    """Mark ``part`` finished in timings.json (only the main process writes it)."""
+    timings = read_timings(out_dir)
+    timings[part.key] = elapsed
+    atomic_write_text(out_dir / "timings.json", json.dumps(timings, indent=2) + "\n")
+    log.info("%s: done in %.1f s (CPU %.1f s)", part.key, elapsed["wall_s"], elapsed["cpu_s"])
 
 
 def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:

@@ -48,6 +48,14 @@ def user_error() -> None:
     raise CrchflError("dataset: no such folder; check the path")
 
 
+def touch_or_fail(path: str) -> str:
+    """Create ``path``; an empty path is a user error."""
+    if not path:
+        raise CrchflError("dataset: no such folder; check the path")
+    Path(path).touch()
+    return path
+
+
 def tensor_sum(t) -> float:
     return float(t.sum())
 
@@ -114,6 +122,27 @@ def test_local_isolated_tasks_run_in_other_processes_and_a_dead_one_is_retried(t
             executor.map(die_always, [()], isolate=True)
 
 
+def test_on_result_reports_every_call_once_as_it_finishes():
+    for isolate in (False, True):
+        seen = []
+        with Executor(BackendConfig(num_cpus=2)) as executor:
+            results = executor.map(square, [(i,) for i in range(5)], isolate=isolate,
+                                   on_result=lambda i, r: seen.append((i, r)))
+        assert results == [0, 1, 4, 9, 16]
+        assert sorted(seen) == [(i, i * i) for i in range(5)]
+        if not isolate:
+            assert seen == sorted(seen)  # in this process: in order
+
+
+def test_an_isolated_call_that_raises_cancels_the_calls_not_yet_started(tmp_path):
+    paths = [str(tmp_path / f"t{i}") for i in range(6)]
+    with Executor(BackendConfig(num_cpus=1)) as executor:
+        with pytest.raises(CrchflError, match="no such folder"):
+            executor.map(touch_or_fail, [("",), *[(p,) for p in paths]], isolate=True)
+    # one worker: at most the call or two already handed to the pool ran, not all six queued
+    assert sum(Path(p).exists() for p in paths) <= 2
+
+
 # ------------------------------------------------------------------ Ray
 
 
@@ -139,7 +168,10 @@ def test_ray_map_keeps_order_and_resolves_put_objects(ray_runtime):
 
     with Executor(BackendConfig(kind="ray")) as executor:
         assert executor.is_ray
-        assert executor.map(square, [(i,) for i in range(6)]) == [0, 1, 4, 9, 16, 25]
+        seen = []
+        assert executor.map(square, [(i,) for i in range(6)], on_result=lambda i, r: seen.append((i, r))) == [
+            0, 1, 4, 9, 16, 25]
+        assert sorted(seen) == [(i, i * i) for i in range(6)]
         handle = executor.put(torch.arange(5.0))
         assert executor.map(tensor_sum, [(handle,), (handle,)]) == [10.0, 10.0]
     assert ray_runtime.is_initialized()  # a runtime the executor did not start is left running

@@ -178,3 +178,31 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     reproduce(load_reproduce_config(path), out, resume=True)
     assert (out / "runs" / "hfl" / "seed-0" / "metrics.jsonl").read_text() == metrics
     assert "runs/hfl/seed-0" in json.loads((out / "timings.json").read_text())
+
+
+@pytest.mark.slow
+def test_parts_run_side_by_side_give_the_same_results(tmp_path):
+    # one seed, no ablation, no drives: the data set, then 4 parts that --jobs 2 runs two at a time
+    text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
+    text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []")
+    path = tmp_path / "tiny.toml"
+    path.write_text(text)
+    seen = []
+    _, alone = reproduce_command(out_dir=tmp_path / "one", config_path=path)
+    _, paired = reproduce_command(
+        out_dir=tmp_path / "two", config_path=path, jobs=2, progress=lambda i, n, key: seen.append((i, key))
+    )
+    for scheme in ("crchfl", "hfl", "sfl"):
+        a, b = alone["schemes"][scheme], paired["schemes"][scheme]
+        assert a["cloud_rounds"] == b["cloud_rounds"] and a["consumed_bytes"] == b["consumed_bytes"]
+        assert a["best_accuracy"]["values"] == b["best_accuracy"]["values"]
+        assert b["final_loss"]["values"] == pytest.approx(a["final_loss"]["values"], rel=1e-4)
+    assert paired["centralized"]["best_accuracy"] == alone["centralized"]["best_accuracy"]
+    # progress: the data set starts, then each of the 4 parts is reported as it finishes
+    assert seen[0] == (0, "data") and [i for i, _ in seen[2:-1]] == [2, 3, 4, 5] and seen[-1] == (5, "report")
+    timings = json.loads((tmp_path / "two" / "timings.json").read_text())
+    assert [t["jobs"] for t in timings.values()] == [1, 2, 2, 2, 2]
+    total = paired["running_time_s"]["total"]
+    assert total["elapsed_s"] <= total["wall_s"] + 1e-9  # side by side: elapsed time below the sum of the parts
+    with pytest.raises(CrchflError, match="--jobs"):
+        reproduce(load_reproduce_config(path), tmp_path / "three", jobs=0)

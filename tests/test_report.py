@@ -16,6 +16,7 @@ from crchfl_sumo.report import (
     mean_std,
     relative_gain_percent,
     report_command,
+    elapsed_s,
     timing_groups,
 )
 
@@ -82,9 +83,23 @@ def test_timing_groups():
         "data": {"wall_s": 2.0, "cpu_s": 3.0},
         "runs": {"wall_s": 7.0, "cpu_s": 11.0},
         "drives": {"wall_s": 1.5, "cpu_s": 1.0},
-        "total": {"wall_s": 10.5, "cpu_s": 15.0},
+        "total": {"wall_s": 10.5, "cpu_s": 15.0, "elapsed_s": 10.5},  # no start times: the parts' sum
     }
-    assert timing_groups({}) == {"total": {"wall_s": 0.0, "cpu_s": 0.0}}
+    assert timing_groups({}) == {"total": {"wall_s": 0.0, "cpu_s": 0.0, "elapsed_s": 0.0}}
+
+
+def test_elapsed_time_of_parts_run_side_by_side():
+    # [100, 110] and [105, 125] overlap by 5 s; [200, 202] stands apart; a part without a start adds 3 s
+    spans = [
+        {"wall_s": 10.0, "start_unix": 100.0},
+        {"wall_s": 20.0, "start_unix": 105.0},
+        {"wall_s": 2.0, "start_unix": 200.0},
+        {"wall_s": 3.0},
+    ]
+    assert elapsed_s(spans) == pytest.approx(25.0 + 2.0 + 3.0)
+    # a part inside another adds nothing
+    assert elapsed_s([{"wall_s": 10.0, "start_unix": 0.0}, {"wall_s": 2.0, "start_unix": 4.0}]) == 10.0
+    assert elapsed_s([]) == 0.0
 
 
 # ------------------------------------------------------------------ a whole folder
@@ -143,8 +158,8 @@ def results(tmp_path) -> Path:
                                     "environment": {"python": "3.x", "versions": {"torch": "2.13.0"}}})
     _write(out / "timings.json", {
         "data": {"wall_s": 1.0, "cpu_s": 1.5},
-        "runs/crchfl/seed-0": {"wall_s": 10.0, "cpu_s": 19.0},
-        "ablation/ie-2/seed-0": {"wall_s": 5.0, "cpu_s": 9.5},
+        "runs/crchfl/seed-0": {"wall_s": 10.0, "cpu_s": 19.0, "start_unix": 1000.0, "jobs": 2},
+        "ablation/ie-2/seed-0": {"wall_s": 5.0, "cpu_s": 9.5, "start_unix": 1004.0, "jobs": 2},
     })
     return out
 
@@ -172,7 +187,8 @@ def test_report_of_a_folder(results):
     assert list(ablation) == ["ie-2", "ie-3", "ie-4"]
     assert ablation["ie-2"]["budget_percent"]["I"] == pytest.approx(7.5)
     assert ablation["ie-2"]["budget_percent"]["unused"] == pytest.approx(2.5)
-    assert summary["running_time_s"]["total"] == {"wall_s": 16.0, "cpu_s": 30.0}
+    # the ablation ran beside the run (1004 to 1009 within 1000 to 1010): 1 + 10 s elapsed
+    assert summary["running_time_s"]["total"] == {"wall_s": 16.0, "cpu_s": 30.0, "elapsed_s": 11.0}
     report = (results / "report.md").read_text()
     assert set(summary["figures"]) == {"fig3", "fig4", "fig7", "centralized"}  # the drives lack trajectories
     for path in summary["figures"].values():
