@@ -529,6 +529,17 @@ def load_plan_configs(config_path: str | Path | None) -> tuple[AllocationConfig,
     return allocation, ledger
 
 
+def load_link_configs(config_path: str | Path | None):
+    """The ``[channel]`` and ``[mobility]`` tables of a TOML file: the links a measured plan uses."""
+    from .channel import ChannelConfig
+    from .mobility import MobilityConfig
+
+    data = read_toml(config_path) if config_path is not None else {}
+    channel = from_mapping(ChannelConfig, data.get("channel", {}), f"{config_path}: channel")
+    mobility = from_mapping(MobilityConfig, data.get("mobility", {}), f"{config_path}: mobility")
+    return channel, mobility
+
+
 def plan_command(
     budget_gb: float | None = None,
     config_path: str | Path | None = None,
@@ -542,7 +553,8 @@ def plan_command(
     Returns the printable text, or with ``as_json`` a JSON-ready dict.
     Command-line values override the config file. With ``scenario`` the
     wireless rate is measured on that scenario's mobility (its data vehicles'
-    edge links over ``rate_window_s``, seeded by ``seed``) instead of read from the config.
+    edge links over ``rate_window_s``, seeded by ``seed``, with the config's
+    ``[channel]`` and ``[mobility]``) instead of read from the config.
     """
     allocation, ledger = load_plan_configs(config_path)
     allocation = calibrated(allocation)
@@ -553,7 +565,8 @@ def plan_command(
     if scenario is not None:
         from .plan_timing import planning_rate_bps, scenario_rates_bps
 
-        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s)
+        channel, mobility = load_link_configs(config_path)
+        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s, channel, mobility)
         allocation = dataclasses.replace(allocation, wireless_rate_bps=planning_rate_bps(rates, allocation.rate_window_s))
     plan = make_plan(allocation, ledger)
     if as_json:

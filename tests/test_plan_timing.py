@@ -96,6 +96,22 @@ def test_plan_command_measures_the_scenarios_rate():
     assert planned["round_time_s"] != default["round_time_s"]
 
 
+def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
+    from crchfl_sumo.allocation import plan_command
+    from crchfl_sumo.channel import ChannelConfig
+    from crchfl_sumo.plan_timing import scenario_rates_bps
+
+    config = tmp_path / "links.toml"
+    config.write_text("[allocation]\nrate_window_s = 60.0\n[channel]\nefficiency = 0.3\n")
+    planned = plan_command(config_path=config, scenario="town02", seed=3, as_json=True)
+    weaker = scenario_rates_bps("town02", 3, 60.0, ChannelConfig(efficiency=0.3))
+    assert planned["wireless_rate_bps"] == pytest.approx(np.mean(list(weaker.values())))
+    assert np.mean(list(weaker.values())) < np.mean(list(scenario_rates_bps("town02", 3, 60.0).values()))
+    config.write_text("[mobility]\ncoverage_m = 300.0\n")
+    with pytest.raises(CrchflError, match="links.toml: mobility.*coverage_m"):
+        plan_command(config_path=config, scenario="town02")
+
+
 def test_plan_command_refuses_a_scenario_without_data_vehicles(grid_dir):
     from crchfl_sumo.allocation import plan_command
 
