@@ -232,8 +232,8 @@ def reproduce(
     (libsumo holds one simulation per process) with ``cpu_count // jobs``
     torch threads: first the data set, then the centralized, experiment B
     and experiment D parts, then the drives. The results are those of
-    ``jobs`` = 1 (each part is seeded on its own); losses may differ in the
-    last digits when the thread count differs.
+    ``jobs`` = 1 (each part is seeded on its own), except that training
+    drifts a little when the thread count differs (float sums in another order).
     """
     if jobs < 1:
         raise CrchflError(f"--jobs: {jobs} must be >= 1 (parts run at a time)")

@@ -196,7 +196,8 @@ def test_parts_run_side_by_side_give_the_same_results(tmp_path):
         a, b = alone["schemes"][scheme], paired["schemes"][scheme]
         assert a["cloud_rounds"] == b["cloud_rounds"] and a["consumed_bytes"] == b["consumed_bytes"]
         assert a["best_accuracy"]["values"] == b["best_accuracy"]["values"]
-        assert b["final_loss"]["values"] == pytest.approx(a["final_loss"]["values"], rel=1e-4)
+        # equal on a 2-core machine (one thread either way); elsewhere the thread count may differ
+        assert b["final_loss"]["values"] == pytest.approx(a["final_loss"]["values"], rel=1e-3)
     assert paired["centralized"]["best_accuracy"] == alone["centralized"]["best_accuracy"]
     # progress: the data set starts, then each of the 4 parts is reported as it finishes
     assert seen[0] == (0, "data") and [i for i, _ in seen[2:-1]] == [2, 3, 4, 5] and seen[-1] == (5, "report")
