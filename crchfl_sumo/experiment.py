@@ -241,28 +241,30 @@ def reproduce(
     _start(config, out_dir, resume)
     parts = plan_parts(config)
     total = len(parts) + len(drive_parts(config))
-    done = [0]
+    done = 0  # parts finished, for progress
 
     def run_stage(stage: list[Part]) -> None:
+        nonlocal done
         todo = [part for part in stage if not _finished(part, out_dir)]
-        done[0] += len(stage) - len(todo)
+        done += len(stage) - len(todo)
         if jobs == 1 or len(todo) < 2:
             for part in todo:
                 if progress is not None:
-                    progress(done[0], total, part.key)
+                    progress(done, total, part.key)
                 _record(out_dir, part, _timed_part(config, out_dir, part, 1))
-                done[0] += 1
+                done += 1
             return
         from .backend import BackendConfig, Executor
 
         def finished(i: int, elapsed: dict[str, float]) -> None:
+            nonlocal done
             _record(out_dir, todo[i], elapsed)
-            done[0] += 1
+            done += 1
             if progress is not None:
-                progress(done[0], total, todo[i].key)
+                progress(done, total, todo[i].key)
 
         if progress is not None:
-            progress(done[0], total, f"{len(todo)} parts, {jobs} at a time")
+            progress(done, total, f"{len(todo)} parts, {jobs} at a time")
         with Executor(BackendConfig(num_cpus=jobs)) as executor:  # a killed part is retried (resumed) twice
             executor.map(_timed_part, [(config, out_dir, p, jobs) for p in todo], isolate=True, on_result=finished)
 
