@@ -45,6 +45,7 @@ from typing import Any, Mapping
 
 import cvxpy as cp
 
+from .channel import ChannelConfig
 from .config import from_mapping, read_toml
 from .errors import CrchflError
 from .ledger import (
@@ -59,6 +60,7 @@ from .ledger import (
     schedule_bytes,
     stage_one_schedule,
 )
+from .mobility import MobilityConfig
 
 log = logging.getLogger(__name__)
 
@@ -519,25 +521,16 @@ def calibrated(config: AllocationConfig) -> AllocationConfig:
     return dataclasses.replace(config, alpha=weights.alpha, gamma=weights.gamma, d=weights.d, calibration_file=None)
 
 
+def load_tables(config_path: str | Path | None, types: Mapping[str, type]) -> dict[str, Any]:
+    """The tables ``types`` names of a TOML file (read once), each as its dataclass; defaults without a file."""
+    data = read_toml(config_path) if config_path is not None else {}
+    return {key: from_mapping(cls, data.get(key, {}), f"{config_path}: {key}") for key, cls in types.items()}
+
+
 def load_plan_configs(config_path: str | Path | None) -> tuple[AllocationConfig, LedgerConfig]:
     """Read the ``[allocation]`` and ``[ledger]`` tables of a TOML file (other tables are left to their owners)."""
-    if config_path is None:
-        return AllocationConfig(), LedgerConfig()
-    data = read_toml(config_path)
-    allocation = from_mapping(AllocationConfig, data.get("allocation", {}), f"{config_path}: allocation")
-    ledger = from_mapping(LedgerConfig, data.get("ledger", {}), f"{config_path}: ledger")
-    return allocation, ledger
-
-
-def load_link_configs(config_path: str | Path | None):
-    """The ``[channel]`` and ``[mobility]`` tables of a TOML file: the links a measured plan uses."""
-    from .channel import ChannelConfig
-    from .mobility import MobilityConfig
-
-    data = read_toml(config_path) if config_path is not None else {}
-    channel = from_mapping(ChannelConfig, data.get("channel", {}), f"{config_path}: channel")
-    mobility = from_mapping(MobilityConfig, data.get("mobility", {}), f"{config_path}: mobility")
-    return channel, mobility
+    tables = load_tables(config_path, {"allocation": AllocationConfig, "ledger": LedgerConfig})
+    return tables["allocation"], tables["ledger"]
 
 
 def plan_command(
@@ -556,8 +549,11 @@ def plan_command(
     edge links over ``rate_window_s``, seeded by ``seed``, with the config's
     ``[channel]`` and ``[mobility]``) instead of read from the config.
     """
-    allocation, ledger = load_plan_configs(config_path)
-    allocation = calibrated(allocation)
+    types = {"allocation": AllocationConfig, "ledger": LedgerConfig}
+    if scenario is not None:  # the links the measured rate is taken on
+        types |= {"channel": ChannelConfig, "mobility": MobilityConfig}
+    tables = load_tables(config_path, types)
+    allocation, ledger = calibrated(tables["allocation"]), tables["ledger"]
     if budget_gb is not None:
         ledger = dataclasses.replace(ledger, budget_gb=budget_gb)
     if fix_edge_interval is not None:
@@ -565,8 +561,7 @@ def plan_command(
     if scenario is not None:
         from .plan_timing import planning_rate_bps, scenario_rates_bps
 
-        channel, mobility = load_link_configs(config_path)
-        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s, channel, mobility)
+        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s, tables["channel"], tables["mobility"])
         allocation = dataclasses.replace(allocation, wireless_rate_bps=planning_rate_bps(rates, allocation.rate_window_s))
     plan = make_plan(allocation, ledger)
     if as_json:

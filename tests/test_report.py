@@ -13,10 +13,10 @@ from crchfl_sumo.report import (
     cloud_lines,
     curve_by_bytes,
     curve_by_round,
+    elapsed_s,
     mean_std,
     relative_gain_percent,
     report_command,
-    elapsed_s,
     timing_groups,
 )
 

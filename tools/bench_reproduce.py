@@ -51,18 +51,16 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
-        rows = []
+        walls, summaries = [], []
         for jobs in (1, args.jobs):
             out = root / f"jobs-{jobs}"
-            wall = run(out, jobs, args.config)
-            summary = json.loads((out / "summary.json").read_text())
-            total = summary["running_time_s"]["total"]
-            rows.append((jobs, wall, total, summary))
-            print(f"--jobs {jobs}: {wall:7.1f} s wall for the command; parts: {total['elapsed_s']:.1f} s elapsed, "
+            walls.append(run(out, jobs, args.config))
+            summaries.append(json.loads((out / "summary.json").read_text()))
+            total = summaries[-1]["running_time_s"]["total"]
+            print(f"--jobs {jobs}: {walls[-1]:7.1f} s wall for the command; parts: {total['elapsed_s']:.1f} s elapsed, "
                   f"{total['wall_s']:.1f} s summed wall, {total['cpu_s']:.1f} s summed CPU")
-        (_, wall_1, _, one), (_, wall_n, _, many) = rows
-        print(f"ratio jobs 1 / jobs {args.jobs}: {wall_1 / wall_n:.2f} x")
-        same, worst = compare(one, many)
+        print(f"ratio jobs 1 / jobs {args.jobs}: {walls[0] / walls[1]:.2f} x")
+        same, worst = compare(*summaries)
         print(f"same cloud rounds, bytes and best accuracies: {same}; final losses differ by at most {100 * worst:.2f} %")
 
 
