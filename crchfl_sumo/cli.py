@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,8 +88,8 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
 
 
 def _run_reproduce(args) -> int:
-    from .experiment import reproduce_command
-    from .report import format_summary
+    from crchfl_sumo.studies.reproduce import reproduce_command
+    from crchfl_sumo.studies.report import format_summary
 
     bars = {}
 
@@ -112,7 +112,7 @@ def _add_report(p: argparse.ArgumentParser) -> None:
 
 
 def _run_report(args) -> int:
-    from .report import format_summary, report_command
+    from crchfl_sumo.studies.report import format_summary, report_command
 
     print(format_summary(report_command(args.dir), args.dir))
     return 0
@@ -131,7 +131,7 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def _run_simulate(args) -> int:
-    from .simulate import run_simulate_command
+    from crchfl_sumo.studies.simulate import run_simulate_command
 
     summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, _progress)
     print(
@@ -157,12 +157,12 @@ def _add_render(p: argparse.ArgumentParser) -> None:
 
 
 def _run_render(args) -> int:
-    from .errors import CrchflError
-    from .mosaic import render_run
-    from .raster import Renderer
-    from .raster_world import build_world
-    from .scenario import load_scenario
-    from .sim import Simulation
+    from crchfl_sumo.core.errors import CrchflError
+    from crchfl_sumo.vision.mosaic import render_run
+    from crchfl_sumo.vision.raster import Renderer
+    from crchfl_sumo.vision.world import build_world
+    from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.sumo.simulation import Simulation
 
     if args.every_n < 1:
         raise CrchflError(f"--every-n must be >= 1, got {args.every_n}")
@@ -189,7 +189,7 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
 
 
 def _run_dataset(args) -> int:
-    from .generate import run_dataset_command
+    from crchfl_sumo.data.generation import run_dataset_command
 
     manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, lambda n: _progress(n, "sample"))
     print(
@@ -205,7 +205,7 @@ def _add_dataset_stats(p: argparse.ArgumentParser) -> None:
 
 
 def _run_dataset_stats(args) -> int:
-    from .dataset_stats import write_dataset_stats
+    from crchfl_sumo.data.stats import write_dataset_stats
 
     stats = write_dataset_stats(args.dir, args.out)
     files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
@@ -227,10 +227,10 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args) -> int:
-    from .dataset import load_samples
-    from .errors import CrchflError
-    from .local import TrainConfig, train_centralized
-    from .model import ModelConfig
+    from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.core.errors import CrchflError
+    from crchfl_sumo.learning.training import TrainConfig, train_centralized
+    from crchfl_sumo.learning.model import ModelConfig
 
     if args.epochs < 1:
         raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
@@ -262,7 +262,7 @@ def _add_drive(p: argparse.ArgumentParser) -> None:
 
 
 def _run_drive(args) -> int:
-    from .drive import DriveConfig, drive_command
+    from crchfl_sumo.driving.drive import DriveConfig, drive_command
 
     m = drive_command(
         None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
@@ -283,7 +283,7 @@ def _add_drive_compare(p: argparse.ArgumentParser) -> None:
 
 
 def _run_drive_compare(args) -> int:
-    from .drive_plots import compare_runs
+    from crchfl_sumo.driving.plots import compare_runs
 
     print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
     return 0
@@ -307,7 +307,7 @@ def _backend_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_run(args) -> int:
-    from .run import progress_postfix, run_command
+    from crchfl_sumo.federation.run import progress_postfix, run_command
 
     with _progress(None, "step") as bar:
 
@@ -332,7 +332,7 @@ def _add_sweep(p: argparse.ArgumentParser) -> None:
 
 
 def _run_sweep(args) -> int:
-    from .sweep import sweep_command
+    from crchfl_sumo.studies.sweep import sweep_command
 
     rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
@@ -352,7 +352,7 @@ def _add_calibrate(p: argparse.ArgumentParser) -> None:
 
 
 def _run_calibrate(args) -> int:
-    from .calibration import calibrate_command
+    from crchfl_sumo.planning.calibration import calibrate_command
 
     fit = calibrate_command(args.out, args.seed, args.scenario, args.dataset)
     print(f"alpha {fit.alpha:.3f}  gamma {fit.gamma:.3f}  d {fit.d:.2f} -> {args.out}")
@@ -376,7 +376,7 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
 
 
 def _run_plan(args) -> int:
-    from .allocation import plan_command
+    from crchfl_sumo.planning.problem import plan_command
 
     out = plan_command(args.budget_gb, args.config, args.json, args.fix_edge_interval, args.scenario, args.seed)
     print(json.dumps(out, indent=2) if args.json else out)

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from crchfl_sumo.cli import build_parser, main
-from test_run import PAPER_VEHICLES, write_dataset
+from helpers import PAPER_VEHICLES, write_dataset
 
 COMMANDS = ["reproduce", "report", "calibrate", "simulate", "render", "dataset", "dataset-stats", "train", "drive", "drive-compare", "run", "plan", "sweep"]
 
@@ -24,7 +24,7 @@ def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
     lines = (tmp_path / "t" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["epoch"] for line in lines] == [1, 2]
     assert "epoch 2" in capsys.readouterr().out
-    from crchfl_sumo.checkpoint import load_checkpoint
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     assert load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config.image_height == 48
 

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from crchfl_sumo.dataset import PAPER_TOWNS, DatasetConfig, ShardDataset, TownSplit, load_samples
-from crchfl_sumo.dataset_io import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
-from crchfl_sumo.generate import generate_dataset
-from crchfl_sumo.scenario import load_scenario
+from crchfl_sumo.data.dataset import PAPER_TOWNS, DatasetConfig, ShardDataset, TownSplit, load_samples
+from crchfl_sumo.data.shards import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
+from crchfl_sumo.data.generation import generate_dataset
+from crchfl_sumo.sumo.scenario import load_scenario
 
 
 def sizes_for(args: argparse.Namespace) -> DatasetConfig:

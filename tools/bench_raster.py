@@ -20,12 +20,12 @@ import cv2
 import numpy as np
 import sumolib
 
-from crchfl_sumo.camera import CameraConfig
-from crchfl_sumo.frame import make_frame
-from crchfl_sumo.raster import RasterConfig, Renderer
-from crchfl_sumo.raster_world import build_world
+from crchfl_sumo.vision.camera import CameraConfig
+from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.vision.raster import RasterConfig, Renderer
+from crchfl_sumo.vision.world import build_world
 
-DEFAULT_NET = Path(__file__).resolve().parent.parent / "crchfl_sumo/scenarios/town01/town01.net.xml"
+DEFAULT_NET = Path(__file__).resolve().parent.parent / "scenarios/town01/town01.net.xml"
 
 
 def random_frame(net_path: Path, n_vehicles: int, seed: int):

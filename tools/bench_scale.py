@@ -55,8 +55,8 @@ def peak_rss_mib() -> float:
 
 
 def dataset_sizes(samples: int, test_samples: int):
-    from crchfl_sumo.dataset import DatasetConfig, TownSplit
-    from crchfl_sumo.scenario import load_scenario
+    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.sumo.scenario import load_scenario
 
     towns = load_scenario(SCENARIO).towns
     return DatasetConfig(
@@ -69,8 +69,8 @@ def dataset_sizes(samples: int, test_samples: int):
 def generate(data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
     """Child process: generate the data set; its wall time per stage and peak memory."""
     torch.set_num_threads(1)
-    from crchfl_sumo.generate import generate_dataset
-    from crchfl_sumo.scenario import load_scenario
+    from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.sumo.scenario import load_scenario
 
     stages: dict[str, float] = {}
     start = time.perf_counter()
@@ -159,8 +159,8 @@ def patched(owner, name: str, replacement):
 
 
 def run_config(args: argparse.Namespace, data_dir: Path):
-    from crchfl_sumo.config import from_mapping
-    from crchfl_sumo.run import RunConfig
+    from crchfl_sumo.core.config import from_mapping
+    from crchfl_sumo.federation.run import RunConfig
 
     federation = {"scheme": args.scheme, "edge_interval": 1, "cloud_interval": args.cloud_interval,
                   "cloud_rounds": args.rounds, "seed": args.seed}
@@ -178,11 +178,11 @@ def run_config(args: argparse.Namespace, data_dir: Path):
 
 
 def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
-    from crchfl_sumo import federation as federation_module
-    from crchfl_sumo import run as run_module
-    from crchfl_sumo.trainers import TorchTrainer
-    from crchfl_sumo.mobility import LinkModel
-    from crchfl_sumo.sim import Simulation
+    from crchfl_sumo.federation.loop import loop as federation_module
+    from crchfl_sumo.federation.loop import run as run_module
+    from crchfl_sumo.learning.trainers import TorchTrainer
+    from crchfl_sumo.links.mobility import LinkModel
+    from crchfl_sumo.sumo.simulation import Simulation
 
     watch = Stopwatch()
     config = run_config(args, data_dir)

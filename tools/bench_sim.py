@@ -3,7 +3,7 @@
 Builds a signalised grid with netgenerate and a demand that keeps at least 500
 vehicles on the road (randomTrips, fixed seed), then in one run times:
   (a) the `sumo` binary alone, same options and steps (the floor),
-  (b) crchfl_sumo.sim.Simulation over libsumo, reading a Frame every step,
+  (b) crchfl_sumo.sumo.simulation.Simulation over libsumo, reading a Frame every step,
   (c) the same Simulation class over TraCI (a socket per call batch).
 Prints wall and CPU times (CPU time is the steadier figure on a shared
 machine), vehicles per step, and the ratios b/a (target <= 1.5) and c/b
@@ -27,8 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from crchfl_sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
-from crchfl_sumo.sim import Simulation
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
+from crchfl_sumo.sumo.simulation import Simulation
 
 
 def build_scenario(folder: Path, grid: int, period_s: float, end_s: float) -> Path:

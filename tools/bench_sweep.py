@@ -41,7 +41,7 @@ def noop(x=None):
 
 
 def write_data(root: Path, samples: int) -> Path:
-    from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
+    from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
 
     rng = np.random.default_rng(0)
     header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
@@ -73,10 +73,10 @@ def main() -> int:
 
     import torch
 
-    from crchfl_sumo.backend import BackendConfig, Executor
-    from crchfl_sumo.config import from_mapping
-    from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir
-    from crchfl_sumo.sweep import parse_param, run_sweep
+    from crchfl_sumo.core.backend import BackendConfig, Executor
+    from crchfl_sumo.core.config import from_mapping
+    from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+    from crchfl_sumo.studies.sweep import parse_param, run_sweep
 
     torch.set_num_threads(1)  # the single run's driver: each vehicle task then uses one thread too
 

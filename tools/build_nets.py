@@ -1,9 +1,9 @@
 """Build the built-in SUMO scenarios from the hand-written town descriptions.
 
-    python tools/build_nets.py            # rewrites crchfl_sumo/scenarios/*
+    python tools/build_nets.py            # rewrites scenarios/*
     python tools/build_nets.py --out DIR  # writes DIR/<scenario>/ instead
 
-Reads crchfl_sumo/scenarios/town01/town01.{nod,edg}.xml,
+Reads scenarios/town01/town01.{nod,edg}.xml,
 town02/town02.{nod,edg}.xml and street.typ.xml, and writes, for each of the
 scenarios town01, town02, paper (both towns in one network, no road between
 them), paper_linked (the same plus a two-way road from Town01 to Town02) and
@@ -14,7 +14,7 @@ scale200 (four copies of Town01 with 200 data vehicles and eight edge sites):
     <name>.bg.rou.xml   background vehicles (randomTrips.py + duarouter, fixed seed)
     <name>.ego.rou.xml  named data / test / link vehicles on closed loops
     <name>.sumocfg      SUMO configuration (step length 0.25 s, fixed seed)
-    scenario.toml       edge sites and towns, read by crchfl_sumo.scenario
+    scenario.toml       edge sites and towns, read by crchfl_sumo.sumo.scenario
 
 Every output is written to a temporary file and renamed into place, and the
 same inputs give byte-identical outputs (SUMO's header comments, which carry
@@ -39,11 +39,11 @@ from typing import Callable
 
 import sumolib
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.scenario import sumo_binary as scenario_sumo_binary
-from crchfl_sumo.scenario import sumo_tool_script
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.scenario import sumo_binary as scenario_sumo_binary
+from crchfl_sumo.sumo.scenario import sumo_tool_script
 
-SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "crchfl_sumo" / "scenarios"
+SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "scenarios"
 TYPE_FILE = SCENARIOS_DIR / "street.typ.xml"
 
 SEED = 42
@@ -748,7 +748,7 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=SCENARIOS_DIR,
-                        help="folder to write the scenario folders into (default: the package's scenarios/)")
+                        help="folder to write the scenario folders into (default: the repository's scenarios/)")
     build_all(parser.parse_args(argv).out)
 
 

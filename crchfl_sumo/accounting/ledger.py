@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Literal, Mapping, Sequence
 
-from .atomic import atomic_path
-from .errors import CrchflError
+from crchfl_sumo.core.atomic import atomic_path
+from crchfl_sumo.core.errors import CrchflError
 
 KIB = 1024
 MIB = 1024 * KIB

@@ -30,7 +30,7 @@ import sys
 from dataclasses import dataclass
 from typing import Any, Callable, Literal, Sequence
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 log = logging.getLogger(__name__)
 

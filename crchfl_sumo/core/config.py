@@ -26,7 +26,7 @@ else:  # pragma: no cover - exercised only on Python 3.10
 
 import numpy as np
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 T = TypeVar("T")
 

@@ -18,10 +18,10 @@ import h5py
 import numpy as np
 import torch
 
-from .dataset_io import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
-from .errors import CrchflError
-from .labels import CAMERA_NAMES
-from .samples import Samples
+from crchfl_sumo.data.shards import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import CAMERA_NAMES
+from crchfl_sumo.data.samples import Samples
 
 
 @dataclass(frozen=True)

@@ -38,9 +38,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import CrchflError
-from .frame import Frame
-from .labels import digitize_steer
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.data.labels import digitize_steer
 
 GRAVITY_MPS2 = 9.81
 

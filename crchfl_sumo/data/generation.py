@@ -27,17 +27,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .config import from_mapping, read_toml, to_mapping
-from .dataset import DatasetConfig, PlannedShard, shard_plan
-from .dataset_io import DatasetWriter, Manifest, ShardData, label_schema
-from .errors import CrchflError
-from .expert import ExpertConfig, expert_labels, tracks_from_frames
-from .frame import Frame
-from .raster import RasterConfig, Renderer, neighbourhood_m
-from .raster_world import WorldConfig, build_world
-from .scenario import Scenario, load_scenario
-from .sim import Simulation
-from .sites import EdgeSite
+from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
+from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
+from crchfl_sumo.vision.world import WorldConfig, build_world
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
+from crchfl_sumo.sumo.sites import EdgeSite
 
 log = logging.getLogger(__name__)
 

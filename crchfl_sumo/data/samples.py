@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .labels import CAMERA_NAMES, NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import CAMERA_NAMES, NUM_STEER_CLASSES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3

@@ -30,9 +30,9 @@ import cv2
 import h5py
 import numpy as np
 
-from .atomic import atomic_path, atomic_write_text, remove_stale_temporaries
-from .errors import CrchflError
-from .labels import ACTION_NAMES, CAMERA_NAMES, STEER_CLASS_VALUES
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import ACTION_NAMES, CAMERA_NAMES, STEER_CLASS_VALUES
 
 log = logging.getLogger(__name__)
 

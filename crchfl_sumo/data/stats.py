@@ -15,9 +15,9 @@ import cv2
 import h5py
 import numpy as np
 
-from .atomic import atomic_write_text
-from .dataset_io import read_manifest, read_shard, verify_shard
-from .labels import CAMERA_NAMES, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
+from crchfl_sumo.data.labels import CAMERA_NAMES, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 
 log = logging.getLogger(__name__)
 

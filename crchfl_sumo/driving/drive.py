@@ -34,13 +34,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .config import from_mapping, read_toml
-from .errors import CrchflError
-from .expert import ExpertConfig
-from .dynamics import VehicleState, acceleration_from_pedals, bicycle_step
-from .frame import Frame
-from .policies import ModelPolicy, Observation, Policy, RoutePolicy
-from .route import (
+from crchfl_sumo.core.resources import drive_routes_path
+from crchfl_sumo.core.config import from_mapping, read_toml
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals, bicycle_step
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.driving.policies import ModelPolicy, Observation, Policy, RoutePolicy
+from crchfl_sumo.sumo.route import (
     RED_LETTERS,
     Crossing,
     RouteGeometry,
@@ -52,12 +53,11 @@ from .route import (
     route_geometry,
     signal_letter,
 )
-from .scenario import Scenario, load_scenario
-from .sim import Simulation
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
 
 log = logging.getLogger(__name__)
 
-ROUTES_PATH = Path(__file__).parent / "scenarios" / "drive_routes.toml"
 DEFAULT_TYPE = "DEFAULT_VEHTYPE"  # SUMO's built-in type, for scenarios without an 'ego' type
 # SUMO options of a drive: collisions are reported and nothing is removed (the run
 # measures them), any physical overlap counts, and a standing ego is never teleported.
@@ -346,8 +346,9 @@ class DriveRoute:
     description: str = ""
 
 
-def load_drive_routes(path: str | Path = ROUTES_PATH) -> dict[str, DriveRoute]:
-    """Route name -> DriveRoute from a routes TOML (``[routes.NAME]`` tables)."""
+def load_drive_routes(path: str | Path | None = None) -> dict[str, DriveRoute]:
+    """Route name -> DriveRoute from a routes TOML (``[routes.NAME]`` tables); default: the built-in routes."""
+    path = drive_routes_path() if path is None else path
     data = read_toml(path)
     unknown = sorted(set(data) - {"routes"})
     if unknown:
@@ -397,10 +398,10 @@ def drive_command(
     OUT/frames/{red_light,green_light,t_junction_turn}.png (those that occur)
     and OUT/drive.mp4.
     """
-    from .drive_plots import write_drive_outputs
-    from .raster import RasterConfig, Renderer
-    from .raster_world import build_world
-    from .camera import CameraConfig
+    from crchfl_sumo.driving.plots import write_drive_outputs
+    from crchfl_sumo.vision.raster import RasterConfig, Renderer
+    from crchfl_sumo.vision.world import build_world
+    from crchfl_sumo.vision.camera import CameraConfig
 
     scenario_name, edges = resolve_route(route, scenario)
     loaded = load_scenario(scenario_name)
@@ -410,7 +411,7 @@ def drive_command(
         camera = CameraConfig()
         label = "route policy"
     else:
-        from .checkpoint import load_model
+        from crchfl_sumo.learning.checkpoint import load_model
 
         model = load_model(model_path)
         policy = ModelPolicy(model)

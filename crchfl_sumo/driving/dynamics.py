@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .expert import ExpertConfig, resistance_mps2
+from crchfl_sumo.data.expert import ExpertConfig, resistance_mps2
 
 
 # --- vehicle motion: the inverse of the expert's mappings ----------------------------------

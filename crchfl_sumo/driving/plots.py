@@ -20,13 +20,13 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from .atomic import atomic_path, atomic_write_text
-from .drive import DriveLog, DriveResult, lane_departed
-from .route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry
-from .errors import CrchflError
-from .maps import draw_network, save_figure
-from .mosaic import VideoWriter, mosaic, top_down_view, write_png
-from .scenario import Scenario, load_scenario
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
+from crchfl_sumo.sumo.route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.maps import draw_network, save_figure
+from crchfl_sumo.vision.mosaic import VideoWriter, mosaic, top_down_view, write_png
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 
 log = logging.getLogger(__name__)
 

@@ -10,10 +10,10 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import CrchflError
-from .expert import ExpertConfig, pedals, steer_from_curvature
-from .frame import Frame
-from .route import RED_LETTERS, YELLOW_LETTERS, Crossing, RouteGeometry, next_crossing, point_at, project_points, signal_letter
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.route import RED_LETTERS, YELLOW_LETTERS, Crossing, RouteGeometry, next_crossing, point_at, project_points, signal_letter
 
 Action = tuple[float, float, float]  # (throttle, steer, brake), labels.py conventions
 
@@ -203,7 +203,7 @@ class ModelPolicy:
     def __call__(self, observation: Observation) -> Action:
         import torch
 
-        from .model import predict_actions
+        from crchfl_sumo.learning.model import predict_actions
 
         if observation.images is None:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")

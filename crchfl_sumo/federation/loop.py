@@ -49,12 +49,12 @@ from typing import Callable, Literal, Mapping, Protocol, Sequence
 import numpy as np
 import torch
 
-from .aggregate import fedavg
-from .allocation import split_pretrain_batch
-from .channel import WirelineConfig
-from .errors import CrchflError
-from .fl_clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
-from .ledger import (
+from crchfl_sumo.learning.aggregate import fedavg
+from crchfl_sumo.planning.problem import split_pretrain_batch
+from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
+from crchfl_sumo.accounting.ledger import (
     CLOUD,
     ByteSizes,
     Ledger,
@@ -65,9 +65,9 @@ from .ledger import (
     edge_aggregation_schedule,
     stage_one_schedule,
 )
-from .mobility import NO_SITE
-from .samples import Samples
-from .transfer import TransferConfig, wireline_transfer_time_s
+from crchfl_sumo.links.mobility import NO_SITE
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.links.transfer import TransferConfig, wireline_transfer_time_s
 
 log = logging.getLogger(__name__)
 

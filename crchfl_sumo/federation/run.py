@@ -31,14 +31,15 @@ from typing import Any, Callable, Literal, Mapping
 import numpy as np
 import torch
 
-from .allocation import AllocationConfig, calibrated, make_plan
-from .atomic import atomic_path, atomic_write_text
-from .backend import BackendConfig, Executor
-from .channel import ChannelConfig, WirelineConfig
-from .checkpoint import save_checkpoint
-from .config import from_mapping, read_toml, to_mapping
-from .errors import CrchflError
-from .federation import (
+from crchfl_sumo.planning.problem import AllocationConfig, calibrated, make_plan
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
+from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.federation.loop import (
     Federation,
     FederationConfig,
     FederationState,
@@ -47,17 +48,17 @@ from .federation import (
     initial_state,
     sim_time_s,
 )
-from .fl_clock import Clock, ScriptedClock
-from .ledger import Ledger, LedgerConfig, resolve_sizes
-from .local import TrainConfig
-from .mobility import MacroLinkConfig, MobilityConfig
-from .model import ModelConfig, state_size_bytes
-from .online import OnlineConfig
-from .plan_timing import measured_rates_bps, run_timing
-from .samples import Samples
-from .trainers import RayTrainer, TorchTrainer
-from .scenario import SumoConfig
-from .transfer import TransferConfig
+from crchfl_sumo.links.clock import Clock, ScriptedClock
+from crchfl_sumo.accounting.ledger import Ledger, LedgerConfig, resolve_sizes
+from crchfl_sumo.learning.training import TrainConfig
+from crchfl_sumo.links.mobility import MacroLinkConfig, MobilityConfig
+from crchfl_sumo.learning.model import ModelConfig, state_size_bytes
+from crchfl_sumo.data.online import OnlineConfig
+from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
+from crchfl_sumo.sumo.scenario import SumoConfig
+from crchfl_sumo.links.transfer import TransferConfig
 
 log = logging.getLogger(__name__)
 
@@ -171,8 +172,8 @@ class Inputs:
 
 def read_inputs(config: RunConfig) -> Inputs:
     """Load the data set (train shards per vehicle, test shards) and map vehicles to edge sites."""
-    from .dataset import load_samples, load_vehicle_samples, measured_sample_bytes
-    from .dataset_io import read_manifest
+    from crchfl_sumo.data.dataset import load_samples, load_vehicle_samples, measured_sample_bytes
+    from crchfl_sumo.data.shards import read_manifest
 
     root = Path(config.dataset)
     manifest = read_manifest(root)
@@ -191,7 +192,7 @@ def read_inputs(config: RunConfig) -> Inputs:
     shards = {s.vehicle: s for s in manifest.select("train")}
     vehicles = tuple(shards)
     if config.clock.kind == "sumo":
-        from .scenario import configured_scenario
+        from crchfl_sumo.sumo.scenario import configured_scenario
 
         scenario = configured_scenario(config.scenario, config.sumo, config.mobility.coverage_radius_m)
         edges = tuple(site.name for site in scenario.edge_sites)
@@ -222,7 +223,7 @@ def read_inputs(config: RunConfig) -> Inputs:
 
 def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:
     """Each vehicle's home: the site nearest its first recorded sample (the run's sites are not the data set's)."""
-    from .dataset_io import read_shard
+    from crchfl_sumo.data.shards import read_shard
 
     xy = np.array([(site.x_m, site.y_m) for site in sites])
     home = {}
@@ -270,8 +271,8 @@ def make_clock(config: RunConfig, inputs: Inputs):
             config.clock.constant_macro_rate_bps,
         )
         return _NoContext(clock)
-    from .fl_clock import SumoClock
-    from .scenario import configured_scenario
+    from crchfl_sumo.links.clock import SumoClock
+    from crchfl_sumo.sumo.scenario import configured_scenario
 
     scenario = configured_scenario(config.scenario, config.sumo, config.mobility.coverage_radius_m)
     kinds = ("edge",) if config.federation.hierarchical else ("macro",)
@@ -290,11 +291,11 @@ def make_clock(config: RunConfig, inputs: Inputs):
 
 def online_collector(config: RunConfig, inputs: Inputs, scenario):
     """The online mode's collector, rendering and labelling exactly as the data set was made."""
-    from .dataset_io import read_manifest, read_shard
-    from .expert import ExpertConfig
-    from .online import OnlineCollector
-    from .raster import RasterConfig
-    from .raster_world import WorldConfig
+    from crchfl_sumo.data.shards import read_manifest, read_shard
+    from crchfl_sumo.data.expert import ExpertConfig
+    from crchfl_sumo.data.online import OnlineCollector
+    from crchfl_sumo.vision.raster import RasterConfig
+    from crchfl_sumo.vision.world import WorldConfig
 
     manifest = read_manifest(inputs.root)
     where = f"{inputs.root}/manifest.json"
@@ -594,5 +595,5 @@ BUILTIN_RUNS = ("crchfl", "hfl", "sfl")
 
 def builtin_experiments() -> dict[str, Path]:
     """The built-in run configs of the paper's three schemes (scenarios/experiments/NAME.toml) by name."""
-    folder = Path(__file__).parent / "scenarios" / "experiments"
+    folder = experiments_dir()
     return {name: folder / f"{name}.toml" for name in BUILTIN_RUNS}

@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 
 import torch
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 StateDict = Mapping[str, torch.Tensor]
 

@@ -13,10 +13,10 @@ from typing import Any
 
 import torch
 
-from .atomic import atomic_path
-from .config import from_mapping, to_mapping
-from .errors import CrchflError
-from .model import DrivingModel, ModelConfig, model_from_state
+from crchfl_sumo.core.atomic import atomic_path
+from crchfl_sumo.core.config import from_mapping, to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.model import DrivingModel, ModelConfig, model_from_state
 
 CHECKPOINT_FORMAT = "crchfl-sumo-model/1"
 

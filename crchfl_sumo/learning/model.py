@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .errors import CrchflError
-from .labels import NUM_STEER_CLASSES, steer_from_class
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES, steer_from_class
 
 MIN_IMAGE_HEIGHT = 48
 MIN_IMAGE_WIDTH = 64

@@ -13,10 +13,10 @@ from typing import Any
 
 import torch
 
-from .backend import Executor
-from .local import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicle, train_vehicles, vehicle_seed
-from .model import DrivingModel, ModelConfig, build_model
-from .samples import Samples
+from crchfl_sumo.core.backend import Executor
+from crchfl_sumo.learning.training import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicle, train_vehicles, vehicle_seed
+from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
+from crchfl_sumo.data.samples import Samples
 
 
 class TorchTrainer:

@@ -37,12 +37,12 @@ import torch
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
-from .atomic import atomic_write_text
-from .checkpoint import save_checkpoint
-from .config import to_mapping
-from .errors import CrchflError
-from .model import DrivingModel, ModelConfig, build_model, model_from_state
-from .samples import Samples
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.core.config import to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model, model_from_state
+from crchfl_sumo.data.samples import Samples
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from typing import Literal
 
 import numpy as np
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 THERMAL_NOISE_DBM_PER_HZ = -174.0  # kT at 290 K

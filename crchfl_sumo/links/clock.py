@@ -32,11 +32,11 @@ from typing import Literal, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from .channel import ChannelConfig
-from .errors import CrchflError
-from .mobility import NO_SITE, LinkModel, MacroLinkConfig, MobilityConfig, macro_link_model
-from .scenario import Scenario
-from .transfer import TransferConfig, transfer
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MacroLinkConfig, MobilityConfig, macro_link_model
+from crchfl_sumo.sumo.scenario import Scenario
+from crchfl_sumo.links.transfer import TransferConfig, transfer
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class SumoClock:
         collector=None,
     ) -> None:
         """``collector``: an online.OnlineCollector shown every frame (the ``online`` data mode)."""
-        from .sim import Simulation
+        from crchfl_sumo.sumo.simulation import Simulation
 
         self.scenario = scenario
         self.vehicles = tuple(vehicles)

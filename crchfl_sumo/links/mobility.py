@@ -29,11 +29,11 @@ from typing import Sequence
 
 import numpy as np
 
-from . import channel as ch
-from .channel import ChannelConfig
-from .errors import CrchflError
-from .frame import Frame
-from .sites import EdgeSite
+from crchfl_sumo.links import channel as ch
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.sites import EdgeSite
 
 log = logging.getLogger(__name__)
 

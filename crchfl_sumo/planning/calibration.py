@@ -1,6 +1,6 @@
 """`crchfl-sumo calibrate`: fit alpha, gamma and d of problem P from short pilot runs.
 
-Problem P (crchfl_sumo.allocation) values x pretraining samples at alpha * x
+Problem P (crchfl_sumo.planning.problem) values x pretraining samples at alpha * x
 and y = s * T federated samples at gamma * (1 - d / t) * y, t = I_e * I_c * T.
 Both are "effective samples": the number of the vehicles' own samples that,
 trained on centrally, give the same test score. The calibration measures that
@@ -32,14 +32,14 @@ import numpy as np
 import torch
 from scipy.optimize import curve_fit
 
-from .aggregate import weighted_average
-from .allocation import split_pretrain_batch
-from .atomic import atomic_write_text
-from .config import toml_value
-from .errors import CrchflError
-from .local import State, TrainConfig, evaluate, train_vehicle
-from .model import ModelConfig, build_model, model_from_state
-from .samples import Samples
+from crchfl_sumo.learning.aggregate import weighted_average
+from crchfl_sumo.planning.problem import split_pretrain_batch
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.config import toml_value
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.training import State, TrainConfig, evaluate, train_vehicle
+from crchfl_sumo.learning.model import ModelConfig, build_model, model_from_state
+from crchfl_sumo.data.samples import Samples
 
 log = logging.getLogger(__name__)
 
@@ -356,7 +356,7 @@ def calibrate_command(
     size) in ``OUT.data/`` (kept, reused on the next call). One torch thread:
     the pilots are small and the machine is shared.
     """
-    from .dataset import load_samples, load_vehicle_samples
+    from crchfl_sumo.data.dataset import load_samples, load_vehicle_samples
 
     out = Path(out)
     if dataset is None:
@@ -380,9 +380,9 @@ PILOT_TOWNS = (("town01", (73, 73), (106,)), ("town02", (65, 65, 39), (102,)))  
 
 
 def _generate_pilot_data(scenario_name: str, data_dir: Path, seed: int) -> None:
-    from .dataset import DatasetConfig, TownSplit
-    from .generate import generate_dataset
-    from .scenario import load_scenario
+    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.sumo.scenario import load_scenario
 
     sizes = DatasetConfig(towns=tuple(TownSplit(t, train, test) for t, train, test in PILOT_TOWNS))
     generate_dataset(load_scenario(scenario_name), data_dir, seed, sizes)

@@ -9,7 +9,7 @@ epochs between edge aggregations), I_c = cloud_interval (edge aggregations
 between cloud aggregations), T = cloud_rounds. The choices the paper leaves
 open, all documented in docs/allocation.md:
 
-* D, E, M come from the ledger's schedule (``crchfl_sumo.ledger``), so the
+* D, E, M come from the ledger's schedule (``crchfl_sumo.accounting.ledger``), so the
   plan and the ledger agree on bytes: D = bytes stage I charges per sample,
   2 E M = bytes of one cloud round (I_c edge aggregations and one cloud
   aggregation), plus any fixed stage I cost (the pretrained-model release
@@ -45,10 +45,10 @@ from typing import Any, Mapping
 
 import cvxpy as cp
 
-from .channel import ChannelConfig
-from .config import from_mapping, read_toml
-from .errors import CrchflError
-from .ledger import (
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.core.config import from_mapping, read_toml
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.accounting.ledger import (
     GIB,
     ByteSizes,
     Ledger,
@@ -60,7 +60,7 @@ from .ledger import (
     schedule_bytes,
     stage_one_schedule,
 )
-from .mobility import MobilityConfig
+from crchfl_sumo.links.mobility import MobilityConfig
 
 log = logging.getLogger(__name__)
 
@@ -559,7 +559,7 @@ def plan_command(
     if fix_edge_interval is not None:
         allocation = dataclasses.replace(allocation, fix_edge_interval=fix_edge_interval)
     if scenario is not None:
-        from .plan_timing import planning_rate_bps, scenario_rates_bps
+        from crchfl_sumo.planning.timing import planning_rate_bps, scenario_rates_bps
 
         rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s, tables["channel"], tables["mobility"])
         allocation = dataclasses.replace(allocation, wireless_rate_bps=planning_rate_bps(rates, allocation.rate_window_s))

@@ -23,9 +23,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .allocation import AllocationConfig
-from .errors import CrchflError
-from .fl_clock import Clock, LinkSeries
+from crchfl_sumo.planning.problem import AllocationConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.clock import Clock, LinkSeries
 
 
 def time_mean_rate_bps(series: LinkSeries, from_s: float, to_s: float) -> float:
@@ -77,10 +77,10 @@ def planning_rate_bps(rates_bps: Mapping[str, float], window_s: float) -> float:
 
 def scenario_rates_bps(scenario_name: str, seed: int, window_s: float, channel=None, mobility=None) -> dict[str, float]:
     """Time-mean edge-link rates of a scenario's data vehicles over its first ``window_s`` seconds."""
-    from .channel import ChannelConfig
-    from .fl_clock import SumoClock
-    from .mobility import MobilityConfig
-    from .scenario import load_scenario
+    from crchfl_sumo.links.channel import ChannelConfig
+    from crchfl_sumo.links.clock import SumoClock
+    from crchfl_sumo.links.mobility import MobilityConfig
+    from crchfl_sumo.sumo.scenario import load_scenario
 
     mobility = mobility or MobilityConfig()
     scenario = load_scenario(scenario_name, None, mobility.coverage_radius_m)

@@ -20,8 +20,8 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .atomic import atomic_path, atomic_write_text
-from .errors import CrchflError
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.errors import CrchflError
 
 log = logging.getLogger(__name__)
 
@@ -437,7 +437,7 @@ def plot_centralized(runs: Mapping[int, Mapping[str, Any]], out_path: Path) -> P
 
 def drive_figure(out_dir: Path, route: str, labels: Sequence[str], figures_dir: Path) -> Path | None:
     """Fig. 5 for one route (drive_plots.compare_runs); None when a drive lacks its trajectory."""
-    from .drive_plots import compare_runs
+    from crchfl_sumo.driving.plots import compare_runs
 
     folders = [out_dir / "drives" / route / label for label in labels]
     if not all((f / "trajectory.csv").is_file() for f in folders):

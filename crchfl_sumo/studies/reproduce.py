@@ -29,17 +29,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from .atomic import atomic_write_text
-from .config import from_mapping, read_toml, to_mapping, toml_text
-from .drive import DriveConfig
-from .errors import CrchflError
-from .generate import GenerateConfig
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping, toml_text
+from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.generation import GenerateConfig
 
 log = logging.getLogger(__name__)
 
 SCHEMES = ("crchfl", "hfl", "sfl")
-EXPERIMENTS_DIR = Path(__file__).parent / "scenarios" / "experiments"
-PRESETS = {"quick": EXPERIMENTS_DIR / "reproduce_quick.toml", "full": EXPERIMENTS_DIR / "reproduce_full.toml"}
+PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
 CENTRALIZED = "centralized"
 Progress = Callable[[int, int, str], None]  # (parts done, parts in all, the part starting; jobs > 1: just done)
@@ -124,7 +124,8 @@ class ReproduceConfig:
 
 def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) -> ReproduceConfig:
     """A preset ("quick", "full") or a TOML file; ``seeds`` overrides the file's ``seeds``."""
-    path = PRESETS.get(str(preset_or_path), Path(preset_or_path))
+    preset = PRESETS.get(str(preset_or_path))
+    path = experiments_dir() / preset if preset else Path(preset_or_path)
     mapping = read_toml(path)
     if seeds is not None:
         mapping = {**mapping, "seeds": int(seeds)}
@@ -149,7 +150,7 @@ def run_mapping(
     config: ReproduceConfig, scheme: str, seed: int, data_dir: Path, fix_edge_interval: int | None = None
 ) -> dict[str, Any]:
     """The run config of one federated run: the built-in scheme config, the overrides, data, seed."""
-    mapping = deep_merge(read_toml(EXPERIMENTS_DIR / f"{scheme}.toml"), config.run)
+    mapping = deep_merge(read_toml(experiments_dir() / f"{scheme}.toml"), config.run)
     mapping = deep_merge(
         mapping, {"scenario": config.scenario, "dataset": str(data_dir), "federation": {"seed": int(seed)}}
     )
@@ -159,7 +160,7 @@ def run_mapping(
 
 
 def run_config(mapping: Mapping[str, Any], where: str):
-    from .run import RunConfig
+    from crchfl_sumo.federation.run import RunConfig
 
     return from_mapping(RunConfig, mapping, where=where)
 
@@ -254,7 +255,7 @@ def reproduce(
                 _record(out_dir, part, _timed_part(config, out_dir, part, 1))
                 done += 1
             return
-        from .backend import BackendConfig, Executor
+        from crchfl_sumo.core.backend import BackendConfig, Executor
 
         def finished(i: int, elapsed: dict[str, float]) -> None:
             nonlocal done
@@ -273,7 +274,7 @@ def reproduce(
     run_stage(drive_parts(config))  # which seed's model drives is known only now
     if progress is not None:
         progress(total, total, "report")
-    from .report import write_report
+    from crchfl_sumo.studies.report import write_report
 
     return write_report(out_dir)
 
@@ -401,8 +402,8 @@ def _record(out_dir: Path, part: Part, elapsed: dict[str, float]) -> None:
 
 
 def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
-    from .generate import generate_dataset
-    from .scenario import load_scenario
+    from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.sumo.scenario import load_scenario
 
     gen = config.generate
     generate_dataset(load_scenario(config.scenario), data_dir, gen.seed, gen.dataset, gen.raster, gen.world, gen.expert)
@@ -410,8 +411,8 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
 
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
     """The upper bound: one model trained on every vehicle's data; summary.json beside local.py's files."""
-    from .dataset import load_samples
-    from .local import train_centralized
+    from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.learning.training import train_centralized
 
     run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
     train = load_samples(out_dir / "data", "train")
@@ -435,7 +436,7 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
 
 def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
     """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
-    from .run import run_command
+    from crchfl_sumo.federation.run import run_command
 
     mapping = run_mapping(config, part.scheme, part.seed, out_dir / "data", part.edge_interval)
     name = part.key.replace("/", "_")
@@ -445,7 +446,7 @@ def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
 
 
 def _drive_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
-    from .drive import drive_command
+    from crchfl_sumo.driving.drive import drive_command
 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
     drive_command(

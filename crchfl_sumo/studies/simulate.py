@@ -23,15 +23,15 @@ from typing import Callable
 
 import numpy as np
 
-from .atomic import atomic_write_text
-from .channel import ChannelConfig
-from .config import from_mapping, read_toml, to_mapping
-from .errors import CrchflError
-from .maps import draw_network, save_figure
-from .mobility import NO_SITE, LinkModel, MobilityConfig
-from .scenario import Scenario, load_scenario
-from .sim import Simulation
-from .sites import EdgeSite
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.maps import draw_network, save_figure
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
+from crchfl_sumo.sumo.sites import EdgeSite
 
 
 @dataclass(frozen=True)

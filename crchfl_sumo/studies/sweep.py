@@ -42,10 +42,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .atomic import atomic_write_text
-from .backend import BackendConfig, Executor
-from .config import from_mapping, read_toml, toml_text, toml_value
-from .errors import CrchflError
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.core.config import from_mapping, read_toml, toml_text, toml_value
+from crchfl_sumo.core.errors import CrchflError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -159,7 +159,7 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     Each value is checked on its own first (so a bad path or value names its
     --param), then every point as a whole.
     """
-    from .run import RunConfig
+    from crchfl_sumo.federation.run import RunConfig
 
     paths = [p.path for p in params]
     if len(set(paths)) != len(paths):
@@ -209,7 +209,7 @@ def run_point(mapping: dict, out_dir: str) -> dict:
     """
     import torch
 
-    from .run import RunConfig, read_inputs, run_federation_dir
+    from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
 
     torch.set_num_threads(1)  # several runs share the machine's cores
     config = from_mapping(RunConfig, mapping, where=f"{out_dir}/config.toml")
@@ -221,7 +221,7 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 
     A finished run made with other settings (the base config changed since) is an error, never a stale row.
     """
-    from .run import RunConfig, resolved_config
+    from crchfl_sumo.federation.run import RunConfig, resolved_config
 
     path = run_dir / "summary.json"
     if not path.is_file():
@@ -244,7 +244,7 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 
 def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: BackendConfig, where: str = "config") -> list[dict]:
     """Run every point not finished yet, then write the table and the plots; returns the rows."""
-    from .sweep_plots import plot_sweep
+    from crchfl_sumo.studies.sweep_plots import plot_sweep
 
     out_dir = Path(out_dir)
     base = {k: v for k, v in base.items() if k != "backend"}
@@ -280,7 +280,7 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
 def _absolute_paths(base: dict) -> dict:
     """Data set and scenario file paths made absolute: the runs may work in another directory."""
     out = dict(base)
-    from .run import RunConfig
+    from crchfl_sumo.federation.run import RunConfig
 
     defaults = RunConfig()
     dataset = Path(out.get("dataset", defaults.dataset))
@@ -335,7 +335,7 @@ def sweep_command(
     address: str | None = None,
 ) -> list[dict]:
     """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--backend B] [--address A]` does."""
-    from .run import load_run_config, resolve_config_path, with_backend
+    from crchfl_sumo.federation.run import load_run_config, resolve_config_path, with_backend
 
     if not param_texts:
         raise CrchflError("sweep: give at least one --param PATH=V1,V2,...")

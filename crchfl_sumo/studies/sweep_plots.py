@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
-from .atomic import atomic_path
+from crchfl_sumo.core.atomic import atomic_path
 
 # (row key, panel title)
 PANELS = (

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .atomic import atomic_path
-from .scenario import lane_polylines
+from crchfl_sumo.core.atomic import atomic_path
+from crchfl_sumo.sumo.scenario import lane_polylines
 
 
 def draw_network(ax, net_path: Path, color: str = "0.75", linewidth: float = 1.0) -> None:

@@ -12,7 +12,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 RED_LETTERS = ("r", "u")  # SUMO red and red-yellow: crossing the stop line on either is a violation
 YELLOW_LETTERS = ("y", "Y")

@@ -1,7 +1,7 @@
 """A Scenario: a SUMO configuration made safe to run headless, plus edge sites and towns.
 
 Every command takes either a built-in scenario name (a folder under
-``crchfl_sumo/scenarios/`` holding ``scenario.toml``) or a path to any
+``scenarios/`` holding ``scenario.toml``) or a path to any
 ``.sumocfg``. A user's configuration is read, not trusted blindly: options that
 only sumo-gui knows are dropped (sumo would refuse them), file options are made
 absolute (so relative paths keep working from any directory), and output-file
@@ -24,13 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import from_mapping, read_toml
-from .errors import CrchflError
-from .sites import EdgeSite, place_edge_site_count, place_edge_sites
+from crchfl_sumo.core.config import from_mapping, read_toml
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.resources import scenarios_dir
+from crchfl_sumo.sumo.sites import EdgeSite, place_edge_site_count, place_edge_sites
 
 log = logging.getLogger(__name__)
 
-BUILTIN_DIR = Path(__file__).parent / "scenarios"
 # A town's box spans its junction centres; lanes and their vehicles lie up to a
 # lane width or two beside the outermost ones.
 TOWN_MARGIN_M = 10.0
@@ -158,7 +158,7 @@ def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_rad
 
 
 def builtin_names() -> list[str]:
-    return sorted(p.parent.name for p in BUILTIN_DIR.glob("*/scenario.toml"))
+    return sorted(p.parent.name for p in scenarios_dir().glob("*/scenario.toml"))
 
 
 def load_scenario(
@@ -173,7 +173,7 @@ def load_scenario(
     road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites).
     """
     text = str(name_or_path)
-    builtin = BUILTIN_DIR / text / "scenario.toml"
+    builtin = scenarios_dir() / text / "scenario.toml"
     if builtin.is_file():
         spec = from_mapping(ScenarioFile, read_toml(builtin), where=str(builtin))
         cfg_path = (builtin.parent / spec.sumocfg).resolve()

@@ -29,9 +29,9 @@ from types import ModuleType
 
 import numpy as np
 
-from .errors import CrchflError
-from .frame import Frame, sumo_angle_to_heading_rad
-from .scenario import Scenario, sumo_binary
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import Frame, sumo_angle_to_heading_rad
+from crchfl_sumo.sumo.scenario import Scenario, sumo_binary
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 
 @dataclass(frozen=True)

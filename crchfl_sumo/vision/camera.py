@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import CrchflError
-from .labels import CAMERA_NAMES
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import CAMERA_NAMES
 
 
 @dataclass(frozen=True)

@@ -19,13 +19,13 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from .atomic import atomic_write_bytes, temporary_beside
-from .camera import ground_rays
-from .errors import CrchflError
-from .frame import Frame
-from .labels import CAMERA_NAMES
-from .raster import LAMP_RGB, Renderer, lit_lamps, vehicle_rgb
-from .raster_world import SKY_RGB
+from crchfl_sumo.core.atomic import atomic_write_bytes, temporary_beside
+from crchfl_sumo.vision.camera import ground_rays
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.data.labels import CAMERA_NAMES
+from crchfl_sumo.vision.raster import LAMP_RGB, Renderer, lit_lamps, vehicle_rgb
+from crchfl_sumo.vision.world import SKY_RGB
 
 log = logging.getLogger(__name__)
 

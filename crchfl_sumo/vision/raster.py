@@ -32,11 +32,11 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
-from .camera import CameraConfig, camera_from_vehicle, ground_rays, vehicle_from_camera_rotation
-from .errors import CrchflError
-from .frame import Frame
-from .labels import CAMERA_NAMES
-from .raster_world import SKY_RGB, World
+from crchfl_sumo.vision.camera import CameraConfig, camera_from_vehicle, ground_rays, vehicle_from_camera_rotation
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.data.labels import CAMERA_NAMES
+from crchfl_sumo.vision.world import SKY_RGB, World
 
 VEHICLE_PALETTE_RGB = (
     (200, 40, 40),

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import CrchflError
+from crchfl_sumo.core.errors import CrchflError
 
 # RGB colours of the ground texture and the sky.
 SKY_RGB = (135, 185, 235)

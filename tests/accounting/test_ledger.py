@@ -4,9 +4,9 @@ from collections import Counter
 
 import pytest
 
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.ledger import (
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.accounting.ledger import (
     GIB,
     KIB,
     MIB,

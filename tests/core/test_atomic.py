@@ -1,6 +1,6 @@
 import pytest
 
-from crchfl_sumo.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 
 
 def test_write_replaces_whole_file(tmp_path):

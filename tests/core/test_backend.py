@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.backend import INSTALL_HINT, BackendConfig, Executor, import_ray
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.core.backend import INSTALL_HINT, BackendConfig, Executor, import_ray
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
 
-TESTS = str(Path(__file__).parent)
+TESTS = str(Path(__file__).parent)  # the Ray workers import this module's tasks
 
 
 # ------------------------------------------------------------------ tasks (importable by worker processes)
@@ -72,14 +72,14 @@ def test_backend_config_rejects_bad_values():
         BackendConfig(max_retries=-1)
     with pytest.raises(CrchflError, match="task_timeout_s"):
         BackendConfig(task_timeout_s=0)
-    from crchfl_sumo.run import RunConfig
+    from crchfl_sumo.federation.run import RunConfig
 
     with pytest.raises(CrchflError, match="unknown key"):
         from_mapping(RunConfig, {"backend": {"kind": "ray", "adress": "auto"}})
 
 
 def test_run_config_backend_table_and_command_line_override(tmp_path):
-    from crchfl_sumo.run import RunConfig, with_backend
+    from crchfl_sumo.federation.run import RunConfig, with_backend
 
     config = from_mapping(RunConfig, {"backend": {"kind": "ray", "address": "auto", "max_retries": 5}})
     assert (config.backend.kind, config.backend.address, config.backend.max_retries) == ("ray", "auto", 5)
@@ -202,19 +202,19 @@ def test_ray_task_user_error_arrives_as_crchfl_error(ray_runtime):
 def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
     import torch
 
-    from crchfl_sumo.checkpoint import load_checkpoint
-    from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir
-    from test_run import PAPER_VEHICLES, _config, _files, write_dataset
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+    from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+    from helpers import PAPER_VEHICLES, result_files, run_config, write_dataset
 
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(5, 3, 4, 2, 3))
-    mapping = _config(data, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
+    mapping = run_config(data, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
     mapping["federation"]["evaluate_every_edge"] = True
     local = from_mapping(RunConfig, mapping)
     ray = from_mapping(RunConfig, {**mapping, "backend": {"kind": "ray"}})
     a = run_federation_dir(local, read_inputs(local), tmp_path / "local")
     b = run_federation_dir(ray, read_inputs(ray), tmp_path / "ray")
     assert a == b
-    assert _files(tmp_path / "local") == _files(tmp_path / "ray")
+    assert result_files(tmp_path / "local") == result_files(tmp_path / "ray")
     wa = load_checkpoint(tmp_path / "local" / "final_model.pt").state_dict
     wb = load_checkpoint(tmp_path / "ray" / "final_model.pt").state_dict
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
@@ -223,11 +223,11 @@ def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
 
 
 def test_sweep_runs_on_ray_give_the_local_rows(ray_runtime, tmp_path):
-    from crchfl_sumo.sweep import parse_param, run_sweep
-    from test_run import PAPER_VEHICLES, _config, write_dataset
+    from crchfl_sumo.studies.sweep import parse_param, run_sweep
+    from helpers import PAPER_VEHICLES, run_config, write_dataset
 
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
-    base = _config(data, scheme="hfl", cloud_rounds=1)
+    base = run_config(data, scheme="hfl", cloud_rounds=1)
     params = [parse_param("federation.edge_interval=1,2")]
     local = run_sweep(base, params, tmp_path / "local", BackendConfig(num_cpus=2))
     remote = run_sweep(base, params, tmp_path / "ray", BackendConfig(kind="ray"))

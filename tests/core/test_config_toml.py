@@ -6,8 +6,8 @@ import sys
 import numpy as np
 import pytest
 
-from crchfl_sumo.config import toml_text, toml_value
-from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.core.config import toml_text, toml_value
+from crchfl_sumo.core.errors import CrchflError
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.atomic import TMP_MARK
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.dataset import (
+from crchfl_sumo.core.atomic import TMP_MARK
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.data.dataset import (
     DatasetConfig,
     ShardDataset,
     measured_sample_bytes,
@@ -15,7 +15,7 @@ from crchfl_sumo.dataset import (
     load_vehicle_samples,
     shard_plan,
 )
-from crchfl_sumo.dataset_io import (
+from crchfl_sumo.data.shards import (
     MANIFEST_NAME,
     NOMINAL_SAMPLE_BYTES,
     DatasetWriter,
@@ -27,8 +27,8 @@ from crchfl_sumo.dataset_io import (
     sha256_file,
     write_shard,
 )
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.labels import digitize_steer
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import digitize_steer
 
 H, W = 12, 16
 
@@ -244,7 +244,7 @@ def test_measured_sample_bytes_is_the_mean_png_size(tmp_path):
 def test_dataset_stats_counts_and_files(tmp_path):
     import cv2
 
-    from crchfl_sumo.dataset_stats import PEDAL_BINS, pick_examples, write_dataset_stats
+    from crchfl_sumo.data.stats import PEDAL_BINS, pick_examples, write_dataset_stats
 
     generate(tmp_path / "data", small_config(), seed=4)
     stats = write_dataset_stats(tmp_path / "data", tmp_path / "out")

@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.expert import (
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import (
     ExpertConfig,
     Track,
     expert_actions,
@@ -15,8 +15,8 @@ from crchfl_sumo.expert import (
     steer_from_curvature,
     tracks_from_frames,
 )
-from crchfl_sumo.frame import make_frame
-from crchfl_sumo.labels import STEER_CLASS_VALUES
+from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 
 CFG = ExpertConfig()
 DT_S = 0.25

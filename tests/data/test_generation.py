@@ -1,16 +1,16 @@
 import numpy as np
 import pytest
 
-from crchfl_sumo.camera import CameraConfig
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.dataset import DatasetConfig, load_samples, shard_plan
-from crchfl_sumo.dataset_io import read_manifest, read_shard
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.generate import assign_vehicles, generate_dataset, nearest_site
-from crchfl_sumo.labels import digitize_steer
-from crchfl_sumo.raster import RasterConfig
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.sites import EdgeSite
+from crchfl_sumo.vision.camera import CameraConfig
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.data.dataset import DatasetConfig, load_samples, shard_plan
+from crchfl_sumo.data.shards import read_manifest, read_shard
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.generation import assign_vehicles, generate_dataset, nearest_site
+from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.vision.raster import RasterConfig
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.sites import EdgeSite
 
 SIZES = {"towns": [{"town": "town01", "train_samples": [6, 5], "test_samples": [4]}]}
 RASTER = RasterConfig(camera=CameraConfig(height_px=24, width_px=48))
@@ -78,7 +78,7 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
 
 
 def test_generate_config_from_toml(tmp_path):
-    from crchfl_sumo.generate import load_generate_config
+    from crchfl_sumo.data.generation import load_generate_config
 
     path = tmp_path / "gen.toml"
     path.write_text(
@@ -97,8 +97,8 @@ def test_generate_config_from_toml(tmp_path):
 
 @pytest.mark.slow
 def test_label_signs_follow_sumo_turns():
-    from crchfl_sumo.expert import expert_labels, tracks_from_frames
-    from crchfl_sumo.generate import record_run
+    from crchfl_sumo.data.expert import expert_labels, tracks_from_frames
+    from crchfl_sumo.data.generation import record_run
 
     frames, _ = record_run(paper_scenario(), 1, {"t02_data_1": 240, "t01_data_0": 240}, 0.25)
     turns = {"left": 0, "right": 0}
@@ -117,10 +117,10 @@ def test_label_signs_follow_sumo_turns():
 
 def test_neighbourhood_frames_render_what_full_frames_render():
     """record_run keeps only the sampled vehicles and their neighbourhood: their images must not change."""
-    from crchfl_sumo.generate import record_run
-    from crchfl_sumo.raster import Renderer, neighbourhood_m
-    from crchfl_sumo.raster_world import WorldConfig, build_world
-    from crchfl_sumo.sim import Simulation
+    from crchfl_sumo.data.generation import record_run
+    from crchfl_sumo.vision.raster import Renderer, neighbourhood_m
+    from crchfl_sumo.vision.world import WorldConfig, build_world
+    from crchfl_sumo.sumo.simulation import Simulation
 
     scenario = load_scenario("town01")
     raster = RasterConfig(camera=CameraConfig(height_px=32, width_px=64))

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from crchfl_sumo.labels import STEER_CLASS_VALUES, digitize_steer, steer_from_class
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES, digitize_steer, steer_from_class
 
 
 def test_dac_values_are_the_papers():

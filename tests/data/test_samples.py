@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.samples import Samples
+from crchfl_sumo.data.samples import Samples
 
 
 def _make(n, h=8, w=10, seed=0):

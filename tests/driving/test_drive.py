@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crchfl_sumo.checkpoint import save_checkpoint
-from crchfl_sumo.drive import (
+from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
     drive,
@@ -22,19 +22,19 @@ from crchfl_sumo.drive import (
     red_light_violations,
     resolve_route,
 )
-from crchfl_sumo.dynamics import (
+from crchfl_sumo.driving.dynamics import (
     VehicleState,
     acceleration_from_pedals,
     bicycle_step,
     curvature_from_steer,
 )
-from crchfl_sumo.policies import (
+from crchfl_sumo.driving.policies import (
     ConstantPolicy,
     ModelPolicy,
     RoutePolicy,
     RoutePolicyConfig,
 )
-from crchfl_sumo.route import (
+from crchfl_sumo.sumo.route import (
     Crossing,
     RouteGeometry,
     next_crossing,
@@ -46,14 +46,14 @@ from crchfl_sumo.route import (
     route_geometry,
     signal_letter,
 )
-from crchfl_sumo.drive_plots import action_panel, compare_runs, pick_moments, read_trajectory_csv, turn_moment
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.expert import ExpertConfig, pedals, steer_from_curvature
-from crchfl_sumo.labels import STEER_CLASS_VALUES
-from crchfl_sumo.model import ModelConfig, build_model
-from crchfl_sumo.raster import Renderer
-from crchfl_sumo.raster_world import build_world
-from crchfl_sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.driving.plots import action_panel, compare_runs, pick_moments, read_trajectory_csv, turn_moment
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES
+from crchfl_sumo.learning.model import ModelConfig, build_model
+from crchfl_sumo.vision.raster import Renderer
+from crchfl_sumo.vision.world import build_world
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
 
 EXPERT = ExpertConfig()
 NO_WARMUP = DriveConfig(warmup_s=0.0)
@@ -149,7 +149,7 @@ def test_departure_onsets_and_red_light_rules_by_hand():
 
 
 def test_pick_moments_finds_red_then_green_at_the_same_line():
-    from crchfl_sumo.drive import DriveLog
+    from crchfl_sumo.driving.drive import DriveLog
 
     n = 6
     letters = np.array(["G", "r", "r", "G", "G", ""])
@@ -363,7 +363,7 @@ def test_red_light_run_by_full_throttle_and_respected_by_the_route_policy(roads)
 
 
 def test_an_ego_that_sumo_removes_ends_the_drive(roads, monkeypatch):
-    import crchfl_sumo.drive as drive_module
+    import crchfl_sumo.driving.drive as drive_module
 
     class Vanishing(drive_module.Simulation):
         def step(self):
@@ -421,7 +421,7 @@ def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
 
 
 def test_one_pedal_keeps_the_stronger_pedal():
-    from crchfl_sumo.policies import one_pedal
+    from crchfl_sumo.driving.policies import one_pedal
 
     assert one_pedal(0.46, 0.45) == (0.46, 0.0)  # a hedging model still drives off
     assert one_pedal(0.2, 0.7) == (0.0, 0.7)

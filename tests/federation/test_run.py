@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.checkpoint import load_checkpoint
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.run import (
+from helpers import Killed, PAPER_VEHICLES, kill_after, result_files, run_config, write_dataset
+
+from crchfl_sumo.learning.checkpoint import load_checkpoint
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.federation.run import (
     RunConfig,
     builtin_experiments,
     load_run_config,
@@ -23,53 +25,9 @@ from crchfl_sumo.run import (
     run_federation_dir,
 )
 
-PAPER_VEHICLES = [
-    ("t01_data_0", "town01", "edge01"),
-    ("t01_data_1", "town01", "edge01"),
-    ("t02_data_0", "town02", "edge02"),
-    ("t02_data_1", "town02", "edge02"),
-    ("t02_data_2", "town02", "edge02"),
-]
-
-
-def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0) -> Path:
-    """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard."""
-    rng = np.random.default_rng(seed)
-    header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
-    writer = DatasetWriter(root, header)
-
-    def data(n):
-        zeros = np.zeros(n)
-        return ShardData(
-            rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8),
-            rng.random((n, 3), dtype=np.float32),
-            rng.integers(0, 7, n),
-            np.arange(n) * 0.25,
-            zeros,
-            zeros,
-            zeros,
-        )
-
-    for i, ((vehicle, town, edge), n) in enumerate(zip(vehicles, samples)):
-        writer.add(f"{town}-train-{i}.h5", data(n), vehicle=vehicle, town=town, edge=edge, split="train")
-    writer.add("town01-test-0.h5", data(test_samples), vehicle="t01_test_0", town="town01", edge="edge01", split="test")
-    return root
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("data"), PAPER_VEHICLES)
-
-
-def _config(dataset: Path, **federation) -> dict:
-    return {
-        "dataset": str(dataset),
-        "federation": {"scheme": "hfl", "edge_interval": 1, "cloud_rounds": 2, **federation},
-        "ledger": {"nominal_model_mb": 10.0},
-        "model": {"image_height": 48, "image_width": 64},
-        "train": {"device": "cpu", "deterministic": True},
-        "clock": {"kind": "constant"},
-    }
 
 
 class SumTrainer:
@@ -84,24 +42,6 @@ class SumTrainer:
     def evaluate(self, state):
         total = float(state["w"].sum())
         return 100.0 / (1.0 + total), total / (1.0 + total)
-
-
-class Killed(Exception):
-    pass
-
-
-def _kill_after(steps: int):
-    """Raise right after the checkpoint of step number ``steps`` (1 = the first step) was written."""
-
-    def hook(state):
-        if state.steps == steps:
-            raise Killed
-
-    return hook
-
-
-def _files(out: Path) -> dict[str, str]:
-    return {name: (out / name).read_text() for name in ("metrics.jsonl", "ledger.jsonl", "stragglers.jsonl", "summary.json")}
 
 
 def test_run_command_writes_the_results_folder(tmp_path, dataset):
@@ -134,22 +74,22 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     with pytest.raises(CrchflError, match="--resume"):
         run_command(path, out)
     # resuming a finished run changes nothing
-    before = _files(out)
+    before = result_files(out)
     run_command(path, out, resume=True)
-    assert _files(out) == before
+    assert result_files(out) == before
 
 
 def test_torch_run_killed_and_resumed_ends_like_an_uninterrupted_one(tmp_path, dataset):
     config = from_mapping(
-        RunConfig, _config(dataset, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
+        RunConfig, run_config(dataset, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
     )
     inputs = read_inputs(config)
     whole = run_federation_dir(config, inputs, tmp_path / "whole")
     with pytest.raises(Killed):
-        run_federation_dir(config, inputs, tmp_path / "killed", after_checkpoint=_kill_after(2))
+        run_federation_dir(config, inputs, tmp_path / "killed", after_checkpoint=kill_after(2))
     resumed = run_federation_dir(config, inputs, tmp_path / "killed", resume=True)
     assert resumed == whole
-    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
     a = load_checkpoint(tmp_path / "whole" / "final_model.pt").state_dict
     b = load_checkpoint(tmp_path / "killed" / "final_model.pt").state_dict
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -157,42 +97,42 @@ def test_torch_run_killed_and_resumed_ends_like_an_uninterrupted_one(tmp_path, d
 
 @pytest.mark.parametrize("kill_at", [1, 2, 4, 5])  # 5: after the final checkpoint
 def test_kill_at_any_step_and_resume_gives_the_same_files(tmp_path, dataset, kill_at):
-    config = from_mapping(RunConfig, _config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
     inputs = read_inputs(config)
     run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
     with pytest.raises(Killed):
-        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(kill_at))
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(kill_at))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
-    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
 
 
 def test_resume_with_other_settings_is_refused(tmp_path, dataset):
-    config = from_mapping(RunConfig, _config(dataset))
+    config = from_mapping(RunConfig, run_config(dataset))
     inputs = read_inputs(config)
     with pytest.raises(Killed):
-        run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=_kill_after(1))
-    other = from_mapping(RunConfig, _config(dataset, edge_interval=3))
+        run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=kill_after(1))
+    other = from_mapping(RunConfig, run_config(dataset, edge_interval=3))
     with pytest.raises(CrchflError, match="other settings"):
         run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
 
 
 def test_config_errors_name_the_key(tmp_path, dataset):
     with pytest.raises(CrchflError, match="data_mode"):
-        from_mapping(RunConfig, {**_config(dataset), "data_mode": "online"})  # needs the SUMO clock
+        from_mapping(RunConfig, {**run_config(dataset), "data_mode": "online"})  # needs the SUMO clock
     with pytest.raises(CrchflError, match="data_mode"):
-        from_mapping(RunConfig, {**_config(dataset), "data_mode": "streaming"})
+        from_mapping(RunConfig, {**run_config(dataset), "data_mode": "streaming"})
     with pytest.raises(CrchflError, match="federation: unknown key"):
-        from_mapping(RunConfig, {**_config(dataset), "federation": {"edge_intervall": 2}})
-    bad = from_mapping(RunConfig, {**_config(dataset), "model": {"image_height": 64, "image_width": 128}})
+        from_mapping(RunConfig, {**run_config(dataset), "federation": {"edge_intervall": 2}})
+    bad = from_mapping(RunConfig, {**run_config(dataset), "model": {"image_height": 64, "image_width": 128}})
     with pytest.raises(CrchflError, match="image_height"):
         read_inputs(bad)
     other = write_dataset(tmp_path / "other", [("v0", "town01", "edge01")], samples=(1,))
     with pytest.raises(CrchflError, match="not data vehicles of scenario 'town02'"):
-        read_inputs(from_mapping(RunConfig, {**_config(other), "scenario": "town02", "clock": {"kind": "sumo"}}))
+        read_inputs(from_mapping(RunConfig, {**run_config(other), "scenario": "town02", "clock": {"kind": "sumo"}}))
 
 
 def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
-    config = from_mapping(RunConfig, {**_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
                                       "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0}})
     summary = run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())
     plan = json.loads((tmp_path / "out" / "config.json").read_text())["plan"]
@@ -205,9 +145,9 @@ def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
     # a planned run resumes too: the plan is the same when made again
     with pytest.raises(Killed):
         run_federation_dir(config, read_inputs(config), tmp_path / "killed", trainer=SumTrainer(),
-                           after_checkpoint=_kill_after(2))
+                           after_checkpoint=kill_after(2))
     run_federation_dir(config, read_inputs(config), tmp_path / "killed", trainer=SumTrainer(), resume=True)
-    assert _files(tmp_path / "killed") == _files(tmp_path / "out")
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "out")
 
 
 def test_builtin_experiments_are_the_three_schemes():
@@ -223,7 +163,7 @@ def test_builtin_experiments_are_the_three_schemes():
 @pytest.mark.slow
 @pytest.mark.parametrize("scheme", ["hfl", "sfl"])
 def test_sumo_clock_run_is_deterministic_and_resumes_exactly(tmp_path, dataset, scheme):
-    mapping = _config(dataset, scheme=scheme, cloud_rounds=2, compute_s_per_sample=5.0, deadline_s=120.0)
+    mapping = run_config(dataset, scheme=scheme, cloud_rounds=2, compute_s_per_sample=5.0, deadline_s=120.0)
     mapping["clock"] = {"kind": "sumo"}
     config = from_mapping(RunConfig, mapping)
     inputs = read_inputs(config)
@@ -236,16 +176,16 @@ def test_sumo_clock_run_is_deterministic_and_resumes_exactly(tmp_path, dataset, 
     first = [r["end_s"] - r["start_s"] for r in wireless if r["direction"] == "uplink" and r["cloud_round"] == 1]
     assert len(set(np.round(first, 6))) > 1
     with pytest.raises(Killed):
-        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(1))
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(1))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
-    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
 
 
 # ------------------------------------------------------------------ online data mode
 
 
 def _straight_frames(seconds: float, step_s: float = 0.25):
-    from crchfl_sumo.frame import make_frame
+    from crchfl_sumo.sumo.frame import make_frame
 
     frames = []
     for k in range(1, int(seconds / step_s) + 1):
@@ -255,11 +195,11 @@ def _straight_frames(seconds: float, step_s: float = 0.25):
 
 
 def test_online_collector_labels_after_the_look_ahead_and_keeps_the_newest(grid_dir):
-    from crchfl_sumo.camera import CameraConfig
-    from crchfl_sumo.expert import ExpertConfig, expert_labels, tracks_from_frames
-    from crchfl_sumo.generate import FUTURE_S
-    from crchfl_sumo.online import OnlineCollector, OnlineConfig
-    from crchfl_sumo.raster import RasterConfig
+    from crchfl_sumo.vision.camera import CameraConfig
+    from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
+    from crchfl_sumo.data.generation import FUTURE_S
+    from crchfl_sumo.data.online import OnlineCollector, OnlineConfig
+    from crchfl_sumo.vision.raster import RasterConfig
 
     raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=64))
     collector = OnlineCollector(
@@ -288,7 +228,7 @@ def test_online_mode_grows_the_vehicles_data_and_resumes_exactly(tmp_path):
     text = json.loads(manifest.read_text())
     text["camera"] = {"raster": {"camera": {"height_px": 48, "width_px": 64}}}
     manifest.write_text(json.dumps(text))
-    mapping = _config(root, scheme="hfl", cloud_rounds=3, compute_s_per_sample=2.0)
+    mapping = run_config(root, scheme="hfl", cloud_rounds=3, compute_s_per_sample=2.0)
     mapping.update(data_mode="online", online={"max_samples": 10}, clock={"kind": "sumo"})
     config = from_mapping(RunConfig, mapping)
     inputs = read_inputs(config)
@@ -297,15 +237,15 @@ def test_online_mode_grows_the_vehicles_data_and_resumes_exactly(tmp_path):
     samples = [m["samples"] for m in lines if m["stage"] == "II"]
     assert samples[0] == 4 and samples[-1] > samples[0] and samples[-1] <= 4 + 2 * 10
     with pytest.raises(Killed):
-        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=_kill_after(2))
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(2))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
-    assert _files(tmp_path / "killed") == _files(tmp_path / "whole")
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
 
 
 def test_a_planned_run_reads_the_calibration_file(tmp_path, dataset):
     calibration = tmp_path / "calibration.toml"
     calibration.write_text("[allocation]\nalpha = 0.0\ngamma = 0.5\nd = 1.0\n")  # uploaded samples worth nothing
-    config = from_mapping(RunConfig, {**_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
                                       "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0},
                                       "allocation": {"calibration_file": str(calibration)}})
     run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())

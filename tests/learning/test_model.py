@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.config import from_mapping, to_mapping
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.labels import STEER_CLASS_VALUES
-from crchfl_sumo.model import (
+from crchfl_sumo.core.config import from_mapping, to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES
+from crchfl_sumo.learning.model import (
     DrivingModel,
     GridAveragePool,
     ModelConfig,

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.checkpoint import load_checkpoint, load_model, save_checkpoint
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.local import (
+from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.training import (
     LocalTrainer,
     TrainConfig,
     evaluate,
@@ -16,8 +16,8 @@ from crchfl_sumo.local import (
     train_centralized,
     train_vehicles,
 )
-from crchfl_sumo.model import ModelConfig, build_model
-from crchfl_sumo.samples import Samples
+from crchfl_sumo.learning.model import ModelConfig, build_model
+from crchfl_sumo.data.samples import Samples
 
 SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu")

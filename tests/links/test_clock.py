@@ -2,9 +2,9 @@
 
 import pytest
 
-from crchfl_sumo.fl_clock import ScriptedClock, SumoClock, wireless_transfer
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.transfer import TransferConfig
+from crchfl_sumo.links.clock import ScriptedClock, SumoClock, wireless_transfer
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.links.transfer import TransferConfig
 
 # Two epochs of 2928 samples at 120 s per 2928 samples, from t = 0.25 s, end at
 # 240.24999999999997 s in floating point: one rounding short of the 240.25 s sample.

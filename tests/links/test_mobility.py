@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from crchfl_sumo import channel as ch
-from crchfl_sumo.channel import ChannelConfig
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.frame import make_frame
-from crchfl_sumo.mobility import (
+from crchfl_sumo.links import channel as ch
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.links.mobility import (
     LinkModel,
     MacroLinkConfig,
     MobilityConfig,
@@ -21,7 +21,7 @@ from crchfl_sumo.mobility import (
     macro_link_model,
     rate_series,
 )
-from crchfl_sumo.sites import EdgeSite
+from crchfl_sumo.sumo.sites import EdgeSite
 
 # Deterministic radio: always LOS, no shadowing, no fading.
 PLAIN = ChannelConfig(los_mode="los", shadowing=False, fading=False)

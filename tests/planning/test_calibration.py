@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.allocation import load_plan_configs
-from crchfl_sumo.calibration import (
+from crchfl_sumo.planning.problem import load_plan_configs
+from crchfl_sumo.planning.calibration import (
     CalibrationConfig,
     Fit,
     admissible,
@@ -21,8 +21,8 @@ from crchfl_sumo.calibration import (
     run_pilots,
     score_curve,
 )
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.samples import Samples
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.samples import Samples
 
 CURVE = (0.9, 1.5, 0.4)  # score(S) = 0.9 - 1.5 S^-0.4
 

@@ -5,11 +5,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from crchfl_sumo.allocation import AllocationConfig, make_plan
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.fl_clock import LinkSeries, ScriptedClock, Segment
-from crchfl_sumo.ledger import LedgerConfig
-from crchfl_sumo.plan_timing import measured_rates_bps, run_timing, time_mean_rate_bps
+from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.clock import LinkSeries, ScriptedClock, Segment
+from crchfl_sumo.accounting.ledger import LedgerConfig
+from crchfl_sumo.planning.timing import measured_rates_bps, run_timing, time_mean_rate_bps
 
 PAPER_LIKE = AllocationConfig(alpha=0.1, gamma=0.5, d=5.0, vehicles_per_edge=(2, 3), local_samples=12584)
 
@@ -82,8 +82,8 @@ def test_zero_compute_time_is_allowed():
 
 
 def test_plan_command_measures_the_scenarios_rate():
-    from crchfl_sumo.allocation import plan_command
-    from crchfl_sumo.plan_timing import scenario_rates_bps
+    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.planning.timing import scenario_rates_bps
 
     rates = scenario_rates_bps("town02", 3, 60.0)
     assert set(rates) == {"t02_data_0", "t02_data_1", "t02_data_2"} and min(rates.values()) > 0
@@ -97,9 +97,9 @@ def test_plan_command_measures_the_scenarios_rate():
 
 
 def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
-    from crchfl_sumo.allocation import plan_command
-    from crchfl_sumo.channel import ChannelConfig
-    from crchfl_sumo.plan_timing import scenario_rates_bps
+    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.links.channel import ChannelConfig
+    from crchfl_sumo.planning.timing import scenario_rates_bps
 
     config = tmp_path / "links.toml"
     config.write_text("[allocation]\nrate_window_s = 60.0\n[channel]\nefficiency = 0.3\n")
@@ -113,7 +113,7 @@ def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
 
 
 def test_plan_command_refuses_a_scenario_without_data_vehicles(grid_dir):
-    from crchfl_sumo.allocation import plan_command
+    from crchfl_sumo.planning.problem import plan_command
 
     with pytest.raises(CrchflError, match="data vehicles"):
         plan_command(scenario=str(grid_dir / "grid.sumocfg"))

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from crchfl_sumo.allocation import (
+from crchfl_sumo.planning.problem import (
     AllocationConfig,
     _Relaxation,
     costs_for,
@@ -17,8 +17,8 @@ from crchfl_sumo.allocation import (
     round_time_s,
     split_pretrain_batch,
 )
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.ledger import (
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.accounting.ledger import (
     GIB,
     KIB,
     MIB,
@@ -240,8 +240,8 @@ def test_format_plan_lists_stage_shares():
 
 
 def test_calibration_file_supplies_the_weights(tmp_path):
-    from crchfl_sumo.allocation import calibrated
-    from crchfl_sumo.calibration import Fit, calibration_toml
+    from crchfl_sumo.planning.problem import calibrated
+    from crchfl_sumo.planning.calibration import Fit, calibration_toml
 
     # the file exactly as `calibrate` writes it (the record's values do not matter here)
     data = {"metric": "loss", "local_samples": 10, "test_samples": 4, "epochs": 2, "reference_samples": [4, 10],

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.report import (
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.studies.report import (
     cloud_lines,
     curve_by_bytes,
     curve_by_round,
@@ -222,7 +222,7 @@ def test_report_of_an_empty_folder_says_what_to_run(tmp_path):
 
 
 def test_format_summary_lists_schemes_and_gains(results):
-    from crchfl_sumo.report import format_summary
+    from crchfl_sumo.studies.report import format_summary
 
     text = format_summary(report_command(results), results)
     assert "CRCHFL over HFL: +10.00 %" in text and "(paper: +12.41 %)" in text

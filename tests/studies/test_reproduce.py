@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.config import toml_text
-from crchfl_sumo.experiment import (
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.config import toml_text
+from crchfl_sumo.studies.reproduce import (
     ReproduceConfig,
     best_seed,
     deep_merge,

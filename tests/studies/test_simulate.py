@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from crchfl_sumo.cli import main
-from crchfl_sumo.mobility import Handover
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.simulate import SimulateConfig, Trace, summarize
-from crchfl_sumo.sites import EdgeSite
+from crchfl_sumo.links.mobility import Handover
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.studies.simulate import SimulateConfig, Trace, summarize
+from crchfl_sumo.sumo.sites import EdgeSite
 
 
 def _trace(site, rate, handovers=()):

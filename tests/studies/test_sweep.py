@@ -16,23 +16,23 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-from crchfl_sumo.backend import BackendConfig
+from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.cli import main
-from crchfl_sumo.config import from_mapping, toml_text
-from crchfl_sumo.dataset_io import DatasetWriter, Manifest, ShardData
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.fl_clock import ScriptedClock, Segment
-from crchfl_sumo.run import RunConfig, read_inputs, run_federation_dir
-from crchfl_sumo.scenario import SumoConfig, configured_scenario
-from crchfl_sumo.sim import Simulation
-from crchfl_sumo.sweep import (
+from crchfl_sumo.core.config import from_mapping, toml_text
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.clock import ScriptedClock, Segment
+from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+from crchfl_sumo.sumo.scenario import SumoConfig, configured_scenario
+from crchfl_sumo.sumo.simulation import Simulation
+from crchfl_sumo.studies.sweep import (
     expand_grid,
     parse_param,
     point_name,
     run_sweep,
     split_values,
 )
-from test_run import PAPER_VEHICLES, Killed, _config, _files, _kill_after, write_dataset
+from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
 
 # ------------------------------------------------------------------ parameters and the grid
 
@@ -101,7 +101,7 @@ def dataset(tmp_path_factory) -> Path:
 
 
 def _base(dataset: Path) -> dict:
-    return _config(dataset, scheme="hfl", cloud_interval=1, cloud_rounds=2)
+    return run_config(dataset, scheme="hfl", cloud_interval=1, cloud_rounds=2)
 
 
 def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, dataset):
@@ -115,14 +115,14 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
     run_federation_dir(first, read_inputs(first), runs / points[0].name, config_text=toml_text(points[0].mapping))
     second = from_mapping(RunConfig, points[1].mapping)
     with pytest.raises(Killed):
-        run_federation_dir(second, read_inputs(second), runs / points[1].name, after_checkpoint=_kill_after(1),
+        run_federation_dir(second, read_inputs(second), runs / points[1].name, after_checkpoint=kill_after(1),
                            config_text=toml_text(points[1].mapping))
     finished_mtime = (runs / points[0].name / "summary.json").stat().st_mtime_ns
     rows = run_sweep(base, params, out, BackendConfig(num_cpus=2))
     assert (runs / points[0].name / "summary.json").stat().st_mtime_ns == finished_mtime  # not redone
     # the killed run ends like an uninterrupted one
     run_federation_dir(second, read_inputs(second), tmp_path / "whole")
-    assert _files(runs / points[1].name) == _files(tmp_path / "whole")
+    assert result_files(runs / points[1].name) == result_files(tmp_path / "whole")
     assert [r["federation.edge_interval"] for r in rows] == [1, 2]
     for row, point in zip(rows, points):
         summary = json.loads((runs / point.name / "summary.json").read_text())
@@ -235,12 +235,12 @@ def test_other_sites_than_the_data_sets_give_each_vehicle_its_nearest_site(tmp_p
     positions["t01_data_1"] = (690.0, 200.0)  # recorded in town01's shard, but first seen near the east site
     data = _positioned_dataset(tmp_path / "data", positions)
     sites = [{"name": "east", "x_m": 700.0, "y_m": 200.0}, {"name": "west", "x_m": 100.0, "y_m": 100.0}]
-    mapping = {**_config(data), "clock": {"kind": "sumo"}, "sumo": {"edge_sites": sites}}
+    mapping = {**run_config(data), "clock": {"kind": "sumo"}, "sumo": {"edge_sites": sites}}
     inputs = read_inputs(from_mapping(RunConfig, mapping))
     assert inputs.edges == ("east", "west")
     assert inputs.home_site == {"t01_data_0": 1, "t01_data_1": 0, "t02_data_0": 0, "t02_data_1": 0, "t02_data_2": 0}
     # without [sumo] sites the data set's recorded edges hold
-    plain = read_inputs(from_mapping(RunConfig, {**_config(data), "clock": {"kind": "sumo"}}))
+    plain = read_inputs(from_mapping(RunConfig, {**run_config(data), "clock": {"kind": "sumo"}}))
     assert plain.home_site == {"t01_data_0": 0, "t01_data_1": 0, "t02_data_0": 1, "t02_data_1": 1, "t02_data_2": 1}
 
 
@@ -255,7 +255,7 @@ def test_scripted_clock_counts_site_to_site_handovers():
 
 @pytest.mark.slow
 def test_sumo_clock_sweep_over_site_counts_reports_handovers(tmp_path, dataset):
-    base = _config(dataset, scheme="hfl", cloud_rounds=1, compute_s_per_sample=5.0, deadline_s=120.0)
+    base = run_config(dataset, scheme="hfl", cloud_rounds=1, compute_s_per_sample=5.0, deadline_s=120.0)
     base["clock"] = {"kind": "sumo"}
     base["mobility"] = {"coverage_radius_m": 150.0}
     [row] = run_sweep(base, [parse_param("sumo.edge_site_count=6")], tmp_path / "s", BackendConfig(num_cpus=2))

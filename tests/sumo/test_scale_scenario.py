@@ -16,14 +16,14 @@ import pytest
 import sumolib
 from sumolib.geomhelper import positionAtShapeOffset
 
-from crchfl_sumo.channel import ChannelConfig
-from crchfl_sumo.mobility import LinkModel, MobilityConfig
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.sim import Simulation
-from test_towns import half_hour_statistics
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.links.mobility import LinkModel, MobilityConfig
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
+from helpers import half_hour_statistics
 
-REPO = Path(__file__).resolve().parents[1]
-FOLDER = REPO / "crchfl_sumo" / "scenarios" / "scale200"
+REPO = Path(__file__).resolve().parents[2]
+FOLDER = REPO / "scenarios" / "scale200"
 TOWNS = ("town01a", "town01b", "town01c", "town01d")
 
 

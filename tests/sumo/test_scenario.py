@@ -1,9 +1,9 @@
 import pytest
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.sites import EdgeSite, place_edge_sites
-from crchfl_sumo.sim import Simulation
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.sites import EdgeSite, place_edge_sites
+from crchfl_sumo.sumo.simulation import Simulation
 
 import numpy as np
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.scenario import load_scenario
-from crchfl_sumo.sim import Simulation
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
 
 
 @pytest.fixture(scope="module")

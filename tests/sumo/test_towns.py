@@ -14,15 +14,17 @@ from pathlib import Path
 import pytest
 import sumolib
 
-from crchfl_sumo.scenario import sumo_binary
+from helpers import half_hour_statistics
+
+from crchfl_sumo.sumo.scenario import sumo_binary
 
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-REPO = Path(__file__).resolve().parents[1]
-SCENARIOS_DIR = REPO / "crchfl_sumo" / "scenarios"
+REPO = Path(__file__).resolve().parents[2]
+SCENARIOS_DIR = REPO / "scenarios"
 SCENARIOS = ("town01", "town02", "paper", "paper_linked")
 
 # Extent (width x height, metres) of the reference networks converted from
@@ -285,18 +287,6 @@ def test_build_reproduces_the_committed_files(tmp_path, monkeypatch):
                                and not p.name.startswith(f"{name}.edg"))
         for file_name in built:
             assert (tmp_path / name / file_name).read_bytes() == (SCENARIOS_DIR / name / file_name).read_bytes(), file_name
-
-
-def half_hour_statistics(sumocfg: Path, tmp_path: Path) -> ET.Element:
-    """SUMO's statistic output after 30 simulated minutes of ``sumocfg`` (collisions checked at junctions too)."""
-    stats = tmp_path / "stats.xml"
-    subprocess.run(
-        [sumo_binary("sumo"), "-c", str(sumocfg), "--end", "1800",
-         "--no-step-log", "true", "--collision.action", "warn", "--collision.check-junctions", "true",
-         "--statistic-output", str(stats)],
-        check=True, capture_output=True,
-    )
-    return ET.parse(stats).getroot()
 
 
 @pytest.mark.slow

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crchfl_sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
-from crchfl_sumo.simulate import SimulateConfig, simulate, summarize
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
+from crchfl_sumo.studies.simulate import SimulateConfig, simulate, summarize
 
-FIXTURE = Path(__file__).parent / "data" / "motorway_ramps.osm"
+FIXTURE = Path(__file__).parents[1] / "fixtures" / "motorway_ramps.osm"
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from crchfl_sumo.camera import (
+from crchfl_sumo.vision.camera import (
     CameraConfig,
     CameraPose,
     camera_from_vehicle,
@@ -14,8 +14,8 @@ from crchfl_sumo.camera import (
     vehicle_from_camera_rotation,
     vehicle_from_world,
 )
-from crchfl_sumo.config import from_mapping
-from crchfl_sumo.errors import CrchflError
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
 
 CAM_H, CAM_F, CAM_L, CAM_R = range(4)
 

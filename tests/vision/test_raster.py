@@ -16,10 +16,10 @@ import zlib
 import numpy as np
 import pytest
 
-from crchfl_sumo.camera import CameraConfig, project_vehicle_points
-from crchfl_sumo.errors import CrchflError
-from crchfl_sumo.frame import make_frame
-from crchfl_sumo.raster import (
+from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.vision.raster import (
     LAMP_GREEN_RGB,
     LAMP_HEIGHTS_M,
     LAMP_RED_RGB,
@@ -28,7 +28,7 @@ from crchfl_sumo.raster import (
     Renderer,
     lit_lamps,
 )
-from crchfl_sumo.raster_world import (
+from crchfl_sumo.vision.world import (
     SKY_RGB,
     WHITE_RGB,
     YELLOW_RGB,
@@ -292,7 +292,7 @@ def test_world_from_a_sumo_network(tmp_path):
 def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
     import cv2
 
-    from crchfl_sumo.mosaic import render_run
+    from crchfl_sumo.vision.mosaic import render_run
 
     frames = [ego_and({"a": (20.0 + i, LANE_Y, 0.0)}, ego=(float(i), LANE_Y, 0.0)) for i in range(5)]
     frames.append(make_frame(ids=["a"], x_m=[30.0], y_m=[LANE_Y]))  # the ego has left
@@ -313,7 +313,7 @@ def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
 
 def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
     """CameraReach.may_see is a pre-filter: every camera image a box changes must be flagged."""
-    from crchfl_sumo.raster import CameraReach
+    from crchfl_sumo.vision.raster import CameraReach
 
     reach = CameraReach.of(renderer.config.camera, renderer.config.max_object_distance_m)
     radius = 0.5 * math.hypot(4.5, 1.8)
@@ -339,7 +339,7 @@ def test_world_without_signals_and_a_lone_vehicle():
 
 
 def test_settings_round_trip_through_toml_mappings():
-    from crchfl_sumo.config import from_mapping, to_mapping
+    from crchfl_sumo.core.config import from_mapping, to_mapping
 
     raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=96), interpolation="linear")
     assert from_mapping(RasterConfig, to_mapping(raster), "raster") == raster

@@ -1,0 +1,85 @@
+"""Helpers shared by the test modules: tiny data sets, run configs, kill hooks, SUMO statistics."""
+
+from __future__ import annotations
+
+import subprocess
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.sumo.scenario import sumo_binary
+
+PAPER_VEHICLES = [
+    ("t01_data_0", "town01", "edge01"),
+    ("t01_data_1", "town01", "edge01"),
+    ("t02_data_0", "town02", "edge02"),
+    ("t02_data_1", "town02", "edge02"),
+    ("t02_data_2", "town02", "edge02"),
+]
+
+
+def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0) -> Path:
+    """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard."""
+    rng = np.random.default_rng(seed)
+    header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
+    writer = DatasetWriter(root, header)
+
+    def data(n):
+        zeros = np.zeros(n)
+        return ShardData(
+            rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8),
+            rng.random((n, 3), dtype=np.float32),
+            rng.integers(0, 7, n),
+            np.arange(n) * 0.25,
+            zeros,
+            zeros,
+            zeros,
+        )
+
+    for i, ((vehicle, town, edge), n) in enumerate(zip(vehicles, samples)):
+        writer.add(f"{town}-train-{i}.h5", data(n), vehicle=vehicle, town=town, edge=edge, split="train")
+    writer.add("town01-test-0.h5", data(test_samples), vehicle="t01_test_0", town="town01", edge="edge01", split="test")
+    return root
+
+
+def run_config(dataset: Path, **federation) -> dict:
+    return {
+        "dataset": str(dataset),
+        "federation": {"scheme": "hfl", "edge_interval": 1, "cloud_rounds": 2, **federation},
+        "ledger": {"nominal_model_mb": 10.0},
+        "model": {"image_height": 48, "image_width": 64},
+        "train": {"device": "cpu", "deterministic": True},
+        "clock": {"kind": "constant"},
+    }
+
+
+class Killed(Exception):
+    pass
+
+
+def kill_after(steps: int):
+    """Raise right after the checkpoint of step number ``steps`` (1 = the first step) was written."""
+
+    def hook(state):
+        if state.steps == steps:
+            raise Killed
+
+    return hook
+
+
+def result_files(out: Path) -> dict[str, str]:
+    return {name: (out / name).read_text() for name in ("metrics.jsonl", "ledger.jsonl", "stragglers.jsonl", "summary.json")}
+
+
+def half_hour_statistics(sumocfg: Path, tmp_path: Path) -> ET.Element:
+    """SUMO's statistic output after 30 simulated minutes of ``sumocfg`` (collisions checked at junctions too)."""
+    stats = tmp_path / "stats.xml"
+    subprocess.run(
+        [sumo_binary("sumo"), "-c", str(sumocfg), "--end", "1800",
+         "--no-step-log", "true", "--collision.action", "warn", "--collision.check-junctions", "true",
+         "--statistic-output", str(stats)],
+        check=True, capture_output=True,
+    )
+    return ET.parse(stats).getroot()
