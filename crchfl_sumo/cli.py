@@ -262,7 +262,8 @@ def _add_drive(p: argparse.ArgumentParser) -> None:
 
 
 def _run_drive(args) -> int:
-    from crchfl_sumo.driving.drive import DriveConfig, drive_command
+    from crchfl_sumo.driving.drive import DriveConfig
+    from crchfl_sumo.driving.drive_command import drive_command
 
     m = drive_command(
         None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
@@ -376,7 +377,7 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
 
 
 def _run_plan(args) -> int:
-    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.planning.plan_command import plan_command
 
     out = plan_command(args.budget_gb, args.config, args.json, args.fix_edge_interval, args.scenario, args.seed)
     print(json.dumps(out, indent=2) if args.json else out)

@@ -181,3 +181,9 @@ def toml_value(value: Any) -> str:
     if isinstance(value, Mapping):
         return "{ " + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + " }"
     raise CrchflError(f"cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string, list or table")
+
+
+def load_tables(config_path: str | Path | None, types: Mapping[str, type]) -> dict[str, Any]:
+    """The tables ``types`` names of a TOML file (read once), each as its dataclass; defaults without a file."""
+    data = read_toml(config_path) if config_path is not None else {}
+    return {key: from_mapping(cls, data.get(key, {}), f"{config_path}: {key}") for key, cls in types.items()}

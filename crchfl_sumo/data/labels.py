@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 ACTION_NAMES = ("throttle", "steer", "brake")
-CAMERA_NAMES = ("CamH", "CamF", "CamL", "CamR")
 
 # Class k decodes to STEER_CLASS_VALUES[k] (the paper's reference implementation).
 STEER_CLASS_VALUES = np.array([0.0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425], dtype=np.float32)

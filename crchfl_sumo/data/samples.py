@@ -14,7 +14,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from crchfl_sumo.data.labels import CAMERA_NAMES, NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
+from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3

@@ -32,7 +32,8 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.labels import ACTION_NAMES, CAMERA_NAMES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import ACTION_NAMES, STEER_CLASS_VALUES
+from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
-from crchfl_sumo.data.labels import CAMERA_NAMES, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
 

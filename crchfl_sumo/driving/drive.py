@@ -24,7 +24,6 @@ network with sumolib. docs/drive.md defines each of them.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import math
@@ -34,13 +33,11 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from crchfl_sumo.core.resources import drive_routes_path
-from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals, bicycle_step
 from crchfl_sumo.sumo.frame import Frame
-from crchfl_sumo.driving.policies import ModelPolicy, Observation, Policy, RoutePolicy
+from crchfl_sumo.driving.policies import Observation, Policy
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
     Crossing,
@@ -50,10 +47,9 @@ from crchfl_sumo.sumo.route import (
     project_points,
     read_net,
     road_area,
-    route_geometry,
     signal_letter,
 )
-from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.scenario import Scenario
 from crchfl_sumo.sumo.simulation import Simulation
 
 log = logging.getLogger(__name__)
@@ -332,123 +328,3 @@ def drive_metrics(
         "off_road_s": float(np.count_nonzero(off_road[:-1]) * step_s),
         "red_light_violations": int(np.count_nonzero(drive_log.red_light)),
     }
-
-
-# --- named evaluation routes ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class DriveRoute:
-    """A named evaluation route of drive_routes.toml."""
-
-    scenario: str
-    edges: tuple[str, ...]
-    description: str = ""
-
-
-def load_drive_routes(path: str | Path | None = None) -> dict[str, DriveRoute]:
-    """Route name -> DriveRoute from a routes TOML (``[routes.NAME]`` tables); default: the built-in routes."""
-    path = drive_routes_path() if path is None else path
-    data = read_toml(path)
-    unknown = sorted(set(data) - {"routes"})
-    if unknown:
-        raise CrchflError(f"{path}: unknown top-level key(s) {unknown}; put routes under [routes.NAME]")
-    return {
-        name: from_mapping(DriveRoute, table, where=f"{path}: routes.{name}")
-        for name, table in data.get("routes", {}).items()
-    }
-
-
-def resolve_route(route: str, scenario: str | None) -> tuple[str, tuple[str, ...]]:
-    """(scenario, edges) for a route name of drive_routes.toml, or for edge ids separated by commas/spaces.
-
-    A named route brings its scenario; a list of edges needs ``scenario``.
-    """
-    named = load_drive_routes()
-    if route in named:
-        entry = named[route]
-        if scenario is not None and scenario != entry.scenario:
-            raise CrchflError(
-                f"route '{route}' runs in scenario '{entry.scenario}', not '{scenario}'; drop --scenario or match it"
-            )
-        return entry.scenario, entry.edges
-    edges = tuple(e for e in route.replace(",", " ").split() if e)
-    if scenario is None or not edges:
-        raise CrchflError(
-            f"route '{route}' is not a named route ({', '.join(sorted(named))}); "
-            "name one, or give --scenario and the edge ids separated by commas"
-        )
-    return scenario, edges
-
-
-def drive_command(
-    model_path: str | Path | None,
-    scenario: str | None,
-    route: str,
-    out_dir: str | Path,
-    seed: int = 0,
-    max_s: float = 120.0,
-    config: DriveConfig = DriveConfig(),
-    video: bool = True,
-) -> dict[str, Any]:
-    """The `crchfl-sumo drive` body: drive a route, write metrics, trajectory, pictures; return the metrics.
-
-    ``model_path`` None drives with the scripted RoutePolicy (the reference).
-    Writes OUT/metrics.json, OUT/trajectory.csv, OUT/trajectory.png,
-    OUT/frames/{red_light,green_light,t_junction_turn}.png (those that occur)
-    and OUT/drive.mp4.
-    """
-    from crchfl_sumo.driving.plots import write_drive_outputs
-    from crchfl_sumo.vision.raster import RasterConfig, Renderer
-    from crchfl_sumo.vision.world import build_world
-    from crchfl_sumo.vision.camera import CameraConfig
-
-    scenario_name, edges = resolve_route(route, scenario)
-    loaded = load_scenario(scenario_name)
-    geometry = route_geometry(read_net(Path(loaded.net_path)), edges)
-    if model_path is None:
-        policy: Policy = RoutePolicy(geometry)
-        camera = CameraConfig()
-        label = "route policy"
-    else:
-        from crchfl_sumo.learning.checkpoint import load_model
-
-        model = load_model(model_path)
-        policy = ModelPolicy(model)
-        camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
-        label = Path(model_path).stem
-    renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))
-    with _single_torch_thread(model_path is not None):
-        result = drive(
-            loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
-            renderer=renderer if model_path is not None else None,
-        )
-    metrics = {
-        "route": route,
-        "scenario": scenario_name,
-        "edges": list(edges),
-        "model": str(model_path) if model_path is not None else "",
-        "seed": int(seed),
-        "vehicle_length_m": result.vehicle_length_m,
-        "vehicle_width_m": result.vehicle_width_m,
-        **result.metrics,
-    }
-    write_drive_outputs(result, loaded, renderer, Path(out_dir), metrics, label, video=video)
-    return metrics
-
-
-@contextlib.contextmanager
-def _single_torch_thread(active: bool):
-    """One torch thread while a model drives: one sample a step gains nothing from more, and on a
-    busy machine the threads' spinning made a step 100 times slower (docs/drive.md)."""
-    if not active:
-        yield
-        return
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)

@@ -31,7 +31,8 @@ from typing import Any, Callable, Literal, Mapping
 import numpy as np
 import torch
 
-from crchfl_sumo.planning.problem import AllocationConfig, calibrated, make_plan
+from crchfl_sumo.planning.plan_command import calibrated
+from crchfl_sumo.planning.problem import AllocationConfig, make_plan
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig

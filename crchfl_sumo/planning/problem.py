@@ -35,18 +35,14 @@ neighbours, each with the largest x that still fits) and keep the best.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Mapping
 
 import cvxpy as cp
 
-from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.accounting.ledger import (
     GIB,
@@ -60,7 +56,6 @@ from crchfl_sumo.accounting.ledger import (
     schedule_bytes,
     stage_one_schedule,
 )
-from crchfl_sumo.links.mobility import MobilityConfig
 
 log = logging.getLogger(__name__)
 
@@ -467,103 +462,3 @@ def _raise_infeasible(config: AllocationConfig, ledger_config: LedgerConfig, cos
         f"allocation.training_time_budget_s = {config.training_time_budget_s:g} cannot hold one cloud round "
         f"({fastest_s:.1f} s); set it to at least {math.ceil(fastest_s)} or lower the edge interval"
     )
-
-
-# ---------------------------------------------------------------- CLI layer
-
-
-def format_plan(plan: Plan) -> str:
-    """Human-readable plan for ``crchfl-sumo plan``."""
-    gib = plan.budget_bytes / GIB
-    lines = [
-        f"CRCHFL plan: budget {gib:g} GB ({plan.budget_bytes} bytes), {plan.rule!r} accounting",
-        f"  pretrain_batch  {plan.pretrain_batch}",
-        f"  edge_interval   {plan.edge_interval}",
-        f"  cloud_interval  {plan.cloud_interval}",
-        f"  cloud_rounds    {plan.cloud_rounds}",
-        f"  objective       {plan.objective:.1f}",
-        "  stage bytes:",
-    ]
-    for key in ("I", "II", "III"):
-        lines.append(f"    {key:<6}{plan.stage_bytes[key] / 2**20:12.1f} MB  {plan.stage_percent[key]:5.1f} %")
-    unused = plan.budget_bytes - sum(plan.stage_bytes.values())
-    lines.append(f"    {'unused':<6}{unused / 2**20:12.1f} MB  {plan.stage_percent['unused']:5.1f} %")
-    lines.append(
-        f"  one cloud round: {plan.round_bytes / 2**20:.1f} MB (M = {plan.transfers_per_round:g}), "
-        f"{plan.round_time_s:.0f} s; training {plan.training_time_s:.0f} s "
-        f"(epoch {plan.epoch_time_s:.1f} s, wireless {plan.wireless_rate_bps / 1e6:.2f} Mbit/s)"
-    )
-    lines.append(
-        f"  solver: {plan.pairs_searched} pairs, compile {plan.compile_s * 1e3:.1f} ms, "
-        f"solve {plan.solve_s * 1e3:.1f} ms, search {plan.search_s * 1e3:.1f} ms"
-    )
-    return "\n".join(lines)
-
-
-def calibrated(config: AllocationConfig) -> AllocationConfig:
-    """``config`` with alpha, gamma, d from its ``calibration_file`` (unchanged without one)."""
-    if config.calibration_file is None:
-        return config
-    path = Path(config.calibration_file)
-    if not path.is_file():
-        raise CrchflError(
-            f"allocation.calibration_file: {path} not found; write it with `crchfl-sumo calibrate --out {path}` "
-            "or fix the path (relative to the current directory)"
-        )
-    table = read_toml(path).get("allocation", {})
-    missing = [key for key in ("alpha", "gamma", "d") if key not in table]
-    if missing:
-        raise CrchflError(
-            f"allocation.calibration_file: {path} has no {', '.join(missing)} in its [allocation] table; "
-            "point it at a file written by `crchfl-sumo calibrate`"
-        )
-    weights = from_mapping(AllocationConfig, {k: table[k] for k in ("alpha", "gamma", "d")}, f"{path}: allocation")
-    return dataclasses.replace(config, alpha=weights.alpha, gamma=weights.gamma, d=weights.d, calibration_file=None)
-
-
-def load_tables(config_path: str | Path | None, types: Mapping[str, type]) -> dict[str, Any]:
-    """The tables ``types`` names of a TOML file (read once), each as its dataclass; defaults without a file."""
-    data = read_toml(config_path) if config_path is not None else {}
-    return {key: from_mapping(cls, data.get(key, {}), f"{config_path}: {key}") for key, cls in types.items()}
-
-
-def load_plan_configs(config_path: str | Path | None) -> tuple[AllocationConfig, LedgerConfig]:
-    """Read the ``[allocation]`` and ``[ledger]`` tables of a TOML file (other tables are left to their owners)."""
-    tables = load_tables(config_path, {"allocation": AllocationConfig, "ledger": LedgerConfig})
-    return tables["allocation"], tables["ledger"]
-
-
-def plan_command(
-    budget_gb: float | None = None,
-    config_path: str | Path | None = None,
-    as_json: bool = False,
-    fix_edge_interval: int | None = None,
-    scenario: str | None = None,
-    seed: int = 0,
-) -> str | dict[str, Any]:
-    """``crchfl-sumo plan [--budget-gb G] [--config CONFIG] [--json] [--fix-edge-interval N] [--scenario S]``.
-
-    Returns the printable text, or with ``as_json`` a JSON-ready dict.
-    Command-line values override the config file. With ``scenario`` the
-    wireless rate is measured on that scenario's mobility (its data vehicles'
-    edge links over ``rate_window_s``, seeded by ``seed``, with the config's
-    ``[channel]`` and ``[mobility]``) instead of read from the config.
-    """
-    types = {"allocation": AllocationConfig, "ledger": LedgerConfig}
-    if scenario is not None:  # the links the measured rate is taken on
-        types |= {"channel": ChannelConfig, "mobility": MobilityConfig}
-    tables = load_tables(config_path, types)
-    allocation, ledger = calibrated(tables["allocation"]), tables["ledger"]
-    if budget_gb is not None:
-        ledger = dataclasses.replace(ledger, budget_gb=budget_gb)
-    if fix_edge_interval is not None:
-        allocation = dataclasses.replace(allocation, fix_edge_interval=fix_edge_interval)
-    if scenario is not None:
-        from crchfl_sumo.planning.timing import planning_rate_bps, scenario_rates_bps
-
-        rates = scenario_rates_bps(scenario, seed, allocation.rate_window_s, tables["channel"], tables["mobility"])
-        allocation = dataclasses.replace(allocation, wireless_rate_bps=planning_rate_bps(rates, allocation.rate_window_s))
-    plan = make_plan(allocation, ledger)
-    if as_json:
-        return json.loads(json.dumps(plan.to_dict()))
-    return format_plan(plan)

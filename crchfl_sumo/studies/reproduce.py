@@ -446,7 +446,7 @@ def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
 
 
 def _drive_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
-    from crchfl_sumo.driving.drive import drive_command
+    from crchfl_sumo.driving.drive_command import drive_command
 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
     drive_command(

@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.labels import CAMERA_NAMES
+
+# The paper's four cameras, in the order every image array stores them.
+CAMERA_NAMES = ("CamH", "CamF", "CamL", "CamR")
 
 
 @dataclass(frozen=True)

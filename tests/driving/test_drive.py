@@ -16,12 +16,11 @@ from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
     drive,
-    drive_command,
     lane_departed,
-    load_drive_routes,
     red_light_violations,
-    resolve_route,
 )
+from crchfl_sumo.driving.drive_command import drive_command
+from crchfl_sumo.driving.named_routes import load_drive_routes, resolve_route
 from crchfl_sumo.driving.dynamics import (
     VehicleState,
     acceleration_from_pedals,

@@ -13,7 +13,6 @@ from helpers import Killed, PAPER_VEHICLES, kill_after, result_files, run_config
 
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.core.config import from_mapping
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.federation.run import (
     RunConfig,

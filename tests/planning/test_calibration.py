@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.planning.problem import load_plan_configs
+from crchfl_sumo.planning.plan_command import load_plan_configs
 from crchfl_sumo.planning.calibration import (
     CalibrationConfig,
     Fit,

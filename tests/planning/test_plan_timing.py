@@ -82,7 +82,7 @@ def test_zero_compute_time_is_allowed():
 
 
 def test_plan_command_measures_the_scenarios_rate():
-    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.planning.plan_command import plan_command
     from crchfl_sumo.planning.timing import scenario_rates_bps
 
     rates = scenario_rates_bps("town02", 3, 60.0)
@@ -97,7 +97,7 @@ def test_plan_command_measures_the_scenarios_rate():
 
 
 def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
-    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.planning.plan_command import plan_command
     from crchfl_sumo.links.channel import ChannelConfig
     from crchfl_sumo.planning.timing import scenario_rates_bps
 
@@ -113,7 +113,7 @@ def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
 
 
 def test_plan_command_refuses_a_scenario_without_data_vehicles(grid_dir):
-    from crchfl_sumo.planning.problem import plan_command
+    from crchfl_sumo.planning.plan_command import plan_command
 
     with pytest.raises(CrchflError, match="data vehicles"):
         plan_command(scenario=str(grid_dir / "grid.sumocfg"))

@@ -10,14 +10,13 @@ from crchfl_sumo.planning.problem import (
     AllocationConfig,
     _Relaxation,
     costs_for,
-    format_plan,
     make_plan,
     objective_value,
-    plan_command,
     round_time_s,
     split_pretrain_batch,
 )
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.planning.plan_command import format_plan, plan_command
 from crchfl_sumo.accounting.ledger import (
     GIB,
     KIB,
@@ -240,7 +239,7 @@ def test_format_plan_lists_stage_shares():
 
 
 def test_calibration_file_supplies_the_weights(tmp_path):
-    from crchfl_sumo.planning.problem import calibrated
+    from crchfl_sumo.planning.plan_command import calibrated
     from crchfl_sumo.planning.calibration import Fit, calibration_toml
 
     # the file exactly as `calibrate` writes it (the record's values do not matter here)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from functools import lru_cache
@@ -16,7 +15,6 @@ import sumolib
 
 from helpers import half_hour_statistics
 
-from crchfl_sumo.sumo.scenario import sumo_binary
 
 try:
     import tomllib

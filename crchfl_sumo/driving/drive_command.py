@@ -1,0 +1,89 @@
+"""The `crchfl-sumo drive` command: load a model or the reference, drive a named route, write the outputs.
+
+It sits above drive.py (the loop) and plots.py (the pictures), so neither of
+those imports the other's caller.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Any
+
+from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.named_routes import resolve_route
+from crchfl_sumo.driving.plots import write_drive_outputs
+from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.sumo.route import read_net, route_geometry
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.vision.camera import CameraConfig
+from crchfl_sumo.vision.raster import RasterConfig, Renderer
+from crchfl_sumo.vision.world import build_world
+
+
+def drive_command(
+    model_path: str | Path | None,
+    scenario: str | None,
+    route: str,
+    out_dir: str | Path,
+    seed: int = 0,
+    max_s: float = 120.0,
+    config: DriveConfig = DriveConfig(),
+    video: bool = True,
+) -> dict[str, Any]:
+    """The `crchfl-sumo drive` body: drive a route, write metrics, trajectory, pictures; return the metrics.
+
+    ``model_path`` None drives with the scripted RoutePolicy (the reference).
+    Writes OUT/metrics.json, OUT/trajectory.csv, OUT/trajectory.png,
+    OUT/frames/{red_light,green_light,t_junction_turn}.png (those that occur)
+    and OUT/drive.mp4.
+    """
+    scenario_name, edges = resolve_route(route, scenario)
+    loaded = load_scenario(scenario_name)
+    geometry = route_geometry(read_net(Path(loaded.net_path)), edges)
+    if model_path is None:
+        policy: Policy = RoutePolicy(geometry)
+        camera = CameraConfig()
+        label = "route policy"
+    else:
+        from crchfl_sumo.learning.checkpoint import load_model
+
+        model = load_model(model_path)
+        policy = ModelPolicy(model)
+        camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
+        label = Path(model_path).stem
+    renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))
+    with _single_torch_thread(model_path is not None):
+        result = drive(
+            loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
+            renderer=renderer if model_path is not None else None,
+        )
+    metrics = {
+        "route": route,
+        "scenario": scenario_name,
+        "edges": list(edges),
+        "model": str(model_path) if model_path is not None else "",
+        "seed": int(seed),
+        "vehicle_length_m": result.vehicle_length_m,
+        "vehicle_width_m": result.vehicle_width_m,
+        **result.metrics,
+    }
+    write_drive_outputs(result, loaded, renderer, Path(out_dir), metrics, label, video=video)
+    return metrics
+
+
+@contextlib.contextmanager
+def _single_torch_thread(active: bool):
+    """One torch thread while a model drives: one sample a step gains nothing from more, and on a
+    busy machine the threads' spinning made a step 100 times slower (docs/drive.md)."""
+    if not active:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -1,0 +1,88 @@
+"""The package's one-way flow: a module imports only from its own subpackage or those below it."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import crchfl_sumo
+from crchfl_sumo import LAYERS
+
+PACKAGE = Path(crchfl_sumo.__file__).parent
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every crchfl_sumo module a file imports, at its top or inside a function."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+        elif isinstance(node, ast.ImportFrom) and node.level:
+            raise AssertionError(f"{path}: relative import; the package imports absolutely")
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+    return {n for n in names if n == "crchfl_sumo" or n.startswith("crchfl_sumo.")}
+
+
+def layer_of(module: str) -> int:
+    """Index of a dotted module's subpackage in LAYERS (cli: the top)."""
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 else len(LAYERS)
+
+
+def modules() -> list[tuple[str, Path]]:
+    out = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE.parent).with_suffix("")
+        out.append((".".join(p for p in rel.parts if p != "__init__"), path))
+    return out
+
+
+def test_every_subpackage_has_a_layer_and_every_layer_a_subpackage():
+    subpackages = {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+    assert subpackages == set(LAYERS)
+
+
+def test_no_module_imports_from_a_subpackage_above_its_own():
+    upward = []
+    for module, path in modules():
+        if module in ("crchfl_sumo", "crchfl_sumo.cli"):
+            continue
+        own = layer_of(module)
+        for target in imported_modules(path):
+            if target == "crchfl_sumo" or layer_of(target) > own:
+                upward.append(f"{module} imports {target}")
+    assert upward == []
+
+
+def test_the_check_sees_an_upward_import(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from crchfl_sumo.studies.report import write_report\n")
+    assert imported_modules(bad) == {"crchfl_sumo.studies.report"}
+    assert layer_of("crchfl_sumo.studies.report") > layer_of("crchfl_sumo.core.errors")
+
+
+def test_every_subpackage_says_what_it_is_and_what_it_may_import():
+    for name in LAYERS:
+        doc = ast.get_docstring(ast.parse((PACKAGE / name / "__init__.py").read_text()))
+        assert doc and "May import" in doc, name
+
+
+def test_no_import_circles():
+    graph = {module: {t for t in imported_modules(path) if t != module} for module, path in modules()}
+    state: dict[str, str] = {}
+    circles = []
+
+    def visit(module: str, stack: list[str]) -> None:
+        state[module] = "open"
+        for target in sorted(graph.get(module, ())):
+            if state.get(target) == "open":
+                circles.append(" -> ".join(stack[stack.index(target):] + [target]))
+            elif target not in state:
+                visit(target, [*stack, target])
+        state[module] = "done"
+
+    for module in graph:
+        if module not in state:
+            visit(module, [module])
+    assert circles == []
