@@ -63,11 +63,39 @@ def _commands():
     ]
 
 
-def _progress(total: int, unit: str = "step"):
-    """A tqdm bar for the library's progress callbacks (the CLI owns all progress display)."""
-    from tqdm import tqdm
+class ProgressBars:
+    """The library's progress updates (core.progress) as tqdm bars: one bar a stage, its details beside it.
 
-    return tqdm(total=total, unit=unit, dynamic_ncols=True, leave=False, disable=None)
+    The CLI owns all progress display; use as a context manager so the last bar closes.
+    """
+
+    def __init__(self, unit: str) -> None:
+        self._unit = unit
+        self._stage: str | None = None
+        self._bar = None
+
+    def __call__(self, update) -> None:
+        from tqdm import tqdm
+
+        if update.stage != self._stage or self._bar is None or update.done < self._bar.n:
+            self.close()
+            self._bar = tqdm(total=update.total, unit=self._unit, desc=update.stage, dynamic_ncols=True,
+                             leave=False, disable=None)
+            self._stage = update.stage
+        self._bar.update(update.done - self._bar.n)
+        if update.detail:
+            self._bar.set_postfix(update.detail)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> "ProgressBars":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _scenario_argument(parser: argparse.ArgumentParser) -> None:
@@ -88,21 +116,11 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
 
 
 def _run_reproduce(args) -> int:
-    from crchfl_sumo.studies.reproduce import reproduce_command
     from crchfl_sumo.studies.report import format_summary
+    from crchfl_sumo.studies.reproduce import reproduce_command
 
-    bars = {}
-
-    def progress(done: int, total: int, part: str) -> None:
-        bar = bars.setdefault("bar", _progress(total, "part"))
-        bar.update(done - bar.n)
-        bar.set_description(part)
-
-    try:
-        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, progress, args.jobs)
-    finally:
-        if "bar" in bars:
-            bars["bar"].close()
+    with ProgressBars("part") as bars:
+        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, bars, args.jobs)
     print(format_summary(summary, out))
     return 0
 
@@ -133,7 +151,8 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
 def _run_simulate(args) -> int:
     from crchfl_sumo.studies.simulate import run_simulate_command
 
-    summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, _progress)
+    with ProgressBars("step") as bars:
+        summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars)
     print(
         f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
         f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "
@@ -158,11 +177,11 @@ def _add_render(p: argparse.ArgumentParser) -> None:
 
 def _run_render(args) -> int:
     from crchfl_sumo.core.errors import CrchflError
+    from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.sumo.simulation import Simulation
     from crchfl_sumo.vision.mosaic import render_run
     from crchfl_sumo.vision.raster import Renderer
     from crchfl_sumo.vision.world import build_world
-    from crchfl_sumo.sumo.scenario import load_scenario
-    from crchfl_sumo.sumo.simulation import Simulation
 
     if args.every_n < 1:
         raise CrchflError(f"--every-n must be >= 1, got {args.every_n}")
@@ -191,7 +210,8 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
 def _run_dataset(args) -> int:
     from crchfl_sumo.data.generation import run_dataset_command
 
-    manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, lambda n: _progress(n, "sample"))
+    with ProgressBars("sample") as bars:
+        manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, bars)
     print(
         f"{manifest.scenario}: {len(manifest.shards)} shards, {manifest.samples} samples, "
         f"{manifest.png_bytes_per_sample:.0f} PNG bytes/sample -> {args.out}"
@@ -227,20 +247,18 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args) -> int:
-    from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.core.errors import CrchflError
-    from crchfl_sumo.learning.training import TrainConfig, train_centralized
+    from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.learning.model import ModelConfig
+    from crchfl_sumo.learning.training import TrainConfig, train_centralized
 
     if args.epochs < 1:
         raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
     model_config = ModelConfig(args.size, *train.image_hw)
     config = TrainConfig(device=args.device, deterministic=args.deterministic)
-    with _progress(args.epochs * len(train), "sample") as bar:
-        records = train_centralized(
-            train, test, args.epochs, args.out, model_config, config, args.seed, progress=bar.update
-        )
+    with ProgressBars("sample") as bars:
+        records = train_centralized(train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars)
     last = records[-1]
     print(f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} -> {args.out}")
     return 0
@@ -308,15 +326,10 @@ def _backend_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_run(args) -> int:
-    from crchfl_sumo.federation.run import progress_postfix, run_command
+    from crchfl_sumo.federation.run import run_command
 
-    with _progress(None, "step") as bar:
-
-        def progress(info) -> None:
-            bar.update(1)
-            bar.set_postfix(progress_postfix(info))  # round, bytes used / budget, loss, accuracy
-
-        summary = run_command(args.config, args.out, args.resume, progress, args.backend, args.address)
+    with ProgressBars("step") as bars:  # the postfix: round, GB used / budget, loss, accuracy
+        summary = run_command(args.config, args.out, args.resume, bars, args.backend, args.address)
     print(json.dumps(summary, indent=2))
     return 0
 

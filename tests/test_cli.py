@@ -7,6 +7,7 @@ import sys
 import pytest
 
 from crchfl_sumo.cli import build_parser, main
+
 from helpers import PAPER_VEHICLES, write_dataset
 
 COMMANDS = ["reproduce", "report", "calibrate", "simulate", "render", "dataset", "dataset-stats", "train", "drive", "drive-compare", "run", "plan", "sweep"]

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from crchfl_sumo.data.dataset import PAPER_TOWNS, DatasetConfig, ShardDataset, TownSplit, load_samples
-from crchfl_sumo.data.shards import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
 from crchfl_sumo.data.generation import generate_dataset
+from crchfl_sumo.data.shards import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
 from crchfl_sumo.sumo.scenario import load_scenario
 
 

@@ -14,8 +14,8 @@ import dataclasses
 import statistics
 import time
 
-from crchfl_sumo.planning.problem import AllocationConfig, _Relaxation, costs_for, make_plan, round_time_s
 from crchfl_sumo.accounting.ledger import LedgerConfig, Topology, cloud_round_schedule, resolve_sizes, schedule_bytes
+from crchfl_sumo.planning.problem import AllocationConfig, _Relaxation, costs_for, make_plan, round_time_s
 
 
 def rebuild_per_pair_s(config: AllocationConfig, ledger_config: LedgerConfig) -> tuple[float, int]:

@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 import sumolib
 
-from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.vision.raster import RasterConfig, Renderer
 from crchfl_sumo.vision.world import build_world
 

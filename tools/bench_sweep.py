@@ -70,7 +70,6 @@ def main() -> int:
     args = parser.parse_args()
 
     import ray
-
     import torch
 
     from crchfl_sumo.core.backend import BackendConfig, Executor

@@ -31,13 +31,13 @@ from typing import Iterable, Literal, Mapping, Sequence
 
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.schemes import SCHEMES, Scheme
 
 KIB = 1024
 MIB = 1024 * KIB
 GIB = 1024 * MIB
 
 Rule = Literal["paper", "physical"]
-Scheme = Literal["crchfl", "hfl", "sfl"]
 Link = Literal["wireless", "wireline"]
 Direction = Literal["uplink", "downlink"]
 Stage = Literal["I", "II", "III"]
@@ -45,7 +45,6 @@ Payload = Literal["model", "samples"]
 
 CLOUD = "cloud"
 RULES = ("paper", "physical")
-SCHEMES = ("crchfl", "hfl", "sfl")
 LINKS = ("wireless", "wireline")
 STAGES = ("I", "II", "III")
 

@@ -18,10 +18,10 @@ import h5py
 import numpy as np
 import torch
 
-from crchfl_sumo.data.shards import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.vision.camera import CAMERA_NAMES
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.data.shards import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 
 @dataclass(frozen=True)

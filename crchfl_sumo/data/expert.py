@@ -39,8 +39,8 @@ from typing import Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.sumo.frame import Frame
 
 GRAVITY_MPS2 = 9.81
 

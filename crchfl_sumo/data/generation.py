@@ -23,26 +23,26 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
-from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
 from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
-from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
-from crchfl_sumo.vision.world import WorldConfig, build_world
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
+from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
+from crchfl_sumo.vision.world import WorldConfig, build_world
 
 log = logging.getLogger(__name__)
 
 FUTURE_S = 10.0  # simulated time kept after the last sample: >= the look-ahead at any town speed
-Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 
 def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
@@ -124,8 +124,8 @@ def record_run(
                     )
             if done_at is None and all(len(sampled[v]) >= n for v, n in needed.items()):
                 done_at = step
-            if progress is not None and step % 40 == 0:
-                progress("simulate", sum(len(r) for r in sampled.values()), sum(needed.values()))
+            if step % 40 == 0:
+                report(progress, "simulate", sum(len(r) for r in sampled.values()), sum(needed.values()))
             if done_at is not None and (step - done_at) * step_s >= FUTURE_S:
                 break
         else:
@@ -195,8 +195,8 @@ def generate_dataset(
         with clock("render"):
             for k, i in enumerate(frame_rows):
                 images[k] = renderer.render(frames[i], [vehicle])[0]
-                if progress is not None and k % 50 == 0:
-                    progress("render", done + k, total)
+                if k % 50 == 0:
+                    report(progress, "render", done + k, total)
         data = ShardData(
             images=images,
             actions=actions[rows],
@@ -210,8 +210,7 @@ def generate_dataset(
         with clock("write"):
             writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
         done += len(rows)
-        if progress is not None:
-            progress("render", done, total)
+        report(progress, "render", done, total)
     return writer.manifest
 
 
@@ -251,42 +250,16 @@ class _StageClock:
                 self._timings_s[stage] = self._timings_s.get(stage, 0.0) + time.perf_counter() - start
 
 
-class _StageBars:
-    """Adapts (stage, done, total) callbacks to one progress bar a stage, from ``factory(total)``."""
-
-    def __init__(self, factory):
-        self._factory = factory
-        self._stage: str | None = None
-        self._stack = contextlib.ExitStack()
-        self._bar = None
-
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        if stage != self._stage:
-            self._stack.close()
-            self._bar = self._stack.enter_context(self._factory(total))
-            self._bar.set_description(stage)
-            self._stage = stage
-        self._bar.update(done - self._bar.n)
-
-    def close(self) -> None:
-        self._stack.close()
-
-
 def run_dataset_command(
     scenario_name: str,
     out_dir: Path,
     seed: int | None = None,
     config_path: Path | None = None,
-    progress_factory=None,
+    progress: Progress | None = None,
 ) -> Manifest:
     """What `crchfl-sumo dataset SCENARIO --out DIR [--seed S] [--config TOML]` does."""
     config = load_generate_config(config_path, seed)
     scenario = load_scenario(scenario_name)
-    bars = _StageBars(progress_factory) if progress_factory is not None else None
-    try:
-        return generate_dataset(
-            scenario, out_dir, config.seed, config.dataset, config.raster, config.world, config.expert, bars
-        )
-    finally:
-        if bars is not None:
-            bars.close()
+    return generate_dataset(
+        scenario, out_dir, config.seed, config.dataset, config.raster, config.world, config.expert, progress
+    )

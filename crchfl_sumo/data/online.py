@@ -25,11 +25,11 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels
-from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.data.generation import FUTURE_S
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
-from crchfl_sumo.data.samples import Samples
 
 _COLUMNS = ("x_m", "y_m", "heading_rad", "speed_mps", "accel_mps2", "max_accel_mps2", "max_decel_mps2")
 

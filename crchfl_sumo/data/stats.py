@@ -16,8 +16,9 @@ import h5py
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
+from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
@@ -78,10 +79,7 @@ def _label_summary(actions: np.ndarray, steer_class: np.ndarray) -> dict[str, An
 
 def plot_stats(stats: dict[str, Any], out_png: Path) -> Path:
     """Figure: steer-class histogram, throttle and brake distributions, samples per vehicle."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 7))
     order = np.argsort(STEER_CLASS_VALUES)  # plot classes left (negative) to right (positive)
@@ -109,12 +107,7 @@ def plot_stats(stats: dict[str, Any], out_png: Path) -> Path:
     axes[1, 1].set_title("samples per vehicle")
     fig.suptitle(f"{stats['scenario']} seed {stats['seed']}: {stats['samples']} samples")
     fig.tight_layout()
-    out_png = Path(out_png)
-    tmp = out_png.with_name(f".{out_png.name}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(out_png)
-    return out_png
+    return save_figure(fig, out_png, dpi=100)
 
 
 def pick_examples(root: str | Path, split: str = "train") -> list[tuple[str, int]]:

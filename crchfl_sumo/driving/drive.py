@@ -36,8 +36,8 @@ import numpy as np
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals, bicycle_step
-from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.driving.policies import Observation, Policy
+from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
     Crossing,

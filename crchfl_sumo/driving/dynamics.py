@@ -11,7 +11,6 @@ import numpy as np
 
 from crchfl_sumo.data.expert import ExpertConfig, resistance_mps2
 
-
 # --- vehicle motion: the inverse of the expert's mappings ----------------------------------
 
 

@@ -21,12 +21,13 @@ import cv2
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
-from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
-from crchfl_sumo.sumo.route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.maps import draw_network, save_figure
-from crchfl_sumo.vision.mosaic import VideoWriter, mosaic, top_down_view, write_png
+from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
+from crchfl_sumo.sumo.maps import draw_network
+from crchfl_sumo.sumo.route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.vision.mosaic import VideoWriter, mosaic, top_down_view, write_png
 
 log = logging.getLogger(__name__)
 
@@ -186,10 +187,7 @@ def plot_trajectories(
     (orange), off-road (magenta), collisions (black x), red-light violations
     (red triangle). The ego's size comes from each run's metrics.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.collections import PolyCollection
 
     if not runs:

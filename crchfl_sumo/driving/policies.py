@@ -13,7 +13,16 @@ import numpy as np
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.sumo.frame import Frame
-from crchfl_sumo.sumo.route import RED_LETTERS, YELLOW_LETTERS, Crossing, RouteGeometry, next_crossing, point_at, project_points, signal_letter
+from crchfl_sumo.sumo.route import (
+    RED_LETTERS,
+    YELLOW_LETTERS,
+    Crossing,
+    RouteGeometry,
+    next_crossing,
+    point_at,
+    project_points,
+    signal_letter,
+)
 
 Action = tuple[float, float, float]  # (throttle, steer, brake), labels.py conventions
 

@@ -47,13 +47,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal, Mapping, Protocol, Sequence
 
 import numpy as np
-import torch
 
-from crchfl_sumo.learning.aggregate import fedavg
-from crchfl_sumo.planning.problem import split_pretrain_batch
-from crchfl_sumo.links.channel import WirelineConfig
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.links.clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
 from crchfl_sumo.accounting.ledger import (
     CLOUD,
     ByteSizes,
@@ -65,13 +59,19 @@ from crchfl_sumo.accounting.ledger import (
     edge_aggregation_schedule,
     stage_one_schedule,
 )
-from crchfl_sumo.links.mobility import NO_SITE
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.schemes import SCHEMES, Scheme
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.aggregate import fedavg
+from crchfl_sumo.learning.model import State
+from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.links.clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
+from crchfl_sumo.links.mobility import NO_SITE
 from crchfl_sumo.links.transfer import TransferConfig, wireline_transfer_time_s
+from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)
 
-State = dict[str, torch.Tensor]
 HandoverPolicy = Literal["new_edge", "wait", "miss"]
 SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
 
@@ -107,7 +107,7 @@ class FederationConfig:
     seed: seed of the initial model, the pretraining subset and the shuffling.
     """
 
-    scheme: Literal["crchfl", "hfl", "sfl"] = "crchfl"
+    scheme: Scheme = "crchfl"
     use_plan: bool = False
     pretrain_batch: int = 0
     edge_interval: int = 2
@@ -121,7 +121,7 @@ class FederationConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.scheme not in ("crchfl", "hfl", "sfl"):
+        if self.scheme not in SCHEMES:
             raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
         if self.handover_policy not in ("new_edge", "wait", "miss"):
             raise CrchflError(

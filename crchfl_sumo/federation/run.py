@@ -31,15 +31,16 @@ from typing import Any, Callable, Literal, Mapping
 import numpy as np
 import torch
 
-from crchfl_sumo.planning.plan_command import calibrated
-from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.accounting.ledger import Ledger, LedgerConfig, resolve_sizes
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
-from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
-from crchfl_sumo.learning.checkpoint import save_checkpoint
-from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.schemes import SCHEMES
+from crchfl_sumo.data.online import OnlineConfig
+from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.loop import (
     Federation,
     FederationConfig,
@@ -49,22 +50,22 @@ from crchfl_sumo.federation.loop import (
     initial_state,
     sim_time_s,
 )
-from crchfl_sumo.links.clock import Clock, ScriptedClock
-from crchfl_sumo.accounting.ledger import Ledger, LedgerConfig, resolve_sizes
-from crchfl_sumo.learning.training import TrainConfig
-from crchfl_sumo.links.mobility import MacroLinkConfig, MobilityConfig
+from crchfl_sumo.learning.checkpoint import save_checkpoint
 from crchfl_sumo.learning.model import ModelConfig, state_size_bytes
-from crchfl_sumo.data.online import OnlineConfig
-from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
-from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
-from crchfl_sumo.sumo.scenario import SumoConfig
+from crchfl_sumo.learning.training import TrainConfig
+from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
+from crchfl_sumo.links.clock import Clock, ScriptedClock
+from crchfl_sumo.links.mobility import MacroLinkConfig, MobilityConfig
 from crchfl_sumo.links.transfer import TransferConfig
+from crchfl_sumo.planning.plan_command import calibrated
+from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
+from crchfl_sumo.sumo.scenario import SumoConfig
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/1"
-Progress = Callable[[dict], None]
 
 
 @dataclass(frozen=True)
@@ -292,9 +293,9 @@ def make_clock(config: RunConfig, inputs: Inputs):
 
 def online_collector(config: RunConfig, inputs: Inputs, scenario):
     """The online mode's collector, rendering and labelling exactly as the data set was made."""
-    from crchfl_sumo.data.shards import read_manifest, read_shard
     from crchfl_sumo.data.expert import ExpertConfig
     from crchfl_sumo.data.online import OnlineCollector
+    from crchfl_sumo.data.shards import read_manifest, read_shard
     from crchfl_sumo.vision.raster import RasterConfig
     from crchfl_sumo.vision.world import WorldConfig
 
@@ -421,8 +422,8 @@ def run_federation_dir(
             if after_checkpoint is not None:
                 after_checkpoint(new)
             _write_outputs(out_dir, config, setup, new, _handovers(clock, new))
-            if progress is not None:
-                progress(progress_info(new, sizes.budget_bytes, hyper))
+            if progress is not None:  # a step's postfix costs a pass over the records
+                report(progress, "step", new.steps, None, **progress_postfix(progress_info(new, sizes.budget_bytes, hyper)))
 
         state = federation.run(state, on_step)
         return summarize(config, setup, state, _handovers(clock, state))
@@ -591,10 +592,9 @@ def with_backend(config: RunConfig, kind: str | None, address: str | None) -> Ru
     return dataclasses.replace(config, backend=backend)
 
 
-BUILTIN_RUNS = ("crchfl", "hfl", "sfl")
 
 
 def builtin_experiments() -> dict[str, Path]:
     """The built-in run configs of the paper's three schemes (scenarios/experiments/NAME.toml) by name."""
     folder = experiments_dir()
-    return {name: folder / f"{name}.toml" for name in BUILTIN_RUNS}
+    return {name: folder / f"{name}.toml" for name in SCHEMES}

@@ -28,6 +28,8 @@ from torch import nn
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES, steer_from_class
 
+State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
+
 MIN_IMAGE_HEIGHT = 48
 MIN_IMAGE_WIDTH = 64
 

@@ -14,9 +14,17 @@ from typing import Any
 import torch
 
 from crchfl_sumo.core.backend import Executor
-from crchfl_sumo.learning.training import TrainConfig, configure_determinism, evaluate, resolve_device, train_vehicle, train_vehicles, vehicle_seed
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
+from crchfl_sumo.learning.training import (
+    TrainConfig,
+    configure_determinism,
+    evaluate,
+    resolve_device,
+    train_vehicle,
+    train_vehicles,
+    vehicle_seed,
+)
 
 
 class TorchTrainer:

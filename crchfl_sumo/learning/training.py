@@ -23,6 +23,7 @@ seed and the vehicle's index, so the result does not depend on the method.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -30,7 +31,7 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 import torch
@@ -38,16 +39,15 @@ from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.learning.checkpoint import save_checkpoint
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model, model_from_state
+from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.learning.model import DrivingModel, ModelConfig, State, build_model, model_from_state
 
 log = logging.getLogger(__name__)
 
-State = dict[str, torch.Tensor]
-Progress = Callable[[int], None]
 
 METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -203,10 +203,14 @@ class LocalTrainer:
         return {name: t.detach().cpu().clone() for name, t in self.model.state_dict().items()}
 
     def train_epoch(self, samples: Samples, generator: torch.Generator, progress: Progress | None = None) -> Metrics:
-        """One pass over ``samples`` in shuffled batches; metrics are those of the batches as trained."""
+        """One pass over ``samples`` in shuffled batches; metrics are those of the batches as trained.
+
+        ``progress`` hears ("train", samples done this epoch, samples) after every batch.
+        """
         self.model.train()
         samples = samples.to(self.device)
         sums = torch.zeros(3, dtype=torch.float64, device=self.device)
+        done = 0
         for indices in epoch_batches(len(samples), self.config.batch_size, generator):
             indices = indices.to(self.device)
             images, actions, steer_class = samples.images[indices], samples.actions[indices], samples.steer_class[indices]
@@ -222,8 +226,8 @@ class LocalTrainer:
             with torch.no_grad():
                 correct = (steer_logits.argmax(dim=1) == steer_class).sum().to(torch.float64)
                 sums += torch.stack([loss_tb.detach().double() * n, loss_steer.detach().double() * n, correct])
-            if progress is not None:
-                progress(n)
+            done += n
+            report(progress, "train", done, len(samples))
         loss_tb_sum, loss_steer_sum, correct = sums.tolist()
         return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
 
@@ -235,7 +239,6 @@ def train_vehicle(
     model_config: ModelConfig,
     config: TrainConfig,
     seed: int,
-    progress: Progress | None = None,
 ) -> tuple[State, list[Metrics]]:
     """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
     configure_determinism(config.deterministic)
@@ -243,7 +246,7 @@ def train_vehicle(
     trainer = LocalTrainer(model_from_state(model_config, state, device), config)
     samples = samples.to(device)  # once, not every epoch
     generator = torch.Generator().manual_seed(seed)
-    metrics = [trainer.train_epoch(samples, generator, progress) for _ in range(epochs)]
+    metrics = [trainer.train_epoch(samples, generator) for _ in range(epochs)]
     return trainer.state(), metrics
 
 
@@ -254,7 +257,6 @@ def train_vehicles(
     model_config: ModelConfig,
     config: TrainConfig,
     seed: int,
-    progress: Progress | None = None,
 ) -> tuple[list[State], list[list[Metrics]]]:
     """Train every vehicle's model on its own samples, by ``config.multi_vehicle``.
 
@@ -268,9 +270,9 @@ def train_vehicles(
         raise ValueError("train_vehicles: epochs must be >= 0")
     configure_determinism(config.deterministic)
     if config.multi_vehicle == "vmap" and states:
-        return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed, progress)
+        return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed)
     results = [
-        train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i), progress)
+        train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i))
         for i, (state, samples) in enumerate(zip(states, vehicle_samples))
     ]
     return [state for state, _ in results], [metrics for _, metrics in results]
@@ -283,7 +285,6 @@ def _train_vehicles_vmap(
     model_config: ModelConfig,
     config: TrainConfig,
     seed: int,
-    progress: Progress | None,
 ) -> tuple[list[State], list[list[Metrics]]]:
     """All vehicles in one vmapped step; Adam on stacked tensors, identical to torch.optim.Adam's update."""
     device = resolve_device(config.device)
@@ -322,11 +323,9 @@ def _train_vehicles_vmap(
     for step in range(num_steps):
         active = [v for v in range(num_vehicles) if step < len(schedules[v])]
         images, actions, classes, weights = [], [], [], []
-        step_samples = 0
         for v in active:
             indices = schedules[v][step][1].to(device)
             n = len(indices)
-            step_samples += n
             weight = torch.ones(batch_size, device=device)
             if n < batch_size:  # short last batch: pad with sample 0 at weight 0
                 indices = torch.cat([indices, indices.new_zeros(batch_size - n)])
@@ -345,8 +344,6 @@ def _train_vehicles_vmap(
         _stacked_adam_step(params, exp_avg, exp_avg_sq, grads, None if every else rows, step + 1, config)
         epoch_of = torch.tensor([schedules[v][step][0] for v in active], device=device)
         sums.index_put_((rows, epoch_of), batch_sums.to(torch.float64), accumulate=True)
-        if progress is not None:
-            progress(step_samples)
 
     new_states = [{name: params[name][v].detach().cpu().clone() for name in names} for v in range(num_vehicles)]
     sums_cpu = sums.cpu().tolist()
@@ -406,8 +403,8 @@ def train_centralized(
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch, loss, accuracy, loss_throttle_brake,
     loss_steer on the test set; train_loss, train_accuracy; samples_per_s) and
-    ``out_dir/checkpoint.pt``, both atomically. ``progress(n)`` is called after
-    each batch of n samples. Returns the metric records.
+    ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
+    samples trained so far, epochs x samples). Returns the metric records.
     """
     if epochs < 1:
         raise CrchflError(f"epochs: {epochs} must be >= 1")
@@ -429,7 +426,11 @@ def train_centralized(
     records: list[dict[str, float | int]] = []
     for epoch in range(1, epochs + 1):
         start_s = time.perf_counter()
-        train_metrics = trainer.train_epoch(train_on_device, generator, progress)
+        offset = (epoch - 1) * len(train)
+        per_epoch = None if progress is None else (
+            lambda u, offset=offset: progress(dataclasses.replace(u, done=offset + u.done, total=epochs * len(train)))
+        )
+        train_metrics = trainer.train_epoch(train_on_device, generator, per_epoch)
         train_time_s = time.perf_counter() - start_s
         test_metrics = evaluate(trainer.model, test_on_device, config)
         record = {

@@ -32,11 +32,11 @@ from typing import Literal, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MacroLinkConfig, MobilityConfig, macro_link_model
-from crchfl_sumo.sumo.scenario import Scenario
 from crchfl_sumo.links.transfer import TransferConfig, transfer
+from crchfl_sumo.sumo.scenario import Scenario
 
 log = logging.getLogger(__name__)
 

@@ -29,9 +29,9 @@ from typing import Sequence
 
 import numpy as np
 
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links import channel as ch
 from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.sites import EdgeSite
 

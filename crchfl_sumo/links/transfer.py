@@ -19,8 +19,8 @@ from typing import Literal
 
 import numpy as np
 
-from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.channel import WirelineConfig
 
 OutagePolicy = Literal["stall", "fail"]
 

@@ -32,14 +32,14 @@ import numpy as np
 import torch
 from scipy.optimize import curve_fit
 
-from crchfl_sumo.learning.aggregate import weighted_average
-from crchfl_sumo.planning.problem import split_pretrain_batch
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import toml_value
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.learning.training import State, TrainConfig, evaluate, train_vehicle
-from crchfl_sumo.learning.model import ModelConfig, build_model, model_from_state
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.aggregate import weighted_average
+from crchfl_sumo.learning.model import ModelConfig, State, build_model, model_from_state
+from crchfl_sumo.learning.training import TrainConfig, evaluate, train_vehicle
+from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)
 

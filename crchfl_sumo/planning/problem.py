@@ -43,7 +43,6 @@ from typing import Any, Mapping
 
 import cvxpy as cp
 
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.accounting.ledger import (
     GIB,
     ByteSizes,
@@ -56,6 +55,7 @@ from crchfl_sumo.accounting.ledger import (
     schedule_bytes,
     stage_one_schedule,
 )
+from crchfl_sumo.core.errors import CrchflError
 
 log = logging.getLogger(__name__)
 

@@ -23,9 +23,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from crchfl_sumo.planning.problem import AllocationConfig
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.clock import Clock, LinkSeries
+from crchfl_sumo.planning.problem import AllocationConfig
 
 
 def time_mean_rate_bps(series: LinkSeries, from_s: float, to_s: float) -> float:

@@ -22,13 +22,14 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.schemes import DISPLAY_NAMES, SCHEMES
 
 log = logging.getLogger(__name__)
 
 GIB = 1024**3
-SCHEME_ORDER = ("crchfl", "hfl", "sfl")
-LABEL_ORDER = (*SCHEME_ORDER, "centralized", "reference")
-NAMES = {"crchfl": "CRCHFL", "hfl": "HFL", "sfl": "SFL", "centralized": "Centralized", "reference": "Reference driver"}
+LABEL_ORDER = (*SCHEMES, "centralized", "reference")
+NAMES = {**DISPLAY_NAMES, "centralized": "Centralized", "reference": "Reference driver"}
 COLORS = {"crchfl": "tab:red", "hfl": "tab:blue", "sfl": "tab:green", "centralized": "black"}
 # HFL and SFL give the same model after each round when cloud_interval = 1 (FedAvg over edges, then
 # over the cloud, is FedAvg over all vehicles): styles keep a line visible under another.
@@ -154,7 +155,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
     runs_dir, ablation_dir, drives_dir = out_dir / "runs", out_dir / "ablation", out_dir / "drives"
     schemes = {}
     if runs_dir.is_dir():
-        for name in _ordered([p.name for p in runs_dir.iterdir() if p.is_dir()], SCHEME_ORDER):
+        for name in _ordered([p.name for p in runs_dir.iterdir() if p.is_dir()], SCHEMES):
             found = read_seed_runs(runs_dir / name)
             if found:
                 schemes[name] = found
@@ -303,22 +304,6 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
 # ------------------------------------------------------------------ figures
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    _pyplot().close(fig)
-    return path
-
-
 def _band(
     ax,
     curve: Mapping[str, np.ndarray],
@@ -360,7 +345,7 @@ def plot_metric_curves(
 ) -> Path:
     """Two panels, Accuracy and Loss, one line per group (mean over its runs, shaded spread), against
     cloud rounds (``against="rounds"``) or consumed GB (``"bytes"``)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     curve = curve_by_round if against == "rounds" else curve_by_bytes
     scale = 1.0 if against == "rounds" else GIB
@@ -378,14 +363,14 @@ def plot_metric_curves(
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    return _save(fig, out_path)
+    return save_figure(fig, out_path)
 
 
 def plot_ablation(
     summary_ablation: Mapping[str, Mapping[str, Any]], runs: Mapping[str, Mapping[int, Any]], out_path: Path
 ) -> Path:
     """Fig. 7: (a) the budget split across stages per setting, (b) Loss and (c) Accuracy against rounds."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     settings = list(summary_ablation)
     labels = [f"Interval-{s[3:]}" for s in settings]
@@ -412,12 +397,12 @@ def plot_ablation(
         panel.legend(fontsize=8)
     axes[1].set_title("(b) Loss")
     axes[2].set_title("(c) Accuracy")
-    return _save(fig, out_path)
+    return save_figure(fig, out_path)
 
 
 def plot_centralized(runs: Mapping[int, Mapping[str, Any]], out_path: Path) -> Path:
     """The centralized bound's test Accuracy and Loss per epoch (mean over seeds, shaded spread)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, key in ((axes[0], "accuracy"), (axes[1], "loss")):
         by_epoch: dict[int, list[float]] = {}
@@ -432,7 +417,7 @@ def plot_centralized(runs: Mapping[int, Mapping[str, Any]], out_path: Path) -> P
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle("Centralized upper bound")
-    return _save(fig, out_path)
+    return save_figure(fig, out_path)
 
 
 def drive_figure(out_dir: Path, route: str, labels: Sequence[str], figures_dir: Path) -> Path | None:

@@ -27,22 +27,22 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping, toml_text
-from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
+from crchfl_sumo.driving.drive import DriveConfig
 
 log = logging.getLogger(__name__)
 
-SCHEMES = ("crchfl", "hfl", "sfl")
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
 CENTRALIZED = "centralized"
-Progress = Callable[[int, int, str], None]  # (parts done, parts in all, the part starting; jobs > 1: just done)
 
 
 @dataclass(frozen=True)
@@ -250,8 +250,7 @@ def reproduce(
         done += len(stage) - len(todo)
         if jobs == 1 or len(todo) < 2:
             for part in todo:
-                if progress is not None:
-                    progress(done, total, part.key)
+                report(progress, "part", done, total, part=part.key)
                 _record(out_dir, part, _timed_part(config, out_dir, part, 1))
                 done += 1
             return
@@ -261,19 +260,16 @@ def reproduce(
             nonlocal done
             _record(out_dir, todo[i], elapsed)
             done += 1
-            if progress is not None:
-                progress(done, total, todo[i].key)
+            report(progress, "part", done, total, part=todo[i].key)
 
-        if progress is not None:
-            progress(done, total, f"{len(todo)} parts, {jobs} at a time")
+        report(progress, "part", done, total, part=f"{len(todo)} parts, {jobs} at a time")
         with Executor(BackendConfig(num_cpus=jobs)) as executor:  # a killed part is retried (resumed) twice
             executor.map(_timed_part, [(config, out_dir, p, jobs) for p in todo], isolate=True, on_result=finished)
 
     run_stage(parts[:1])  # the data set, read by every other part
     run_stage(parts[1:])
     run_stage(drive_parts(config))  # which seed's model drives is known only now
-    if progress is not None:
-        progress(total, total, "report")
+    report(progress, "part", total, total, part="report")
     from crchfl_sumo.studies.report import write_report
 
     return write_report(out_dir)

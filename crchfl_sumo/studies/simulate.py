@@ -19,16 +19,17 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.maps import draw_network, save_figure
+from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.sumo.maps import draw_network
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
@@ -70,13 +71,14 @@ def simulate(
     scenario: Scenario,
     duration_s: float,
     cfg: SimulateConfig,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
 ) -> Trace:
     """Run ``scenario`` for ``duration_s`` with the link model stepping on every frame."""
     links = LinkModel(scenario.edge_sites, cfg.channel, cfg.mobility, seed=cfg.seed)
     columns: dict[str, list[np.ndarray]] = {k: [] for k in ("t_s", "vehicle", "x_m", "y_m", "speed_mps", "site", "rate_bps")}
     handovers = []
     watched = {v for town in scenario.towns for v in town.data_vehicles}
+    total_steps = int(round(duration_s / scenario.step_length_s))
     with Simulation(scenario, seed=cfg.seed, watch=watched) as sim:
         for frame in sim.run(duration_s):
             snapshot = links.step(frame)
@@ -88,8 +90,7 @@ def simulate(
             columns["site"].append(snapshot.site)
             columns["rate_bps"].append(snapshot.rate_bps)
             handovers.extend(snapshot.handovers)
-            if progress:
-                progress(1)
+            report(progress, "simulate", len(columns["t_s"]), total_steps)
         stats = sim.stats()
     joined = {
         k: np.concatenate(v) if v else np.zeros(0, dtype=str if k == "vehicle" else float) for k, v in columns.items()
@@ -167,10 +168,7 @@ def write_outputs(trace: Trace, scenario: Scenario, summary: dict, out_dir: Path
 
 
 def plot_map(trace: Trace, scenario: Scenario, summary: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.patches import Circle
 
     fig, ax = plt.subplots(figsize=(8, 6))
@@ -195,10 +193,7 @@ def plot_map(trace: Trace, scenario: Scenario, summary: dict, path: Path) -> Non
 
 
 def plot_rates(trace: Trace, scenario: Scenario, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(9, 4))
     times = np.unique(trace.t_s)
@@ -225,19 +220,14 @@ def run_simulate_command(
     out_dir: Path,
     seed: int | None,
     config_path: Path | None,
-    progress_factory=None,
+    progress: Progress | None = None,
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary."""
     if duration_s < 0:
         raise CrchflError(f"--duration-s must be >= 0, got {duration_s}")
     cfg = load_simulate_config(config_path, seed)
     scenario = load_scenario(scenario_name, cfg.edge_sites, cfg.mobility.coverage_radius_m)
-    total_steps = int(round(duration_s / scenario.step_length_s))
-    if progress_factory is None:
-        trace = simulate(scenario, duration_s, cfg)
-    else:
-        with progress_factory(total_steps) as bar:
-            trace = simulate(scenario, duration_s, cfg, progress=bar.update)
+    trace = simulate(scenario, duration_s, cfg, progress=progress)
     summary = summarize(trace, scenario, duration_s, cfg)
     write_outputs(trace, scenario, summary, out_dir)
     return summary

@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
-from crchfl_sumo.core.atomic import atomic_path
+from crchfl_sumo.core.figures import pyplot, save_figure
 
 # (row key, panel title)
 PANELS = (
@@ -31,10 +31,7 @@ def plot_sweep(rows: Sequence[dict], params: Sequence, out_dir: Path) -> list[Pa
 
     A parameter given a single value is a fixed setting: it gets no figure and does not split the lines.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -62,10 +59,7 @@ def plot_sweep(rows: Sequence[dict], params: Sequence, out_dir: Path) -> list[Pa
             legend_ax.legend(handles, labels, loc="center", title=", ".join(others), fontsize="small")
         fig.suptitle(f"sweep: metrics against {param.path}")
         path = out_dir / f"{param.path}.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=90)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, path, dpi=90))
     return paths
 
 

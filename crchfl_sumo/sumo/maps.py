@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.sumo.scenario import lane_polylines
 
 
@@ -17,13 +16,3 @@ def draw_network(ax, net_path: Path, color: str = "0.75", linewidth: float = 1.0
     ax.autoscale_view()
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-
-
-def save_figure(fig, path: Path) -> None:
-    """Save a figure atomically (temporary file, then rename) and close it."""
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight", format=path.suffix.lstrip(".") or "png")
-    plt.close(fig)

@@ -20,10 +20,9 @@ import cv2
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_bytes, temporary_beside
-from crchfl_sumo.vision.camera import ground_rays
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
-from crchfl_sumo.vision.camera import CAMERA_NAMES
+from crchfl_sumo.vision.camera import CAMERA_NAMES, ground_rays
 from crchfl_sumo.vision.raster import LAMP_RGB, Renderer, lit_lamps, vehicle_rgb
 from crchfl_sumo.vision.world import SKY_RGB
 

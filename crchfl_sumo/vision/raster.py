@@ -32,10 +32,15 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
-from crchfl_sumo.vision.camera import CameraConfig, camera_from_vehicle, ground_rays, vehicle_from_camera_rotation
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
-from crchfl_sumo.vision.camera import CAMERA_NAMES
+from crchfl_sumo.vision.camera import (
+    CAMERA_NAMES,
+    CameraConfig,
+    camera_from_vehicle,
+    ground_rays,
+    vehicle_from_camera_rotation,
+)
 from crchfl_sumo.vision.world import SKY_RGB, World
 
 VEHICLE_PALETTE_RGB = (

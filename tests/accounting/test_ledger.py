@@ -4,8 +4,6 @@ from collections import Counter
 
 import pytest
 
-from crchfl_sumo.core.config import from_mapping
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.accounting.ledger import (
     GIB,
     KIB,
@@ -23,6 +21,8 @@ from crchfl_sumo.accounting.ledger import (
     schedule_bytes,
     stage_one_schedule,
 )
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
 
 PAPER = resolve_sizes(LedgerConfig())
 TOPO = Topology.from_counts((2, 3))

@@ -202,8 +202,9 @@ def test_ray_task_user_error_arrives_as_crchfl_error(ray_runtime):
 def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
     import torch
 
-    from crchfl_sumo.learning.checkpoint import load_checkpoint
     from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+
     from helpers import PAPER_VEHICLES, result_files, run_config, write_dataset
 
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(5, 3, 4, 2, 3))
@@ -224,6 +225,7 @@ def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
 
 def test_sweep_runs_on_ray_give_the_local_rows(ray_runtime, tmp_path):
     from crchfl_sumo.studies.sweep import parse_param, run_sweep
+
     from helpers import PAPER_VEHICLES, run_config, write_dataset
 
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES)

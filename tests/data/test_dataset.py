@@ -7,14 +7,16 @@ import torch
 
 from crchfl_sumo.core.atomic import TMP_MARK
 from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import (
     DatasetConfig,
     ShardDataset,
-    measured_sample_bytes,
     load_samples,
     load_vehicle_samples,
+    measured_sample_bytes,
     shard_plan,
 )
+from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.shards import (
     MANIFEST_NAME,
     NOMINAL_SAMPLE_BYTES,
@@ -27,8 +29,6 @@ from crchfl_sumo.data.shards import (
     sha256_file,
     write_shard,
 )
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.labels import digitize_steer
 
 H, W = 12, 16
 

@@ -15,8 +15,8 @@ from crchfl_sumo.data.expert import (
     steer_from_curvature,
     tracks_from_frames,
 )
-from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
+from crchfl_sumo.sumo.frame import make_frame
 
 CFG = ExpertConfig()
 DT_S = 0.25

@@ -1,16 +1,16 @@
 import numpy as np
 import pytest
 
-from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.core.config import from_mapping
-from crchfl_sumo.data.dataset import DatasetConfig, load_samples, shard_plan
-from crchfl_sumo.data.shards import read_manifest, read_shard
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.dataset import DatasetConfig, load_samples, shard_plan
 from crchfl_sumo.data.generation import assign_vehicles, generate_dataset, nearest_site
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.vision.raster import RasterConfig
+from crchfl_sumo.data.shards import read_manifest, read_shard
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
+from crchfl_sumo.vision.camera import CameraConfig
+from crchfl_sumo.vision.raster import RasterConfig
 
 SIZES = {"towns": [{"town": "town01", "train_samples": [6, 5], "test_samples": [4]}]}
 RASTER = RasterConfig(camera=CameraConfig(height_px=24, width_px=48))
@@ -61,8 +61,8 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     assert data.actions[0, 2] == 0.9 and data.actions[1, 0] == 1.0  # inserted at rest, then pulls away
     assert full.png_bytes_per_sample > 0
 
-    def stop_after_first_shard(stage, done, total):
-        if stage == "render" and done >= 4:
+    def stop_after_first_shard(update):
+        if update.stage == "render" and update.done >= 4:
             raise Stop
 
     with pytest.raises(Stop):
@@ -118,9 +118,9 @@ def test_label_signs_follow_sumo_turns():
 def test_neighbourhood_frames_render_what_full_frames_render():
     """record_run keeps only the sampled vehicles and their neighbourhood: their images must not change."""
     from crchfl_sumo.data.generation import record_run
+    from crchfl_sumo.sumo.simulation import Simulation
     from crchfl_sumo.vision.raster import Renderer, neighbourhood_m
     from crchfl_sumo.vision.world import WorldConfig, build_world
-    from crchfl_sumo.sumo.simulation import Simulation
 
     scenario = load_scenario("town01")
     raster = RasterConfig(camera=CameraConfig(height_px=32, width_px=64))

@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
@@ -20,19 +22,22 @@ from crchfl_sumo.driving.drive import (
     red_light_violations,
 )
 from crchfl_sumo.driving.drive_command import drive_command
-from crchfl_sumo.driving.named_routes import load_drive_routes, resolve_route
 from crchfl_sumo.driving.dynamics import (
     VehicleState,
     acceleration_from_pedals,
     bicycle_step,
     curvature_from_steer,
 )
+from crchfl_sumo.driving.named_routes import load_drive_routes, resolve_route
+from crchfl_sumo.driving.plots import action_panel, compare_runs, pick_moments, read_trajectory_csv, turn_moment
 from crchfl_sumo.driving.policies import (
     ConstantPolicy,
     ModelPolicy,
     RoutePolicy,
     RoutePolicyConfig,
 )
+from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.learning.model import ModelConfig, build_model
 from crchfl_sumo.sumo.route import (
     Crossing,
     RouteGeometry,
@@ -45,14 +50,9 @@ from crchfl_sumo.sumo.route import (
     route_geometry,
     signal_letter,
 )
-from crchfl_sumo.driving.plots import action_panel, compare_runs, pick_moments, read_trajectory_csv, turn_moment
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
-from crchfl_sumo.data.labels import STEER_CLASS_VALUES
-from crchfl_sumo.learning.model import ModelConfig, build_model
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
 from crchfl_sumo.vision.raster import Renderer
 from crchfl_sumo.vision.world import build_world
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
 
 EXPERT = ExpertConfig()
 NO_WARMUP = DriveConfig(warmup_s=0.0)

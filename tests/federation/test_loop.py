@@ -8,14 +8,22 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.planning.problem import AllocationConfig, make_plan
-from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.accounting.ledger import (
+    MIB,
+    Ledger,
+    LedgerConfig,
+    Topology,
+    cloud_round_schedule,
+    replay,
+    resolve_sizes,
+)
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, Hyper, Setup, initial_state
-from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
-from crchfl_sumo.accounting.ledger import MIB, Ledger, LedgerConfig, Topology, cloud_round_schedule, replay, resolve_sizes
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, Hyper, Setup, initial_state
+from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig
+from crchfl_sumo.planning.problem import AllocationConfig, make_plan
 
 
 class SumTrainer:

@@ -9,20 +9,20 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import Killed, PAPER_VEHICLES, kill_after, result_files, run_config, write_dataset
-
-from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.federation.run import (
     RunConfig,
     builtin_experiments,
     load_run_config,
-    progress_postfix,
     read_inputs,
     run_command,
     run_federation_dir,
 )
+from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
+
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
@@ -65,8 +65,9 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     assert lines[-1]["consumed_bytes"] == summary["consumed_bytes"]
     assert lines[-1]["wireless_bytes"] + lines[-1]["wireline_bytes"] == summary["consumed_bytes"]
     assert 0.0 <= lines[-1]["accuracy"] <= 1.0
-    assert seen[-1]["done"] and seen[-1]["consumed_bytes"] == summary["consumed_bytes"]
-    postfix = progress_postfix(seen[-1])
+    # one update a loop step, counting the steps; the last shows the finished round and the budget
+    assert [u.stage for u in seen] == ["step"] * len(seen) and [u.done for u in seen] == list(range(1, len(seen) + 1))
+    postfix = seen[-1].detail
     assert postfix["round"] == "1/1" and postfix["GB"].endswith("/20.00") and postfix["loss"] != "-"
     model = load_checkpoint(out / "best_model.pt")
     assert model.model_config.image_height == 48
@@ -194,10 +195,10 @@ def _straight_frames(seconds: float, step_s: float = 0.25):
 
 
 def test_online_collector_labels_after_the_look_ahead_and_keeps_the_newest(grid_dir):
-    from crchfl_sumo.vision.camera import CameraConfig
     from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
     from crchfl_sumo.data.generation import FUTURE_S
     from crchfl_sumo.data.online import OnlineCollector, OnlineConfig
+    from crchfl_sumo.vision.camera import CameraConfig
     from crchfl_sumo.vision.raster import RasterConfig
 
     raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=64))

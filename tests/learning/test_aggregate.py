@@ -3,8 +3,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from crchfl_sumo.learning.aggregate import fedavg, weighted_average
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.aggregate import fedavg, weighted_average
 
 
 def _state(w: list[float], b: float, count: int) -> dict[str, torch.Tensor]:

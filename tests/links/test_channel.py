@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from crchfl_sumo.links import channel as ch
-from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links import channel as ch
+from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 
 UMI = ChannelConfig()  # 5.9 GHz, h_UT = 1.5 m; sites at 10 m below
 UMA = ChannelConfig(scenario="uma", carrier_hz=3.5e9)

@@ -3,8 +3,8 @@
 import pytest
 
 from crchfl_sumo.links.clock import ScriptedClock, SumoClock, wireless_transfer
-from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.links.transfer import TransferConfig
+from crchfl_sumo.sumo.scenario import load_scenario
 
 # Two epochs of 2928 samples at 120 s per 2928 samples, from t = 0.25 s, end at
 # 240.24999999999997 s in floating point: one rounding short of the 240.25 s sample.

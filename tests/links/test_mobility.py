@@ -7,10 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links import channel as ch
 from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.links.mobility import (
     LinkModel,
     MacroLinkConfig,
@@ -21,6 +20,7 @@ from crchfl_sumo.links.mobility import (
     macro_link_model,
     rate_series,
 )
+from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.sumo.sites import EdgeSite
 
 # Deterministic radio: always LOS, no shadowing, no fading.

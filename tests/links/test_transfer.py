@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.transfer import TransferConfig, transfer, wireline_transfer_time_s
 
 MBIT = 1e6 / 8  # bytes in one megabit

@@ -1,12 +1,12 @@
 from __future__ import annotations
 
-import tomllib
-
 import numpy as np
 import pytest
+import tomllib
 import torch
 
-from crchfl_sumo.planning.plan_command import load_plan_configs
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.planning.calibration import (
     CalibrationConfig,
     Fit,
@@ -21,8 +21,7 @@ from crchfl_sumo.planning.calibration import (
     run_pilots,
     score_curve,
 )
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.planning.plan_command import load_plan_configs
 
 CURVE = (0.9, 1.5, 0.4)  # score(S) = 0.9 - 1.5 S^-0.4
 

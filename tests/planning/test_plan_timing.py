@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.accounting.ledger import LedgerConfig
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.clock import LinkSeries, ScriptedClock, Segment
-from crchfl_sumo.accounting.ledger import LedgerConfig
+from crchfl_sumo.planning.problem import AllocationConfig, make_plan
 from crchfl_sumo.planning.timing import measured_rates_bps, run_timing, time_mean_rate_bps
 
 PAPER_LIKE = AllocationConfig(alpha=0.1, gamma=0.5, d=5.0, vehicles_per_edge=(2, 3), local_samples=12584)
@@ -97,8 +97,8 @@ def test_plan_command_measures_the_scenarios_rate():
 
 
 def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
-    from crchfl_sumo.planning.plan_command import plan_command
     from crchfl_sumo.links.channel import ChannelConfig
+    from crchfl_sumo.planning.plan_command import plan_command
     from crchfl_sumo.planning.timing import scenario_rates_bps
 
     config = tmp_path / "links.toml"

@@ -6,17 +6,6 @@ import json
 import numpy as np
 import pytest
 
-from crchfl_sumo.planning.problem import (
-    AllocationConfig,
-    _Relaxation,
-    costs_for,
-    make_plan,
-    objective_value,
-    round_time_s,
-    split_pretrain_batch,
-)
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.planning.plan_command import format_plan, plan_command
 from crchfl_sumo.accounting.ledger import (
     GIB,
     KIB,
@@ -29,6 +18,17 @@ from crchfl_sumo.accounting.ledger import (
     resolve_sizes,
     schedule_bytes,
     stage_one_schedule,
+)
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.planning.plan_command import format_plan, plan_command
+from crchfl_sumo.planning.problem import (
+    AllocationConfig,
+    _Relaxation,
+    costs_for,
+    make_plan,
+    objective_value,
+    round_time_s,
+    split_pretrain_batch,
 )
 
 # Explicit values, so that recalibrating the shipped defaults does not change these tests.
@@ -239,8 +239,8 @@ def test_format_plan_lists_stage_shares():
 
 
 def test_calibration_file_supplies_the_weights(tmp_path):
-    from crchfl_sumo.planning.plan_command import calibrated
     from crchfl_sumo.planning.calibration import Fit, calibration_toml
+    from crchfl_sumo.planning.plan_command import calibrated
 
     # the file exactly as `calibrate` writes it (the record's values do not matter here)
     data = {"metric": "loss", "local_samples": 10, "test_samples": 4, "epochs": 2, "reference_samples": [4, 10],

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.config import toml_text
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.studies.reproduce import (
     ReproduceConfig,
     best_seed,
@@ -134,7 +134,7 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     out = tmp_path / "results"
     seen = []
     folder, summary = reproduce_command(
-        out_dir=out, config_path=path, progress=lambda i, n, key: seen.append((i, n, key))
+        out_dir=out, config_path=path, progress=lambda u: seen.append((u.done, u.total, u.detail["part"]))
     )
     assert folder == out
     assert seen[0] == (0, 16, "data") and seen[-1] == (16, 16, "report")  # 1 + 2 + 6 + 2 + 5 parts
@@ -190,7 +190,7 @@ def test_parts_run_side_by_side_give_the_same_results(tmp_path):
     seen = []
     _, alone = reproduce_command(out_dir=tmp_path / "one", config_path=path)
     _, paired = reproduce_command(
-        out_dir=tmp_path / "two", config_path=path, jobs=2, progress=lambda i, n, key: seen.append((i, key))
+        out_dir=tmp_path / "two", config_path=path, jobs=2, progress=lambda u: seen.append((u.done, u.detail["part"]))
     )
     for scheme in ("crchfl", "hfl", "sfl"):
         a, b = alone["schemes"][scheme], paired["schemes"][scheme]

@@ -6,8 +6,8 @@ import pytest
 
 from crchfl_sumo.cli import main
 from crchfl_sumo.links.mobility import Handover
-from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.studies.simulate import SimulateConfig, Trace, summarize
+from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
 
 

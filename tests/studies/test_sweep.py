@@ -16,15 +16,13 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.cli import main
+from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, toml_text
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.links.clock import ScriptedClock, Segment
+from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
-from crchfl_sumo.sumo.scenario import SumoConfig, configured_scenario
-from crchfl_sumo.sumo.simulation import Simulation
+from crchfl_sumo.links.clock import ScriptedClock, Segment
 from crchfl_sumo.studies.sweep import (
     expand_grid,
     parse_param,
@@ -32,6 +30,9 @@ from crchfl_sumo.studies.sweep import (
     run_sweep,
     split_values,
 )
+from crchfl_sumo.sumo.scenario import SumoConfig, configured_scenario
+from crchfl_sumo.sumo.simulation import Simulation
+
 from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
 
 # ------------------------------------------------------------------ parameters and the grid

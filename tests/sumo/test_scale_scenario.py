@@ -20,6 +20,7 @@ from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import LinkModel, MobilityConfig
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
+
 from helpers import half_hour_statistics
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,11 +1,10 @@
+import numpy as np
 import pytest
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.scenario import load_scenario
-from crchfl_sumo.sumo.sites import EdgeSite, place_edge_sites
 from crchfl_sumo.sumo.simulation import Simulation
-
-import numpy as np
+from crchfl_sumo.sumo.sites import EdgeSite, place_edge_sites
 
 
 def test_user_config_with_gui_options_relative_paths_and_several_files(grid_dir, tmp_path, monkeypatch):

@@ -15,7 +15,6 @@ import sumolib
 
 from helpers import half_hour_statistics
 
-
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 from crchfl_sumo.studies.simulate import SimulateConfig, simulate, summarize
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "motorway_ramps.osm"
 

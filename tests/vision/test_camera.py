@@ -5,6 +5,8 @@ import math
 import numpy as np
 import pytest
 
+from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.vision.camera import (
     CameraConfig,
     CameraPose,
@@ -14,8 +16,6 @@ from crchfl_sumo.vision.camera import (
     vehicle_from_camera_rotation,
     vehicle_from_world,
 )
-from crchfl_sumo.core.config import from_mapping
-from crchfl_sumo.core.errors import CrchflError
 
 CAM_H, CAM_F, CAM_L, CAM_R = range(4)
 

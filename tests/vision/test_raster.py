@@ -16,9 +16,9 @@ import zlib
 import numpy as np
 import pytest
 
-from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
 from crchfl_sumo.vision.raster import (
     LAMP_GREEN_RGB,
     LAMP_HEIGHTS_M,
