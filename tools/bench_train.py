@@ -25,7 +25,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
-from crchfl_sumo.learning.training import LocalTrainer, TrainConfig, branch_losses, resolve_device, train_vehicles
+from crchfl_sumo.learning.training import Learner, TrainConfig, branch_losses, resolve_device, train_vehicles
 
 PAPER_VEHICLE_SAMPLES = (2928, 2928, 2586, 2587, 1555)
 
@@ -99,12 +99,12 @@ def main() -> None:
         for v, samples in enumerate(vehicles_on_device):
             model = DrivingModel(model_config)
             model.load_state_dict(state)
-            trainer = LocalTrainer(model.to(device), configs["sequential"])
+            trainer = Learner(model.to(device), configs["sequential"])
             trainer.train_epoch(samples, torch.Generator().manual_seed(v))
             trainer.state()
 
     def run_central() -> None:
-        trainer = LocalTrainer(build_model(model_config, seed=0).to(device), configs["sequential"])
+        trainer = Learner(build_model(model_config, seed=0).to(device), configs["sequential"])
         trainer.train_epoch(everything_on_device, torch.Generator().manual_seed(1))
 
     runs = {

@@ -174,10 +174,12 @@ def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainC
     return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
 
 
-class LocalTrainer:
+class Learner:
     """One model with one Adam per branch; trains epoch by epoch on Samples.
 
-    The model is owned by the trainer and updated in place; ``state()`` gives
+    (The federation's Trainer, TorchTrainer and RayTrainer train many
+    vehicles' models; a Learner is one model.) The model is owned by the
+    learner and updated in place; ``state()`` gives
     a CPU copy of its weights.
     """
 
@@ -243,7 +245,7 @@ def train_vehicle(
     """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
     configure_determinism(config.deterministic)
     device = resolve_device(config.device)
-    trainer = LocalTrainer(model_from_state(model_config, state, device), config)
+    trainer = Learner(model_from_state(model_config, state, device), config)
     samples = samples.to(device)  # once, not every epoch
     generator = torch.Generator().manual_seed(seed)
     metrics = [trainer.train_epoch(samples, generator) for _ in range(epochs)]
@@ -420,7 +422,7 @@ def train_centralized(
     out_dir.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.device)
     model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
-    trainer = LocalTrainer(model.to(device), config)
+    trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
     train_on_device, test_on_device = train.to(device), test.to(device)
     records: list[dict[str, float | int]] = []

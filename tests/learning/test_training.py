@@ -11,7 +11,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
 from crchfl_sumo.learning.model import ModelConfig, build_model
 from crchfl_sumo.learning.training import (
-    LocalTrainer,
+    Learner,
     TrainConfig,
     evaluate,
     resolve_device,
@@ -34,7 +34,7 @@ def _samples(n, seed):
 
 def test_one_training_step_lowers_the_loss_on_a_fixed_batch():
     batch = _samples(32, seed=1)
-    trainer = LocalTrainer(build_model(SMALL, seed=0), CPU)
+    trainer = Learner(build_model(SMALL, seed=0), CPU)
     before = evaluate(trainer.model, batch, CPU)
     trainer.train_epoch(batch, torch.Generator().manual_seed(0))  # 32 samples = exactly one step
     after = evaluate(trainer.model, batch, CPU)
