@@ -14,7 +14,8 @@ import dataclasses
 import statistics
 import time
 
-from crchfl_sumo.accounting.ledger import LedgerConfig, Topology, cloud_round_schedule, resolve_sizes, schedule_bytes
+from crchfl_sumo.accounting.ledger import LedgerConfig, resolve_sizes
+from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule, schedule_bytes
 from crchfl_sumo.planning.problem import AllocationConfig, _Relaxation, costs_for, make_plan, round_time_s
 
 

@@ -48,11 +48,10 @@ from typing import Callable, Literal, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from crchfl_sumo.accounting.ledger import (
+from crchfl_sumo.accounting.ledger import Ledger, Record
+from crchfl_sumo.accounting.schedules import (
     CLOUD,
     ByteSizes,
-    Ledger,
-    Record,
     Topology,
     Transfer,
     cloud_aggregation_schedule,

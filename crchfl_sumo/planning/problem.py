@@ -43,15 +43,11 @@ from typing import Any, Mapping
 
 import cvxpy as cp
 
-from crchfl_sumo.accounting.ledger import (
-    GIB,
+from crchfl_sumo.accounting.ledger import GIB, Ledger, LedgerConfig, replay, resolve_sizes
+from crchfl_sumo.accounting.schedules import (
     ByteSizes,
-    Ledger,
-    LedgerConfig,
     Topology,
     cloud_round_schedule,
-    replay,
-    resolve_sizes,
     schedule_bytes,
     stage_one_schedule,
 )

@@ -4,20 +4,14 @@ from collections import Counter
 
 import pytest
 
-from crchfl_sumo.accounting.ledger import (
-    GIB,
-    KIB,
-    MIB,
+from crchfl_sumo.accounting.ledger import GIB, KIB, MIB, Ledger, LedgerConfig, replay, resolve_sizes
+from crchfl_sumo.accounting.schedules import (
     ByteSizes,
-    Ledger,
-    LedgerConfig,
     Topology,
     Transfer,
     cloud_aggregation_schedule,
     cloud_round_schedule,
     edge_aggregation_schedule,
-    replay,
-    resolve_sizes,
     schedule_bytes,
     stage_one_schedule,
 )

@@ -8,15 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.accounting.ledger import (
-    MIB,
-    Ledger,
-    LedgerConfig,
-    Topology,
-    cloud_round_schedule,
-    replay,
-    resolve_sizes,
-)
+from crchfl_sumo.accounting.ledger import MIB, Ledger, LedgerConfig, replay, resolve_sizes
+from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, Hyper, Setup, initial_state

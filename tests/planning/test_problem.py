@@ -6,19 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from crchfl_sumo.accounting.ledger import (
-    GIB,
-    KIB,
-    MIB,
-    Ledger,
-    LedgerConfig,
-    Topology,
-    cloud_round_schedule,
-    replay,
-    resolve_sizes,
-    schedule_bytes,
-    stage_one_schedule,
-)
+from crchfl_sumo.accounting.ledger import GIB, KIB, MIB, Ledger, LedgerConfig, replay, resolve_sizes
+from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule, schedule_bytes, stage_one_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.planning.plan_command import format_plan, plan_command
 from crchfl_sumo.planning.problem import (
