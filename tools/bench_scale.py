@@ -160,7 +160,7 @@ def patched(owner, name: str, replacement):
 
 def run_config(args: argparse.Namespace, data_dir: Path):
     from crchfl_sumo.core.config import from_mapping
-    from crchfl_sumo.federation.run import RunConfig
+    from crchfl_sumo.federation.run_config import RunConfig
 
     federation = {"scheme": args.scheme, "edge_interval": 1, "cloud_interval": args.cloud_interval,
                   "cloud_rounds": args.rounds, "seed": args.seed}
@@ -178,8 +178,9 @@ def run_config(args: argparse.Namespace, data_dir: Path):
 
 
 def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
-    from crchfl_sumo.federation.loop import loop as federation_module
-    from crchfl_sumo.federation.loop import run as run_module
+    from crchfl_sumo.federation import loop as federation_module
+    from crchfl_sumo.federation import run as run_module
+    from crchfl_sumo.federation import run_data
     from crchfl_sumo.learning.trainers import TorchTrainer
     from crchfl_sumo.links.mobility import LinkModel
     from crchfl_sumo.sumo.simulation import Simulation
@@ -187,7 +188,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     watch = Stopwatch()
     config = run_config(args, data_dir)
     with watch.part("load data set"):
-        inputs = run_module.read_inputs(config)
+        inputs = run_data.read_inputs(config)
     rss_inputs = peak_rss_mib()
     trainer = TimedTrainer(
         TorchTrainer(config.model, config.train, inputs.test, config.federation.seed), watch
@@ -195,7 +196,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     clocks = []
 
     def clock_factory():
-        clocks.append(TimedClock(run_module.make_clock(config, inputs), watch))
+        clocks.append(TimedClock(run_data.make_clock(config, inputs), watch))
         return clocks[-1]
 
     step_ends = [time.perf_counter()]

@@ -74,7 +74,9 @@ def main() -> int:
 
     from crchfl_sumo.core.backend import BackendConfig, Executor
     from crchfl_sumo.core.config import from_mapping
-    from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+    from crchfl_sumo.federation.run import run_federation_dir
+    from crchfl_sumo.federation.run_config import RunConfig
+    from crchfl_sumo.federation.run_data import read_inputs
     from crchfl_sumo.studies.sweep import parse_param, run_sweep
 
     torch.set_num_threads(1)  # the single run's driver: each vehicle task then uses one thread too

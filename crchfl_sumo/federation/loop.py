@@ -162,7 +162,7 @@ class FederationConfig:
 
 
 @dataclass(frozen=True)
-class Hyper:
+class HyperParameters:
     """The four hyper-parameters a run uses (from the config or from the optimizer's plan)."""
 
     pretrain_batch: int
@@ -184,7 +184,7 @@ class Trainer(Protocol):
 
 
 @dataclass(frozen=True)
-class Setup:
+class LoopInputs:
     """Everything fixed for one run: who takes part, sizes, links.
 
     vehicles: the federated vehicles in a fixed order (their training seeds
@@ -193,7 +193,7 @@ class Setup:
     """
 
     config: FederationConfig
-    hyper: Hyper
+    hyper: HyperParameters
     vehicles: tuple[str, ...]
     samples: Mapping[str, Samples]
     home_site: Mapping[str, int]
@@ -265,7 +265,7 @@ class FederationState:
         return cls(**values)
 
 
-def initial_state(setup: Setup, trainer: Trainer, start_s: float) -> FederationState:
+def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> FederationState:
     """Every node holds the same seeded initial model (no transfer needed: only the seed)."""
     model = trainer.initial_state()
     edges = setup.edges if setup.config.hierarchical else ()
@@ -287,7 +287,7 @@ def initial_state(setup: Setup, trainer: Trainer, start_s: float) -> FederationS
 
 
 @dataclass(frozen=True)
-class Event:
+class TransferEvent:
     """A simulated transfer: who, when, how much arrived."""
 
     start_s: float
@@ -296,18 +296,18 @@ class Event:
     sent_bytes: float
 
 
-def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> Event:
-    return Event(start_s, start_s + wireline_transfer_time_s(size_bytes, cfg), True, float(size_bytes))
+def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> TransferEvent:
+    return TransferEvent(start_s, start_s + wireline_transfer_time_s(size_bytes, cfg), True, float(size_bytes))
 
 
-def _wireless(outcome: WirelessOutcome) -> Event:
-    return Event(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes)
+def _wireless(outcome: WirelessOutcome) -> TransferEvent:
+    return TransferEvent(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes)
 
 
 def _charge(
     ledger: Ledger,
     schedule: Sequence[Transfer],
-    events: Mapping[tuple[str, str, str], Event],
+    events: Mapping[tuple[str, str, str], TransferEvent],
     rule: str,
     cloud_round: int,
 ) -> bool:
@@ -348,7 +348,7 @@ class Federation:
     """
 
     def __init__(
-        self, setup: Setup, clock: Clock, trainer: Trainer, data: Callable[[str, float], Samples] | None = None
+        self, setup: LoopInputs, clock: Clock, trainer: Trainer, data: Callable[[str, float], Samples] | None = None
     ) -> None:
         self.setup = setup
         self.clock = clock
@@ -468,7 +468,7 @@ class Federation:
         counts = {v: setup.count(v) for v in setup.vehicles}
         shares = split_pretrain_batch(setup.hyper.pretrain_batch, counts)
         member = dict(state.member)
-        events: dict[tuple[str, str, str], Event] = {}
+        events: dict[tuple[str, str, str], TransferEvent] = {}
         uploaded: dict[str, Samples] = {}
         for i, v in enumerate(setup.vehicles):
             if not shares[v]:
@@ -541,7 +541,7 @@ class Federation:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
         trained, counts = self._train(state, setup.hyper.edge_interval)
-        events: dict[tuple[str, str, str], Event] = {}
+        events: dict[tuple[str, str, str], TransferEvent] = {}
         uploads, member = self._vehicle_uploads(state, counts)
         topology = self._topology(member)
         agg_s, received_by, edge_models, edge_weights = self._edge_fedavg(
@@ -691,7 +691,7 @@ class Federation:
         epochs = setup.hyper.edge_interval
         trained, counts = self._train(state, epochs)
         window_end = state.open_s[CLOUD] + cfg.deadline_s
-        events: dict[tuple[str, str, str], Event] = {}
+        events: dict[tuple[str, str, str], TransferEvent] = {}
         uploads = {
             v: self._upload(
                 v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.model_bytes, window_end

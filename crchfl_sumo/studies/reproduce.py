@@ -160,7 +160,7 @@ def run_mapping(
 
 
 def run_config(mapping: Mapping[str, Any], where: str):
-    from crchfl_sumo.federation.run import RunConfig
+    from crchfl_sumo.federation.run_config import RunConfig
 
     return from_mapping(RunConfig, mapping, where=where)
 
@@ -169,7 +169,7 @@ def run_config(mapping: Mapping[str, Any], where: str):
 
 
 @dataclass(frozen=True)
-class Part:
+class ReproductionPart:
     """One unit of work: its key in timings.json (also its folder, relative to the results folder)."""
 
     key: str
@@ -180,19 +180,19 @@ class Part:
     route: str = ""
 
 
-def plan_parts(config: ReproduceConfig) -> list[Part]:
+def plan_parts(config: ReproduceConfig) -> list[ReproductionPart]:
     """Every part in the order they run: data, upper bound, experiment B, experiment D.
 
     Drives come after (``drive_parts``): which seed's model drives is known only then.
     """
-    parts = [Part("data", "dataset")]
+    parts = [ReproductionPart("data", "dataset")]
     if config.centralized_epochs:
-        parts += [Part(f"{CENTRALIZED}/seed-{s}", "centralized", CENTRALIZED, s) for s in config.seed_list]
+        parts += [ReproductionPart(f"{CENTRALIZED}/seed-{s}", "centralized", CENTRALIZED, s) for s in config.seed_list]
     for seed in config.seed_list:  # seed by seed, so that a partial result already compares the schemes
-        parts += [Part(f"runs/{scheme}/seed-{seed}", "federated", scheme, seed) for scheme in config.schemes]
+        parts += [ReproductionPart(f"runs/{scheme}/seed-{seed}", "federated", scheme, seed) for scheme in config.schemes]
     for seed in config.ablation_seed_list:
         parts += [
-            Part(f"ablation/ie-{k}/seed-{seed}", "ablation", "crchfl", seed, edge_interval=k)
+            ReproductionPart(f"ablation/ie-{k}/seed-{seed}", "ablation", "crchfl", seed, edge_interval=k)
             for k in config.ablation_edge_intervals
         ]
     return parts
@@ -202,9 +202,9 @@ def drive_labels(config: ReproduceConfig) -> list[str]:
     return [*config.schemes, *([CENTRALIZED] if config.centralized_epochs else []), REFERENCE]
 
 
-def drive_parts(config: ReproduceConfig) -> list[Part]:
+def drive_parts(config: ReproduceConfig) -> list[ReproductionPart]:
     return [
-        Part(f"drives/{route}/{label}", "drive", label, route=route)
+        ReproductionPart(f"drives/{route}/{label}", "drive", label, route=route)
         for route in config.drive_routes
         for label in drive_labels(config)
     ]
@@ -244,7 +244,7 @@ def reproduce(
     total = len(parts) + len(drive_parts(config))
     done = 0  # parts finished, for progress
 
-    def run_stage(stage: list[Part]) -> None:
+    def run_stage(stage: list[ReproductionPart]) -> None:
         nonlocal done
         todo = [part for part in stage if not _finished(part, out_dir)]
         done += len(stage) - len(todo)
@@ -353,7 +353,7 @@ def read_timings(out_dir: Path) -> dict[str, dict[str, float]]:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
 
 
-def _finished(part: Part, out_dir: Path) -> bool:
+def _finished(part: ReproductionPart, out_dir: Path) -> bool:
     """Finished: timings.json records the part and its folder exists."""
     if part.key in read_timings(out_dir) and (out_dir / part.key).exists():
         log.info("%s: finished earlier, kept", part.key)
@@ -361,7 +361,7 @@ def _finished(part: Part, out_dir: Path) -> bool:
     return False
 
 
-def _timed_part(config: ReproduceConfig, out_dir: Path, part: Part, jobs: int) -> dict[str, float]:
+def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, jobs: int) -> dict[str, float]:
     """Run one part (in this process, or as a worker process of ``jobs`` > 1); its wall and CPU seconds."""
     if jobs > 1:
         import os
@@ -389,7 +389,7 @@ def _timed_part(config: ReproduceConfig, out_dir: Path, part: Part, jobs: int) -
     }
 
 
-def _record(out_dir: Path, part: Part, elapsed: dict[str, float]) -> None:
+def _record(out_dir: Path, part: ReproductionPart, elapsed: dict[str, float]) -> None:
     """Mark ``part`` finished in timings.json (only the main process writes it)."""
     timings = read_timings(out_dir)
     timings[part.key] = elapsed
@@ -430,7 +430,7 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
 
 
-def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+def _federated(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
     """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
     from crchfl_sumo.federation.run import run_command
 
@@ -441,7 +441,7 @@ def _federated(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
     run_command(config_path, out_dir / part.key, resume=True)
 
 
-def _drive_part(config: ReproduceConfig, out_dir: Path, part: Part) -> None:
+def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
     from crchfl_sumo.driving.drive_command import drive_command
 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)

@@ -72,14 +72,14 @@ def test_backend_config_rejects_bad_values():
         BackendConfig(max_retries=-1)
     with pytest.raises(CrchflError, match="task_timeout_s"):
         BackendConfig(task_timeout_s=0)
-    from crchfl_sumo.federation.run import RunConfig
+    from crchfl_sumo.federation.run_config import RunConfig
 
     with pytest.raises(CrchflError, match="unknown key"):
         from_mapping(RunConfig, {"backend": {"kind": "ray", "adress": "auto"}})
 
 
 def test_run_config_backend_table_and_command_line_override(tmp_path):
-    from crchfl_sumo.federation.run import RunConfig, with_backend
+    from crchfl_sumo.federation.run_config import RunConfig, with_backend
 
     config = from_mapping(RunConfig, {"backend": {"kind": "ray", "address": "auto", "max_retries": 5}})
     assert (config.backend.kind, config.backend.address, config.backend.max_retries) == ("ray", "auto", 5)
@@ -202,7 +202,9 @@ def test_ray_task_user_error_arrives_as_crchfl_error(ray_runtime):
 def test_same_seed_same_run_on_local_and_ray(ray_runtime, tmp_path):
     import torch
 
-    from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+    from crchfl_sumo.federation.run import run_federation_dir
+    from crchfl_sumo.federation.run_config import RunConfig
+    from crchfl_sumo.federation.run_data import read_inputs
     from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     from helpers import PAPER_VEHICLES, result_files, run_config, write_dataset

@@ -12,7 +12,7 @@ from crchfl_sumo.accounting.ledger import MIB, Ledger, LedgerConfig, replay, res
 from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, Hyper, Setup, initial_state
+from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, HyperParameters, LoopInputs, initial_state
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig
@@ -51,7 +51,7 @@ PAPER_HOME = {"a": 0, "b": 0, "c": 1, "d": 1, "e": 1}  # 2 vehicles in town 1, 3
 
 
 def _setup(config, hyper, counts, home, *, rule="paper", ledger=LedgerConfig(), transfer=TransferConfig(), edges=("e0", "e1")):
-    return Setup(
+    return LoopInputs(
         config=config,
         hyper=hyper,
         vehicles=tuple(counts),
@@ -71,7 +71,7 @@ def _run(setup, clock, trainer=None):
 
 
 def _hyper(config):
-    return Hyper(config.pretrain_batch, config.edge_interval, config.cloud_interval, config.cloud_rounds)
+    return HyperParameters(config.pretrain_batch, config.edge_interval, config.cloud_interval, config.cloud_rounds)
 
 
 # ------------------------------------------------------------------ the paper's round counts

@@ -11,14 +11,9 @@ import torch
 
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.federation.run import (
-    RunConfig,
-    builtin_experiments,
-    load_run_config,
-    read_inputs,
-    run_command,
-    run_federation_dir,
-)
+from crchfl_sumo.federation.run import run_command, run_federation_dir
+from crchfl_sumo.federation.run_config import RunConfig, builtin_experiments, load_run_config
+from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 
 from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset

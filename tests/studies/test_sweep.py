@@ -21,7 +21,9 @@ from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
-from crchfl_sumo.federation.run import RunConfig, read_inputs, run_federation_dir
+from crchfl_sumo.federation.run import run_federation_dir
+from crchfl_sumo.federation.run_config import RunConfig
+from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.links.clock import ScriptedClock, Segment
 from crchfl_sumo.studies.sweep import (
     expand_grid,

@@ -1,0 +1,150 @@
+"""A federation run's settings: one TOML file, one table per owning module's dataclass.
+
+``RunConfig`` is what `crchfl-sumo run`, `sweep` and `reproduce` read; this
+module also finds the built-in run configs and lays the command line's
+--backend over a config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from crchfl_sumo.accounting.ledger import LedgerConfig
+from crchfl_sumo.core.backend import BackendConfig
+from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.schemes import SCHEMES
+from crchfl_sumo.data.online import OnlineConfig
+from crchfl_sumo.federation.loop import (
+    FederationConfig,
+)
+from crchfl_sumo.learning.model import ModelConfig
+from crchfl_sumo.learning.training import TrainConfig
+from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
+from crchfl_sumo.links.mobility import MacroLinkConfig, MobilityConfig
+from crchfl_sumo.links.transfer import TransferConfig
+from crchfl_sumo.planning.problem import AllocationConfig
+from crchfl_sumo.sumo.scenario import SumoConfig
+
+
+@dataclass(frozen=True)
+class ClockConfig:
+    """Which clock the federation runs on (TOML ``[clock]``).
+
+    kind: "sumo" (the scenario in SUMO with the link models: the product) or
+        "constant" (no mobility: every vehicle always served by its home edge
+        at ``constant_rate_bps``, the macro link at ``constant_macro_rate_bps``;
+        for quick runs and checks).
+    constant_step_s: sample spacing of the constant clock [s].
+    """
+
+    kind: Literal["sumo", "constant"] = "sumo"
+    constant_rate_bps: float = 20e6
+    constant_macro_rate_bps: float = 10e6
+    constant_step_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sumo", "constant"):
+            raise CrchflError(f"clock.kind: {self.kind!r} is not one of 'sumo', 'constant'")
+        for key in ("constant_rate_bps", "constant_macro_rate_bps", "constant_step_s"):
+            if not getattr(self, key) > 0:
+                raise CrchflError(f"clock.{key} must be > 0, got {getattr(self, key)}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A federation run (one TOML file; every table is the owning module's settings).
+
+    scenario: built-in scenario name or .sumocfg path (the SUMO clock drives it).
+    dataset: data set folder (``crchfl-sumo dataset``), relative to the
+        current directory unless absolute; its train shards are the
+        vehicles' data, its test shards the test set.
+    data_mode: "fixed": each vehicle trains on its generated shard (the
+        paper's setting); "online": vehicles also keep collecting samples as
+        they drive (online.py; needs the SUMO clock).
+    """
+
+    scenario: str = "paper"
+    dataset: str = "data/paper"
+    data_mode: Literal["fixed", "online"] = "fixed"
+    federation: FederationConfig = field(default_factory=FederationConfig)
+    ledger: LedgerConfig = field(default_factory=LedgerConfig)
+    allocation: AllocationConfig = field(default_factory=AllocationConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    clock: ClockConfig = field(default_factory=ClockConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+    mobility: MobilityConfig = field(default_factory=MobilityConfig)
+    wireline: WirelineConfig = field(default_factory=WirelineConfig)
+    sfl_link: MacroLinkConfig = field(default_factory=MacroLinkConfig)
+    transfer: TransferConfig = field(default_factory=TransferConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
+    sumo: SumoConfig = field(default_factory=SumoConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+
+    def __post_init__(self) -> None:
+        if self.data_mode not in ("fixed", "online"):
+            raise CrchflError(f"data_mode: {self.data_mode!r} is not one of 'fixed', 'online'")
+        if self.data_mode == "online" and self.clock.kind != "sumo":
+            raise CrchflError(
+                "data_mode = 'online' collects samples from the SUMO run; set [clock] kind = \"sumo\" "
+                "or data_mode = \"fixed\""
+            )
+        if self.clock.kind != "sumo" and self.sumo != SumoConfig():
+            raise CrchflError("[sumo] changes the SUMO run; set [clock] kind = \"sumo\" or remove the [sumo] table")
+        if self.backend.kind == "ray":
+            if self.train.multi_vehicle == "vmap":
+                raise CrchflError(
+                    "train.multi_vehicle = 'vmap' trains every vehicle in one process; the ray backend trains each "
+                    "vehicle as its own task: set multi_vehicle = \"sequential\" or backend kind \"local\""
+                )
+            if self.train.device == "cuda":
+                raise CrchflError(
+                    "train.device = 'cuda': Ray tasks ask for CPUs only (GPU tasks are not built); "
+                    "use device \"cpu\" or \"auto\", or backend kind \"local\""
+                )
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    return from_mapping(RunConfig, read_toml(path), where=str(path))
+
+
+def resolved_config(config: RunConfig) -> dict:
+    """The settings a run's results depend on: all but [backend] (where it runs), and [sumo] only when set."""
+    mapping = to_mapping(config)
+    del mapping["backend"]
+    if config.sumo == SumoConfig():
+        del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
+    return mapping
+
+
+def resolve_config_path(config_path: str | Path) -> Path:
+    """A run config file, or the file of a built-in experiment name."""
+    config_path = Path(config_path)
+    builtins = builtin_experiments()
+    if not config_path.is_file() and str(config_path) in builtins:
+        return builtins[str(config_path)]
+    return config_path
+
+
+def with_backend(config: RunConfig, kind: str | None, address: str | None) -> RunConfig:
+    """``config`` with the command line's --backend / --address in place of its [backend] table."""
+    if kind is None and address is None:
+        return config
+    kind = kind or config.backend.kind
+    if address is not None and kind != "ray":
+        raise CrchflError(f"--address {address}: joining a cluster needs --backend ray")
+    if kind == "local":
+        address = ""  # the config's cluster address means nothing without Ray
+    backend = dataclasses.replace(config.backend, kind=kind, address=config.backend.address if address is None else address)
+    return dataclasses.replace(config, backend=backend)
+
+
+def builtin_experiments() -> dict[str, Path]:
+    """The built-in run configs of the paper's three schemes (scenarios/experiments/NAME.toml) by name."""
+    folder = experiments_dir()
+    return {name: folder / f"{name}.toml" for name in SCHEMES}
