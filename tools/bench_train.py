@@ -36,6 +36,8 @@ def synthetic_samples(num_samples: int, height: int, width: int, rng: np.random.
         rng.integers(0, 256, size=(num_samples, 4, height, width, 3), dtype=np.uint8),
         actions,
         rng.integers(0, 7, size=num_samples),
+        rng.integers(0, 4, size=num_samples),
+        rng.uniform(0, 14, size=num_samples),
     )
 
 

@@ -1,4 +1,4 @@
-"""Data set settings (split sizes, sample period, bytes per sample) and the readers.
+"""Data set settings (split sizes, sample period, recovery share, bytes per sample) and the readers.
 
 Two ways to read a data set written by dataset_io:
 - ``ShardDataset``: a torch Dataset reading one sample at a time from the
@@ -57,6 +57,12 @@ class DatasetConfig:
     sample_period_s: simulated time between two samples of a vehicle (paper: 0.25 s).
     towns: per-town sample counts (default: the paper's split).
     compression: HDF5 filter for the images, 'lzf' (default: fast), 'gzip' or 'none'.
+    recovery_share: share of each vehicle's moving samples rendered from a
+        perturbed pose and labelled to steer back (data/recovery.py); 0 turns it off.
+    recovery_lateral_m, recovery_yaw_deg: the perturbation is drawn uniformly
+        within +-recovery_lateral_m sideways and +-recovery_yaw_deg in heading.
+        1 m keeps the car's side within a 4 m lane (1.8 m wide car: 1.1 m to
+        the line); 15 deg gives labels up to the outer steer classes.
 
     What a sample costs in the byte ledger is the ledger's setting
     (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
@@ -65,8 +71,19 @@ class DatasetConfig:
     sample_period_s: float = 0.25
     towns: tuple[TownSplit, ...] = PAPER_TOWNS
     compression: Literal["lzf", "gzip", "none"] = "lzf"
+    recovery_share: float = 0.25
+    recovery_lateral_m: float = 1.0
+    recovery_yaw_deg: float = 15.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.recovery_share <= 1:
+            raise CrchflError(f"dataset.recovery_share must lie in [0, 1], got {self.recovery_share}")
+        if not 0 <= self.recovery_lateral_m <= 2:
+            raise CrchflError(
+                f"dataset.recovery_lateral_m must lie in [0, 2] (half a 4 m lane), got {self.recovery_lateral_m}"
+            )
+        if not 0 <= self.recovery_yaw_deg <= 45:
+            raise CrchflError(f"dataset.recovery_yaw_deg must lie in [0, 45], got {self.recovery_yaw_deg}")
         if not self.sample_period_s > 0:
             raise CrchflError(f"dataset.sample_period_s must be > 0, got {self.sample_period_s}")
         names = [t.town for t in self.towns]
@@ -129,11 +146,13 @@ def load_samples(
     # Read straight into one preallocated array: no second copy of the images.
     images = np.empty((n, len(CAMERA_NAMES), manifest.image_height, manifest.image_width, 3), np.uint8)
     actions, steer_class = np.empty((n, 3), np.float32), np.empty(n, np.int64)
+    command, speed_mps = np.empty(n, np.int64), np.empty(n, np.float32)
     start = 0
     for entry in shards:
         labels = read_shard(root, entry, verify, images=False)
         end = start + entry.samples
         actions[start:end], steer_class[start:end] = labels.actions, labels.steer_class
+        command[start:end], speed_mps[start:end] = labels.command, labels.speed_mps
         if entry.samples:
             with h5py.File(root / entry.file, "r") as f:
                 if f["images"].shape != images[start:end].shape:
@@ -143,7 +162,7 @@ def load_samples(
                     )
                 f["images"].read_direct(images, dest_sel=np.s_[start:end])
         start = end
-    return Samples.from_numpy(images, actions, steer_class)
+    return Samples.from_numpy(images, actions, steer_class, command, speed_mps)
 
 
 def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = True) -> dict[str, Samples]:
@@ -154,11 +173,12 @@ def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = 
 
 
 def _to_samples(data) -> Samples:
-    return Samples.from_numpy(data.images, data.actions, data.steer_class)
+    return Samples.from_numpy(data.images, data.actions, data.steer_class, data.command, data.speed_mps)
 
 
 class ShardDataset(torch.utils.data.Dataset):
-    """Per-sample reads from the shards: item i -> (images uint8 [4,H,W,3], actions f32 [3], steer_class i64).
+    """Per-sample reads from the shards: item i -> (images uint8 [4,H,W,3], actions f32 [3], steer_class i64,
+    command i64, speed_mps f32).
 
     Checksums are verified once, when the dataset is built. Files are opened
     lazily in each process (safe with DataLoader workers).
@@ -179,7 +199,7 @@ class ShardDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return int(self._ends[-1]) if len(self._ends) else 0
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
         if index < 0:
             index += len(self)
         if not 0 <= index < len(self):
@@ -191,6 +211,8 @@ class ShardDataset(torch.utils.data.Dataset):
             torch.from_numpy(f["images"][row]),
             torch.from_numpy(f["actions"][row]),
             torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
+            torch.tensor(int(f["command"][row]), dtype=torch.int64),
+            torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
         )
 
     def _file(self, shard: int) -> h5py.File:

@@ -143,6 +143,16 @@ def pursuit_curvature(
     heading_rad = np.asarray(heading_rad, np.float64)
     if len(x_m) == 0:
         return np.zeros(0)
+    tx, ty = pursuit_targets(x_m, y_m, heading_rad, lookahead)
+    return curvature_towards(x_m, y_m, heading_rad, tx, ty)
+
+
+def pursuit_targets(
+    x_m: np.ndarray, y_m: np.ndarray, heading_rad: np.ndarray, lookahead: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of the point ``lookahead`` metres further along the track from each of its positions."""
+    x_m, y_m = np.asarray(x_m, np.float64), np.asarray(y_m, np.float64)
+    heading_rad = np.asarray(heading_rad, np.float64)
     step_m = np.hypot(np.diff(x_m), np.diff(y_m))
     arc_m = np.concatenate([[0.0], np.cumsum(step_m)])
     target_arc_m = arc_m + lookahead
@@ -158,7 +168,14 @@ def pursuit_curvature(
     beyond_m = target_arc_m - arc_m[-1]
     tx = np.where(inside, tx, x_m[-1] + beyond_m * math.cos(heading_rad[-1]))
     ty = np.where(inside, ty, y_m[-1] + beyond_m * math.sin(heading_rad[-1]))
-    dx, dy = tx - x_m, ty - y_m
+    return tx, ty
+
+
+def curvature_towards(
+    x_m: np.ndarray, y_m: np.ndarray, heading_rad: np.ndarray, target_x_m: np.ndarray, target_y_m: np.ndarray
+) -> np.ndarray:
+    """Curvature [1/m] (CCW +) of the arc from each pose (position, heading) through its target point."""
+    dx, dy = np.asarray(target_x_m) - x_m, np.asarray(target_y_m) - y_m
     chord_m = np.hypot(dx, dy)
     alpha = np.arctan2(dy, dx) - heading_rad
     # 2 sin(alpha) / chord is exact for a circular arc tangent to the heading.

@@ -4,9 +4,14 @@
    vehicle). Each planned vehicle is sampled every ``sample_period_s`` from
    its departure until it has its sample count; the run goes on
    ``FUTURE_S`` more seconds so the last samples have a path ahead to label.
+   It also goes on until each of them has driven ``CommandConfig.path_ahead_m``
+   past its last sample, so that the last samples' route commands are known.
 2. Per shard (one vehicle): build its track from all frames, label every
-   step with the expert (expert.py), keep the sampled steps, render their
-   four camera images (raster.py), write the shard (dataset_io.py).
+   step with the expert (expert.py) and its route command (commands.py),
+   keep the sampled steps, draw which of them become recovery samples
+   (recovery.py; seeded by the data set seed and the shard's place in the
+   plan), render their four camera images (raster.py) from the track's pose
+   or the perturbed one, write the shard (shards.py).
 
 Shards already finished by an earlier run with the same settings are
 skipped (their rendering is the expensive part; the simulation is rerun,
@@ -18,6 +23,7 @@ sampled is the scenario's choice: each town lists its ``data_vehicles`` and
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -30,19 +36,25 @@ import numpy as np
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.data.commands import CommandConfig, track_commands
 from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
-from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
+from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels, is_standing, tracks_from_frames
+from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.data.recovery import draw_perturbations, perturbed_frame, recovery_steer
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.route import read_net
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
+from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
 
 log = logging.getLogger(__name__)
 
 FUTURE_S = 10.0  # simulated time kept after the last sample: >= the look-ahead at any town speed
+RECOVERY_STREAM = 15  # the recovery draws' own random stream: SeedSequence([seed, RECOVERY_STREAM, shard])
 
 
 def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
@@ -84,8 +96,10 @@ def record_run(
     sample_period_s: float,
     progress: Progress | None = None,
     around_m: float | None = None,
+    ahead_m: float = 0.0,
 ) -> tuple[list[Frame], dict[str, list[int]]]:
-    """Simulate until each vehicle in ``needed`` has its samples (plus FUTURE_S).
+    """Simulate until each vehicle in ``needed`` has its samples, then FUTURE_S more and until each
+    has driven ``ahead_m`` past its last sample (or left the network).
 
     Returns every step's Frame (every vehicle, or with ``around_m`` only the
     needed vehicles and those within it of one) and, per vehicle, the indices
@@ -104,6 +118,8 @@ def record_run(
     sampled: dict[str, list[int]] = {v: [] for v in needed}
     seen: set[str] = set()
     done_at: int | None = None
+    driven_m = {v: 0.0 for v in needed}  # path driven since the vehicle's last sample
+    last_xy: dict[str, tuple[float, float]] = {}
     focus = None if around_m is None else set(needed)  # without a radius, no vehicle may go missing
     with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0) as sim:
         for step in range(max_steps):
@@ -124,16 +140,31 @@ def record_run(
                     )
             if done_at is None and all(len(sampled[v]) >= n for v, n in needed.items()):
                 done_at = step
+            for vehicle in needed:
+                if len(sampled[vehicle]) >= needed[vehicle] and vehicle in present:
+                    row = frame.index_of(vehicle)
+                    xy = (float(frame.x_m[row]), float(frame.y_m[row]))
+                    if vehicle in last_xy:
+                        driven_m[vehicle] += math.hypot(xy[0] - last_xy[vehicle][0], xy[1] - last_xy[vehicle][1])
+                    last_xy[vehicle] = xy
             if step % 40 == 0:
                 report(progress, "simulate", sum(len(r) for r in sampled.values()), sum(needed.values()))
-            if done_at is not None and (step - done_at) * step_s >= FUTURE_S:
+            if (
+                done_at is not None
+                and (step - done_at) * step_s >= FUTURE_S
+                and all(driven_m[v] >= ahead_m or v not in present for v in needed)
+            ):
                 break
         else:
             short = {v: len(r) for v, r in sampled.items() if len(r) < needed[v]}
-            raise CrchflError(
-                f"after {max_steps * step_s:.0f} simulated seconds these vehicles still lack samples "
-                f"(have: {short}); check that they depart in scenario '{scenario.name}'"
-            )
+            if short:
+                raise CrchflError(
+                    f"after {max_steps * step_s:.0f} simulated seconds these vehicles still lack samples "
+                    f"(have: {short}); check that they depart in scenario '{scenario.name}'"
+                )
+            # All sampled, but one stood to the end: where its path is unknown its command stays FOLLOW.
+            log.warning("stopped at %.0f s before every vehicle had driven %.0f m past its last sample",
+                        max_steps * step_s, ahead_m)
         stats = sim.stats()
     if stats.teleports or stats.collisions:
         log.warning("run had %d teleports and %d collisions", stats.teleports, stats.collisions)
@@ -150,6 +181,7 @@ def generate_dataset(
     expert: ExpertConfig = ExpertConfig(),
     progress: Progress | None = None,
     timings_s: dict[str, float] | None = None,
+    command: CommandConfig = CommandConfig(),
 ) -> Manifest:
     """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest.
 
@@ -166,7 +198,16 @@ def generate_dataset(
         image_height=raster.camera.height_px,
         image_width=raster.camera.width_px,
         camera={"raster": to_mapping(raster), "world": to_mapping(world)},
-        labels={**label_schema(), "expert": to_mapping(expert)},
+        labels={
+            **label_schema(),
+            "expert": to_mapping(expert),
+            "command": to_mapping(command),
+            "recovery": {
+                "share": sizes.recovery_share,
+                "lateral_m": sizes.recovery_lateral_m,
+                "yaw_deg": sizes.recovery_yaw_deg,
+            },
+        },
         compression=sizes.compression,
     )
     writer = DatasetWriter(Path(out_dir), header)
@@ -177,9 +218,12 @@ def generate_dataset(
     log.info("%d of %d shards to write", len(pending), len(plan))
     needed = {vehicles[p.file]: p.samples for p in pending}
     with clock("simulate"):
-        frames, sampled = record_run(scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster))
+        frames, sampled = record_run(
+            scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m
+        )
     with clock("label"):
         tracks = tracks_from_frames(frames)
+        junctions = choice_junctions(read_net(Path(scenario.net_path)))
     with clock("world"):
         renderer = Renderer(build_world(scenario.net_path, world), raster)
     total = sum(needed.values())
@@ -187,20 +231,25 @@ def generate_dataset(
     for shard in pending:
         vehicle = vehicles[shard.file]
         track = tracks[vehicle]
-        with clock("label"):
-            actions, steer_class = expert_labels(track, expert)
         frame_rows = sampled[vehicle]
         rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
+        with clock("label"):
+            rng = np.random.default_rng(np.random.SeedSequence([int(seed), RECOVERY_STREAM, plan.index(shard)]))
+            labels = sample_labels(track, rows, junctions, sizes, expert, command, rng)
         images = np.empty((len(rows), *renderer.shape), np.uint8)
         with clock("render"):
             for k, i in enumerate(frame_rows):
-                images[k] = renderer.render(frames[i], [vehicle])[0]
+                lateral_m, yaw_deg = labels.perturbation[k]
+                images[k] = renderer.render(perturbed_frame(frames[i], vehicle, lateral_m, yaw_deg), [vehicle])[0]
                 if k % 50 == 0:
                     report(progress, "render", done + k, total)
         data = ShardData(
             images=images,
-            actions=actions[rows],
-            steer_class=steer_class[rows],
+            actions=labels.actions,
+            steer_class=labels.steer_class,
+            command=labels.command,
+            speed_mps=labels.speed_mps,
+            perturbation=labels.perturbation,
             t_s=track.t_s[rows],
             x_m=track.x_m[rows],
             y_m=track.y_m[rows],
@@ -215,22 +264,61 @@ def generate_dataset(
 
 
 @dataclass(frozen=True)
+class SampleLabels:
+    """The labels of one vehicle's samples (R of them): what its shard stores besides images and pose."""
+
+    actions: np.ndarray  # float32 [R, 3]
+    steer_class: np.ndarray  # int64 [R]
+    command: np.ndarray  # int64 [R]
+    speed_mps: np.ndarray  # float32 [R]
+    perturbation: np.ndarray  # float32 [R, 2] (lateral_m, yaw_deg)
+
+
+def sample_labels(
+    track: Track,
+    rows: np.ndarray,
+    junctions,
+    sizes: DatasetConfig,
+    expert: ExpertConfig,
+    command: CommandConfig,
+    rng: np.random.Generator,
+) -> SampleLabels:
+    """Labels of the samples at track rows ``rows``, recovery draws included (``rng`` draws them)."""
+    actions, _ = expert_labels(track, expert)
+    actions = actions[rows]
+    moving = ~is_standing(track.speed_mps[rows], track.accel_mps2[rows], expert)
+    perturbation = draw_perturbations(
+        moving, sizes.recovery_share, sizes.recovery_lateral_m, sizes.recovery_yaw_deg, rng
+    ).astype(np.float32)
+    recovered = np.flatnonzero(np.any(perturbation != 0, axis=1))
+    actions[recovered, 1] = recovery_steer(track, rows[recovered], perturbation[recovered], expert)
+    return SampleLabels(
+        actions=actions,
+        steer_class=digitize_steer(actions[:, 1]),
+        command=track_commands(track.x_m, track.y_m, junctions, command)[rows],
+        speed_mps=track.speed_mps[rows].astype(np.float32),
+        perturbation=perturbation,
+    )
+
+
+@dataclass(frozen=True)
 class GenerateConfig:
     """Settings of `crchfl-sumo dataset` (TOML: top-level ``seed``, ``[dataset]``,
-    ``[raster]`` (with ``[raster.camera]``), ``[world]``, ``[expert]``)."""
+    ``[raster]`` (with ``[raster.camera]``), ``[world]``, ``[expert]``, ``[command]``)."""
 
     seed: int = 0
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     raster: RasterConfig = field(default_factory=RasterConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
+    command: CommandConfig = field(default_factory=CommandConfig)
 
 
 def load_generate_config(path: str | Path | None, seed: int | None = None) -> GenerateConfig:
     """The config file's settings (defaults without one); ``seed`` overrides the file's."""
     config = GenerateConfig() if path is None else from_mapping(GenerateConfig, read_toml(path), where=str(path))
     if seed is not None:
-        config = GenerateConfig(int(seed), config.dataset, config.raster, config.world, config.expert)
+        config = dataclasses.replace(config, seed=int(seed))
     return config
 
 
@@ -261,5 +349,13 @@ def run_dataset_command(
     config = load_generate_config(config_path, seed)
     scenario = load_scenario(scenario_name)
     return generate_dataset(
-        scenario, out_dir, config.seed, config.dataset, config.raster, config.world, config.expert, progress
+        scenario,
+        out_dir,
+        config.seed,
+        config.dataset,
+        config.raster,
+        config.world,
+        config.expert,
+        progress,
+        command=config.command,
     )

@@ -1,8 +1,13 @@
-"""The label schema: action vector and the 7 steer classes (the paper's digitizer and DAC).
+"""The label schema: action vector, the 7 steer classes (the paper's digitizer and DAC), route commands.
 
 Action vector (throttle, steer, brake): throttle and brake in [0, 1], steer in
 [-1, 1], positive steer turns RIGHT, negative LEFT (the CRCHFL paper's CARLA
 convention; its left turn at a T-junction carries steer -0.275).
+
+Route command (Conditional Imitation Learning, Codevilla et al. 2018): what
+the vehicle's route does at the next junction within the command look-ahead
+(data/commands.py): follow the lane (no junction near), turn left, turn right,
+or go straight across. Code k is COMMAND_NAMES[k].
 """
 
 from __future__ import annotations
@@ -14,6 +19,10 @@ ACTION_NAMES = ("throttle", "steer", "brake")
 # Class k decodes to STEER_CLASS_VALUES[k] (the paper's reference implementation).
 STEER_CLASS_VALUES = np.array([0.0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425], dtype=np.float32)
 NUM_STEER_CLASSES = len(STEER_CLASS_VALUES)
+
+COMMAND_NAMES = ("follow", "left", "right", "straight")
+FOLLOW, LEFT, RIGHT, STRAIGHT = range(len(COMMAND_NAMES))
+NUM_COMMANDS = len(COMMAND_NAMES)
 
 
 def digitize_steer(steer: np.ndarray | float) -> np.ndarray:

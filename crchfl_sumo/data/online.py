@@ -5,9 +5,12 @@ sample time; in the ``online`` mode it keeps recording after that, on the
 federation's own SUMO run: every ``sample_period_s`` the collector renders
 the vehicle's four camera images (raster.py, with the data set's own camera
 and world settings) and keeps its kinematics. A sample is labelled by the
-expert (expert.py) once the vehicle has driven ``generate.FUTURE_S`` past it,
-the look-ahead the expert needs, so a sample's label never changes after it
-first appears. Each vehicle keeps at most ``max_samples`` collected samples
+expert (expert.py) and given its route command (commands.py) once the
+vehicle has driven ``generate.FUTURE_S`` past it (the look-ahead the expert
+needs) and ``CommandConfig.path_ahead_m`` metres beyond it (what the command
+needs to see the next junction's pass), so a sample's label never changes
+after it first appears. Collected samples are all rendered on the track (no
+recovery perturbation). Each vehicle keeps at most ``max_samples`` collected samples
 (on-board storage): the newest.
 
 What a vehicle trains on at time t is its shard plus the samples it had
@@ -19,15 +22,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.commands import CommandConfig, track_commands
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels
 from crchfl_sumo.data.generation import FUTURE_S
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.route import read_net
+from crchfl_sumo.sumo.turns import arc_length_m, choice_junctions
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
 
@@ -67,6 +74,7 @@ class OnlineCollector:
         world: WorldConfig = WorldConfig(),
         expert: ExpertConfig = ExpertConfig(),
         config: OnlineConfig = OnlineConfig(),
+        command: CommandConfig = CommandConfig(),
     ) -> None:
         every = int(round(sample_period_s / step_s))
         if every < 1 or not math.isclose(every * step_s, sample_period_s, rel_tol=1e-6):
@@ -80,11 +88,13 @@ class OnlineCollector:
         self._renderer = Renderer(build_world(net_path, world), raster)
         self.neighbourhood_m = neighbourhood_m(raster)  # what a frame must hold around each vehicle
         self._expert = expert
+        self._command = command
+        self._junctions = choice_junctions(read_net(Path(net_path)))
         self._max = config.max_samples
         self._rows: dict[str, dict[str, list[float]]] = {v: {c: [] for c in ("t_s", *_COLUMNS)} for v in self.vehicles}
         self._sample_t: dict[str, list[float]] = {v: [] for v in self.vehicles}
         self._images: dict[str, list[np.ndarray]] = {v: [] for v in self.vehicles}
-        self._labels: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+        self._labels: dict[str, tuple[int, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.t_s = -math.inf
 
     def observe(self, frame: Frame) -> None:
@@ -121,26 +131,33 @@ class OnlineCollector:
         if now_s > self.t_s + 1e-9:
             raise ValueError(f"OnlineCollector.collected: asked for {now_s} s but frames end at {self.t_s} s")
         times = np.asarray(self._sample_t[vehicle], dtype=np.float64)
-        keep = np.flatnonzero(times <= now_s - FUTURE_S + 1e-9)[-self._max :]
+        track_t = np.asarray(self._rows[vehicle]["t_s"])
+        # Final labels only: FUTURE_S of time and path_ahead_m of path driven since the sample, by now_s.
+        arc = arc_length_m(np.stack([self._rows[vehicle]["x_m"], self._rows[vehicle]["y_m"]], axis=1))
+        now_row = np.searchsorted(track_t, now_s + 1e-9, side="right") - 1
+        final_arc = arc[now_row] - self._command.path_ahead_m if now_row >= 0 else -math.inf
+        sample_arc = arc[np.searchsorted(track_t, times - 1e-9)] if len(times) else times
+        keep = np.flatnonzero((times <= now_s - FUTURE_S + 1e-9) & (sample_arc <= final_arc + 1e-9))[-self._max :]
         if len(keep) == 0:
             return None
         if keep[0] > 0:  # on-board storage: the older samples are gone for good
             del self._sample_t[vehicle][: keep[0]], self._images[vehicle][: keep[0]]
             times, keep = times[keep[0] :], keep - keep[0]
-        actions, steer_class = self._labels_for(vehicle)
-        track_t = np.asarray(self._rows[vehicle]["t_s"])
+        actions, steer_class, commands = self._labels_for(vehicle)
         rows = np.searchsorted(track_t, times[keep] - 1e-9)
         images = np.stack([self._images[vehicle][k] for k in keep])
-        return Samples.from_numpy(images, actions[rows], steer_class[rows])
+        speed_mps = np.asarray(self._rows[vehicle]["speed_mps"], dtype=np.float32)[rows]
+        return Samples.from_numpy(images, actions[rows], steer_class[rows], commands[rows], speed_mps)
 
-    def _labels_for(self, vehicle: str) -> tuple[np.ndarray, np.ndarray]:
-        """Expert labels over the vehicle's whole track so far (cached until the track grows)."""
+    def _labels_for(self, vehicle: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Expert labels and commands over the vehicle's whole track so far (cached until the track grows)."""
         store = self._rows[vehicle]
         n = len(store["t_s"])
         cached = self._labels.get(vehicle)
         if cached is None or cached[0] != n:
             track = Track(vehicle, *(np.asarray(store[c], dtype=np.float64) for c in ("t_s", *_COLUMNS)))
             actions, steer_class = expert_labels(track, self._expert)
-            cached = (n, actions, steer_class)
+            commands = track_commands(track.x_m, track.y_m, self._junctions, self._command)
+            cached = (n, actions, steer_class, commands)
             self._labels[vehicle] = cached
-        return cached[1], cached[2]
+        return cached[1], cached[2], cached[3]

@@ -1,8 +1,9 @@
-"""Samples: the in-memory container of training examples (images, actions, steer classes).
+"""Samples: the in-memory container of training examples (images, actions, steer classes, commands, speeds).
 
 One sample is one time step of one vehicle: the four camera images (order
-``labels.CAMERA_NAMES`` = CamH, CamF, CamL, CamR; HWC RGB, uint8), the action
-vector (throttle, steer, brake) and the steer class (``labels.digitize_steer``).
+``CAMERA_NAMES`` = CamH, CamF, CamL, CamR; HWC RGB, uint8), the action
+vector (throttle, steer, brake), the steer class (``labels.digitize_steer``),
+the route command (``labels.COMMAND_NAMES``) and the vehicle's speed [m/s].
 Images stay uint8 in memory (4x smaller than float32); the model normalises them.
 """
 
@@ -14,23 +15,27 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3
+FIELDS = ("images", "actions", "steer_class", "command", "speed_mps")  # the tensors, in constructor order
 
 
 @dataclass(frozen=True)
 class Samples:
     """N samples as torch tensors on the CPU (or any one device).
 
-    images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N].
+    images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N];
+    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps: float32 [N].
     """
 
     images: torch.Tensor
     actions: torch.Tensor
     steer_class: torch.Tensor
+    command: torch.Tensor
+    speed_mps: torch.Tensor
 
     def __post_init__(self) -> None:
         n = self.images.shape[0] if self.images.dim() else -1
@@ -46,6 +51,16 @@ class Samples:
             )
         if n and (int(self.steer_class.min()) < 0 or int(self.steer_class.max()) >= NUM_STEER_CLASSES):
             raise ValueError(f"steer_class values must lie in 0..{NUM_STEER_CLASSES - 1}")
+        if self.command.dtype != torch.int64 or tuple(self.command.shape) != (n,):
+            raise ValueError(f"command must be int64 [{n}], got {self.command.dtype} {tuple(self.command.shape)}")
+        if n and (int(self.command.min()) < 0 or int(self.command.max()) >= NUM_COMMANDS):
+            raise ValueError(f"command values must lie in 0..{NUM_COMMANDS - 1}")
+        if self.speed_mps.dtype != torch.float32 or tuple(self.speed_mps.shape) != (n,):
+            raise ValueError(
+                f"speed_mps must be float32 [{n}], got {self.speed_mps.dtype} {tuple(self.speed_mps.shape)}"
+            )
+        if n and not bool(torch.isfinite(self.speed_mps).all() and (self.speed_mps >= 0).all()):
+            raise ValueError("speed_mps values must be finite and >= 0")
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -59,11 +74,11 @@ class Samples:
         """The samples at ``indices`` (a slice gives views, an index list gives copies)."""
         if not isinstance(indices, slice):
             indices = torch.as_tensor(np.asarray(indices, dtype=np.int64))
-        return Samples(self.images[indices], self.actions[indices], self.steer_class[indices])
+        return Samples(*(getattr(self, name)[indices] for name in FIELDS))
 
     def to(self, device: torch.device | str) -> Samples:
         """The same samples on ``device``."""
-        return Samples(self.images.to(device), self.actions.to(device), self.steer_class.to(device))
+        return Samples(*(getattr(self, name).to(device) for name in FIELDS))
 
     @staticmethod
     def concat(parts: Sequence[Samples]) -> Samples:
@@ -73,19 +88,19 @@ class Samples:
         sizes = {p.image_hw for p in parts}
         if len(sizes) > 1:
             raise ValueError(f"Samples.concat: parts have different image sizes {sorted(sizes)}")
-        return Samples(
-            torch.cat([p.images for p in parts]),
-            torch.cat([p.actions for p in parts]),
-            torch.cat([p.steer_class for p in parts]),
-        )
+        return Samples(*(torch.cat([getattr(p, name) for p in parts]) for name in FIELDS))
 
     @staticmethod
-    def from_numpy(images: np.ndarray, actions: np.ndarray, steer_class: np.ndarray) -> Samples:
+    def from_numpy(
+        images: np.ndarray, actions: np.ndarray, steer_class: np.ndarray, command: np.ndarray, speed_mps: np.ndarray
+    ) -> Samples:
         """Build from numpy arrays (images are not copied when already uint8 and contiguous)."""
         return Samples(
             torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8)),
             torch.from_numpy(np.ascontiguousarray(actions, dtype=np.float32)),
             torch.from_numpy(np.ascontiguousarray(steer_class, dtype=np.int64)),
+            torch.from_numpy(np.ascontiguousarray(command, dtype=np.int64)),
+            torch.from_numpy(np.ascontiguousarray(speed_mps, dtype=np.float32)),
         )
 
     @staticmethod
@@ -95,4 +110,6 @@ class Samples:
             torch.zeros((0, NUM_CAMERAS, height, width, 3), dtype=torch.uint8),
             torch.zeros((0, NUM_ACTIONS), dtype=torch.float32),
             torch.zeros((0,), dtype=torch.int64),
+            torch.zeros((0,), dtype=torch.int64),
+            torch.zeros((0,), dtype=torch.float32),
         )

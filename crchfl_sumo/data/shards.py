@@ -6,9 +6,11 @@ Layout of a data set folder::
                           size) + one entry per finished shard (sha256 included)
     DIR/<name>.h5         one vehicle's samples: datasets images uint8
                           [N,4,H,W,3] (one chunk per sample), actions float32
-                          [N,3], steer_class int64 [N], t_s, x_m, y_m,
-                          heading_rad float64 [N]; attributes vehicle, town,
-                          edge, split
+                          [N,3], steer_class int64 [N], command int64 [N],
+                          speed_mps float32 [N], perturbation float32 [N,2]
+                          (lateral_m, yaw_deg of a recovery sample's pose), t_s,
+                          x_m, y_m, heading_rad float64 [N]; attributes
+                          vehicle, town, edge, split
 
 Both files are plain formats (h5py / json suffice to read them). Every file is
 written under a temporary name in DIR, then renamed, so a crash leaves either
@@ -32,16 +34,29 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.labels import ACTION_NAMES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, STEER_CLASS_VALUES
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "crchfl-sumo-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: command, speed_mps and perturbation per sample
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
+PERTURBATION_NAMES = ("lateral_m", "yaw_deg")  # positive = the rendered pose is left of / turned left of the track
+# Per-sample datasets beyond the images, with their dtypes (what a shard of this version must hold).
+LABEL_DATASETS = {
+    "actions": np.float32,
+    "steer_class": np.int64,
+    "command": np.int64,
+    "speed_mps": np.float32,
+    "perturbation": np.float32,
+    "t_s": np.float64,
+    "x_m": np.float64,
+    "y_m": np.float64,
+    "heading_rad": np.float64,
+}
 
 Compression = Literal["lzf", "gzip", "none"]
 
@@ -54,6 +69,8 @@ def label_schema() -> dict[str, Any]:
         "steer_class_values": [round(float(v), 6) for v in STEER_CLASS_VALUES],
         "steer_sign": "positive = right, negative = left",
         "throttle_brake_range": [0.0, 1.0],
+        "commands": list(COMMAND_NAMES),
+        "perturbation": list(PERTURBATION_NAMES),
     }
 
 
@@ -64,6 +81,9 @@ class ShardData:
     images: np.ndarray  # uint8 [N, 4, H, W, 3], cameras in CAMERA_NAMES order, RGB
     actions: np.ndarray  # float32 [N, 3] (throttle, steer, brake)
     steer_class: np.ndarray  # int64 [N]
+    command: np.ndarray  # int64 [N], labels.COMMAND_NAMES
+    speed_mps: np.ndarray  # float32 [N]
+    perturbation: np.ndarray  # float32 [N, 2] (lateral_m, yaw_deg); (0, 0) = rendered on the track
     t_s: np.ndarray  # float64 [N] simulated time of each sample
     x_m: np.ndarray  # float64 [N] vehicle centre
     y_m: np.ndarray
@@ -76,7 +96,9 @@ class ShardData:
             raise ValueError(f"images must be uint8 [N, 4, H, W, 3], got {self.images.dtype} {self.images.shape}")
         if self.actions.shape != (n, len(ACTION_NAMES)):
             raise ValueError(f"actions must be [{n}, 3], got {self.actions.shape}")
-        for name in ("steer_class", "t_s", "x_m", "y_m", "heading_rad"):
+        if self.perturbation.shape != (n, len(PERTURBATION_NAMES)):
+            raise ValueError(f"perturbation must be [{n}, 2], got {self.perturbation.shape}")
+        for name in ("steer_class", "command", "speed_mps", "t_s", "x_m", "y_m", "heading_rad"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be [{n}], got {getattr(self, name).shape}")
 
@@ -227,14 +249,14 @@ def write_shard(
                 chunks=(1, len(CAMERA_NAMES), height, width, 3) if n else None,
                 **(options if n else {}),
             )
-            f.create_dataset("actions", data=data.actions.astype(np.float32))
-            f.create_dataset("steer_class", data=data.steer_class.astype(np.int64))
-            for name in ("t_s", "x_m", "y_m", "heading_rad"):
-                f.create_dataset(name, data=getattr(data, name).astype(np.float64))
+            for name, dtype in LABEL_DATASETS.items():
+                f.create_dataset(name, data=getattr(data, name).astype(dtype))
             for key, value in (("vehicle", vehicle), ("town", town), ("edge", edge), ("split", split)):
                 f.attrs[key] = value
             f.attrs["cameras"] = ",".join(CAMERA_NAMES)
             f.attrs["actions"] = ",".join(ACTION_NAMES)
+            f.attrs["commands"] = ",".join(COMMAND_NAMES)
+            f.attrs["perturbation"] = ",".join(PERTURBATION_NAMES)
     return ShardEntry(
         file=path.name,
         vehicle=vehicle,
@@ -286,19 +308,17 @@ def read_shard(root: Path, entry: ShardEntry, verify: bool = True, images: bool 
     path = verify_shard(root, entry) if verify else Path(root) / entry.file
     try:
         with h5py.File(path, "r") as f:
+            missing = [name for name in LABEL_DATASETS if name not in f]
+            if missing:
+                raise CrchflError(
+                    f"{path}: shard has no {', '.join(missing)} (written by an older version of crchfl-sumo); "
+                    "regenerate the data set into a new folder with `crchfl-sumo dataset`"
+                )
             if images:
                 pixels = f["images"][()]
             else:
                 pixels = np.zeros((entry.samples, len(CAMERA_NAMES), 0, 0, 3), np.uint8)
-            data = ShardData(
-                images=pixels,
-                actions=f["actions"][()],
-                steer_class=f["steer_class"][()],
-                t_s=f["t_s"][()],
-                x_m=f["x_m"][()],
-                y_m=f["y_m"][()],
-                heading_rad=f["heading_rad"][()],
-            )
+            data = ShardData(images=pixels, **{name: f[name][()] for name in LABEL_DATASETS})
     except (OSError, KeyError, ValueError) as exc:
         raise CrchflError(f"{path}: unreadable shard ({exc}); delete it and rerun `crchfl-sumo dataset`") from None
     if len(data) != entry.samples:

@@ -43,6 +43,9 @@ def fake_shard(n, seed):
         images=images,
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),
+        command=rng.integers(0, 4, size=n),
+        speed_mps=np.full(n, 8.0, np.float32),
+        perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n)], axis=1).astype(np.float32),
         t_s=t_s,
         x_m=t_s * 8.0,
         y_m=np.zeros(n),
@@ -110,11 +113,13 @@ def test_shard_round_trip_readable_with_plain_h5py(tmp_path):
     entry = write_shard(tmp_path / "a.h5", data, vehicle="v1", town="Town01", edge="e1", split="train")
     assert entry.samples == 6 and entry.sha256 == sha256_file(tmp_path / "a.h5")
     back = read_shard(tmp_path, entry)
-    for name in ("images", "actions", "steer_class", "t_s", "x_m", "y_m", "heading_rad"):
+    for name in ("images", "actions", "steer_class", "command", "speed_mps", "perturbation", "t_s", "x_m", "y_m"):
         np.testing.assert_array_equal(getattr(back, name), getattr(data, name))
     with h5py.File(tmp_path / "a.h5", "r") as f:
         assert f["images"].shape == (6, 4, H, W, 3) and f["images"].chunks == (1, 4, H, W, 3)
         assert f["actions"].dtype == np.float32 and f["steer_class"].dtype == np.int64
+        assert f["command"].dtype == np.int64 and f["speed_mps"].dtype == np.float32
+        assert f["perturbation"].dtype == np.float32 and f["perturbation"].shape == (6, 2)
         assert (f.attrs["vehicle"], f.attrs["town"], f.attrs["edge"], f.attrs["split"]) == ("v1", "Town01", "e1", "train")
     assert not list(tmp_path.glob(".*"))  # no temporary left behind
 
@@ -211,10 +216,11 @@ def test_fast_path_and_torch_dataset_agree(tmp_path):
     dataset = ShardDataset(tmp_path, split="train")
     assert len(dataset) == 15
     for i in (0, 4, 5, 8, 9, 14, -1):
-        images, actions, steer_class = dataset[i]
+        images, actions, steer_class, command, speed_mps = dataset[i]
         assert torch.equal(images, samples.images[i])
         assert torch.equal(actions, samples.actions[i])
         assert int(steer_class) == int(samples.steer_class[i])
+        assert int(command) == int(samples.command[i]) and float(speed_mps) == float(samples.speed_mps[i])
     with pytest.raises(IndexError):
         dataset[15]
     batch = next(iter(torch.utils.data.DataLoader(dataset, batch_size=6)))
@@ -223,6 +229,7 @@ def test_fast_path_and_torch_dataset_agree(tmp_path):
     per_vehicle = load_vehicle_samples(tmp_path, "train")
     assert {k: len(v) for k, v in per_vehicle.items()} == {"veh0": 5, "veh1": 4, "veh3": 6}
     assert torch.equal(per_vehicle["veh3"].actions, samples.actions[9:])
+    assert torch.equal(per_vehicle["veh3"].command, samples.command[9:])
     with pytest.raises(CrchflError, match="vehicle"):
         load_samples(tmp_path, vehicles=["nobody"])
 
@@ -285,3 +292,22 @@ def test_malformed_manifest_is_refused(tmp_path):
         read_manifest(tmp_path)
     with pytest.raises(CrchflError, match="other settings|not a crchfl-sumo"):
         DatasetWriter(tmp_path, header())
+
+
+def test_shard_without_the_new_datasets_is_refused(tmp_path):
+    entry = write_shard(tmp_path / "old.h5", fake_shard(3, 1), vehicle="v", town="t", edge="e", split="train")
+    with h5py.File(tmp_path / "old.h5", "a") as f:  # what a version-1 shard lacks
+        del f["command"], f["speed_mps"]
+    with pytest.raises(CrchflError, match=r"old\.h5.*command, speed_mps.*regenerate the data set"):
+        read_shard(tmp_path, entry, verify=False)
+
+
+def test_version_1_manifest_is_refused_for_reading_and_resuming(tmp_path):
+    generate(tmp_path, small_config(), seed=3)
+    raw = json.loads((tmp_path / MANIFEST_NAME).read_text())
+    raw["version"] = 1
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps(raw))
+    with pytest.raises(CrchflError, match="version 1.*regenerate the data set"):
+        load_samples(tmp_path)
+    with pytest.raises(CrchflError, match="version 1"):
+        DatasetWriter(tmp_path, header(3))

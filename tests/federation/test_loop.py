@@ -44,7 +44,9 @@ class FixedTrainer(SumTrainer):
 
 
 def _samples(n: int) -> Samples:
-    return Samples.from_numpy(np.zeros((n, 4, 1, 1, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64))
+    return Samples.from_numpy(
+        np.zeros((n, 4, 1, 1, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64), np.zeros(n), np.zeros(n)
+    )
 
 
 PAPER_HOME = {"a": 0, "b": 0, "c": 1, "d": 1, "e": 1}  # 2 vehicles in town 1, 3 in town 2

@@ -29,6 +29,8 @@ def _samples(n, seed):
         rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
         rng.random((n, 3), dtype=np.float32),
         rng.integers(0, 7, size=n),
+        rng.integers(0, 4, size=n),
+        rng.uniform(0, 14, size=n),
     )
 
 

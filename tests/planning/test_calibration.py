@@ -134,6 +134,8 @@ def _random_samples(n: int, rng: np.random.Generator) -> Samples:
         rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
         rng.random((n, 3), dtype=np.float32),
         rng.integers(0, 7, size=n).astype(np.int64),
+        rng.integers(0, 4, size=n),
+        rng.uniform(0, 14, size=n),
     )
 
 
