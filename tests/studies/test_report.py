@@ -9,14 +9,14 @@ from pathlib import Path
 import pytest
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.studies.report import (
+from crchfl_sumo.studies.report import report_command
+from crchfl_sumo.studies.statistics import (
     cloud_lines,
     curve_by_bytes,
     curve_by_round,
     elapsed_s,
     mean_std,
     relative_gain_percent,
-    report_command,
     timing_groups,
 )
 

@@ -1,0 +1,95 @@
+"""Reading a reproduction's results folder: each run's summary, metrics and ledger, the centralized runs, the drives, the timings.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.schemes import SCHEMES
+
+LABEL_ORDER = (*SCHEMES, "centralized", "reference")
+
+
+def read_json(path: Path) -> Any:
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CrchflError(f"{path}: not readable JSON ({exc}); rerun the part that writes it") from None
+
+
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    path = Path(path)
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+def read_seed_runs(folder: Path) -> dict[int, dict[str, Any]]:
+    """seed -> {"summary", "metrics", "config"} of each ``folder/seed-S`` holding a summary.json."""
+    runs = {}
+    for summary_path in sorted(Path(folder).glob("seed-*/summary.json")):
+        run_dir = summary_path.parent
+        try:
+            seed = int(run_dir.name.split("-", 1)[1])
+        except ValueError:
+            continue
+        config_path = run_dir / "config.json"
+        runs[seed] = {
+            "summary": read_json(summary_path),
+            "metrics": read_jsonl(run_dir / "metrics.jsonl"),
+            "config": read_json(config_path) if config_path.is_file() else None,
+        }
+    return dict(sorted(runs.items()))
+
+
+def _ordered(names: Iterable[str], order: Sequence[str]) -> list[str]:
+    names = list(names)
+    return [n for n in order if n in names] + sorted(n for n in names if n not in order)
+
+
+def read_results(out_dir: str | Path) -> dict[str, Any]:
+    """Everything the report shows, read from the results folder."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise CrchflError(f"{out_dir}: no such results folder; give the --out folder of `crchfl-sumo reproduce`")
+    runs_dir, ablation_dir, drives_dir = out_dir / "runs", out_dir / "ablation", out_dir / "drives"
+    schemes = {}
+    if runs_dir.is_dir():
+        for name in _ordered([p.name for p in runs_dir.iterdir() if p.is_dir()], SCHEMES):
+            found = read_seed_runs(runs_dir / name)
+            if found:
+                schemes[name] = found
+    ablation = {}
+    if ablation_dir.is_dir():
+        settings = [p for p in ablation_dir.iterdir() if p.is_dir() and p.name.startswith("ie-")]
+        for path in sorted(settings, key=lambda p: int(p.name[3:]) if p.name[3:].isdigit() else 0):
+            found = read_seed_runs(path)
+            if found:
+                ablation[path.name] = found
+    drives: dict[str, dict[str, dict[str, Any]]] = {}
+    if drives_dir.is_dir():
+        for route_dir in sorted(p for p in drives_dir.iterdir() if p.is_dir()):
+            labels = [p.name for p in route_dir.iterdir() if (p / "metrics.json").is_file()]
+            if labels:
+                drives[route_dir.name] = {
+                    label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, LABEL_ORDER)
+                }
+    if not schemes and not ablation:
+        raise CrchflError(
+            f"{out_dir}: no finished run (runs/SCHEME/seed-S/summary.json); "
+            f"run `crchfl-sumo reproduce --out {out_dir}` first"
+        )
+    reproduce_path = out_dir / "reproduce.json"
+    timings_path = out_dir / "timings.json"
+    return {
+        "out_dir": out_dir,
+        "schemes": schemes,
+        "ablation": ablation,
+        "centralized": read_seed_runs(out_dir / "centralized"),
+        "drives": drives,
+        "reproduce": read_json(reproduce_path) if reproduce_path.is_file() else {},
+        "timings": read_json(timings_path) if timings_path.is_file() else {},
+    }

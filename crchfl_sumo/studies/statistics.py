@@ -1,0 +1,175 @@
+"""Pure statistics over a reproduction's results: mean and spread over seeds, learning curves against rounds and bytes, gains between schemes, running times, the summary.json dictionary.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from crchfl_sumo.accounting.schedules import STAGES
+
+# Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
+PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}
+
+
+def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
+    """Mean and sample standard deviation (ddof = 1) of the values that are not None.
+
+    ``std`` is None with fewer than two values, ``mean`` None with none.
+    """
+    kept = [float(v) for v in values if v is not None]
+    n = len(kept)
+    mean = float(np.mean(kept)) if n else None
+    std = float(np.std(kept, ddof=1)) if n >= 2 else None
+    return {"mean": mean, "std": std, "n": n}
+
+
+def relative_gain_percent(ours: float | None, theirs: float | None) -> float | None:
+    """How much higher ``ours`` is than ``theirs``, in percent of ``theirs``: 100 (a - b) / b."""
+    if ours is None or theirs is None or theirs == 0:
+        return None
+    return 100.0 * (ours - theirs) / theirs
+
+
+def cloud_lines(metrics: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    """The evaluated global models: the pretrained one (stage I, round 0) and each cloud aggregation (III)."""
+    return [m for m in metrics if m.get("stage") in ("I", "III") and m.get("accuracy") is not None]
+
+
+def curve_by_round(runs: Sequence[Sequence[Mapping[str, Any]]], key: str) -> dict[str, np.ndarray]:
+    """Mean and spread over runs of ``key`` at each cloud round (rounds some runs lack use the others)."""
+    by_round: dict[int, list[float]] = {}
+    for lines in runs:
+        for m in cloud_lines(lines):
+            if m.get(key) is not None:
+                by_round.setdefault(int(m["cloud_round"]), []).append(float(m[key]))
+    rounds = sorted(by_round)
+    stats = [mean_std(by_round[r]) for r in rounds]
+    return _curve(np.array(rounds, float), stats)
+
+
+def curve_by_bytes(runs: Sequence[Sequence[Mapping[str, Any]]], key: str) -> dict[str, np.ndarray]:
+    """``key`` against consumed bytes: at each cloud round, the mean over runs of both the bytes
+    consumed by then and ``key`` (with the paper's accounting every seed consumes the same bytes)."""
+    by_round: dict[int, list[tuple[float, float]]] = {}
+    for lines in runs:
+        for m in cloud_lines(lines):
+            if m.get(key) is not None:
+                by_round.setdefault(int(m["cloud_round"]), []).append((float(m["consumed_bytes"]), float(m[key])))
+    rounds = sorted(by_round)
+    x = np.array([np.mean([b for b, _ in by_round[r]]) for r in rounds], float)
+    return _curve(x, [mean_std(v for _, v in by_round[r]) for r in rounds])
+
+
+def _curve(x: np.ndarray, stats: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    mean = np.array([s["mean"] for s in stats], float)
+    std = np.array([np.nan if s["std"] is None else s["std"] for s in stats], float)
+    return {"x": x, "mean": mean, "std": std, "n": np.array([s["n"] for s in stats], int)}
+
+
+def scheme_stats(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    """Per-seed values and their mean/std of one scheme's (or ablation setting's) runs."""
+    summaries = [r["summary"] for r in runs.values()]
+    stats: dict[str, Any] = {"seeds": list(runs)}
+    for key in ("cloud_rounds", "edge_aggregations", "best_accuracy", "final_accuracy", "best_loss", "final_loss",
+                "consumed_bytes", "sim_time_s"):
+        values = [s.get(key) for s in summaries]
+        stats[key] = {**mean_std(values), "values": values}
+    stats["budget_bytes"] = summaries[0].get("budget_bytes")
+    stats["stop_reason"] = [s.get("stop_reason") for s in summaries]
+    stats["hyper"] = summaries[0].get("hyper")
+    by_stage = [s.get("bytes_by_stage") or {} for s in summaries]
+    stats["bytes_by_stage"] = {stage: mean_std(b.get(stage) for b in by_stage)["mean"] for stage in STAGES}
+    return stats
+
+
+def centralized_stats(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any] | None:
+    if not runs:
+        return None
+    summaries = [r["summary"] for r in runs.values()]
+    stats: dict[str, Any] = {"seeds": list(runs), "epochs": summaries[0].get("epochs")}
+    for key in ("best_accuracy", "final_accuracy", "best_loss", "final_loss"):
+        values = [s.get(key) for s in summaries]
+        stats[key] = {**mean_std(values), "values": values}
+    return stats
+
+
+def gains(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") -> dict[str, Any]:
+    """CRCHFL's accuracy over each other scheme: relative (% of theirs) and in points, for the
+    best and the final accuracy (means over seeds), next to the paper's figures."""
+    out: dict[str, Any] = {"paper_percent": dict(PAPER_GAINS_PERCENT)}
+    if ours not in schemes:
+        return out
+    for key in ("best_accuracy", "final_accuracy"):
+        mine = schemes[ours][key]["mean"]
+        out[key] = {}
+        for other, stats in schemes.items():
+            if other == ours:
+                continue
+            theirs = stats[key]["mean"]
+            out[key][other] = {
+                "relative_percent": relative_gain_percent(mine, theirs),
+                "points": None if mine is None or theirs is None else 100.0 * (mine - theirs),
+            }
+    return out
+
+
+def timing_groups(timings: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    """Wall and CPU seconds per kind of part (data, centralized, runs, ablation, drives) and in total.
+
+    The total also has ``elapsed_s``: the time during which at least one part ran (parts run side
+    by side with ``--jobs``; a part recorded without its start time counts its whole wall time).
+    """
+    groups: dict[str, dict[str, float]] = {}
+    for key, spent in list(timings.items()):
+        for group in (key.split("/", 1)[0], "total"):
+            sums = groups.setdefault(group, {"wall_s": 0.0, "cpu_s": 0.0})
+            for unit in ("wall_s", "cpu_s"):
+                sums[unit] += float(spent.get(unit, 0.0))
+    total = groups.pop("total", {"wall_s": 0.0, "cpu_s": 0.0})
+    total["elapsed_s"] = elapsed_s(timings.values())
+    return {**groups, "total": total}
+
+
+def elapsed_s(spans: Iterable[Mapping[str, float]]) -> float:
+    """Length of the union of the intervals [start_unix, start_unix + wall_s]; a span without a start adds its wall."""
+    spans = list(spans)
+    intervals = sorted((s["start_unix"], s["start_unix"] + s["wall_s"]) for s in spans if "start_unix" in s)
+    covered = sum(float(s.get("wall_s", 0.0)) for s in spans if "start_unix" not in s)
+    end = -math.inf
+    for start, stop in intervals:
+        covered += max(0.0, stop - max(start, end))
+        end = max(end, stop)
+    return covered
+
+
+def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
+    """summary.json: per scheme cloud_rounds, accuracies and losses (mean, std), bytes, closed loop."""
+    schemes = {name: scheme_stats(runs) for name, runs in results["schemes"].items()}
+    for name, stats in schemes.items():
+        stats["closed_loop"] = {
+            route: labels[name] for route, labels in results["drives"].items() if name in labels
+        }
+    ablation = {}
+    for setting, runs in results["ablation"].items():
+        stats = scheme_stats(runs)
+        budget = stats["budget_bytes"] or 0
+        spent = {s: stats["bytes_by_stage"][s] or 0.0 for s in STAGES}
+        stats["budget_percent"] = {
+            **{s: 100.0 * spent[s] / budget if budget else None for s in STAGES},
+            "unused": 100.0 * (budget - sum(spent.values())) / budget if budget else None,
+        }
+        ablation[setting] = stats
+    reproduce = results["reproduce"]
+    return {
+        "mode": (reproduce.get("config") or {}).get("name"),
+        "seeds": reproduce.get("seeds"),
+        "schemes": schemes,
+        "gains": gains(schemes),
+        "centralized": centralized_stats(results["centralized"]),
+        "ablation": ablation,
+        "closed_loop": results["drives"],
+        "running_time_s": timing_groups(results["timings"]),
+    }
