@@ -51,7 +51,8 @@ def write_data(root: Path, samples: int) -> Path:
         zeros = np.zeros(n)
         return ShardData(
             rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8), rng.random((n, 3), dtype=np.float32),
-            rng.integers(0, 7, n), np.arange(n) * 0.25, zeros, zeros, zeros,
+            rng.integers(0, 7, n), rng.integers(0, 4, n), rng.uniform(0, 14, n).astype(np.float32),
+            np.zeros((n, 2), np.float32), np.arange(n) * 0.25, zeros, zeros, zeros,
         )
 
     for i, (vehicle, town, edge) in enumerate(VEHICLES):
