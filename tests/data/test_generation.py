@@ -59,6 +59,14 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     assert data.images.shape == (6, 4, 24, 48, 3) and data.images.std() > 10  # not blank
     assert np.array_equal(data.steer_class, digitize_steer(data.actions[:, 1]))
     assert data.actions[0, 2] == 0.9 and data.actions[1, 0] == 1.0  # inserted at rest, then pulls away
+    assert data.speed_mps.dtype == np.float32 and data.speed_mps[0] == 0.0 and data.speed_mps[1] > 0
+    assert data.command.dtype == np.int64 and set(data.command.tolist()) <= {0, 1, 2, 3}
+    # Default recovery share 0.25 of the moving samples (5 of 6 here: the first stands): round(1.25) = 1.
+    perturbed = np.flatnonzero(np.any(data.perturbation != 0, axis=1))
+    assert len(perturbed) == 1 and perturbed[0] != 0
+    assert abs(data.perturbation[perturbed[0], 0]) <= 1.0 and abs(data.perturbation[perturbed[0], 1]) <= 15.0
+    assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0}
+    assert full.labels["command"]["lookahead_m"] == 25.0
     assert full.png_bytes_per_sample > 0
 
     def stop_after_first_shard(update):
@@ -138,3 +146,39 @@ def test_neighbourhood_frames_render_what_full_frames_render():
             alone = frames[i].select(frames[i].ids == vehicle)
             drawn_others += int(not np.array_equal(renderer.render(alone, [vehicle]), renderer.render(frames[i], [vehicle])))
     assert drawn_others >= 3  # some images did show other vehicles (5 of 60 with this seed)
+
+
+def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
+    from crchfl_sumo.data.commands import CommandConfig
+    from crchfl_sumo.data.expert import ExpertConfig, Track
+    from crchfl_sumo.data.generation import sample_labels
+    from crchfl_sumo.data.labels import FOLLOW, LEFT
+    from crchfl_sumo.sumo.turns import Junction
+
+    # East along y = 0 at 5 m/s for 40 steps, after standing 10 steps; a junction square at x = 100.
+    n = 60
+    speed = np.where(np.arange(n) < 10, 0.0, 5.0)
+    x = np.concatenate([[0.0], np.cumsum(speed[1:] * 0.25)]) + 70.0
+    track = Track("v", np.arange(n) * 0.25, x, np.zeros(n), np.zeros(n), speed, np.zeros(n),
+                  np.full(n, 2.6), np.full(n, 4.5))
+    square = Junction("J", np.array([[100.0, -6.0], [112.0, -6.0], [112.0, 6.0], [100.0, 6.0]]))
+    rows = np.arange(0, 40, 2)
+    sizes = DatasetConfig(recovery_share=1.0)
+
+    labels = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1))
+    standing = speed[rows] == 0
+    assert not labels.perturbation[standing].any() and np.all(labels.perturbation[~standing] != 0)
+    # Each perturbed label steers towards the unperturbed target (x + L, 0) on the straight track: right (> 0)
+    # when the target lies to the right of the perturbed heading (alpha < 0), left otherwise.
+    lateral, yaw = labels.perturbation[:, 0], np.radians(labels.perturbation[:, 1])
+    lookahead = np.maximum(5.0, 0.8 * speed[rows])
+    alpha = np.arctan2(-lateral, lookahead) - yaw  # straight road: target (L, 0) seen from (0, lateral)
+    assert np.all(np.sign(labels.actions[~standing, 1]) == -np.sign(alpha[~standing]))
+    assert np.array_equal(labels.steer_class, digitize_steer(labels.actions[:, 1]))
+    assert labels.speed_mps.dtype == np.float32 and labels.speed_mps.tolist() == speed[rows].tolist()
+    # The path runs straight through the square: STRAIGHT from 25 m before x = 100, FOLLOW before.
+    assert labels.command[x[rows] < 100.0 - 25.5].tolist() == [FOLLOW] * int(np.sum(x[rows] < 74.5))
+    assert set(labels.command[x[rows] > 75.5].tolist()) == {3}
+    assert LEFT not in labels.command
+    again = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1))
+    assert np.array_equal(again.perturbation, labels.perturbation)
