@@ -17,13 +17,15 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
 
 PEDAL_BINS = np.linspace(0.0, 1.0, 11)  # 10 bins of width 0.1 for throttle and brake
+SPEED_BINS = np.arange(0.0, 17.0, 1.0)  # 1 m/s bins up to 16 m/s (the towns' limit is 13.9 m/s)
 
 
 def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
@@ -31,17 +33,21 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
 
     Keys: scenario, seed, samples, png_bytes_per_sample, per_vehicle (list of
     vehicle/town/edge/split/samples), and per split ('train', 'test', 'all'):
-    steer_class_counts [7], throttle_hist / brake_hist [10] over PEDAL_BINS,
-    throttle_mean, brake_mean, steer_mean, standing_share (brake >= 0.8).
+    steer_class_counts [7], command_counts [4] (labels.COMMAND_NAMES),
+    throttle_hist / brake_hist [10] over PEDAL_BINS, speed_hist [16] over
+    SPEED_BINS, throttle_mean, brake_mean, steer_mean, speed_mean,
+    standing_share (speed below the expert's stop_speed_mps), hard_brake_share
+    (brake >= 0.8), recovery_share (samples rendered from a perturbed pose).
     """
     root = Path(root)
     manifest = read_manifest(root)
-    actions: dict[str, list[np.ndarray]] = {"train": [], "test": []}
-    classes: dict[str, list[np.ndarray]] = {"train": [], "test": []}
+    stop_speed_mps = float(manifest.labels.get("expert", {}).get("stop_speed_mps", ExpertConfig().stop_speed_mps))
+    columns = ("actions", "steer_class", "command", "speed_mps", "perturbation")
+    parts: dict[str, dict[str, list[np.ndarray]]] = {split: {c: [] for c in columns} for split in ("train", "test")}
     for entry in manifest.shards:
         data = read_shard(root, entry, verify=verify, images=False)
-        actions[entry.split].append(data.actions)
-        classes[entry.split].append(data.steer_class)
+        for c in columns:
+            parts[entry.split][c].append(getattr(data, c))
     stats: dict[str, Any] = {
         "scenario": manifest.scenario,
         "seed": manifest.seed,
@@ -52,28 +58,42 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
             for s in manifest.shards
         ],
     }
+    empty = {"actions": (0, 3), "steer_class": (0,), "command": (0,), "speed_mps": (0,), "perturbation": (0, 2)}
     for split in ("train", "test", "all"):
-        parts_a = actions["train"] + actions["test"] if split == "all" else actions[split]
-        parts_c = classes["train"] + classes["test"] if split == "all" else classes[split]
-        a = np.concatenate(parts_a) if parts_a else np.zeros((0, 3), np.float32)
-        c = np.concatenate(parts_c) if parts_c else np.zeros(0, np.int64)
-        stats[split] = _label_summary(a, c)
+        chosen = ("train", "test") if split == "all" else (split,)
+        arrays = {}
+        for c in columns:
+            pieces = [p for name in chosen for p in parts[name][c]]
+            arrays[c] = np.concatenate(pieces) if pieces else np.zeros(empty[c])
+        stats[split] = _label_summary(**arrays, stop_speed_mps=stop_speed_mps)
     return stats
 
 
-def _label_summary(actions: np.ndarray, steer_class: np.ndarray) -> dict[str, Any]:
+def _label_summary(
+    actions: np.ndarray,
+    steer_class: np.ndarray,
+    command: np.ndarray,
+    speed_mps: np.ndarray,
+    perturbation: np.ndarray,
+    stop_speed_mps: float,
+) -> dict[str, Any]:
     def mean(values: np.ndarray) -> float:
         return round(float(values.mean()), 4) if len(values) else 0.0
 
     return {
         "samples": int(len(actions)),
-        "steer_class_counts": np.bincount(steer_class, minlength=NUM_STEER_CLASSES).tolist(),
+        "steer_class_counts": np.bincount(steer_class.astype(np.int64), minlength=NUM_STEER_CLASSES).tolist(),
+        "command_counts": np.bincount(command.astype(np.int64), minlength=NUM_COMMANDS).tolist(),
         "throttle_hist": np.histogram(actions[:, 0], PEDAL_BINS)[0].tolist(),
         "brake_hist": np.histogram(actions[:, 2], PEDAL_BINS)[0].tolist(),
+        "speed_hist": np.histogram(np.clip(speed_mps, 0.0, SPEED_BINS[-1]), SPEED_BINS)[0].tolist(),
         "throttle_mean": mean(actions[:, 0]),
         "brake_mean": mean(actions[:, 2]),
         "steer_mean": mean(actions[:, 1]),
-        "standing_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
+        "speed_mean": mean(speed_mps),
+        "standing_share": mean((speed_mps < stop_speed_mps).astype(np.float64)),
+        "hard_brake_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
+        "recovery_share": mean(np.any(perturbation != 0, axis=1).astype(np.float64)),
     }
 
 
@@ -81,7 +101,7 @@ def plot_stats(stats: dict[str, Any], out_png: Path) -> Path:
     """Figure: steer-class histogram, throttle and brake distributions, samples per vehicle."""
     plt = pyplot()
 
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    fig, axes = plt.subplots(2, 3, figsize=(16, 7))
     order = np.argsort(STEER_CLASS_VALUES)  # plot classes left (negative) to right (positive)
     for split, offset in (("train", -0.2), ("test", 0.2)):
         counts = np.asarray(stats[split]["steer_class_counts"])[order]
@@ -97,6 +117,17 @@ def plot_stats(stats: dict[str, Any], out_png: Path) -> Path:
         ax.set_xlabel(name)
         ax.set_title(f"{name} (mean train {stats['train'][f'{name}_mean']:.3f})")
         ax.legend()
+    for split, offset in (("train", -0.2), ("test", 0.2)):
+        axes[0, 2].bar(np.arange(NUM_COMMANDS) + offset, stats[split]["command_counts"], width=0.4, label=split)
+    axes[0, 2].set_xticks(range(NUM_COMMANDS), list(COMMAND_NAMES))
+    axes[0, 2].set_title("route commands")
+    axes[0, 2].legend()
+    speed_centres = (SPEED_BINS[:-1] + SPEED_BINS[1:]) / 2
+    for split, offset in (("train", -0.2), ("test", 0.2)):
+        axes[1, 2].bar(speed_centres + offset, stats[split]["speed_hist"], width=0.4, label=split)
+    axes[1, 2].set_xlabel("speed [m/s]")
+    axes[1, 2].set_title(f"speed (standing share train {stats['train']['standing_share']:.2f})")
+    axes[1, 2].legend()
     rows = stats["per_vehicle"]
     axes[1, 1].barh(
         [f"{r['town']} {r['vehicle']} ({r['split']})" for r in rows],
@@ -139,12 +170,16 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
             images = f["images"][row]
             throttle, steer, brake = f["actions"][row]
             steer_class = int(f["steer_class"][row])
+            command = COMMAND_NAMES[int(f["command"][row])]
+            lateral_m, yaw_deg = f["perturbation"][row]
         tiles = [cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for img in images]
         strip = np.concatenate(tiles, axis=1)
         caption = np.full((22, strip.shape[1], 3), 255, np.uint8)
         text = (
             f"{file}#{row}  throttle {throttle:.2f}  steer {steer:+.3f} (class {steer_class}: "
-            f"{STEER_CLASS_VALUES[steer_class]:+.3f})  brake {brake:.2f}   [{' | '.join(CAMERA_NAMES)}]"
+            f"{STEER_CLASS_VALUES[steer_class]:+.3f})  brake {brake:.2f}  {command}"
+            + (f"  off {lateral_m:+.2f} m {yaw_deg:+.1f} deg" if lateral_m or yaw_deg else "")
+            + f"   [{' | '.join(CAMERA_NAMES)}]"
         )
         cv2.putText(caption, text, (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
         rows.append(np.concatenate([caption, strip], axis=0))

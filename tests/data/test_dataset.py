@@ -44,8 +44,9 @@ def fake_shard(n, seed):
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),
         command=rng.integers(0, 4, size=n),
-        speed_mps=np.full(n, 8.0, np.float32),
-        perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n)], axis=1).astype(np.float32),
+        speed_mps=np.where(rng.random(n) < 0.3, 0.0, 8.0).astype(np.float32),
+        perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n)], axis=1).astype(np.float32)
+        * (rng.random(n) < 0.5)[:, None],
         t_s=t_s,
         x_m=t_s * 8.0,
         y_m=np.zeros(n),
@@ -260,6 +261,12 @@ def test_dataset_stats_counts_and_files(tmp_path):
     assert stats["train"]["steer_class_counts"] == np.bincount(train.steer_class.numpy(), minlength=7).tolist()
     assert stats["train"]["throttle_hist"] == np.histogram(train.actions[:, 0].numpy(), PEDAL_BINS)[0].tolist()
     assert sum(stats["all"]["brake_hist"]) == 18
+    assert stats["train"]["command_counts"] == np.bincount(train.command.numpy(), minlength=4).tolist()
+    assert stats["train"]["standing_share"] == pytest.approx(float((train.speed_mps < 0.1).float().mean()), abs=1e-4)
+    assert stats["train"]["speed_mean"] == pytest.approx(float(train.speed_mps.mean()), abs=1e-4)
+    perturbed = [np.any(read_shard(tmp_path / "data", e).perturbation != 0, axis=1) for e in read_manifest(tmp_path / "data").shards]
+    assert stats["all"]["recovery_share"] == pytest.approx(float(np.concatenate(perturbed).mean()), abs=1e-4)
+    assert 0 < stats["all"]["recovery_share"] < 1 and 0 < stats["train"]["standing_share"] < 1
     assert [r["samples"] for r in stats["per_vehicle"]] == [3, 5, 4, 6]
     assert json.loads((tmp_path / "out" / "dataset_stats.json").read_text())["samples"] == 18
     mosaic = cv2.imread(stats["files"]["mosaic"])
