@@ -43,244 +43,31 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field
-from typing import Callable, Literal, Mapping, Protocol, Sequence
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from crchfl_sumo.accounting.ledger import Ledger, Record
+from crchfl_sumo.accounting.ledger import Ledger
 from crchfl_sumo.accounting.schedules import (
     CLOUD,
-    ByteSizes,
     Topology,
     Transfer,
     cloud_aggregation_schedule,
     edge_aggregation_schedule,
     stage_one_schedule,
 )
-from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.schemes import SCHEMES, Scheme
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation.settings import SFL_LINK
+from crchfl_sumo.federation.state import FederationState, LoopInputs, Trainer
 from crchfl_sumo.learning.aggregate import fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
-from crchfl_sumo.links.mobility import NO_SITE
-from crchfl_sumo.links.transfer import TransferConfig, wireline_transfer_time_s
+from crchfl_sumo.links.transfer import wireline_transfer_time_s
 from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)
-
-HandoverPolicy = Literal["new_edge", "wait", "miss"]
-SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
-
-# Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
-DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
-
-
-@dataclass(frozen=True)
-class FederationConfig:
-    """The scheme and its four hyper-parameters (TOML table ``[federation]``).
-
-    scheme: "crchfl" (stage I + hierarchy), "hfl" (hierarchy only), "sfl"
-        (vehicles straight to the cloud).
-    use_plan: CRCHFL only: ask the resource optimizer (allocation.make_plan)
-        for the four values below instead of taking them from here.
-    pretrain_batch: samples uploaded for cloud pretraining (CRCHFL; 0 = no stage I).
-    edge_interval: local epochs between two edge aggregations (SFL: between
-        two cloud aggregations).
-    cloud_interval: edge aggregations between two cloud aggregations (SFL: 1).
-    cloud_rounds: stop after this many cloud rounds; 0 = until the budget is spent.
-    pretrain_epochs: epochs of the cloud's pretraining on the uploaded subset.
-    evaluate_every_edge: also evaluate the edge models after every edge aggregation.
-    handover_policy: what a vehicle's upload does when the vehicle is not (or
-        no longer) served by its edge: "new_edge" (the model goes to whichever
-        edge serves the vehicle when the upload ends; the vehicle joins it),
-        "wait" (it is sent only while its own edge serves it, waiting out any
-        time elsewhere, up to the deadline), "miss" (leaving its edge's
-        coverage during the upload fails it: the vehicle misses that aggregation).
-    deadline_s: per aggregation: how long after its window opened an edge
-        (or, in SFL, the cloud) waits for uploads [s]; inf = for all of them.
-    compute_s_per_sample: simulated time of one sample of one local epoch on a
-        vehicle, and of the cloud's pretraining [s].
-    seed: seed of the initial model, the pretraining subset and the shuffling.
-    """
-
-    scheme: Scheme = "crchfl"
-    use_plan: bool = False
-    pretrain_batch: int = 0
-    edge_interval: int = 2
-    cloud_interval: int = 1
-    cloud_rounds: int = 0
-    pretrain_epochs: int = 10
-    evaluate_every_edge: bool = False
-    handover_policy: Literal["new_edge", "wait", "miss"] = "new_edge"
-    deadline_s: float = math.inf
-    compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.scheme not in SCHEMES:
-            raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
-        if self.handover_policy not in ("new_edge", "wait", "miss"):
-            raise CrchflError(
-                f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'wait', 'miss'"
-            )
-        if self.use_plan and self.scheme != "crchfl":
-            raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
-        if self.pretrain_batch < 0:
-            raise CrchflError(f"federation.pretrain_batch: {self.pretrain_batch} must be >= 0")
-        if self.pretrain_batch > 0 and self.scheme != "crchfl":
-            raise CrchflError(
-                f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"
-            )
-        if self.edge_interval < 1:
-            raise CrchflError(f"federation.edge_interval: {self.edge_interval} must be >= 1 (local epochs)")
-        if self.cloud_interval < 1:
-            raise CrchflError(f"federation.cloud_interval: {self.cloud_interval} must be >= 1")
-        if self.scheme == "sfl" and self.cloud_interval != 1:
-            raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
-        if self.cloud_rounds < 0:
-            raise CrchflError(
-                f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)"
-            )
-        if self.pretrain_epochs < 1:
-            raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
-        if not self.deadline_s > 0:
-            raise CrchflError(f"federation.deadline_s: {self.deadline_s} must be > 0 (inf = no deadline)")
-        if self.handover_policy == "wait" and not math.isfinite(self.deadline_s):
-            raise CrchflError(
-                "federation.handover_policy = 'wait' waits for the vehicle's own edge until the aggregation "
-                "deadline; set a finite federation.deadline_s"
-            )
-        if not (math.isfinite(self.compute_s_per_sample) and self.compute_s_per_sample >= 0):
-            raise CrchflError(f"federation.compute_s_per_sample: {self.compute_s_per_sample} must be a number >= 0")
-
-    @property
-    def hierarchical(self) -> bool:
-        return self.scheme != "sfl"
-
-
-@dataclass(frozen=True)
-class HyperParameters:
-    """The four hyper-parameters a run uses (from the config or from the optimizer's plan)."""
-
-    pretrain_batch: int
-    edge_interval: int
-    cloud_interval: int
-    cloud_rounds: int  # 0 = until the budget is spent
-
-
-class Trainer(Protocol):
-    """What the loop needs from learning; models are state dicts."""
-
-    def initial_state(self) -> State: ...
-
-    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> list[State]: ...
-
-    def evaluate(self, state: State) -> tuple[float, float]:
-        """(Loss, Accuracy) on the test set."""
-        ...
-
-
-@dataclass(frozen=True)
-class LoopInputs:
-    """Everything fixed for one run: who takes part, sizes, links.
-
-    vehicles: the federated vehicles in a fixed order (their training seeds
-    follow it); home_site: each vehicle's edge site index at the start;
-    edges: edge site names (index = site index).
-    """
-
-    config: FederationConfig
-    hyper: HyperParameters
-    vehicles: tuple[str, ...]
-    samples: Mapping[str, Samples]
-    home_site: Mapping[str, int]
-    edges: tuple[str, ...]
-    sizes: ByteSizes
-    rule: Literal["paper", "physical"]
-    wireline: WirelineConfig = WirelineConfig()
-    transfer: TransferConfig = TransferConfig()
-
-    def __post_init__(self) -> None:
-        names = list(self.vehicles) + list(self.edges)
-        if len(set(names)) != len(names) or CLOUD in names or SFL_LINK in names:
-            raise CrchflError(f"vehicle ids and edge names must be distinct and not {CLOUD!r}/{SFL_LINK!r}: {names}")
-        for v in self.vehicles:
-            if v not in self.samples or len(self.samples[v]) == 0:
-                raise CrchflError(f"vehicle '{v}' has no training samples; check the data set's train shards")
-            if self.config.hierarchical and not 0 <= self.home_site.get(v, NO_SITE) < len(self.edges):
-                raise CrchflError(
-                    f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges"
-                )
-
-    def count(self, vehicle: str) -> int:
-        return len(self.samples[vehicle])
-
-
-@dataclass
-class FederationState:
-    """All the loop remembers; a checkpoint stores exactly this.
-
-    member: vehicle -> edge name it belongs to now; ready_s: when each vehicle
-    holds its current model; open_s: per edge (or the cloud, SFL) when its
-    current aggregation window opened; steps: steps done (the training seed
-    of step k derives from it).
-    """
-
-    vehicle_models: dict[str, State]
-    edge_models: dict[str, State]
-    edge_weights: dict[str, float]
-    cloud_model: State
-    member: dict[str, str]
-    ready_s: dict[str, float]
-    open_s: dict[str, float]
-    stage_one_done: bool = False
-    steps: int = 0
-    cloud_rounds: int = 0
-    edge_aggregations: int = 0
-    tau: int = 0  # edge aggregations done in the current cloud round
-    records: list[Record] = field(default_factory=list)
-    metrics: list[dict] = field(default_factory=list)
-    stragglers: list[dict] = field(default_factory=list)
-    best_model: State | None = None
-    best: dict | None = None  # metrics line of the best cloud model
-    stop_reason: str | None = None
-
-    @property
-    def done(self) -> bool:
-        return self.stop_reason is not None
-
-    def to_payload(self) -> dict:
-        """Plain dict of tensors and JSON-like values (torch.load(weights_only=True) reads it back)."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["records"] = [r.to_dict() for r in self.records]
-        return out
-
-    @classmethod
-    def from_payload(cls, payload: Mapping) -> "FederationState":
-        values = dict(payload)
-        values["records"] = [Record(**r) for r in payload["records"]]
-        return cls(**values)
-
-
-def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> FederationState:
-    """Every node holds the same seeded initial model (no transfer needed: only the seed)."""
-    model = trainer.initial_state()
-    edges = setup.edges if setup.config.hierarchical else ()
-    member = {v: setup.edges[setup.home_site[v]] if setup.config.hierarchical else CLOUD for v in setup.vehicles}
-    weights = {e: float(sum(setup.count(v) for v in setup.vehicles if member[v] == e)) for e in edges}
-    return FederationState(
-        vehicle_models={v: model for v in setup.vehicles},
-        edge_models={e: model for e in edges},
-        edge_weights=weights,
-        cloud_model=model,
-        member=member,
-        ready_s={v: start_s for v in setup.vehicles},
-        open_s={k: start_s for k in (edges or (CLOUD,))},
-        stage_one_done=setup.hyper.pretrain_batch == 0,
-    )
 
 
 # ------------------------------------------------------------------ one step
@@ -510,14 +297,7 @@ class Federation:
             ev = _wireline(pretrained_s, sizes.model_bytes, setup.wireline)
             events[(CLOUD, e, "downlink")] = ev
             open_s[e] = ev.end_s
-            for v in vehicles:
-                out = self._download(v, ev.end_s, sizes.model_bytes, e)
-                events[(e, v, "downlink")] = _wireless(out)
-                ready[v] = out.end_s
-                if out.ok:
-                    models[v] = model
-                else:
-                    self._straggler(state, v, "I", f"download {out.reason}", out.end_s)
+            self._send_down(state, e, vehicles, ev.end_s, model, "I", events, models, ready)
         received = {v: shares[v] for v in setup.vehicles}
         schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
         if not _charge(ledger, schedule, events, setup.rule, cloud_round=0):
@@ -631,18 +411,26 @@ class Federation:
         the times they hold them, and the edges' new window openings.
         """
         models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
-        size = self.setup.sizes.model_bytes
         for e, vehicles in topology.active():
             open_s[e] = release_s[e]
-            for v in vehicles:
-                out = self._download(v, release_s[e], size, e)
-                events[(e, v, "downlink")] = _wireless(out)
-                ready[v] = out.end_s
-                if out.ok:
-                    models[v] = edge_models[e]
-                else:
-                    self._straggler(state, v, stage, f"download {out.reason}", out.end_s)
+            self._send_down(state, e, vehicles, release_s[e], edge_models[e], stage, events, models, ready)
         return models, ready, open_s
+
+    def _send_down(self, state, sender: str, vehicles, start_s: float, model: State, stage: str, events, models, ready):
+        """``sender`` (an edge, or the cloud in SFL) sends ``model`` to each of ``vehicles`` from ``start_s`` on.
+
+        Records each download in ``events`` and its arrival in ``ready``; a vehicle whose download
+        fails keeps the model ``models`` holds for it and is recorded as a straggler.
+        """
+        edge = None if sender == CLOUD else sender
+        for v in vehicles:
+            out = self._download(v, start_s, self.setup.sizes.model_bytes, edge)
+            events[(sender, v, "downlink")] = _wireless(out)
+            ready[v] = out.end_s
+            if out.ok:
+                models[v] = model
+            else:
+                self._straggler(state, v, stage, f"download {out.reason}", out.end_s)
 
     def _evaluate_edges(self, models, weights, edges) -> tuple[float, float]:
         """Sample-weighted mean of the edge models' test Loss and Accuracy."""
@@ -702,14 +490,7 @@ class Federation:
         cloud_s = max(ends)
         cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
         models, ready = dict(trained), dict(state.ready_s)
-        for v in setup.vehicles:
-            out = self._download(v, cloud_s, sizes.model_bytes, None)
-            events[(CLOUD, v, "downlink")] = _wireless(out)
-            ready[v] = out.end_s
-            if out.ok:
-                models[v] = cloud_model
-            else:
-                self._straggler(state, v, "III", f"download {out.reason}", out.end_s)
+        self._send_down(state, CLOUD, setup.vehicles, cloud_s, cloud_model, "III", events, models, ready)
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)
@@ -730,8 +511,3 @@ def _better(accuracy: float, loss: float, best_accuracy: float, best_loss: float
     if math.isnan(best_accuracy) or accuracy > best_accuracy:
         return True
     return accuracy == best_accuracy and loss < best_loss
-
-
-def sim_time_s(state: FederationState) -> float:
-    """The latest simulated time the run reached (the last model's arrival)."""
-    return max(list(state.ready_s.values()) + [r.end_s for r in state.records], default=0.0)

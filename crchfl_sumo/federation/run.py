@@ -35,14 +35,7 @@ from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.loop import (
-    Federation,
-    FederationState,
-    HyperParameters,
-    LoopInputs,
-    initial_state,
-    sim_time_s,
-)
+from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,
@@ -51,6 +44,8 @@ from crchfl_sumo.federation.run_config import (
     with_backend,
 )
 from crchfl_sumo.federation.run_data import RunData, make_clock, read_inputs
+from crchfl_sumo.federation.settings import HyperParameters
+from crchfl_sumo.federation.state import FederationState, LoopInputs, initial_state, sim_time_s
 from crchfl_sumo.learning.checkpoint import save_checkpoint
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer

@@ -19,9 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.online import OnlineConfig
-from crchfl_sumo.federation.loop import (
-    FederationConfig,
-)
+from crchfl_sumo.federation.settings import FederationConfig
 from crchfl_sumo.learning.model import ModelConfig
 from crchfl_sumo.learning.training import TrainConfig
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig

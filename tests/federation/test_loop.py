@@ -12,7 +12,9 @@ from crchfl_sumo.accounting.ledger import MIB, Ledger, LedgerConfig, replay, res
 from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.loop import CLOUD, Federation, FederationConfig, HyperParameters, LoopInputs, initial_state
+from crchfl_sumo.federation.loop import CLOUD, Federation
+from crchfl_sumo.federation.settings import FederationConfig, HyperParameters
+from crchfl_sumo.federation.state import LoopInputs, initial_state
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig

@@ -1,0 +1,115 @@
+"""The federation's settings: the scheme and its four hyper-parameters (TOML [federation]), and the values a run resolves them to.
+
+No torch here: every config that names a federation reads this module.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.schemes import SCHEMES, Scheme
+
+HandoverPolicy = Literal["new_edge", "wait", "miss"]
+
+
+SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
+
+
+# Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
+DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
+
+
+@dataclass(frozen=True)
+class FederationConfig:
+    """The scheme and its four hyper-parameters (TOML table ``[federation]``).
+
+    scheme: "crchfl" (stage I + hierarchy), "hfl" (hierarchy only), "sfl"
+        (vehicles straight to the cloud).
+    use_plan: CRCHFL only: ask the resource optimizer (allocation.make_plan)
+        for the four values below instead of taking them from here.
+    pretrain_batch: samples uploaded for cloud pretraining (CRCHFL; 0 = no stage I).
+    edge_interval: local epochs between two edge aggregations (SFL: between
+        two cloud aggregations).
+    cloud_interval: edge aggregations between two cloud aggregations (SFL: 1).
+    cloud_rounds: stop after this many cloud rounds; 0 = until the budget is spent.
+    pretrain_epochs: epochs of the cloud's pretraining on the uploaded subset.
+    evaluate_every_edge: also evaluate the edge models after every edge aggregation.
+    handover_policy: what a vehicle's upload does when the vehicle is not (or
+        no longer) served by its edge: "new_edge" (the model goes to whichever
+        edge serves the vehicle when the upload ends; the vehicle joins it),
+        "wait" (it is sent only while its own edge serves it, waiting out any
+        time elsewhere, up to the deadline), "miss" (leaving its edge's
+        coverage during the upload fails it: the vehicle misses that aggregation).
+    deadline_s: per aggregation: how long after its window opened an edge
+        (or, in SFL, the cloud) waits for uploads [s]; inf = for all of them.
+    compute_s_per_sample: simulated time of one sample of one local epoch on a
+        vehicle, and of the cloud's pretraining [s].
+    seed: seed of the initial model, the pretraining subset and the shuffling.
+    """
+
+    scheme: Scheme = "crchfl"
+    use_plan: bool = False
+    pretrain_batch: int = 0
+    edge_interval: int = 2
+    cloud_interval: int = 1
+    cloud_rounds: int = 0
+    pretrain_epochs: int = 10
+    evaluate_every_edge: bool = False
+    handover_policy: HandoverPolicy = "new_edge"
+    deadline_s: float = math.inf
+    compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.scheme not in SCHEMES:
+            raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
+        if self.handover_policy not in get_args(HandoverPolicy):
+            raise CrchflError(
+                f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'wait', 'miss'"
+            )
+        if self.use_plan and self.scheme != "crchfl":
+            raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
+        if self.pretrain_batch < 0:
+            raise CrchflError(f"federation.pretrain_batch: {self.pretrain_batch} must be >= 0")
+        if self.pretrain_batch > 0 and self.scheme != "crchfl":
+            raise CrchflError(
+                f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"
+            )
+        if self.edge_interval < 1:
+            raise CrchflError(f"federation.edge_interval: {self.edge_interval} must be >= 1 (local epochs)")
+        if self.cloud_interval < 1:
+            raise CrchflError(f"federation.cloud_interval: {self.cloud_interval} must be >= 1")
+        if self.scheme == "sfl" and self.cloud_interval != 1:
+            raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
+        if self.cloud_rounds < 0:
+            raise CrchflError(
+                f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)"
+            )
+        if self.pretrain_epochs < 1:
+            raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
+        if not self.deadline_s > 0:
+            raise CrchflError(f"federation.deadline_s: {self.deadline_s} must be > 0 (inf = no deadline)")
+        if self.handover_policy == "wait" and not math.isfinite(self.deadline_s):
+            raise CrchflError(
+                "federation.handover_policy = 'wait' waits for the vehicle's own edge until the aggregation "
+                "deadline; set a finite federation.deadline_s"
+            )
+        if not (math.isfinite(self.compute_s_per_sample) and self.compute_s_per_sample >= 0):
+            raise CrchflError(f"federation.compute_s_per_sample: {self.compute_s_per_sample} must be a number >= 0")
+
+    @property
+    def hierarchical(self) -> bool:
+        return self.scheme != "sfl"
+
+
+@dataclass(frozen=True)
+class HyperParameters:
+    """The four hyper-parameters a run uses (from the config or from the optimizer's plan)."""
+
+    pretrain_batch: int
+    edge_interval: int
+    cloud_interval: int
+    cloud_rounds: int  # 0 = until the budget is spent

@@ -1,0 +1,138 @@
+"""What the loop is given (LoopInputs), what it needs from learning (Trainer), and all it remembers (FederationState: a checkpoint stores exactly this).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal, Mapping, Protocol, Sequence
+
+from crchfl_sumo.accounting.ledger import Record
+from crchfl_sumo.accounting.schedules import (
+    CLOUD,
+    ByteSizes,
+)
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperParameters
+from crchfl_sumo.learning.model import State
+from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.links.mobility import NO_SITE
+from crchfl_sumo.links.transfer import TransferConfig
+
+
+class Trainer(Protocol):
+    """What the loop needs from learning; models are state dicts."""
+
+    def initial_state(self) -> State: ...
+
+    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> list[State]: ...
+
+    def evaluate(self, state: State) -> tuple[float, float]:
+        """(Loss, Accuracy) on the test set."""
+        ...
+
+
+@dataclass(frozen=True)
+class LoopInputs:
+    """Everything fixed for one run: who takes part, sizes, links.
+
+    vehicles: the federated vehicles in a fixed order (their training seeds
+    follow it); home_site: each vehicle's edge site index at the start;
+    edges: edge site names (index = site index).
+    """
+
+    config: FederationConfig
+    hyper: HyperParameters
+    vehicles: tuple[str, ...]
+    samples: Mapping[str, Samples]
+    home_site: Mapping[str, int]
+    edges: tuple[str, ...]
+    sizes: ByteSizes
+    rule: Literal["paper", "physical"]
+    wireline: WirelineConfig = WirelineConfig()
+    transfer: TransferConfig = TransferConfig()
+
+    def __post_init__(self) -> None:
+        names = list(self.vehicles) + list(self.edges)
+        if len(set(names)) != len(names) or CLOUD in names or SFL_LINK in names:
+            raise CrchflError(f"vehicle ids and edge names must be distinct and not {CLOUD!r}/{SFL_LINK!r}: {names}")
+        for v in self.vehicles:
+            if v not in self.samples or len(self.samples[v]) == 0:
+                raise CrchflError(f"vehicle '{v}' has no training samples; check the data set's train shards")
+            if self.config.hierarchical and not 0 <= self.home_site.get(v, NO_SITE) < len(self.edges):
+                raise CrchflError(
+                    f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges"
+                )
+
+    def count(self, vehicle: str) -> int:
+        return len(self.samples[vehicle])
+
+
+@dataclass
+class FederationState:
+    """All the loop remembers; a checkpoint stores exactly this.
+
+    member: vehicle -> edge name it belongs to now; ready_s: when each vehicle
+    holds its current model; open_s: per edge (or the cloud, SFL) when its
+    current aggregation window opened; steps: steps done (the training seed
+    of step k derives from it).
+    """
+
+    vehicle_models: dict[str, State]
+    edge_models: dict[str, State]
+    edge_weights: dict[str, float]
+    cloud_model: State
+    member: dict[str, str]
+    ready_s: dict[str, float]
+    open_s: dict[str, float]
+    stage_one_done: bool = False
+    steps: int = 0
+    cloud_rounds: int = 0
+    edge_aggregations: int = 0
+    tau: int = 0  # edge aggregations done in the current cloud round
+    records: list[Record] = field(default_factory=list)
+    metrics: list[dict] = field(default_factory=list)
+    stragglers: list[dict] = field(default_factory=list)
+    best_model: State | None = None
+    best: dict | None = None  # metrics line of the best cloud model
+    stop_reason: str | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.stop_reason is not None
+
+    def to_payload(self) -> dict:
+        """Plain dict of tensors and JSON-like values (torch.load(weights_only=True) reads it back)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["records"] = [r.to_dict() for r in self.records]
+        return out
+
+    @classmethod
+    def from_payload(cls, payload: Mapping) -> "FederationState":
+        values = dict(payload)
+        values["records"] = [Record(**r) for r in payload["records"]]
+        return cls(**values)
+
+
+def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> FederationState:
+    """Every node holds the same seeded initial model (no transfer needed: only the seed)."""
+    model = trainer.initial_state()
+    edges = setup.edges if setup.config.hierarchical else ()
+    member = {v: setup.edges[setup.home_site[v]] if setup.config.hierarchical else CLOUD for v in setup.vehicles}
+    weights = {e: float(sum(setup.count(v) for v in setup.vehicles if member[v] == e)) for e in edges}
+    return FederationState(
+        vehicle_models={v: model for v in setup.vehicles},
+        edge_models={e: model for e in edges},
+        edge_weights=weights,
+        cloud_model=model,
+        member=member,
+        ready_s={v: start_s for v in setup.vehicles},
+        open_s={k: start_s for k in (edges or (CLOUD,))},
+        stage_one_done=setup.hyper.pretrain_batch == 0,
+    )
+
+
+def sim_time_s(state: FederationState) -> float:
+    """The latest simulated time the run reached (the last model's arrival)."""
+    return max(list(state.ready_s.values()) + [r.end_s for r in state.records], default=0.0)
