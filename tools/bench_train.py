@@ -46,7 +46,7 @@ def train_flops_per_sample(model_config: ModelConfig, batch_size: int) -> float:
     model = DrivingModel(model_config)
     batch = synthetic_samples(batch_size, model_config.image_height, model_config.image_width, np.random.default_rng(0))
     with FlopCounterMode(display=False) as counter:
-        throttle_brake, steer_logits = model(batch.images)
+        throttle_brake, steer_logits = model(batch.images, batch.command, batch.speed_mps)
         loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, batch.actions, batch.steer_class)
         (loss_tb + loss_steer).backward()
     return counter.get_total_flops() / batch_size
@@ -78,6 +78,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=ModelConfig.image_width)
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of each method (best is kept)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--arch", default=ModelConfig.arch, choices=("cil", "paper"))
     args = parser.parse_args()
 
     rng = np.random.default_rng(0)
@@ -85,7 +86,7 @@ def main() -> None:
     vehicles = [synthetic_samples(n, args.height, args.width, rng) for n in counts]
     everything = Samples.concat(vehicles)
     total = len(everything)
-    model_config = ModelConfig("compact", args.height, args.width)
+    model_config = ModelConfig("compact", args.height, args.width, arch=args.arch)
     state = build_model(model_config, seed=0).state_dict()
     states = [state] * len(vehicles)
     configs = {m: TrainConfig(device=args.device, multi_vehicle=m) for m in ("vmap", "sequential")}

@@ -10,12 +10,14 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
+from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.vision.raster import RasterConfig, Renderer
 from crchfl_sumo.vision.world import build_world
@@ -40,7 +42,8 @@ def drive_command(
     """
     scenario_name, edges = resolve_route(route, scenario)
     loaded = load_scenario(scenario_name)
-    geometry = route_geometry(read_net(Path(loaded.net_path)), edges)
+    net = read_net(Path(loaded.net_path))
+    geometry = route_geometry(net, edges)
     if model_path is None:
         policy: Policy = RoutePolicy(geometry)
         camera = CameraConfig()
@@ -49,7 +52,7 @@ def drive_command(
         from crchfl_sumo.learning.checkpoint import load_model
 
         model = load_model(model_path)
-        policy = ModelPolicy(model)
+        policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)))
         camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
         label = Path(model_path).stem
     renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))

@@ -11,7 +11,9 @@ from typing import Callable
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
+from crchfl_sumo.data.labels import FOLLOW
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -199,15 +201,34 @@ def one_pedal(throttle: float, brake: float) -> tuple[float, float]:
 
 
 class ModelPolicy:
-    """A DrivingModel: the ego's four camera images -> (throttle, steer via the DAC, brake).
+    """A DrivingModel: the ego's four camera images, its route command and its speed ->
+    (throttle, steer via the DAC, brake).
 
+    ``commands``: the commands along the ego's planned route, looked up at the
+    observation's ``progress_m`` (the ego centre's arc position on that route,
+    what data.commands expects): ``RouteCommands(route, choice_junctions(net))``,
+    the same definition the training data was labelled with. A model of
+    arch "paper" sees no command and may go without. The speed is the ego's
+    ``frame.speed_mps``.
     ``one_pedal``: apply only the stronger pedal (``one_pedal``), as the
     expert does; False passes both through to the dynamics.
     """
 
-    def __init__(self, model, one_pedal: bool = True) -> None:
+    def __init__(self, model, commands: PathCommands | None = None, one_pedal: bool = True) -> None:
+        if commands is None and model.config.arch != "paper":
+            raise CrchflError(
+                "the model policy needs the route's commands for a command-conditioned model (arch "
+                f"{model.config.arch!r}); pass ModelPolicy(model, RouteCommands(route, choice_junctions(net)))"
+            )
         self.model = model
+        self.commands = commands
         self.one_pedal = one_pedal
+
+    def command(self, observation: Observation) -> int:
+        """The route command (labels.COMMAND_NAMES code) at the ego's position; FOLLOW without commands."""
+        if self.commands is None:
+            return FOLLOW  # only a paper-architecture model, which ignores it, gets here
+        return int(self.commands.at(observation.progress_m)[0])
 
     def __call__(self, observation: Observation) -> Action:
         import torch
@@ -217,7 +238,10 @@ class ModelPolicy:
         if observation.images is None:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")
         images = torch.from_numpy(np.ascontiguousarray(observation.images))
-        throttle, steer, brake = (float(v) for v in predict_actions(self.model, images))
+        speed_mps = float(observation.frame.speed_mps[observation.ego_row])
+        throttle, steer, brake = (
+            float(v) for v in predict_actions(self.model, images, self.command(observation), speed_mps)
+        )
         if self.one_pedal:
             throttle, brake = one_pedal(throttle, brake)
         return (throttle, steer, brake)

@@ -3,6 +3,10 @@
 Layout of the saved dict: ``format`` (CHECKPOINT_FORMAT), ``model_config``
 (plain mapping of ModelConfig), ``state_dict`` (name -> tensor, on the CPU) and
 ``extra`` (plain JSON-like values: epoch, metrics ...). Written atomically.
+
+Format 2 added ``ModelConfig.arch`` and its options. A format-1 file (written
+before them) holds the paper's network, so it loads with arch "paper"; its
+config mapping never names the new keys.
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.learning.model import DrivingModel, ModelConfig, model_from_state
 
-CHECKPOINT_FORMAT = "crchfl-sumo-model/1"
+CHECKPOINT_FORMAT = "crchfl-sumo-model/2"
+LEGACY_FORMAT = "crchfl-sumo-model/1"  # before ModelConfig.arch: the paper architecture
 
 
 @dataclass(frozen=True)
@@ -56,9 +61,14 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt or foreign files
         raise CrchflError(f"{path}: not a readable checkpoint ({exc}); point to a checkpoint.pt written by crchfl-sumo") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(payload, dict) or payload.get("format") not in (CHECKPOINT_FORMAT, LEGACY_FORMAT):
         raise CrchflError(f"{path}: not a crchfl-sumo checkpoint (format {CHECKPOINT_FORMAT} expected)")
-    model_config = from_mapping(ModelConfig, payload["model_config"], f"{path}: model_config")
+    mapping = dict(payload["model_config"])
+    if payload["format"] == LEGACY_FORMAT:
+        if "arch" in mapping:
+            raise CrchflError(f"{path}: a format-1 checkpoint names model_config.arch; it was not written by crchfl-sumo")
+        mapping["arch"] = "paper"
+    model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     return Checkpoint(model_config, dict(payload["state_dict"]), dict(payload["extra"]))
 
 

@@ -10,6 +10,21 @@ pooling to a fixed grid, a small MLP); the two sizes differ only in widths:
 - ``paper``: about 39.4 M parameters (about 150 MiB of fp32), the size of the
   paper's reference implementation, for runs whose byte counts follow the paper.
 
+Two architectures share that topology (``ModelConfig.arch``):
+
+- ``cil`` (default): a normalisation layer after every convolution
+  (GroupNorm by default), He initialisation, no narrow last hidden layer, and
+  conditioning in the manner of Conditional Imitation Learning (Codevilla et
+  al. 2018): the steer branch has one output head per route command and the
+  command picks the head (or, ``command_input = "concat"``, the command is a
+  one-hot input), and the current speed is an input of both branches.
+- ``paper``: the paper's network exactly as before (no normalisation, MLP
+  widths down to 10 units, PyTorch's default initialisation, no command, no
+  speed); checkpoints written before ``arch`` existed load as this one.
+
+Every model is called as ``model(images, command, speed_mps)``; the paper
+architecture accepts and ignores the last two.
+
 Because of the adaptive pooling the parameter count does not depend on the
 image size, and any image of at least 48 x 64 pixels is accepted.
 Images enter as uint8 [B, 4, H, W, 3] (camera order ``labels.CAMERA_NAMES``)
@@ -18,6 +33,7 @@ and are normalised inside the network, so uint8 can stay uint8 in memory.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -26,12 +42,16 @@ import torch
 from torch import nn
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES, steer_from_class
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, steer_from_class
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
 
 MIN_IMAGE_HEIGHT = 48
 MIN_IMAGE_WIDTH = 64
+SPEED_SCALE_MPS = 10.0  # speed enters the network as speed_mps / 10: about [0, 1.5] in the towns
+ARCHS = ("cil", "paper")
+NORMS = ("group", "batch", "layer", "none")
+COMMAND_INPUTS = ("branched", "concat", "none")
 
 
 @dataclass(frozen=True)
@@ -65,15 +85,44 @@ class ModelConfig:
     size: "compact" (default, ~0.5 M parameters) or "paper" (~39.4 M, ~150 MiB).
     image_height, image_width: camera image size in pixels (default 64 x 128,
         the default of camera.CameraConfig); at least 48 x 64.
+    arch: "cil" (default; normalised, conditioned on command and speed) or
+        "paper" (the paper's network exactly; no command, no speed).
+    The next three apply to arch "cil" only (arch "paper" needs their defaults):
+    norm: after every convolution: "group" (default; GroupNorm, up to 8
+        groups), "batch" (BatchNorm; running statistics average poorly under
+        FedAvg and it cannot train with multi_vehicle = "vmap"), "layer"
+        (GroupNorm with one group) or "none".
+    command_input: "branched" (default; one steer head per command, picked by
+        the command), "concat" (the command one-hot into the steer MLP) or "none".
+    speed_input: the current speed (speed_mps / 10) is an input of both MLPs.
     """
 
     size: Literal["compact", "paper"] = "compact"
     image_height: int = 64
     image_width: int = 128
+    arch: Literal["cil", "paper"] = "cil"
+    norm: Literal["group", "batch", "layer", "none"] = "group"
+    command_input: Literal["branched", "concat", "none"] = "branched"
+    speed_input: bool = True
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:
             raise CrchflError(f"model.size: {self.size!r} is unknown; use one of {', '.join(map(repr, SIZES))}")
+        for key, allowed in (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS)):
+            if getattr(self, key) not in allowed:
+                raise CrchflError(
+                    f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
+                )
+        if not isinstance(self.speed_input, bool):
+            raise CrchflError(f"model.speed_input: {self.speed_input!r} must be true or false")
+        if self.arch == "paper":
+            defaults = ModelConfig.__dataclass_fields__
+            for key in ("norm", "command_input", "speed_input"):
+                if getattr(self, key) != defaults[key].default:
+                    raise CrchflError(
+                        f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
+                        f"has no normalisation, command or speed input; drop the key or set arch = 'cil'"
+                    )
         if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
             raise CrchflError(
                 f"model.image_height/image_width: {self.image_height} x {self.image_width} is too small; "
@@ -116,7 +165,7 @@ def _pool_matrix(size: int, cells: int, like: torch.Tensor) -> torch.Tensor:
 
 
 class Branch(nn.Module):
-    """Conv stack -> adaptive average pool -> MLP -> ``num_outputs`` values."""
+    """The paper architecture's branch: conv stack -> adaptive average pool -> MLP -> ``num_outputs`` values."""
 
     def __init__(self, in_channels: int, num_outputs: int, shape: BranchShape) -> None:
         super().__init__()
@@ -135,27 +184,122 @@ class Branch(nn.Module):
         layers.append(nn.Linear(width, num_outputs))
         self.layers = nn.Sequential(*layers)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.layers(x)
+    def forward(self, x: torch.Tensor, command: torch.Tensor, speed_mps: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)  # the paper's network sees neither command nor speed
+
+
+def norm_layer(kind: str, channels: int) -> nn.Module:
+    """The normalisation after a convolution of ``channels`` outputs."""
+    if kind == "group":
+        return nn.GroupNorm(math.gcd(channels, 8), channels)
+    if kind == "layer":
+        return nn.GroupNorm(1, channels)
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    return nn.Identity()
+
+
+class ConditionedBranch(nn.Module):
+    """The cil architecture's branch: normalised conv stack -> pool -> MLP -> one or several heads.
+
+    The MLP is the size's first hidden layer; each head is the second hidden
+    layer and the output (the size's last, narrowest hidden layer is dropped).
+    The speed (scaled) and, for "concat", the command one-hot join the
+    features after the first hidden layer; with several heads, sample b's
+    output is that of head ``command[b]``.
+    """
+
+    def __init__(
+        self, in_channels: int, num_outputs: int, shape: BranchShape, norm: str, num_heads: int, command_one_hot: bool,
+        speed_input: bool,
+    ) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = in_channels
+        for out_channels, kernel, stride in shape.convs:
+            padding = kernel // 2 if stride == 1 else 0
+            bias = norm == "none"  # a normalisation's own shift makes the conv bias redundant
+            layers += [nn.Conv2d(channels, out_channels, kernel, stride, padding, bias=bias), norm_layer(norm, out_channels)]
+            layers.append(nn.ReLU())
+            channels = out_channels
+        layers += [GridAveragePool(shape.pool_hw), nn.Flatten()]
+        layers += [nn.Linear(channels * shape.pool_hw[0] * shape.pool_hw[1], shape.hidden[0]), nn.ReLU()]
+        self.features = nn.Sequential(*layers)
+        self.command_one_hot, self.speed_input = command_one_hot, speed_input
+        width = shape.hidden[0] + (NUM_COMMANDS if command_one_hot else 0) + (1 if speed_input else 0)
+        self.heads = nn.ModuleList(
+            nn.Sequential(nn.Linear(width, shape.hidden[1]), nn.ReLU(), nn.Linear(shape.hidden[1], num_outputs))
+            for _ in range(num_heads)
+        )
+
+    def forward(self, x: torch.Tensor, command: torch.Tensor, speed_mps: torch.Tensor) -> torch.Tensor:
+        parts = [self.features(x)]
+        if self.command_one_hot:  # a comparison, not F.one_hot: it works under vmap
+            codes = torch.arange(NUM_COMMANDS, device=command.device)
+            parts.append((command[:, None] == codes).to(parts[0].dtype))
+        if self.speed_input:
+            parts.append((speed_mps.to(parts[0].dtype) / SPEED_SCALE_MPS)[:, None])
+        h = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        if len(self.heads) == 1:
+            return self.heads[0](h)
+        outputs = torch.stack([head(h) for head in self.heads], dim=1)  # [B, heads, outputs]
+        picked = command.long()[:, None, None].expand(-1, 1, outputs.shape[-1])
+        return outputs.gather(1, picked).squeeze(1)
+
+
+def _initialise(module: nn.Module) -> None:
+    """He (fan-in, ReLU) weights and zero biases; every head's output layer starts small (std 0.01).
+
+    Small output weights start the steer logits near uniform and the pedals
+    near 0.5, so no class is favoured before training.
+    """
+    for layer in module.modules():
+        if isinstance(layer, (nn.Conv2d, nn.Linear)):
+            nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+            if layer.bias is not None:
+                nn.init.zeros_(layer.bias)
+    for branch in module.children():
+        for head in getattr(branch, "heads", ()):
+            nn.init.normal_(head[-1].weight, std=0.01)
 
 
 class DrivingModel(nn.Module):
-    """uint8 images [B, 4, H, W, 3] -> (throttle_brake [B, 2] in [0, 1], steer_logits [B, 7])."""
+    """(uint8 images [B, 4, H, W, 3], command int64 [B], speed_mps float [B]) ->
+    (throttle_brake [B, 2] in [0, 1], steer_logits [B, 7]).
+
+    Commands are 0..3 (labels.COMMAND_NAMES); the paper architecture ignores command and speed.
+    """
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
-        self.branch_throttle_brake = Branch(3, 2, config.shape)  # branch I: CamH
-        self.branch_steer = Branch(9, NUM_STEER_CLASSES, config.shape)  # branch II: CamF|CamL|CamR
+        shape = config.shape
+        if config.arch == "paper":
+            self.branch_throttle_brake = Branch(3, 2, shape)  # branch I: CamH
+            self.branch_steer = Branch(9, NUM_STEER_CLASSES, shape)  # branch II: CamF|CamL|CamR
+            return
+        self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, 1, False, config.speed_input)
+        self.branch_steer = ConditionedBranch(
+            9,
+            NUM_STEER_CLASSES,
+            shape,
+            config.norm,
+            NUM_COMMANDS if config.command_input == "branched" else 1,
+            config.command_input == "concat",
+            config.speed_input,
+        )
+        _initialise(self)
 
-    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, images: torch.Tensor, command: torch.Tensor, speed_mps: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         batch, _, height, width, _ = images.shape
         x = images.to(torch.float32) * (1.0 / 127.5) - 1.0
         # [B, H, W, C] -> [B, C, H, W] is a view in channels_last layout: no copy.
         head = x[:, 0].permute(0, 3, 1, 2)
         sides = x[:, 1:4].permute(0, 2, 3, 1, 4).reshape(batch, height, width, 9).permute(0, 3, 1, 2)
-        throttle_brake = torch.sigmoid(self.branch_throttle_brake(head))
-        steer_logits = self.branch_steer(sides)
+        throttle_brake = torch.sigmoid(self.branch_throttle_brake(head, command, speed_mps))
+        steer_logits = self.branch_steer(sides, command, speed_mps)
         return throttle_brake, steer_logits
 
 
@@ -191,8 +335,14 @@ def model_from_state(
 
 
 @torch.no_grad()
-def predict_actions(model: DrivingModel, images: torch.Tensor) -> np.ndarray:
-    """uint8 images [B, 4, H, W, 3] (or one sample [4, H, W, 3]) -> float32 [B, 3] or [3].
+def predict_actions(
+    model: DrivingModel,
+    images: torch.Tensor,
+    command: torch.Tensor | np.ndarray | int,
+    speed_mps: torch.Tensor | np.ndarray | float,
+) -> np.ndarray:
+    """uint8 images [B, 4, H, W, 3] with command [B] and speed_mps [B] -> float32 [B, 3];
+    one sample ([4, H, W, 3], an int command, a float speed) -> float32 [3].
 
     Columns are (throttle, steer, brake); the steer is the DAC value of the most
     likely class.
@@ -200,10 +350,16 @@ def predict_actions(model: DrivingModel, images: torch.Tensor) -> np.ndarray:
     single = images.dim() == 4
     batch = images.unsqueeze(0) if single else images
     device = next(model.parameters()).device
+    command = torch.as_tensor(command, dtype=torch.int64).reshape(-1).to(device)
+    speed_mps = torch.as_tensor(speed_mps, dtype=torch.float32).reshape(-1).to(device)
+    if len(command) != len(batch) or len(speed_mps) != len(batch):
+        raise ValueError(f"predict_actions: {len(batch)} images, {len(command)} commands, {len(speed_mps)} speeds")
+    if len(command) and (int(command.min()) < 0 or int(command.max()) >= NUM_COMMANDS):
+        raise ValueError(f"predict_actions: commands must lie in 0..{NUM_COMMANDS - 1}")
     was_training = model.training
     model.eval()
     try:
-        throttle_brake, steer_logits = model(batch.to(device))
+        throttle_brake, steer_logits = model(batch.to(device), command, speed_mps)
     finally:
         model.train(was_training)
     throttle_brake = throttle_brake.cpu().numpy()

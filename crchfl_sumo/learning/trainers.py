@@ -1,9 +1,15 @@
-"""The federation loop's Trainer on top of local.py: in this process, or each vehicle as a backend task.
+"""The federation loop's Trainer on top of training.py: in this process, or each vehicle as a backend task.
 
 ``federation.Trainer`` asks for an initial state, local training of several
 vehicles and a test-set evaluation. ``TorchTrainer`` does them here;
 ``RayTrainer`` sends every vehicle's training and every evaluation to an
 ``Executor`` (backend.py) and returns bit-identical results.
+
+Evaluation: ``evaluation(state)`` gives the full test metrics
+(evaluation.Evaluation: balanced accuracy, recall, confusion, steer and
+pedal errors ...); ``evaluate(state)`` keeps the loop's (loss, accuracy)
+pair and is computed from the same Evaluation. ``always_straight`` holds the
+constant-straight baseline on the same test set.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import torch
 
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.evaluation import Evaluation, always_straight
 from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
 from crchfl_sumo.learning.training import (
     TrainConfig,
@@ -28,13 +35,14 @@ from crchfl_sumo.learning.training import (
 
 
 class TorchTrainer:
-    """The loop's Trainer on top of local.py: DrivingModel state dicts, Table II training, test-set metrics."""
+    """The loop's Trainer on top of training.py: DrivingModel state dicts, local training, test-set metrics."""
 
     def __init__(self, model_config: ModelConfig, config: TrainConfig, test: Samples, seed: int) -> None:
         configure_determinism(config.deterministic)
         self.model_config, self.config, self.seed = model_config, config, seed
         self.device = resolve_device(config.device)
         self.test = test.to(self.device)
+        self.always_straight = always_straight(test)  # {"accuracy", "balanced_accuracy"} on the test set
         self._eval_model = DrivingModel(model_config).to(self.device)
 
     def initial_state(self) -> dict[str, torch.Tensor]:
@@ -44,9 +52,14 @@ class TorchTrainer:
         new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
         return new
 
-    def evaluate(self, state) -> tuple[float, float]:
+    def evaluation(self, state) -> Evaluation:
+        """The full test-set metrics of ``state``."""
         self._eval_model.load_state_dict(state)
-        metrics = evaluate(self._eval_model, self.test, self.config)
+        return evaluate(self._eval_model, self.test, self.config)
+
+    def evaluate(self, state) -> tuple[float, float]:
+        """(Loss, Accuracy) on the test set: the loop's Trainer protocol."""
+        metrics = self.evaluation(state)
         return metrics.loss, metrics.accuracy
 
 
@@ -82,7 +95,7 @@ class RayTrainer(TorchTrainer):
         self._sample_refs = refs  # handles of samples no longer trained on are released
         return self.executor.map(train_vehicle_task, args)
 
-    def evaluate(self, state) -> tuple[float, float]:
+    def evaluation(self, state) -> Evaluation:
         args = (state, self._test_ref, self.model_config, self.config, self.threads)
         return self.executor.map(evaluate_task, [args])[0]
 
@@ -93,11 +106,10 @@ def train_vehicle_task(state, samples, epochs, model_config, config, seed, threa
     return train_vehicle(state, samples, epochs, model_config, config, seed)[0]
 
 
-def evaluate_task(state, test, model_config, config, threads) -> tuple[float, float]:
-    """(Loss, Accuracy) of ``state`` on the test set (a backend task)."""
+def evaluate_task(state, test, model_config, config, threads) -> Evaluation:
+    """The test-set metrics of ``state`` (a backend task)."""
     torch.set_num_threads(threads)
     configure_determinism(config.deterministic)
     model = DrivingModel(model_config)
     model.load_state_dict(state)
-    metrics = evaluate(model, test, config)
-    return metrics.loss, metrics.accuracy
+    return evaluate(model, test, config)

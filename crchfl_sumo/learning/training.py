@@ -2,12 +2,14 @@
 
 Training settings follow the paper's Table II: branch I (throttle, brake) is
 trained with MSE, branch II (steer class) with cross-entropy, each branch by its
-own Adam (betas 0.9/0.999, weight decay 3e-3, learning rate 1e-4), batch 32.
-The reported Loss is the sum of both branch losses; Accuracy is branch II's
-top-1 accuracy.
+own Adam (betas 0.9/0.999, weight decay 3e-3), batch 32; the learning rate
+and the balancing (balance.py) are the measured recipe of docs/model.md
+(the paper's learning rate is 1e-4). The reported Loss is the sum of both
+branch losses; Accuracy is branch II's top-1 accuracy; ``evaluate`` gives the
+full test-set metrics of evaluation.py.
 
 Many vehicles of one aggregation step are trained by ``train_vehicles``. Two
-methods give the same result (tests/test_local.py checks it):
+methods give the same result (tests/learning/test_training.py checks it):
 
 - ``sequential``: one vehicle after the other with torch.optim.Adam. Fastest on
   a CPU, where a batch of 32 already keeps the cores busy (docs/model.md).
@@ -29,7 +31,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Sequence
 
@@ -42,8 +44,11 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.balance import CLASS_WEIGHTINGS, SAMPLINGS, class_weights, epoch_batches
 from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
 from crchfl_sumo.learning.model import DrivingModel, ModelConfig, State, build_model, model_from_state
 
 log = logging.getLogger(__name__)
@@ -55,16 +60,19 @@ CHECKPOINT_FILE = "checkpoint.pt"
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Settings of local training (defaults: the paper's Table II).
+    """Settings of local training (the paper's Table II, except the measured learning rate and balancing).
 
-    learning_rate, beta1, beta2, weight_decay, adam_eps: Adam of each branch.
+    learning_rate, beta1, beta2, weight_decay, adam_eps: Adam of each branch
+        (the paper's learning rate is 1e-4; docs/model.md gives the measurements).
     batch_size: training batch (32); eval_batch_size: batch for evaluation only.
     device: "auto" (CUDA when present, else CPU), "cpu" or "cuda".
     deterministic: torch.use_deterministic_algorithms for reproducible runs.
     multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
+    sampling: "uniform", "class_balanced" or "command_balanced" (balance.py).
+    class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
     """
 
-    learning_rate: float = 1e-4
+    learning_rate: float = 1e-3
     beta1: float = 0.9
     beta2: float = 0.999
     weight_decay: float = 3e-3
@@ -74,6 +82,8 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     deterministic: bool = False
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
+    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "class_balanced"
+    class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "none"
 
     def __post_init__(self) -> None:
         if not self.learning_rate > 0:
@@ -91,11 +101,19 @@ class TrainConfig:
             raise CrchflError(f"train.device: {self.device!r} is unknown; use 'auto', 'cpu' or 'cuda'")
         if self.multi_vehicle not in ("sequential", "vmap"):
             raise CrchflError(f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use 'sequential' or 'vmap'")
+        if self.sampling not in SAMPLINGS:
+            raise CrchflError(f"train.sampling: {self.sampling!r} is unknown; use one of {', '.join(map(repr, SAMPLINGS))}")
+        if self.class_weighting not in CLASS_WEIGHTINGS:
+            raise CrchflError(
+                f"train.class_weighting: {self.class_weighting!r} is unknown; "
+                f"use one of {', '.join(map(repr, CLASS_WEIGHTINGS))}"
+            )
 
 
 @dataclass(frozen=True)
 class Metrics:
-    """Loss (sum of both branch losses), Accuracy (branch II top-1) and the parts, over num_samples.
+    """Training metrics of the batches as trained: Loss (sum of both branch losses, the steer
+    part weighted as trained), Accuracy (branch II top-1) and the parts, over num_samples.
 
     A vehicle without samples gets num_samples 0 and NaN values.
     """
@@ -138,40 +156,24 @@ def vehicle_seed(seed: int, vehicle_index: int) -> int:
     return int(np.random.SeedSequence([seed, vehicle_index]).generate_state(1)[0])
 
 
-def epoch_batches(num_samples: int, batch_size: int, generator: torch.Generator) -> list[torch.Tensor]:
-    """Index batches of one epoch: a fresh permutation cut into batch_size pieces (last one shorter)."""
-    if num_samples == 0:
-        return []
-    return list(torch.randperm(num_samples, generator=generator).split(batch_size))
-
-
 def branch_losses(
-    throttle_brake: torch.Tensor, steer_logits: torch.Tensor, actions: torch.Tensor, steer_class: torch.Tensor
+    throttle_brake: torch.Tensor,
+    steer_logits: torch.Tensor,
+    actions: torch.Tensor,
+    steer_class: torch.Tensor,
+    class_weight: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(MSE of branch I on throttle and brake, cross-entropy of branch II), batch means."""
+    """(MSE of branch I on throttle and brake, cross-entropy of branch II), batch means.
+
+    ``class_weight`` [7] (balance.class_weights) makes the cross-entropy a weighted mean.
+    """
     target = actions[:, [0, 2]]
-    return F.mse_loss(throttle_brake, target), F.cross_entropy(steer_logits, steer_class)
+    return F.mse_loss(throttle_brake, target), F.cross_entropy(steer_logits, steer_class, weight=class_weight)
 
 
-@torch.no_grad()
-def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Metrics:
-    """Loss and Accuracy of ``model`` on ``samples`` (the model's device, eval mode)."""
-    device = next(model.parameters()).device
-    was_training = model.training
-    model.eval()
-    sums = torch.zeros(3, dtype=torch.float64, device=device)
-    try:
-        for start in range(0, len(samples), config.eval_batch_size):
-            batch = samples.subset(slice(start, start + config.eval_batch_size)).to(device)
-            throttle_brake, steer_logits = model(batch.images)
-            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, batch.actions, batch.steer_class)
-            n = len(batch)
-            correct = (steer_logits.argmax(dim=1) == batch.steer_class).sum()
-            sums += torch.stack([loss_tb * n, loss_steer * n, correct.to(loss_tb.dtype)]).to(torch.float64)
-    finally:
-        model.train(was_training)
-    loss_tb_sum, loss_steer_sum, correct = sums.tolist()
-    return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
+def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
+    """``model``'s test metrics on ``samples`` (evaluation.py), in batches of ``config.eval_batch_size``."""
+    return evaluate_model(model, samples, config.eval_batch_size)
 
 
 class Learner:
@@ -211,15 +213,17 @@ class Learner:
         """
         self.model.train()
         samples = samples.to(self.device)
+        weight = class_weights(samples.steer_class, self.config.class_weighting)
+        weight = None if weight is None else weight.to(self.device)
         sums = torch.zeros(3, dtype=torch.float64, device=self.device)
         done = 0
-        for indices in epoch_batches(len(samples), self.config.batch_size, generator):
+        for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator):
             indices = indices.to(self.device)
             images, actions, steer_class = samples.images[indices], samples.actions[indices], samples.steer_class[indices]
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
-            throttle_brake, steer_logits = self.model(images)
-            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, actions, steer_class)
+            throttle_brake, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
+            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, actions, steer_class, weight)
             # The branches share no weights, so one backward of the sum gives each branch its own gradient.
             (loss_tb + loss_steer).backward()
             for optimizer in self.optimizers:
@@ -271,6 +275,11 @@ def train_vehicles(
     if epochs < 0:
         raise ValueError("train_vehicles: epochs must be >= 0")
     configure_determinism(config.deterministic)
+    if config.multi_vehicle == "vmap" and model_config.norm == "batch" and model_config.arch == "cil":
+        raise CrchflError(
+            "train.multi_vehicle: 'vmap' cannot train BatchNorm (its running statistics are updated in place); "
+            "use multi_vehicle = 'sequential' or model.norm = 'group'"
+        )
     if config.multi_vehicle == "vmap" and states:
         return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed)
     results = [
@@ -305,18 +314,34 @@ def _train_vehicles_vmap(
     for v, samples in enumerate(vehicle_samples):
         generator = torch.Generator().manual_seed(vehicle_seed(seed, v))
         schedules.append(
-            [(e, idx) for e in range(epochs) for idx in epoch_batches(len(samples), batch_size, generator)]
+            [(e, idx) for e in range(epochs) for idx in epoch_batches(samples, batch_size, config.sampling, generator)]
         )
+    # Each vehicle's steer-class weights from its own samples (all ones for "none").
+    steer_weights = []
+    for samples in vehicle_samples:
+        weight = class_weights(samples.steer_class, config.class_weighting)
+        steer_weights.append(torch.ones(NUM_STEER_CLASSES) if weight is None else weight)
+    steer_weights_on_device = torch.stack(steer_weights).to(device)
     # Per vehicle and epoch: summed branch-I loss, branch-II loss, correct count.
     sums = torch.zeros(num_vehicles, max(epochs, 1), 3, dtype=torch.float64, device=device)
 
-    def loss_fn(p: State, images: torch.Tensor, actions: torch.Tensor, steer_class: torch.Tensor, weight: torch.Tensor):
-        throttle_brake, steer_logits = functional_call(template, p, (images,))
+    def loss_fn(
+        p: State,
+        images: torch.Tensor,
+        command: torch.Tensor,
+        speed_mps: torch.Tensor,
+        actions: torch.Tensor,
+        steer_class: torch.Tensor,
+        weight: torch.Tensor,
+        class_weight: torch.Tensor,
+    ):
+        throttle_brake, steer_logits = functional_call(template, p, (images, command, speed_mps))
         per_sample_tb = (throttle_brake - actions[:, [0, 2]]).square().mean(dim=1)
         per_sample_steer = F.cross_entropy(steer_logits, steer_class, reduction="none")
         n = weight.sum()
+        steer_weight = weight * class_weight[steer_class]  # torch's weighted mean, padding rows at 0
         loss_tb = (per_sample_tb * weight).sum() / n
-        loss_steer = (per_sample_steer * weight).sum() / n
+        loss_steer = (per_sample_steer * steer_weight).sum() / steer_weight.sum()
         correct = ((steer_logits.argmax(dim=1) == steer_class).to(weight.dtype) * weight).sum()
         return loss_tb + loss_steer, torch.stack([loss_tb * n, loss_steer * n, correct]).detach()
 
@@ -324,7 +349,7 @@ def _train_vehicles_vmap(
     num_steps = max((len(s) for s in schedules), default=0)
     for step in range(num_steps):
         active = [v for v in range(num_vehicles) if step < len(schedules[v])]
-        images, actions, classes, weights = [], [], [], []
+        images, commands, speeds, actions, classes, weights = [], [], [], [], [], []
         for v in active:
             indices = schedules[v][step][1].to(device)
             n = len(indices)
@@ -334,6 +359,8 @@ def _train_vehicles_vmap(
                 weight[n:] = 0
             samples = samples_on_device[v]
             images.append(samples.images[indices])
+            commands.append(samples.command[indices])
+            speeds.append(samples.speed_mps[indices])
             actions.append(samples.actions[indices])
             classes.append(samples.steer_class[indices])
             weights.append(weight)
@@ -341,7 +368,14 @@ def _train_vehicles_vmap(
         rows = torch.tensor(active, device=device)
         current = params if every else {name: p[rows] for name, p in params.items()}
         grads, batch_sums = grad_fn(
-            current, torch.stack(images), torch.stack(actions), torch.stack(classes), torch.stack(weights)
+            current,
+            torch.stack(images),
+            torch.stack(commands),
+            torch.stack(speeds),
+            torch.stack(actions),
+            torch.stack(classes),
+            torch.stack(weights),
+            steer_weights_on_device[rows],
         )
         _stacked_adam_step(params, exp_avg, exp_avg_sq, grads, None if every else rows, step + 1, config)
         epoch_of = torch.tensor([schedules[v][step][0] for v in active], device=device)
@@ -399,13 +433,16 @@ def train_centralized(
     seed: int,
     progress: Progress | None = None,
     initial_state: State | None = None,
-) -> list[dict[str, float | int]]:
+) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
-    (one line per epoch: epoch, loss, accuracy, loss_throttle_brake,
-    loss_steer on the test set; train_loss, train_accuracy; samples_per_s) and
-    ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
+    (one line per epoch: epoch and the test metrics of evaluation.py: loss,
+    accuracy, balanced_accuracy, loss_throttle_brake, loss_steer, steer_error,
+    throttle_error, brake_error, recall, confusion; test_samples;
+    always_straight (accuracy and balanced_accuracy of the constant straight
+    prediction on the test set); train_loss, train_accuracy, train_samples;
+    samples_per_s) and ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
     samples trained so far, epochs x samples). Returns the metric records.
     """
     if epochs < 1:
@@ -425,7 +462,8 @@ def train_centralized(
     trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
     train_on_device, test_on_device = train.to(device), test.to(device)
-    records: list[dict[str, float | int]] = []
+    baseline = always_straight(test)
+    records: list[dict] = []
     for epoch in range(1, epochs + 1):
         start_s = time.perf_counter()
         offset = (epoch - 1) * len(train)
@@ -434,18 +472,22 @@ def train_centralized(
         )
         train_metrics = trainer.train_epoch(train_on_device, generator, per_epoch)
         train_time_s = time.perf_counter() - start_s
-        test_metrics = evaluate(trainer.model, test_on_device, config)
+        test_metrics = evaluate(trainer.model, test_on_device, config).record()
         record = {
             "epoch": epoch,
-            **{k: v for k, v in asdict(test_metrics).items() if k != "num_samples"},
-            "test_samples": test_metrics.num_samples,
+            **{k: v for k, v in test_metrics.items() if k != "samples"},
+            "test_samples": test_metrics["samples"],
+            "always_straight": baseline,
             "train_loss": train_metrics.loss,
             "train_accuracy": train_metrics.accuracy,
             "train_samples": train_metrics.num_samples,
             "samples_per_s": len(train) / train_time_s,
         }
         records.append(record)
-        log.info("epoch %d: test loss %.4f, accuracy %.3f", epoch, record["loss"], record["accuracy"])
+        log.info(
+            "epoch %d: test loss %.4f, accuracy %.3f, balanced accuracy %.3f (always straight %.3f)",
+            epoch, record["loss"], record["accuracy"], record["balanced_accuracy"], baseline["balanced_accuracy"],
+        )
         atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
         save_checkpoint(
             out_dir / CHECKPOINT_FILE,

@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
-from crchfl_sumo.data.labels import STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES
 from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
@@ -51,6 +53,7 @@ from crchfl_sumo.sumo.route import (
     signal_letter,
 )
 from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.raster import Renderer
 from crchfl_sumo.vision.world import build_world
 
@@ -384,18 +387,54 @@ def test_on_road_by_hand(roads):
 
 def test_untrained_model_drives_through_the_loop(roads):
     scenario = load_scenario(roads / "straight.sumocfg")
-    geometry = route_geometry(read_net(Path(scenario.net_path)), ["AC"])
+    net = read_net(Path(scenario.net_path))
+    geometry = route_geometry(net, ["AC"])
+    commands = RouteCommands(geometry, choice_junctions(net))
     renderer = Renderer(build_world(scenario.net_path))
-    result = drive(
-        scenario, geometry, ModelPolicy(build_model(ModelConfig(), seed=0)), seed=1, max_s=2.0,
-        config=NO_WARMUP, renderer=renderer,
-    )
+    model = build_model(ModelConfig(), seed=0)
+    result = drive(scenario, geometry, ModelPolicy(model, commands), seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
     acted = result.log.steer[:-1]
     assert len(acted) == 8 and np.isin(acted.astype(np.float32), STEER_CLASS_VALUES).all()
     assert np.all((result.log.throttle[:-1] >= 0) & (result.log.throttle[:-1] <= 1))
     assert not np.any((result.log.throttle[:-1] > 0) & (result.log.brake[:-1] > 0))  # one pedal at a time
     with pytest.raises(CrchflError, match="needs camera images"):
-        drive(scenario, geometry, ModelPolicy(build_model(ModelConfig(), seed=0)), max_s=1.0, config=NO_WARMUP)
+        drive(scenario, geometry, ModelPolicy(model, commands), max_s=1.0, config=NO_WARMUP)
+    with pytest.raises(CrchflError, match="needs the route's commands"):
+        ModelPolicy(model)
+    ModelPolicy(build_model(ModelConfig(arch="paper"), seed=0))  # the paper's network sees no command
+
+
+class _Commands:
+    """Route commands by hand: LEFT before 5 m of progress, RIGHT after."""
+
+    def at(self, s_m):
+        return np.where(np.atleast_1d(s_m) < 5.0, LEFT, RIGHT)
+
+
+def test_model_policy_feeds_the_route_command_and_the_ego_speed(roads):
+    scenario = load_scenario(roads / "straight.sumocfg")
+    geometry = route_geometry(read_net(Path(scenario.net_path)), ["AC"])
+    model = build_model(ModelConfig(), seed=0)
+    with torch.no_grad():  # steer head k says class k + 1, whatever the images; full throttle
+        for k, head in enumerate(model.branch_steer.heads):
+            head[-1].weight.zero_()
+            head[-1].bias.copy_(torch.nn.functional.one_hot(torch.tensor(k + 1), 7) * 5.0)
+        pedals_out = model.branch_throttle_brake.heads[0][-1]
+        pedals_out.weight.zero_()
+        pedals_out.bias.copy_(torch.tensor([5.0, -5.0]))
+    seen = []
+    model.branch_throttle_brake.register_forward_pre_hook(lambda module, args: seen.append(args[2].clone()))
+    renderer = Renderer(build_world(scenario.net_path))
+    result = drive(
+        scenario, geometry, ModelPolicy(model, _Commands()), seed=1, max_s=3.0, config=NO_WARMUP, renderer=renderer
+    )
+    acted = result.log.steer[:-1].astype(np.float32)
+    progress = result.log.progress_m[:-1]
+    expected = np.where(progress < 5.0, STEER_CLASS_VALUES[LEFT + 1], STEER_CLASS_VALUES[RIGHT + 1])
+    assert (progress < 5.0).any() and (progress >= 5.0).any()
+    assert acted == pytest.approx(expected)
+    assert [float(s[0]) for s in seen] == pytest.approx(result.log.speed_mps[:-1], abs=1e-5)
+    assert result.log.speed_mps[-1] > 1.0
 
 
 @pytest.mark.slow

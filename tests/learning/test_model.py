@@ -19,6 +19,9 @@ from crchfl_sumo.learning.model import (
 )
 
 SMALL = ModelConfig("compact", 48, 64)
+PAPER_ARCH = ModelConfig("compact", 48, 64, arch="paper")
+COMMANDS = torch.tensor([0, 1, 2, 3, 1])
+SPEEDS = torch.tensor([0.0, 3.0, 8.0, 12.5, 5.0])
 
 
 def _images(n, config=SMALL, seed=0):
@@ -26,19 +29,93 @@ def _images(n, config=SMALL, seed=0):
     return torch.randint(0, 256, (n, 4, config.image_height, config.image_width, 3), dtype=torch.uint8, generator=g)
 
 
+def _run(model, images, command=None, speed=None):
+    n = len(images)
+    command = torch.zeros(n, dtype=torch.int64) if command is None else command
+    speed = torch.zeros(n) if speed is None else speed
+    return model(images, command, speed)
+
+
 @pytest.mark.parametrize("height,width", [(48, 64), (66, 200), (64, 96)])
-def test_output_shapes_and_ranges(height, width):
-    config = ModelConfig("compact", height, width)
-    throttle_brake, steer_logits = build_model(config, seed=0)(_images(5, config))
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"arch": "paper"}, {"norm": "batch"}, {"norm": "layer"}, {"norm": "none"}, {"command_input": "concat"},
+     {"command_input": "none", "speed_input": False}],
+)
+def test_output_shapes_and_ranges(height, width, options):
+    config = ModelConfig("compact", height, width, **options)
+    throttle_brake, steer_logits = build_model(config, seed=0)(_images(5, config), COMMANDS, SPEEDS)
     assert throttle_brake.shape == (5, 2) and steer_logits.shape == (5, 7)
     assert throttle_brake.min() >= 0 and throttle_brake.max() <= 1
     assert torch.isfinite(steer_logits).all()
 
 
 def test_parameter_count_does_not_depend_on_image_size():
-    counts = {count_parameters(DrivingModel(ModelConfig("compact", h, w))) for h, w in [(48, 64), (66, 200), (90, 160)]}
-    assert len(counts) == 1
-    assert 300_000 < counts.pop() < 1_000_000
+    for options in ({}, {"arch": "paper"}):
+        counts = {
+            count_parameters(DrivingModel(ModelConfig("compact", h, w, **options))) for h, w in [(48, 64), (66, 200), (90, 160)]
+        }
+        assert len(counts) == 1
+        assert 300_000 < counts.pop() < 1_000_000
+
+
+def test_the_paper_architecture_is_the_network_of_format_1_checkpoints():
+    model = DrivingModel(PAPER_ARCH)
+    assert count_parameters(model) == 482_515  # docs/model.md, before ModelConfig.arch
+    assert not any(isinstance(m, (torch.nn.GroupNorm, torch.nn.BatchNorm2d)) for m in model.modules())
+    widths = [m.out_features for m in model.branch_steer.layers if isinstance(m, torch.nn.Linear)]
+    assert widths == [100, 50, 10, 7]  # the 10-unit bottleneck stays in the paper's network
+    names = set(model.state_dict())
+    assert "branch_steer.layers.0.weight" in names and "branch_throttle_brake.layers.18.bias" in names
+    images = _images(3, PAPER_ARCH)
+    first = _run(model, images, torch.tensor([0, 1, 2]), torch.tensor([0.0, 5.0, 9.0]))
+    second = _run(model, images, torch.tensor([3, 3, 3]), torch.tensor([1.0, 1.0, 1.0]))
+    assert all(torch.equal(a, b) for a, b in zip(first, second))  # command and speed are ignored
+
+
+def test_the_cil_architecture_is_normalised_without_the_bottleneck():
+    model = DrivingModel(SMALL)
+    norms = [m for m in model.branch_steer.features if isinstance(m, torch.nn.GroupNorm)]
+    assert [(n.num_groups, n.num_channels) for n in norms] == [(8, 24), (4, 36), (8, 48), (8, 64), (8, 64)]
+    assert len(model.branch_steer.heads) == 4 and len(model.branch_throttle_brake.heads) == 1
+    widths = [m.out_features for m in model.branch_steer.heads[0] if isinstance(m, torch.nn.Linear)]
+    assert widths == [50, 7]  # 50 units before the 7-way output, not 10
+    assert isinstance(DrivingModel(ModelConfig(norm="batch")).branch_steer.features[1], torch.nn.BatchNorm2d)
+    assert DrivingModel(ModelConfig(norm="layer")).branch_steer.features[1].num_groups == 1
+
+
+def test_initial_steer_logits_are_near_uniform():
+    _, logits = _run(build_model(SMALL, seed=0), _images(8))
+    probabilities = logits.softmax(dim=1)
+    assert probabilities.max() < 0.2 and probabilities.min() > 0.1  # 1/7 = 0.143 each, no class favoured
+
+
+def test_branched_heads_are_picked_by_the_command():
+    model = build_model(SMALL, seed=0)
+    with torch.no_grad():
+        for k, head in enumerate(model.branch_steer.heads):
+            head[-1].weight.zero_()
+            head[-1].bias.copy_(torch.nn.functional.one_hot(torch.tensor(k + 1), 7) * 5.0)  # head k says class k + 1
+    _, logits = _run(model, _images(5), COMMANDS, SPEEDS)
+    assert logits.argmax(dim=1).tolist() == [1, 2, 3, 4, 2]
+
+
+@pytest.mark.parametrize("options,command_matters,speed_matters", [
+    ({}, True, True),
+    ({"command_input": "concat"}, True, True),
+    ({"command_input": "none", "speed_input": False}, False, False),
+    ({"command_input": "none"}, False, True),
+])
+def test_command_and_speed_reach_the_outputs_as_configured(options, command_matters, speed_matters):
+    model = build_model(ModelConfig("compact", 48, 64, **options), seed=0).eval()
+    images = _images(4)
+    base = _run(model, images, torch.tensor([0, 0, 0, 0]), torch.full((4,), 2.0))
+    other_command = _run(model, images, torch.tensor([1, 2, 3, 1]), torch.full((4,), 2.0))
+    other_speed = _run(model, images, torch.tensor([0, 0, 0, 0]), torch.full((4,), 9.0))
+    assert (not torch.equal(base[1], other_command[1])) == command_matters
+    assert torch.equal(base[0], other_command[0])  # branch I does not see the command
+    assert (not torch.equal(base[0], other_speed[0])) == speed_matters
+    assert (not torch.equal(base[1], other_speed[1])) == speed_matters
 
 
 def test_same_seed_same_weights_and_other_seed_differs():
@@ -53,7 +130,7 @@ def test_branches_see_their_cameras_in_order():
     model.branch_throttle_brake.register_forward_pre_hook(lambda m, args: seen.update(head=args[0]))
     model.branch_steer.register_forward_pre_hook(lambda m, args: seen.update(sides=args[0]))
     images = _images(2)
-    model(images)
+    _run(model, images)
     normalised = images.float() / 127.5 - 1
     assert torch.allclose(seen["head"], normalised[:, 0].permute(0, 3, 1, 2), atol=1e-6)
     for k, camera in enumerate((1, 2, 3)):  # CamF, CamL, CamR -> channels 0-2, 3-5, 6-8
@@ -62,22 +139,38 @@ def test_branches_see_their_cameras_in_order():
 
 
 def test_predict_actions_decodes_steer_with_the_dac():
-    model = build_model(SMALL, seed=0)
+    model = build_model(PAPER_ARCH, seed=0)
     last = model.branch_steer.layers[-1]
     with torch.no_grad():
         last.weight.zero_()
         last.bias.copy_(torch.tensor([0, 0, 0, 0, 0, 5.0, 0]))  # class 5 always wins
-    actions = predict_actions(model, _images(3))
+    actions = predict_actions(model, _images(3), torch.tensor([0, 1, 2]), torch.tensor([0.0, 1.0, 2.0]))
     assert actions.shape == (3, 3) and actions.dtype == np.float32
     assert actions[:, 1] == pytest.approx([-0.275] * 3)
     assert ((actions[:, [0, 2]] >= 0) & (actions[:, [0, 2]] <= 1)).all()
-    single = predict_actions(model, _images(1)[0])
+    single = predict_actions(model, _images(1)[0], 2, 4.5)
     assert single.shape == (3,) and single[1] in STEER_CLASS_VALUES
     assert model.training  # the training flag is restored
 
 
+def test_predict_actions_passes_command_and_speed():
+    model = build_model(SMALL, seed=0)
+    images = _images(3)
+    command, speed = torch.tensor([1, 2, 3]), torch.tensor([0.0, 4.0, 11.0])
+    throttle_brake, logits = model.eval()(images, command, speed)
+    actions = predict_actions(model, images, command.numpy(), speed.numpy())
+    assert actions[:, [0, 2]] == pytest.approx(throttle_brake.detach().numpy())
+    assert actions[:, 1] == pytest.approx(STEER_CLASS_VALUES[logits.argmax(dim=1).numpy()])
+    one = predict_actions(model, images[1], 2, 4.0)
+    assert one == pytest.approx(actions[1], abs=1e-6)
+    with pytest.raises(ValueError, match="3 images, 2 commands"):
+        predict_actions(model, images, torch.tensor([0, 1]), speed)
+    with pytest.raises(ValueError, match="commands must lie in 0..3"):
+        predict_actions(model, images, torch.tensor([0, 1, 4]), speed)
+
+
 def test_paper_size_matches_the_reference_implementation():
-    model = DrivingModel(ModelConfig("paper"))
+    model = DrivingModel(ModelConfig("paper", arch="paper"))
     assert count_parameters(model) == pytest.approx(39.4e6, rel=0.02)
     size_bytes = state_size_bytes(model.state_dict())
     assert size_bytes == pytest.approx(150 * 2**20, rel=0.02)  # FACTS.md: 150 MB per model
@@ -91,9 +184,21 @@ def test_config_validation_and_round_trip():
         ModelConfig("compact", 32, 64)
     with pytest.raises(CrchflError, match="size"):
         ModelConfig("huge")
-    config = ModelConfig("paper", 64, 96)
+    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", speed_input=False)
     assert from_mapping(ModelConfig, to_mapping(config)) == config
-    assert to_mapping(config) == {"size": "paper", "image_height": 64, "image_width": 96}
+    assert to_mapping(config) == {
+        "size": "paper", "image_height": 64, "image_width": 96,
+        "arch": "cil", "norm": "batch", "command_input": "concat", "speed_input": False,
+    }
+    for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film")):
+        with pytest.raises(CrchflError, match=f"model.{key}: '{value}' is unknown"):
+            ModelConfig(**{key: value})
+    with pytest.raises(CrchflError, match="model.speed_input"):
+        ModelConfig(speed_input="yes")
+    with pytest.raises(CrchflError, match="model.norm: 'batch' applies to arch 'cil' only"):
+        ModelConfig(arch="paper", norm="batch")
+    with pytest.raises(CrchflError, match="model.command_input"):
+        ModelConfig(arch="paper", command_input="concat")
 
 
 def test_model_from_state_copies_weights_and_leaves_the_rng_alone():
@@ -110,7 +215,7 @@ def test_model_from_state_copies_weights_and_leaves_the_rng_alone():
     assert all(torch.equal(state[k], original[k]) for k in state)
     assert all(p.requires_grad for p in model.parameters())
     images = _images(2)
-    assert torch.equal(build_model(SMALL, seed=0)(images)[1], model_from_state(SMALL, state)(images)[1])
+    assert torch.equal(_run(build_model(SMALL, seed=0), images)[1], _run(model_from_state(SMALL, state), images)[1])
 
 
 @pytest.mark.parametrize("height,width", [(5, 13), (1, 5), (7, 22), (2, 8)])

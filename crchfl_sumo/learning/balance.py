@@ -1,0 +1,68 @@
+"""Balanced learning: how an epoch's batches are drawn, and how the steer loss weighs the classes.
+
+86 % of the steer labels are "straight", so plain training can sit on the
+majority class. Two levers, each computed from the samples being trained on
+(for a vehicle: its own data):
+
+Sampling (``TrainConfig.sampling``), one epoch = N draws for N samples:
+
+- ``uniform``: a fresh permutation cut into batches (every sample once);
+- ``class_balanced``: N draws with replacement, sample i drawn with
+  probability proportional to 1 / (samples of its steer class): every class
+  present is drawn equally often on average;
+- ``command_balanced``: the same with the route command in place of the class.
+
+Loss weighting (``TrainConfig.class_weighting``), per steer class c with n_c of N samples
+and K classes present:
+
+- ``none``: plain cross-entropy;
+- ``inverse``: w_c = N / (K n_c);
+- ``sqrt_inverse``: w_c proportional to 1 / sqrt(n_c), scaled so that sum_c n_c w_c = N.
+
+Either way a batch's steer loss is sum_i w_{y_i} CE_i / sum_i w_{y_i} (torch's
+weighted cross-entropy). Draws use the caller's torch.Generator only, so the
+same seed gives the same batches.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
+from crchfl_sumo.data.samples import Samples
+
+SAMPLINGS = ("uniform", "class_balanced", "command_balanced")
+CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
+
+
+def inverse_frequency(codes: torch.Tensor, num_codes: int) -> torch.Tensor:
+    """float64 [len(codes)]: 1 / (how often each sample's code occurs)."""
+    counts = torch.bincount(codes.cpu(), minlength=num_codes).to(torch.float64)
+    return 1.0 / counts[codes.cpu()]
+
+
+def epoch_batches(samples: Samples, batch_size: int, sampling: str, generator: torch.Generator) -> list[torch.Tensor]:
+    """Index batches (CPU int64) of one epoch by ``sampling``; the last batch may be shorter."""
+    n = len(samples)
+    if n == 0:
+        return []
+    if sampling == "uniform":
+        order = torch.randperm(n, generator=generator)
+    else:
+        codes, num_codes = (
+            (samples.steer_class, NUM_STEER_CLASSES) if sampling == "class_balanced" else (samples.command, NUM_COMMANDS)
+        )
+        order = torch.multinomial(inverse_frequency(codes, num_codes), n, replacement=True, generator=generator)
+    return list(order.split(batch_size))
+
+
+def class_weights(steer_class: torch.Tensor, weighting: str) -> torch.Tensor | None:
+    """float32 [7] cross-entropy weights for ``weighting`` (None for "none"); absent classes get 0."""
+    if weighting == "none" or len(steer_class) == 0:
+        return None
+    counts = torch.bincount(steer_class.cpu(), minlength=NUM_STEER_CLASSES).to(torch.float64)
+    present = counts > 0
+    raw = torch.zeros(NUM_STEER_CLASSES, dtype=torch.float64)
+    raw[present] = 1.0 / (counts[present] if weighting == "inverse" else counts[present].sqrt())
+    weights = raw * counts.sum() / (raw * counts).sum()
+    return weights.to(torch.float32)

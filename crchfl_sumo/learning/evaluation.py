@@ -1,0 +1,146 @@
+"""Test-set metrics of a driving model, and the always-straight baseline they are read against.
+
+``evaluate_model(model, samples)`` (``training.evaluate`` with a TrainConfig) gives, over a set of N samples:
+
+- loss: MSE of branch I (mean over throttle and brake) + cross-entropy of branch II;
+  loss_throttle_brake and loss_steer are the two parts (plain, unweighted means);
+- accuracy: top-1 steer-class accuracy, the paper's Accuracy;
+- confusion: the 7 x 7 matrix of counts, row = true class, column = predicted class;
+- recall: per class c, confusion[c, c] / (samples of true class c); NaN for a
+  class absent from the set;
+- balanced_accuracy: the mean of recall over the classes PRESENT in the set
+  (a class with no samples has no recall and is left out of the mean;
+  predictions of an absent class count as errors of the true class). This is
+  sklearn's ``balanced_accuracy_score``. A model that always predicts one
+  class present in the set scores 1 / (number of classes present): 1/7 with
+  all seven;
+- steer_error: mean |steer_from_class(predicted class) - true analogue steer|,
+  the error of the steer the vehicle would get after the DAC;
+- throttle_error, brake_error: mean absolute error of the two pedals.
+
+``always_straight(samples)`` gives the accuracy and balanced accuracy of the
+constant prediction "class 0" (straight) on the same set.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.model import DrivingModel
+
+STRAIGHT_CLASS = 0  # labels.STEER_CLASS_VALUES[0] == 0.0
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A model's metrics on one set (module docstring). An empty set gives NaN values and zero counts."""
+
+    loss: float
+    accuracy: float
+    loss_throttle_brake: float
+    loss_steer: float
+    num_samples: int
+    balanced_accuracy: float
+    recall: tuple[float, ...]  # per steer class; NaN where the class is absent
+    confusion: tuple[tuple[int, ...], ...]  # [true class][predicted class] counts
+    steer_error: float
+    throttle_error: float
+    brake_error: float
+
+    def record(self) -> dict:
+        """The metrics as plain JSON values (NaN recall as None), num_samples as ``samples``."""
+        return {
+            "loss": self.loss,
+            "accuracy": self.accuracy,
+            "balanced_accuracy": self.balanced_accuracy,
+            "loss_throttle_brake": self.loss_throttle_brake,
+            "loss_steer": self.loss_steer,
+            "steer_error": self.steer_error,
+            "throttle_error": self.throttle_error,
+            "brake_error": self.brake_error,
+            "recall": [None if math.isnan(r) else r for r in self.recall],
+            "confusion": [list(row) for row in self.confusion],
+            "samples": self.num_samples,
+        }
+
+
+def confusion_matrix(true_class: np.ndarray, predicted_class: np.ndarray) -> np.ndarray:
+    """int64 [7, 7] counts: row = true class, column = predicted class."""
+    true_class, predicted_class = np.asarray(true_class, np.int64), np.asarray(predicted_class, np.int64)
+    flat = true_class * NUM_STEER_CLASSES + predicted_class
+    return np.bincount(flat, minlength=NUM_STEER_CLASSES**2).reshape(NUM_STEER_CLASSES, NUM_STEER_CLASSES)
+
+
+def recall_per_class(confusion: np.ndarray) -> np.ndarray:
+    """float64 [7]: diagonal / row sum, NaN for a class with no true samples."""
+    support = confusion.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(support > 0, np.diag(confusion) / np.maximum(support, 1), np.nan)
+
+
+def balanced_accuracy(confusion: np.ndarray) -> float:
+    """Mean recall over the classes present (NaN when no class is)."""
+    recall = recall_per_class(confusion)
+    present = ~np.isnan(recall)
+    return float(recall[present].mean()) if present.any() else math.nan
+
+
+def always_straight(samples: Samples) -> dict[str, float]:
+    """Accuracy and balanced accuracy of predicting class 0 (straight) for every sample of ``samples``."""
+    true_class = samples.steer_class.cpu().numpy()
+    confusion = confusion_matrix(true_class, np.full_like(true_class, STRAIGHT_CLASS))
+    accuracy = float(confusion[STRAIGHT_CLASS, STRAIGHT_CLASS] / len(true_class)) if len(true_class) else math.nan
+    return {"accuracy": accuracy, "balanced_accuracy": balanced_accuracy(confusion)}
+
+
+@torch.no_grad()
+def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int = 256) -> Evaluation:
+    """``model``'s metrics on ``samples`` (on the model's device, in eval mode; the mode is restored)."""
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    sums = torch.zeros(5, dtype=torch.float64, device=device)  # MSE, CE, |throttle|, |brake|, |steer| sums
+    predicted = []
+    values = torch.as_tensor(STEER_CLASS_VALUES, device=device)
+    try:
+        for start in range(0, len(samples), eval_batch_size):
+            batch = samples.subset(slice(start, start + eval_batch_size)).to(device)
+            throttle_brake, steer_logits = model(batch.images, batch.command, batch.speed_mps)
+            guess = steer_logits.argmax(dim=1)
+            pedal_error = (throttle_brake - batch.actions[:, [0, 2]]).abs().double()
+            sums += torch.stack(
+                [
+                    (throttle_brake - batch.actions[:, [0, 2]]).double().square().mean(dim=1).sum(),
+                    F.cross_entropy(steer_logits.double(), batch.steer_class, reduction="sum"),
+                    pedal_error[:, 0].sum(),
+                    pedal_error[:, 1].sum(),
+                    (values[guess] - batch.actions[:, 1]).abs().double().sum(),
+                ]
+            )
+            predicted.append(guess.cpu())
+    finally:
+        model.train(was_training)
+    n = len(samples)
+    guesses = torch.cat(predicted).numpy() if predicted else np.zeros(0, np.int64)
+    confusion = confusion_matrix(samples.steer_class.cpu().numpy(), guesses)
+    mse, ce, throttle, brake, steer = (v / n if n else math.nan for v in sums.tolist())
+    return Evaluation(
+        loss=mse + ce,
+        accuracy=float(np.trace(confusion) / n) if n else math.nan,
+        loss_throttle_brake=mse,
+        loss_steer=ce,
+        num_samples=n,
+        balanced_accuracy=balanced_accuracy(confusion),
+        recall=tuple(float(r) for r in recall_per_class(confusion)),
+        confusion=tuple(tuple(int(c) for c in row) for row in confusion),
+        steer_error=steer,
+        throttle_error=throttle,
+        brake_error=brake,
+    )

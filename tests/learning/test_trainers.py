@@ -1,0 +1,45 @@
+import numpy as np
+import pytest
+
+from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.evaluation import Evaluation
+from crchfl_sumo.learning.model import ModelConfig
+from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
+from crchfl_sumo.learning.training import TrainConfig
+
+SMALL = ModelConfig("compact", 48, 64)
+CPU = TrainConfig(device="cpu", deterministic=True)
+
+
+def _samples(n, seed):
+    rng = np.random.default_rng(seed)
+    return Samples.from_numpy(
+        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
+        rng.random((n, 3), dtype=np.float32),
+        np.where(rng.random(n) < 0.8, 0, rng.integers(1, 7, size=n)),
+        rng.integers(0, 4, size=n),
+        rng.random(n, dtype=np.float32) * 12,
+    )
+
+
+@pytest.mark.parametrize("sampling,class_weighting", [("class_balanced", "none"), ("uniform", "sqrt_inverse")])
+def test_trainers_give_full_metrics_and_the_same_models(sampling, class_weighting):
+    config = TrainConfig(device="cpu", deterministic=True, sampling=sampling, class_weighting=class_weighting)
+    test = _samples(12, seed=1)
+    vehicles = [_samples(20, seed=2), _samples(9, seed=3)]
+    local = TorchTrainer(SMALL, config, test, seed=0)
+    start = local.initial_state()
+    trained = local.train([start, start], vehicles, 1, seed=4)
+    again = TorchTrainer(SMALL, config, test, seed=0).train([start, start], vehicles, 1, seed=4)
+    assert all((a[k] == b[k]).all() for a, b in zip(trained, again) for k in a)  # same seed, same models
+    evaluation = local.evaluation(trained[0])
+    assert isinstance(evaluation, Evaluation) and evaluation.num_samples == 12
+    assert local.evaluate(trained[0]) == (evaluation.loss, evaluation.accuracy)  # the loop's pair
+    assert local.always_straight["accuracy"] == pytest.approx(float((test.steer_class == 0).double().mean()))
+    with Executor(BackendConfig()) as executor:
+        remote = RayTrainer(SMALL, config, test, 0, executor)
+        remote_trained = remote.train([start, start], vehicles, 1, seed=4)
+        assert all((a[k] == b[k]).all() for a, b in zip(trained, remote_trained) for k in a)
+        assert remote.evaluation(trained[0]).record() == evaluation.record()  # NaN recall compares as None
+        assert remote.evaluate(trained[0]) == (evaluation.loss, evaluation.accuracy)
