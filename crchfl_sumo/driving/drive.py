@@ -91,6 +91,30 @@ def count_onsets(mask) -> int:
     return int(np.count_nonzero(mask[1:] & ~mask[:-1]) + (1 if len(mask) and mask[0] else 0))
 
 
+def footprints_overlap(
+    x_m: float, y_m: float, heading_rad: float, length_m: float, width_m: float,
+    others_x_m, others_y_m, others_heading_rad, others_length_m, others_width_m,
+) -> np.ndarray:
+    """Which other footprints (rectangles around their centres) overlap the given one, per other vehicle.
+
+    Separating axis test: two rectangles are apart exactly when, along one of
+    their four side directions, the gap between their centres exceeds the sum
+    of their half extents. SUMO checks collisions along lanes only, so this
+    also catches an ego that hits a vehicle while it is off its lane.
+    """
+    ox, oy = np.asarray(others_x_m, np.float64), np.asarray(others_y_m, np.float64)
+    oh = np.asarray(others_heading_rad, np.float64)
+    half_l, half_w = np.asarray(others_length_m, np.float64) / 2.0, np.asarray(others_width_m, np.float64) / 2.0
+    dx, dy = ox - x_m, oy - y_m
+    apart = np.zeros(len(ox), dtype=bool)
+    for axis in (np.full_like(oh, heading_rad), np.full_like(oh, heading_rad + math.pi / 2.0), oh, oh + math.pi / 2.0):
+        gap = np.abs(dx * np.cos(axis) + dy * np.sin(axis))
+        ego_reach = length_m / 2.0 * np.abs(np.cos(axis - heading_rad)) + width_m / 2.0 * np.abs(np.sin(axis - heading_rad))
+        other_reach = half_l * np.abs(np.cos(axis - oh)) + half_w * np.abs(np.sin(axis - oh))
+        apart |= gap > ego_reach + other_reach
+    return ~apart
+
+
 # --- the loop ------------------------------------------------------------------------------------
 
 
@@ -278,7 +302,7 @@ def drive(
             if removed:  # SUMO let it arrive or teleported it: end with the last picture of it
                 log.warning("SUMO removed the ego '%s' at t=%.2f s; the drive ends there", ego, frame.t_s)
                 frame = dataclasses.replace(seen, t_s=frame.t_s, tls_states=frame.tls_states)
-            colliding = ego in sim.colliding_vehicles()
+            colliding = ego in sim.colliding_vehicles() or _touches_another(frame, ego, new_state, length, width)
             new_s, offset, lane_width = (
                 float(v[0])
                 for v in project_points(route, new_state.x_m, new_state.y_m, s - _SEARCH_BACK_M, s + _SEARCH_AHEAD_M)
@@ -292,6 +316,20 @@ def drive(
         route.edges[0], end, drive_log.t_s[-1], metrics["completion"],
     )
     return DriveResult(drive_log, metrics, frames, route, ego, length, width)
+
+
+def _touches_another(frame: Frame, ego: str, state: VehicleState, length_m: float, width_m: float) -> bool:
+    """Does the ego's footprint at ``state`` overlap another vehicle's in ``frame``?"""
+    others = frame.ids != ego
+    if not others.any():
+        return False
+    return bool(
+        footprints_overlap(
+            state.x_m, state.y_m, state.heading_rad, length_m, width_m,
+            frame.x_m[others], frame.y_m[others], frame.heading_rad[others],
+            frame.length_m[others], frame.width_m[others],
+        ).any()
+    )
 
 
 def _log_from_rows(rows: list[dict[str, Any]]) -> DriveLog:

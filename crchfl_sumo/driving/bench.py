@@ -1,0 +1,315 @@
+"""The closed-loop driving benchmark: a driver (a trained model or the scripted reference) drives every
+task's episodes in each town; success, route completion, driving score and infractions per task.
+
+    summary = run_benchmark("runs/crchfl/best_model.pt", "out/bench/crchfl", episodes=5, jobs=2)
+    summary = run_benchmark(None, "out/bench/reference")          # the scripted reference driver
+    summary["results"]["town01"]["one_turn"]["success_rate"]
+
+Episodes run in groups, each group in its own spawned process when jobs > 1
+(libsumo holds one simulation per process); every group builds its town's
+renderer once. bench_tasks.py draws the episodes, bench_score.py scores them,
+bench_plots.py draws them. docs/drive.md describes the benchmark.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.driving.bench_plots import plot_benchmark
+from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
+from crchfl_sumo.driving.bench_tasks import (
+    TASK_NAMES,
+    Episode,
+    TaskConfig,
+    draw_episodes,
+    task_by_name,
+    without_traffic,
+)
+from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.drive_command import _single_torch_thread
+from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+
+DEFAULT_TOWNS = ("town01", "town02")
+REFERENCE = "reference"
+PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
+SUMMARY_KEYS = ("episodes", "success_rate", "route_completion", "driving_score", "infractions_per_km")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Settings of a benchmark run.
+
+    tasks           the suites driven, in this order (bench_tasks.TASKS)
+    routes          how start/goal routes are drawn (bench_tasks.TaskConfig)
+    drive           the drive loop's settings; each episode sets its own warm-up
+    group_episodes  episodes a worker drives one after the other (one process start, one renderer each)
+    """
+
+    tasks: tuple[str, ...] = TASK_NAMES
+    routes: TaskConfig = field(default_factory=TaskConfig)
+    drive: DriveConfig = field(default_factory=DriveConfig)
+    group_episodes: int = 4
+
+    def __post_init__(self) -> None:
+        if not self.tasks:
+            raise CrchflError(f"--tasks: name at least one task ({', '.join(TASK_NAMES)})")
+        for name in self.tasks:
+            task_by_name(name)
+        if self.group_episodes < 1:
+            raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
+
+
+# --- drivers: what makes the policy of an episode --------------------------------------------------------
+
+
+@dataclass
+class ReferenceDriver:
+    """The scripted RoutePolicy: knows the route, reads no images."""
+
+    label: str = REFERENCE
+    renders: bool = False
+
+    def policy(self, route: RouteGeometry) -> Policy:
+        return RoutePolicy(route)
+
+    def camera(self):
+        from crchfl_sumo.vision.camera import CameraConfig
+
+        return CameraConfig()
+
+
+@dataclass
+class ModelDriver:
+    """A trained checkpoint driving through ModelPolicy; the model is loaded once per process."""
+
+    path: str
+    label: str = ""
+    renders: bool = True
+    _model: Any = field(default=None, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:  # workers load the model themselves: only the path travels
+        return {**self.__dict__, "_model": None}
+
+    def model(self):
+        if self._model is None:
+            from crchfl_sumo.learning.checkpoint import load_model
+
+            self._model = load_model(self.path)
+        return self._model
+
+    def policy(self, route: RouteGeometry) -> Policy:
+        return ModelPolicy(self.model())
+
+    def camera(self):
+        from crchfl_sumo.vision.camera import CameraConfig
+
+        config = self.model().config
+        return CameraConfig(height_px=config.image_height, width_px=config.image_width)
+
+
+def driver_for(model: str | Path | None) -> ReferenceDriver | ModelDriver:
+    """The driver of MODEL|reference; a model path must name a checkpoint file."""
+    if model is None or str(model) == REFERENCE:
+        return ReferenceDriver()
+    path = Path(model)
+    if not path.is_file():
+        raise CrchflError(f"MODEL: no checkpoint at {path}; give a checkpoint.pt written by crchfl-sumo, or 'reference'")
+    driver = ModelDriver(str(path), label=path.stem)
+    driver.model()  # a file that is not a checkpoint fails here, before any episode runs
+    return driver
+
+
+# --- one group of episodes (runs in a worker process) -------------------------------------------------
+
+
+def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], config: BenchConfig) -> list[dict]:
+    """Drive ``episodes`` (all in one town) one after the other; one record per episode."""
+    from crchfl_sumo.driving.bench_tasks import TASKS
+
+    scenario = load_scenario(scenario_name)
+    empty = without_traffic(scenario)
+    traffic_of = {t.name: t.traffic for t in TASKS}
+    net = read_net(Path(scenario.net_path))
+    renderer = None
+    if driver.renders:
+        from crchfl_sumo.vision.raster import RasterConfig, Renderer
+        from crchfl_sumo.vision.world import build_world
+
+        renderer = Renderer(build_world(scenario.net_path), RasterConfig(camera=driver.camera()))
+    records = []
+    with _single_torch_thread(driver.renders):
+        for episode in episodes:
+            route = route_geometry(net, episode.edges)
+            result = drive(
+                scenario if traffic_of[episode.task] else empty,
+                route,
+                driver.policy(route),
+                seed=episode.sumo_seed,
+                max_s=episode.time_limit_s,
+                config=DriveConfig(**{**asdict(config.drive), "warmup_s": episode.warmup_s}),
+                renderer=renderer,
+                keep_frames=False,
+            )
+            records.append(episode_record(episode, result, config.drive.finish_before_end_m))
+    return records
+
+
+def episode_record(episode: Episode, result, finish_before_end_m: float) -> dict[str, Any]:
+    """What the benchmark keeps of a drive: the episode, its metrics, its score and its path (JSON-ready)."""
+    log, metrics = result.log, result.metrics
+    completion = route_completion(
+        log.progress_m, log.on_road, float(log.progress_m[0]), result.route.length_m - finish_before_end_m
+    )
+    dt = float(log.t_s[1] - log.t_s[0]) if len(log) > 1 else 1.0
+    every = max(1, round(PATH_EVERY_S / dt))
+    keep = list(range(0, len(log), every)) + ([len(log) - 1] if (len(log) - 1) % every else [])
+    return {
+        **asdict(episode),
+        "edges": list(episode.edges),
+        **{k: metrics[k] for k in ("end_reason", "completion", "duration_s", "distance_m", "mean_speed_mps",
+                                   "max_abs_offset_m", *INFRACTIONS)},
+        **score_episode(metrics, completion),
+        "path_xy": [[round(float(log.x_m[i]), 2), round(float(log.y_m[i]), 2)] for i in keep],
+        "route_xy": [[round(float(x), 2), round(float(y), 2)] for x, y in result.route.xy_m],
+    }
+
+
+# --- the benchmark ------------------------------------------------------------------------------------
+
+
+def run_benchmark(
+    model: str | Path | None,
+    out_dir: str | Path,
+    episodes: int = 5,
+    jobs: int = 1,
+    seed: int = 0,
+    towns: Sequence[str] = DEFAULT_TOWNS,
+    config: BenchConfig = BenchConfig(),
+    progress: Progress | None = None,
+    driver=None,
+) -> dict[str, Any]:
+    """Run the benchmark and write OUT/summary.json, results.md, results.csv, episodes.json, trajectories.png.
+
+    ``model``: a checkpoint path, or None / 'reference' for the scripted
+    driver. ``driver`` (instead of ``model``) is any object with ``label``,
+    ``renders``, ``camera()`` and ``policy(route)``. Returns the summary:
+    ``results[TOWN][TASK]`` holds episodes, success_rate, route_completion,
+    driving_score and infractions_per_km.
+    """
+    if episodes < 1:
+        raise CrchflError(f"--episodes must be >= 1 (episodes per task and town), got {episodes}")
+    if jobs < 1:
+        raise CrchflError(f"--jobs must be >= 1 (parallel processes), got {jobs}")
+    if seed < 0:
+        raise CrchflError(f"--seed must be >= 0, got {seed}")
+    if not towns:
+        raise CrchflError(f"--towns: name at least one town ({', '.join(DEFAULT_TOWNS)} or a .sumocfg)")
+    driver = driver or driver_for(model)
+    started = time.perf_counter()
+    tasks = [task_by_name(t) for t in config.tasks]
+    scenarios: dict[str, Scenario] = {}
+    for name in towns:
+        try:
+            scenarios[str(name)] = load_scenario(name)
+        except CrchflError as exc:
+            raise CrchflError(f"--towns: {exc}") from None
+    drawn = {name: draw_episodes(s, tasks, episodes, seed, config.routes) for name, s in scenarios.items()}
+    calls = []
+    for name, town_episodes in drawn.items():
+        groups = math.ceil(len(town_episodes) / config.group_episodes)
+        calls += [(driver, name, town_episodes[g::groups], config) for g in range(groups)]  # tasks mixed: even groups
+    total = sum(len(e) for e in drawn.values())
+    done = {"episodes": 0, "successes": 0}
+
+    def on_result(_, records) -> None:
+        done["episodes"] += len(records)
+        done["successes"] += sum(r["success"] for r in records)
+        report(progress, "episode", done["episodes"], total, success=f"{done['successes']}/{done['episodes']}")
+
+    report(progress, "episode", 0, total)
+    with Executor(BackendConfig(num_cpus=jobs)) as executor:
+        grouped = executor.map(drive_episodes, calls, isolate=jobs > 1, on_result=on_result)
+    town_names = [s.name for s in scenarios.values()]
+    records = sorted(
+        (r for group in grouped for r in group),
+        key=lambda r: (town_names.index(r["town"]), config.tasks.index(r["task"]), r["index"]),
+    )
+    results = {
+        town: {task: summarize_task([r for r in records if r["town"] == town and r["task"] == task]) for task in config.tasks}
+        for town in town_names
+    }
+    summary = {
+        "driver": driver.label,
+        "model": "" if isinstance(driver, ReferenceDriver) else str(getattr(driver, "path", driver.label)),
+        "episodes_per_task": episodes,
+        "seed": seed,
+        "towns": town_names,
+        "tasks": list(config.tasks),
+        "results": results,
+        "jobs": jobs,
+        "wall_s": round(time.perf_counter() - started, 1),
+    }
+    write_outputs(Path(out_dir), summary, records, scenarios)
+    return summary
+
+
+# --- outputs ------------------------------------------------------------------------------------------
+
+
+def write_outputs(out: Path, summary: dict, records: list[dict], scenarios: dict[str, Scenario]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out / "episodes.json", json.dumps(records, indent=1) + "\n")
+    atomic_write_text(out / "results.md", results_table(summary) + "\n")
+    atomic_write_text(out / "results.csv", results_csv(summary))
+    plot_benchmark(records, {s.name: Path(s.net_path) for s in scenarios.values()}, summary["tasks"],
+                   out / "trajectories.png", title=f"drive-bench: {summary['driver']}")
+
+
+def _rows(summary: dict):
+    for town, tasks in summary["results"].items():
+        for task, r in tasks.items():
+            yield town, task, r
+
+
+def _per_km(value) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
+
+
+def results_table(summary: dict) -> str:
+    """The per-task results as a markdown table."""
+    lines = [
+        f"Driver: {summary['driver']}; {summary['episodes_per_task']} episodes per task, seed {summary['seed']}.",
+        "",
+        "| town | task | episodes | success | route completion | driving score | infractions / km |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for town, task, r in _rows(summary):
+        lines.append(
+            f"| {town} | {task} | {r['episodes']} | {100 * r['success_rate']:.0f} % | "
+            f"{100 * r['route_completion']:.1f} % | {100 * r['driving_score']:.1f} | {_per_km(r['infractions_per_km'])} |"
+        )
+    return "\n".join(lines)
+
+
+def results_csv(summary: dict) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["town", "task", *SUMMARY_KEYS])
+    for town, task, r in _rows(summary):
+        writer.writerow([town, task, *("" if r[k] is None else r[k] for k in SUMMARY_KEYS)])
+    return buffer.getvalue()
+

@@ -1,0 +1,268 @@
+"""The benchmark's tasks: suites of start/goal routes drawn from a network, as in CARLA's CoRL2017 benchmark.
+
+Every ordered pair of edges (start, goal) of the network is joined by its
+shortest path (sumolib, by length); the route is classified by its number of
+turns (junctions passed with SUMO link direction left or right, the towns'
+rounded ring corners included: CoRL2017 calls its task "one curve"). Routes
+that the data vehicles drove are left out (``data_routes``), so the benchmark
+never replays a stretch of road exactly as the training data saw it. Each
+suite then draws its episodes by seed from its candidates.
+
+docs/drive.md describes the suites, the exclusion and the time limit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import xml.etree.ElementTree as ET
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.route import GREEN_LETTERS, RouteGeometry, read_net, route_geometry
+from crchfl_sumo.sumo.scenario import Scenario
+
+TURN_DIRECTIONS = ("l", "r", "L", "R")  # SUMO link directions that need the wheel turned
+U_TURN_DIRECTIONS = ("t", "T")  # routes with a U-turn are not drawn (the towns have none)
+# CoRL2017's time budget (CARLA driving-benchmarks, calculate_time_out): the route at
+# 10 km/h plus 10 s. Added here: each signal on the route may hold the ego for its
+# longest red, which the towns' in-phase signals make up to 47 s.
+TIME_BUDGET_SPEED_MPS = 10.0 / 3.6
+TIME_BUDGET_EXTRA_S = 10.0
+
+
+@dataclass(frozen=True)
+class Task:
+    """One suite: which routes it draws (by number of turns) and whether the town's traffic runs."""
+
+    name: str
+    min_turns: int
+    max_turns: int  # inclusive; a large number for "several"
+    traffic: bool
+    routes_of: str = ""  # draw the same routes as this task (CoRL2017: navigation with and without traffic)
+
+
+TASKS = (
+    Task("straight", 0, 0, traffic=False),
+    Task("one_turn", 1, 1, traffic=False),
+    Task("navigation", 2, 1_000, traffic=False),
+    Task("navigation_traffic", 2, 1_000, traffic=True, routes_of="navigation"),
+)
+TASK_NAMES = tuple(t.name for t in TASKS)
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """How routes are drawn.
+
+    max_route_m      longest route drawn [m] (keeps an episode within a few simulated minutes)
+    warmup_range_s   each episode's warm-up is drawn from this range: traffic gets moving, and
+                     a range wider than a signal cycle (90 s in the towns) lets the ego meet
+                     every phase of the lights
+    """
+
+    max_route_m: float = 600.0
+    warmup_range_s: tuple[float, float] = (20.0, 110.0)
+
+    def __post_init__(self) -> None:
+        if not self.max_route_m > 0:
+            raise CrchflError(f"bench.max_route_m must be > 0, got {self.max_route_m}")
+        low, high = self.warmup_range_s
+        if not 0 <= low <= high:
+            raise CrchflError(f"bench.warmup_range_s must be (low, high) with 0 <= low <= high, got {self.warmup_range_s}")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A route between two edges of the network."""
+
+    edges: tuple[str, ...]
+    length_m: float
+    turns: int
+    time_limit_s: float
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One drive of the benchmark: the route, its time limit and the episode's own random draws."""
+
+    town: str
+    task: str
+    index: int
+    edges: tuple[str, ...]
+    length_m: float
+    turns: int
+    time_limit_s: float
+    sumo_seed: int
+    warmup_s: float
+
+
+def task_by_name(name: str) -> Task:
+    for task in TASKS:
+        if task.name == name:
+            return task
+    raise CrchflError(f"--tasks: unknown task '{name}'; choose from {', '.join(TASK_NAMES)}")
+
+
+def count_turns(route: RouteGeometry) -> int:
+    """Junctions the route passes turning left or right."""
+    return sum(c.direction in TURN_DIRECTIONS for c in route.crossings)
+
+
+# --- the routes of the training data ---------------------------------------------------------------
+
+
+def route_files(scenario: Scenario) -> list[Path]:
+    """The route files a scenario's SUMO loads."""
+    files = []
+    for option in scenario.sumo_options:
+        if option.startswith("--route-files="):
+            files += [Path(f) for f in option.split("=", 1)[1].split(",") if f]
+    return files
+
+
+def data_routes(scenario: Scenario) -> list[tuple[str, ...]]:
+    """The edge lists of the scenario's data vehicles (scenario.toml ``data_vehicles``) in its route files."""
+    wanted = {v for town in scenario.towns for v in town.data_vehicles}
+    found: dict[str, tuple[str, ...]] = {}
+    for path in route_files(scenario):
+        root = ET.parse(path).getroot()
+        named = {r.get("id"): tuple(r.get("edges", "").split()) for r in root.iter("route") if r.get("id")}
+        for vehicle in root.iter("vehicle"):
+            if vehicle.get("id") not in wanted:
+                continue
+            inline = vehicle.find("route")
+            edges = tuple(inline.get("edges", "").split()) if inline is not None else named.get(vehicle.get("route"), ())
+            found[vehicle.get("id")] = edges
+    return [found[v] for v in sorted(found)]
+
+
+def drives_stretch_of(edges: Sequence[str], data_route: Sequence[str]) -> bool:
+    """Whether ``edges`` is a contiguous stretch of ``data_route`` driven round and round (the data loops repeat)."""
+    n, k = len(data_route), len(edges)
+    if n == 0 or k == 0:
+        return False
+    lap = list(data_route) * (k // n + 2)
+    return any(lap[i : i + k] == list(edges) for i in range(n))
+
+
+def apart_from_data(edges: Sequence[str], routes: Sequence[Sequence[str]]) -> bool:
+    """A route is apart from the training data when no data vehicle started on its first edge or drove it whole."""
+    return all(edges[0] != r[0] and not drives_stretch_of(edges, r) for r in routes if r)
+
+
+# --- signals and the time limit ---------------------------------------------------------------------
+
+
+def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
+    """(signal id, link index) -> the longest time the link's signal is not green in its cycle [s].
+
+    Read from the network's tlLogic programs (the first program of each signal);
+    the cycle wraps round, so a red at the end joins one at the start.
+    """
+    waits: dict[tuple[str, int], float] = {}
+    for _, element in ET.iterparse(net_path):
+        if element.tag != "tlLogic" or element.get("id") in {k[0] for k in waits}:
+            continue
+        phases = [(float(p.get("duration")), p.get("state", "")) for p in element.iter("phase")]
+        links = max((len(state) for _, state in phases), default=0)
+        cycle = sum(d for d, _ in phases)
+        for link in range(links):
+            stopped = [(d, link < len(s) and s[link] not in GREEN_LETTERS) for d, s in phases]
+            if all(stop for _, stop in stopped):
+                waits[(element.get("id"), link)] = cycle
+                continue
+            longest = run = 0.0
+            for duration, stop in stopped + stopped:  # twice round: runs across the cycle's end
+                run = run + duration if stop else 0.0
+                longest = max(longest, run)
+            waits[(element.get("id"), link)] = min(longest, cycle)
+        element.clear()
+    return waits
+
+
+def time_limit_s(route: RouteGeometry, waits: dict[tuple[str, int], float]) -> float:
+    """CoRL2017's budget (the route at 10 km/h + 10 s) plus the longest red of each signal passed."""
+    held = sum(waits.get((c.tls_id, c.link_index), 0.0) for c in route.crossings if c.tls_id)
+    return route.length_m / TIME_BUDGET_SPEED_MPS + TIME_BUDGET_EXTRA_S + held
+
+
+# --- drawing the episodes -----------------------------------------------------------------------------
+
+
+def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> list[Candidate]:
+    """Every shortest route between two edges of the network, apart from the data routes, up to the longest length."""
+    net_path = Path(scenario.net_path)
+    net = read_net(net_path)
+    waits = longest_waits_s(net_path)
+    excluded = data_routes(scenario)
+    candidates = []
+    edges = sorted((e for e in net.getEdges(withInternal=False) if e.allows("passenger")), key=lambda e: e.getID())
+    for start, goal in itertools.permutations(edges, 2):
+        path, _ = net.getShortestPath(start, goal, vClass="passenger")
+        if path is None:
+            continue
+        ids = tuple(e.getID() for e in path)
+        if not apart_from_data(ids, excluded):
+            continue
+        try:
+            geometry = route_geometry(net, ids)
+        except CrchflError:  # a route needing a lane change: the loop drives one lane sequence only
+            continue
+        if geometry.length_m > config.max_route_m or any(c.direction in U_TURN_DIRECTIONS for c in geometry.crossings):
+            continue
+        candidates.append(Candidate(ids, geometry.length_m, count_turns(geometry), time_limit_s(geometry, waits)))
+    return candidates
+
+
+def draw_episodes(
+    scenario: Scenario,
+    tasks: Sequence[Task],
+    episodes: int,
+    seed: int,
+    config: TaskConfig = TaskConfig(),
+) -> list[Episode]:
+    """``episodes`` episodes per task, drawn from the candidates by ``seed`` (the same seed, the same episodes).
+
+    Each task draws its routes without replacement (and round again when it
+    needs more episodes than it has routes), and per episode a SUMO seed and a
+    warm-up. The draws depend only on (seed, town, task), so a task with
+    ``routes_of`` gets exactly that task's routes, seeds and warm-ups.
+    """
+    town = scenario.name
+    candidates = candidate_routes(scenario, config)
+    out = []
+    for task in tasks:
+        source = task_by_name(task.routes_of) if task.routes_of else task
+        pool = sorted(
+            (c for c in candidates if source.min_turns <= c.turns <= source.max_turns), key=lambda c: c.edges
+        )
+        if not pool:
+            raise CrchflError(
+                f"town '{town}' has no route for task '{task.name}' ({source.min_turns} to {source.max_turns} turns, "
+                f"at most {config.max_route_m:g} m, apart from the data vehicles' routes); leave the task out with --tasks"
+            )
+        rng = np.random.default_rng([seed, zlib.crc32(town.encode()), zlib.crc32(source.name.encode())])
+        order = rng.permutation(len(pool))
+        low, high = config.warmup_range_s
+        for i in range(episodes):
+            c = pool[order[i % len(pool)]]
+            out.append(
+                Episode(
+                    town=town, task=task.name, index=i, edges=c.edges, length_m=c.length_m, turns=c.turns,
+                    time_limit_s=c.time_limit_s, sumo_seed=int(rng.integers(0, 2**31 - 1)),
+                    warmup_s=round(float(rng.uniform(low, high)), 2),
+                )
+            )
+    return out
+
+
+def without_traffic(scenario: Scenario) -> Scenario:
+    """The scenario with none of its route files: no vehicle but the ego (vehicle types stay in the additionals)."""
+    options = tuple(o for o in scenario.sumo_options if not o.startswith("--route-files="))
+    return dataclasses.replace(scenario, sumo_options=options)
