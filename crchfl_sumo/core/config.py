@@ -10,9 +10,6 @@ mapping back as TOML (the configs a run, a sweep or a calibration writes).
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import numbers
 import sys
 import types
 import typing
@@ -25,6 +22,7 @@ else:  # pragma: no cover - exercised only on Python 3.10
     import tomli as tomllib
 
 import numpy as np
+import tomli_w
 
 from crchfl_sumo.core.errors import CrchflError
 
@@ -139,51 +137,52 @@ def _convert(hint: Any, value: Any, where: str) -> Any:
 
 
 def toml_text(mapping: Mapping[str, Any]) -> str:
-    """TOML for a mapping of tables, scalars and lists (what configs hold); tomllib reads it back equal."""
-    lines: list[str] = []
-    _toml_table(mapping, [], lines)
-    return "\n".join(lines).strip() + "\n"
+    """TOML for a mapping of tables, scalars and lists (what configs hold), written by tomli-w; reads back equal.
+
+    numpy scalars and tuples are turned into their Python equivalents first (tomli-w knows neither).
+    """
+    try:
+        return tomli_w.dumps(_plain(mapping))
+    except TypeError as exc:
+        raise CrchflError(f"cannot write this config as TOML ({exc}); use numbers, strings, lists and tables") from None
 
 
-def _toml_table(mapping: Mapping[str, Any], path: list[str], lines: list[str]) -> None:
-    tables = {k: v for k, v in mapping.items() if isinstance(v, Mapping)}
-    if path and (len(tables) < len(mapping) or not tables):
-        lines += ["", "[" + ".".join(toml_key(p) for p in path) + "]"]
-    for key, value in mapping.items():
-        if not isinstance(value, Mapping):
-            lines.append(f"{toml_key(key)} = {toml_value(value)}")
-    for key, value in tables.items():
-        _toml_table(value, [*path, key], lines)
-
-
-def toml_key(key: str) -> str:
-    """A bare key where TOML allows one, else a quoted key."""
-    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
-
-
-def toml_value(value: Any) -> str:
-    """One value as inline TOML (numpy scalars too)."""
-    if isinstance(value, (bool, np.bool_)):
-        return "true" if value else "false"
-    if isinstance(value, numbers.Integral):
-        return str(int(value))
-    if isinstance(value, numbers.Real):
-        value = float(value)
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # a JSON string is a valid TOML basic string
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+def _plain(value: Any) -> Any:
     if isinstance(value, Mapping):
-        return "{ " + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + " }"
-    raise CrchflError(f"cannot write {value!r} ({type(value).__name__}) to TOML; use a number, string, list or table")
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 def load_tables(config_path: str | Path | None, types: Mapping[str, type]) -> dict[str, Any]:
     """The tables ``types`` names of a TOML file (read once), each as its dataclass; defaults without a file."""
     data = read_toml(config_path) if config_path is not None else {}
     return {key: from_mapping(cls, data.get(key, {}), f"{config_path}: {key}") for key, cls in types.items()}
+
+
+def set_path(mapping: dict, keys: tuple[str, ...], value: Any, where: str) -> dict:
+    """A copy of ``mapping`` with the table path ``keys`` set to ``value`` (missing tables are created)."""
+    out = dict(mapping)
+    head, rest = keys[0], keys[1:]
+    if not rest:
+        out[head] = value
+        return out
+    table = out.get(head, {})
+    if not isinstance(table, dict):
+        raise CrchflError(f"{where}: {head!r} is a value, not a table, in the config")
+    out[head] = set_path(table, rest, value, where)
+    return out
+
+
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` laid on top; tables merge key by key, other values are replaced."""
+    merged = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged

@@ -33,7 +33,7 @@ import torch
 from scipy.optimize import curve_fit
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.core.config import toml_value
+from crchfl_sumo.core.config import toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.aggregate import weighted_average
@@ -311,36 +311,28 @@ def fit_pilots(data: Mapping[str, Any]) -> tuple[Fit, dict[str, list[float]]]:
 def calibration_toml(fit: Fit, data: Mapping[str, Any], derived: Mapping[str, Any], seed: int, scenario: str) -> str:
     """The calibration file: ``[allocation]`` (read by `plan --config`) and ``[calibration]`` (the record)."""
     alpha, gamma, d = admissible(fit.alpha, fit.gamma, fit.d)
-    lines = [
-        "# Written by `crchfl-sumo calibrate` (docs/calibration.md).",
-        "[allocation]",
-        f"alpha = {toml_value(alpha)}",
-        f"gamma = {toml_value(gamma)}",
-        f"d = {toml_value(d)}",
-        "",
-        "[calibration]",
-        f"scenario = {toml_value(scenario)}",
-        f"seed = {seed}",
-        f"fitted_alpha = {toml_value(fit.alpha)}",
-        f"fitted_gamma = {toml_value(fit.gamma)}",
-        f"fitted_d = {toml_value(fit.d)}",
-        f"curve_a_b_c = {toml_value(list(fit.curve))}",
-        f"curve_rms = {toml_value(fit.curve_rms)}",
-        f"alpha_rms_samples = {toml_value(fit.alpha_rms)}",
-        f"gamma_rms_samples = {toml_value(fit.gamma_rms)}",
-    ]
+    record: dict[str, Any] = {
+        "scenario": scenario,
+        "seed": seed,
+        "fitted_alpha": fit.alpha,
+        "fitted_gamma": fit.gamma,
+        "fitted_d": fit.d,
+        "curve_a_b_c": list(fit.curve),
+        "curve_rms": fit.curve_rms,
+        "alpha_rms_samples": fit.alpha_rms,
+        "gamma_rms_samples": fit.gamma_rms,
+    }
     for key in ("metric", "local_samples", "test_samples", "epochs", "reference_samples", "reference_scores",
                 "pretrain_samples", "pretrain_scores"):
-        lines.append(f"{key} = {toml_value(data[key])}")
-    lines.append(f"hfl_edge_interval = {toml_value([r['edge_interval'] for r in data['hfl']])}")
-    lines.append(f"hfl_cloud_interval = {toml_value([r['cloud_interval'] for r in data['hfl']])}")
-    lines.append(f"hfl_cloud_rounds = {toml_value([r['cloud_rounds'] for r in data['hfl']])}")
-    lines.append(f"hfl_scores = {toml_value([r['score'] for r in data['hfl']])}")
+        record[key] = data[key]
+    for key in ("edge_interval", "cloud_interval", "cloud_rounds", "score"):
+        record[f"hfl_{key}{'s' if key == 'score' else ''}"] = [r[key] for r in data["hfl"]]
     for key in ("pretrain_effective", "hfl_effective"):
-        lines.append(f"{key} = {toml_value(derived[key])}")
+        record[key] = derived[key]
     if "train_s_per_sample_epoch" in data:  # measured, so it differs from run to run; the fit does not use it
-        lines.append(f"train_s_per_sample_epoch = {toml_value(data['train_s_per_sample_epoch'])}")
-    return "\n".join(lines) + "\n"
+        record["train_s_per_sample_epoch"] = data["train_s_per_sample_epoch"]
+    tables = {"allocation": {"alpha": alpha, "gamma": gamma, "d": d}, "calibration": record}
+    return "# Written by `crchfl-sumo calibrate` (docs/calibration.md).\n" + toml_text(tables)
 
 
 def calibrate_command(

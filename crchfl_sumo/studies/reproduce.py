@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from crchfl_sumo.core.atomic import atomic_write_text
-from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping, toml_text
+from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml, to_mapping, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.core.resources import experiments_dir
@@ -133,17 +133,6 @@ def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) 
 
 
 # ------------------------------------------------------------------ run configs (pure)
-
-
-def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """``base`` with ``over`` laid on top; tables merge key by key, other values are replaced."""
-    merged = dict(base)
-    for key, value in over.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def run_mapping(
@@ -472,4 +461,3 @@ def describe(config: ReproduceConfig) -> str:
         f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
         f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}"
     )
-

@@ -36,6 +36,7 @@ import io
 import itertools
 import json
 import logging
+import math
 import re
 import sys
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from typing import Any
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
-from crchfl_sumo.core.config import from_mapping, read_toml, toml_text, toml_value
+from crchfl_sumo.core.config import from_mapping, read_toml, set_path, toml_text
 from crchfl_sumo.core.errors import CrchflError
 
 if sys.version_info >= (3, 11):
@@ -139,20 +140,6 @@ def parse_value(text: str) -> Any:
         return text  # a bare word: hfl, sumo ...
 
 
-def set_path(mapping: dict, keys: tuple[str, ...], value: Any, where: str) -> dict:
-    """A copy of ``mapping`` with the table path ``keys`` set to ``value`` (missing tables are created)."""
-    out = dict(mapping)
-    head, rest = keys[0], keys[1:]
-    if not rest:
-        out[head] = value
-        return out
-    table = out.get(head, {})
-    if not isinstance(table, dict):
-        raise CrchflError(f"{where}: {head!r} is a value, not a table, in the config")
-    out[head] = set_path(table, rest, value, where)
-    return out
-
-
 def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[Point]:
     """Every combination of the parameters' values over ``base`` (the first parameter varies slowest).
 
@@ -167,7 +154,7 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     for param in params:
         label = f"--param {param.path}"
         for value in param.values:
-            where_value = f"{label}={toml_value(value)}"
+            where_value = f"{label}={value_label(value)}"
             try:
                 from_mapping(RunConfig, set_path(base, param.keys, value, label), where=f"{where_value}: config")
             except CrchflError as exc:  # a settings class's own check does not know the --param: name it
@@ -192,11 +179,22 @@ def point_name(values: dict[str, Any]) -> str:
     """
     parts = []
     for path, value in values.items():
-        text = toml_value(value).strip('"')
+        text = value_label(value)
         if isinstance(value, (list, tuple, dict)) or not re.fullmatch(r"[A-Za-z0-9.+\-_]{1,40}", text):
-            text = hashlib.sha1(toml_value(value).encode()).hexdigest()[:10]
+            text = hashlib.sha1(toml_text({"v": value}).encode()).hexdigest()[:10]
         parts.append(f"{path}={text}")
     return "__".join(parts) or "base"
+
+
+def value_label(value: Any) -> str:
+    """A swept value as the user writes it after --param KEY= (scalars); tables and lists as one line of JSON."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, (int, float, str)):
+        return str(value)
+    return json.dumps(value)
 
 
 # ------------------------------------------------------------------ running
@@ -326,7 +324,7 @@ def _cell(value: Any, csv_cell: bool = False) -> str:
         return f"{value:.4g}"
     if isinstance(value, (str, int, float)) and not isinstance(value, bool):
         return str(value)
-    return toml_value(value)
+    return value_label(value)
 
 
 def sweep_command(

@@ -8,12 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.core.config import toml_text
+from crchfl_sumo.core.config import deep_merge, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.studies.reproduce import (
     ReproduceConfig,
     best_seed,
-    deep_merge,
     load_reproduce_config,
     plan_parts,
     reproduce,
