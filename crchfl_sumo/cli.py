@@ -52,6 +52,8 @@ def _commands():
          _add_drive, _run_drive),
         ("drive-compare", "several drives of one route side by side (the paper's Fig. 5)",
          _add_drive_compare, _run_drive_compare),
+        ("drive-bench", "closed-loop benchmark of a model or 'reference': CoRL2017 tasks, success, driving score",
+         _add_drive_bench, _run_drive_bench),
         ("run", "federated training (CRCHFL, HFL or SFL) on SUMO's clock: metrics, ledger, checkpoints, summary",
          _add_run, _run_run),
         ("sweep", "a grid of runs over config settings (mobility studies): a table and plots against each parameter",
@@ -305,6 +307,34 @@ def _run_drive_compare(args) -> int:
     from crchfl_sumo.driving.plots import compare_runs
 
     print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
+    return 0
+
+
+def _add_drive_bench(p: argparse.ArgumentParser) -> None:
+    from crchfl_sumo.driving.bench_tasks import TASK_NAMES
+
+    p.add_argument("model", help="checkpoint.pt of a trained model, or 'reference' for the scripted route driver")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--episodes", type=int, default=5, help="episodes per task and town (default 5)")
+    p.add_argument("--jobs", type=int, default=1, help="episode groups run at a time, each in its own process (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="draws the routes, SUMO seeds and warm-ups (default 0)")
+    p.add_argument("--towns", default="town01,town02",
+                   help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
+    p.add_argument("--tasks", default=",".join(TASK_NAMES),
+                   help=f"tasks separated by commas (default {','.join(TASK_NAMES)})")
+
+
+def _run_drive_bench(args) -> int:
+    from crchfl_sumo.driving.bench import BenchConfig, results_table, run_benchmark
+
+    towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
+    tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+    with ProgressBars("episode") as bars:
+        summary = run_benchmark(
+            args.model, args.out, args.episodes, args.jobs, args.seed, towns, BenchConfig(tasks=tasks), bars
+        )
+    print(results_table(summary))
+    print(f"{summary['wall_s']:.0f} s wall -> {args.out}")
     return 0
 
 

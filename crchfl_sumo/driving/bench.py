@@ -26,6 +26,7 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
@@ -41,10 +42,14 @@ from crchfl_sumo.driving.drive_command import _single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.turns import choice_junctions
 
 DEFAULT_TOWNS = ("town01", "town02")
 REFERENCE = "reference"
 PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
+# An episode ends when the ego has not moved on for one signal cycle of the towns (90 s):
+# longer than any red (50 s) with a queue to start, shorter than the long time limits.
+STUCK_S = 90.0
 SUMMARY_KEYS = ("episodes", "success_rate", "route_completion", "driving_score", "infractions_per_km")
 
 
@@ -54,13 +59,14 @@ class BenchConfig:
 
     tasks           the suites driven, in this order (bench_tasks.TASKS)
     routes          how start/goal routes are drawn (bench_tasks.TaskConfig)
-    drive           the drive loop's settings; each episode sets its own warm-up
+    drive           the drive loop's settings (an episode ends stuck after STUCK_S); each episode
+                    sets its own warm-up
     group_episodes  episodes a worker drives one after the other (one process start, one renderer each)
     """
 
     tasks: tuple[str, ...] = TASK_NAMES
     routes: TaskConfig = field(default_factory=TaskConfig)
-    drive: DriveConfig = field(default_factory=DriveConfig)
+    drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
     group_episodes: int = 4
 
     def __post_init__(self) -> None:
@@ -82,7 +88,7 @@ class ReferenceDriver:
     label: str = REFERENCE
     renders: bool = False
 
-    def policy(self, route: RouteGeometry) -> Policy:
+    def policy(self, route: RouteGeometry, net) -> Policy:
         return RoutePolicy(route)
 
     def camera(self):
@@ -110,8 +116,9 @@ class ModelDriver:
             self._model = load_model(self.path)
         return self._model
 
-    def policy(self, route: RouteGeometry) -> Policy:
-        return ModelPolicy(self.model())
+    def policy(self, route: RouteGeometry, net) -> Policy:
+        # The commands as the training data was labelled: at the junctions of the net with a choice.
+        return ModelPolicy(self.model(), RouteCommands(route, choice_junctions(net)))
 
     def camera(self):
         from crchfl_sumo.vision.camera import CameraConfig
@@ -156,7 +163,7 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
             result = drive(
                 scenario if traffic_of[episode.task] else empty,
                 route,
-                driver.policy(route),
+                driver.policy(route, net),
                 seed=episode.sumo_seed,
                 max_s=episode.time_limit_s,
                 config=DriveConfig(**{**asdict(config.drive), "warmup_s": episode.warmup_s}),
@@ -205,7 +212,7 @@ def run_benchmark(
 
     ``model``: a checkpoint path, or None / 'reference' for the scripted
     driver. ``driver`` (instead of ``model``) is any object with ``label``,
-    ``renders``, ``camera()`` and ``policy(route)``. Returns the summary:
+    ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it renders, ``camera()``. Returns the summary:
     ``results[TOWN][TASK]`` holds episodes, success_rate, route_completion,
     driving_score and infractions_per_km.
     """

@@ -63,6 +63,7 @@ DRIVE_SUMO_OPTIONS = (
     "--collision.mingap-factor=0",
     "--time-to-teleport=-1",
 )
+STUCK_PROGRESS_M = 1.0  # progress that counts as moving on (creeping adds up to it)
 _SEARCH_BACK_M = 10.0  # the ego's progress is searched this far behind ...
 _SEARCH_AHEAD_M = 25.0  # ... and this far ahead of the last step's (routes may cross themselves)
 
@@ -129,6 +130,8 @@ class DriveConfig:
     finish_before_end_m  the route counts as completed when the ego's centre is this close to its end
     lost_offset_m        the drive ends when the ego is farther than this from the route's centre line
     off_road_margin_m    the centre may be this far off a lane's edge before it counts as off the road
+    stuck_s              the drive ends when the ego has not gained STUCK_PROGRESS_M of progress for this
+                         long (the Leaderboard's "agent blocked"; inf: never)
     """
 
     ego_id: str = "ego"
@@ -138,12 +141,13 @@ class DriveConfig:
     finish_before_end_m: float = 5.0
     lost_offset_m: float = 10.0
     off_road_margin_m: float = 0.0
+    stuck_s: float = math.inf
 
     def __post_init__(self) -> None:
         for name in ("warmup_s", "finish_before_end_m", "off_road_margin_m"):
             if getattr(self, name) < 0:
                 raise CrchflError(f"drive.{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("insert_timeout_s", "lost_offset_m"):
+        for name in ("insert_timeout_s", "lost_offset_m", "stuck_s"):
             if not getattr(self, name) > 0:
                 raise CrchflError(f"drive.{name} must be > 0, got {getattr(self, name)}")
         if not self.ego_id:
@@ -256,6 +260,7 @@ def drive(
         start_s, goal_s = s, route.length_m - config.finish_before_end_m
         t_start = frame.t_s
         colliding, red, removed = False, False, False
+        moved_s, moved_t = s, t_start  # the last time the ego gained STUCK_PROGRESS_M
         while True:
             row = frame.index_of(ego)
             frame = with_ego_pose(frame, row, state)
@@ -275,6 +280,8 @@ def drive(
                 end = "completed"
             elif abs(offset) > config.lost_offset_m:
                 end = "left the route"
+            elif frame.t_s - moved_t >= config.stuck_s - 1e-9:
+                end = "stuck"
             elif frame.t_s - t_start >= max_s - 1e-9:
                 end = "time limit"
             else:
@@ -309,6 +316,8 @@ def drive(
             )
             red = bool(red_light_violations(route.crossings, s + length / 2.0, new_s + length / 2.0, seen.tls_states))
             state, s = new_state, new_s
+            if s >= moved_s + STUCK_PROGRESS_M:
+                moved_s, moved_t = s, frame.t_s
     drive_log = _log_from_rows(rows)
     metrics = drive_metrics(drive_log, start_s, goal_s, width, dt, end)
     log.info(

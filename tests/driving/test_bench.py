@@ -1,0 +1,295 @@
+"""The driving benchmark: its arithmetic by hand, route drawing on a known network, and tiny suites driven."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.bench_score import penalty, route_completion, score_episode, succeeded, summarize_task
+from crchfl_sumo.driving.bench_tasks import (
+    TASKS,
+    TIME_BUDGET_SPEED_MPS,
+    Candidate,
+    apart_from_data,
+    candidate_routes,
+    count_turns,
+    data_routes,
+    draw_episodes,
+    drives_stretch_of,
+    longest_waits_s,
+    task_by_name,
+    time_limit_s,
+    without_traffic,
+)
+from crchfl_sumo.driving.drive import DriveConfig, drive, footprints_overlap
+from crchfl_sumo.driving.policies import ConstantPolicy, RoutePolicy
+from crchfl_sumo.sumo.route import Crossing, RouteGeometry, read_net, route_geometry
+from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.sumo.simulation import Simulation
+
+# --- arithmetic by hand ---------------------------------------------------------------------------
+
+
+def test_penalty_and_success_rules_by_hand():
+    assert penalty({}) == 1.0
+    assert penalty({"collisions": 1, "red_light_violations": 1}) == pytest.approx(0.60 * 0.70)
+    assert penalty({"collisions": 2, "red_light_violations": 0}) == pytest.approx(0.36)
+    assert penalty({"red_light_violations": 3, "lane_departures": 5}) == pytest.approx(0.343)  # departures: no penalty
+    assert succeeded("completed", 0, 0)
+    assert not succeeded("completed", 1, 0)  # a collision
+    assert not succeeded("completed", 0, 1)  # off the road
+    assert not succeeded("time limit", 0, 0) and not succeeded("left the route", 0, 0)
+
+
+def test_route_completion_leaves_out_progress_made_off_the_road_and_going_back():
+    # 10 m a step; the step that ends off the road (row 2) adds nothing: 30 of 40 m.
+    assert route_completion([0, 10, 20, 30, 40], [1, 1, 0, 1, 1], 0.0, 40.0) == pytest.approx(0.75)
+    # Backwards and forwards again: only new best progress counts (10 + 5 of 20).
+    assert route_completion([0, 10, 5, 15], [1, 1, 1, 1], 0.0, 20.0) == pytest.approx(0.75)
+    # Starts 2 m in, goal at 42: all on the road and past the goal is 1, never more.
+    assert route_completion([2, 30, 50], [1, 1, 1], 2.0, 42.0) == 1.0
+
+
+def _record(end, completion, distance_m, collisions=0, red=0, off_road=0, departures=0):
+    metrics = {"end_reason": end, "collisions": collisions, "red_light_violations": red,
+               "off_road_events": off_road, "lane_departures": departures}
+    return {**metrics, "distance_m": distance_m, **score_episode(metrics, completion)}
+
+
+def test_task_summary_of_scripted_episodes_by_hand():
+    records = [
+        _record("completed", 1.0, 400.0),  # success, score 1
+        _record("completed", 1.0, 300.0, collisions=1, red=1),  # reached the goal but collided: 0.42
+        _record("time limit", 0.8, 200.0, red=2, departures=1),  # 0.8 * 0.49 = 0.392
+        _record("left the route", 0.25, 100.0, off_road=1, departures=1),  # 0.25
+    ]
+    assert [r["driving_score"] for r in records] == pytest.approx([1.0, 0.42, 0.392, 0.25])
+    s = summarize_task(records)
+    assert s["episodes"] == 4
+    assert s["success_rate"] == pytest.approx(0.25)
+    assert s["route_completion"] == pytest.approx((1.0 + 1.0 + 0.8 + 0.25) / 4)
+    assert s["driving_score"] == pytest.approx((1.0 + 0.42 + 0.392 + 0.25) / 4)
+    # 1 + 1 + 2 + 1 + 1 + 1 = 7 infractions over 1 km
+    assert s["infractions_per_km"] == pytest.approx(7.0)
+    assert s["infractions"] == {"collisions": 1, "red_light_violations": 3, "off_road_events": 1, "lane_departures": 2}
+    assert summarize_task([_record("time limit", 0.0, 0.0)])["infractions_per_km"] is None  # never moved
+
+
+def test_footprint_overlap_by_hand():
+    def overlaps(x, y, heading=0.0, length=4.5, width=1.8):
+        return bool(footprints_overlap(0.0, 0.0, 0.0, 4.5, 1.8, [x], [y], [heading], [length], [width])[0])
+
+    assert overlaps(4.4, 0.0) and not overlaps(4.6, 0.0)  # nose to tail: 4.5 m between centres touch
+    assert overlaps(0.0, 1.7) and not overlaps(0.0, 1.9)  # side by side: 1.8 m
+    # A 2 m square turned 45 degrees off the ego's corner: apart along the square's own diagonal
+    # axis (gap 3.92 m > 2.23 + 1.00) although neither of the ego's axes separates them ...
+    assert not overlaps(3.45, 2.1, math.pi / 4, 2.0, 2.0)
+    # ... and touching when 0.7 m nearer on both axes (gap 2.93 m < 3.23 m).
+    assert overlaps(2.75, 1.4, math.pi / 4, 2.0, 2.0)
+
+
+def test_longest_waits_wrap_round_the_cycle_and_time_limit_by_hand(tmp_path):
+    net = tmp_path / "tls.net.xml"
+    net.write_text(
+        '<net><tlLogic id="J" type="static" programID="0" offset="0">'
+        '<phase duration="10" state="Gr"/><phase duration="3" state="yr"/>'
+        '<phase duration="20" state="rG"/><phase duration="5" state="Gr"/></tlLogic></net>'
+    )
+    waits = longest_waits_s(net)
+    assert waits[("J", 0)] == pytest.approx(23.0)  # yellow 3 + red 20
+    assert waits[("J", 1)] == pytest.approx(18.0)  # red 5 at the end + 10 + 3 at the start
+    xy = np.array([[0.0, 0.0], [250.0, 0.0]])
+    route = RouteGeometry(("e",), xy, np.array([0.0, 250.0]), np.array([3.2]), np.array([False]),
+                          (Crossing(100.0, 110.0, "J", 1, "s"), Crossing(200.0, 210.0, "", -1, "l")))
+    assert TIME_BUDGET_SPEED_MPS == pytest.approx(10 / 3.6)
+    assert time_limit_s(route, waits) == pytest.approx(250.0 / (10 / 3.6) + 10.0 + 18.0)  # 90 + 10 + 18 s
+
+
+# --- routes on a known network ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ladder(tmp_path_factory) -> Path:
+    """Two parallel 200 m roads joined at both ends and in the middle (priority junctions, no signals):
+
+        D ---- E ---- F        y = 100
+        |      |      |
+        A ---- B ---- C        y = 0
+    """
+    folder = tmp_path_factory.mktemp("ladder")
+    nodes = {"A": (0, 0), "B": (100, 0), "C": (200, 0), "D": (0, 100), "E": (100, 100), "F": (200, 100)}
+    (folder / "l.nod.xml").write_text(
+        "<nodes>" + "".join(f'<node id="{n}" x="{x}" y="{y}" type="priority"/>' for n, (x, y) in nodes.items())
+        + "</nodes>"
+    )
+    roads = ("AB", "BC", "DE", "EF", "AD", "BE", "CF")
+    (folder / "l.edg.xml").write_text(
+        "<edges>"
+        + "".join(
+            f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="1" speed="13.89" width="3.5"/>'
+            for r in roads for a, b in (r, r[::-1])
+        )
+        + "</edges>"
+    )
+    subprocess.run(
+        [sumo_binary("netconvert"), "-n", str(folder / "l.nod.xml"), "-e", str(folder / "l.edg.xml"),
+         "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / "ladder.net.xml")],
+        check=True, capture_output=True,
+    )
+    (folder / "flow.rou.xml").write_text(
+        '<routes><flow id="f" begin="0" end="100" period="5" departSpeed="max"><route edges="AB BC"/></flow></routes>'
+    )
+    (folder / "ladder.sumocfg").write_text(
+        '<configuration><input><net-file value="ladder.net.xml"/><route-files value="flow.rou.xml"/></input>'
+        '<time><step-length value="0.25"/></time></configuration>'
+    )
+    return folder
+
+
+def test_turns_are_counted_on_a_known_network(ladder):
+    net = read_net(ladder / "ladder.net.xml")
+    assert count_turns(route_geometry(net, ["AB", "BC"])) == 0  # straight through B
+    assert count_turns(route_geometry(net, ["AB", "BE"])) == 1  # left at B
+    assert count_turns(route_geometry(net, ["CF", "FE"])) == 1  # the corner F counts: the wheel must turn
+    assert count_turns(route_geometry(net, ["AB", "BE", "ED"])) == 2  # left at B, left at E
+    assert count_turns(route_geometry(net, ["DA", "AB", "BC"])) == 1  # left at the corner A, straight at B
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    candidates = {c.edges: c for c in candidate_routes(scenario)}
+    assert candidates[("AB", "BC")].turns == 0 and candidates[("AB", "BE")].turns == 1
+    assert candidates[("AB", "BE", "ED")].turns == 2  # the shortest way from AB to ED
+    assert ("AB", "BC", "CF", "FE", "ED") not in candidates  # the long way round is never drawn
+    for c in candidates.values():
+        assert c.turns == count_turns(route_geometry(net, c.edges))
+
+
+def test_episodes_are_drawn_by_seed_into_their_suites(ladder):
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    tasks = [task_by_name(n) for n in ("straight", "one_turn", "navigation", "navigation_traffic")]
+    first = draw_episodes(scenario, tasks, 3, seed=7)
+    assert first == draw_episodes(scenario, tasks, 3, seed=7)  # the same seed, the same episodes
+    other = draw_episodes(scenario, tasks, 3, seed=8)
+    assert [e.sumo_seed for e in first] != [e.sumo_seed for e in other]
+    by_task = {t.name: [e for e in first if e.task == t.name] for t in tasks}
+    assert all(len(v) == 3 for v in by_task.values())
+    assert all(e.turns == 0 for e in by_task["straight"]) and all(e.turns == 1 for e in by_task["one_turn"])
+    assert all(e.turns >= 2 for e in by_task["navigation"])
+    # With and without traffic drive the same routes, seeds and warm-ups (CoRL2017's navigation pair).
+    assert [(e.edges, e.sumo_seed, e.warmup_s) for e in by_task["navigation"]] == [
+        (e.edges, e.sumo_seed, e.warmup_s) for e in by_task["navigation_traffic"]
+    ]
+    # Without replacement while routes last: the straight suite's three routes differ.
+    assert len({e.edges for e in by_task["straight"]}) == 3
+    assert all(20.0 <= e.warmup_s <= 110.0 for e in first)
+
+
+def test_data_vehicle_routes_are_left_out():
+    assert drives_stretch_of(["c", "a"], ["a", "b", "c"])  # across the end of the repeated loop
+    assert drives_stretch_of(["b", "c", "a", "b"], ["a", "b", "c"])
+    assert not drives_stretch_of(["a", "c"], ["a", "b", "c"])
+    assert not apart_from_data(["a", "x"], [["a", "b"]])  # a data vehicle started on edge a
+    assert apart_from_data(["b", "x"], [["a", "b"]])
+    scenario = load_scenario("town01")
+    loops = data_routes(scenario)
+    assert [loop[0] for loop in loops] == ["S1_W1", "S2_SE"]  # t01_data_0, t01_data_1 (town01.ego.rou.xml)
+    candidates = candidate_routes(scenario)
+    assert {min(c.turns, 2) for c in candidates} == {0, 1, 2}
+    for c in candidates:
+        assert c.edges[0] not in ("S1_W1", "S2_SE")
+        assert not any(drives_stretch_of(c.edges, loop) for loop in loops)
+    assert isinstance(candidates[0], Candidate)
+
+
+def test_suites_without_traffic_run_no_vehicle(ladder):
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    for s, expect_traffic in ((scenario, True), (without_traffic(scenario), False)):
+        with Simulation(s, seed=0) as sim:
+            seen = max(len(sim.step()) for _ in range(40))
+        assert (seen > 0) == expect_traffic
+    assert [t.traffic for t in TASKS] == [False, False, False, True]
+
+
+# --- tiny suites driven ----------------------------------------------------------------------------
+
+
+def test_a_drive_that_stands_still_ends_stuck(ladder):
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    route = route_geometry(read_net(Path(scenario.net_path)), ["AB", "BC"])
+    config = DriveConfig(warmup_s=0.0, stuck_s=5.0)
+    standing = drive(without_traffic(scenario), route, ConstantPolicy(0.0, 0.0, 1.0), max_s=60.0, config=config)
+    assert standing.metrics["end_reason"] == "stuck" and standing.log.t_s[-1] == pytest.approx(5.0)
+    moving = drive(without_traffic(scenario), route, RoutePolicy(route), max_s=60.0, config=config)
+    assert moving.metrics["end_reason"] == "completed"
+
+
+@dataclass
+class HardSteerDriver:
+    """Full throttle with the hardest right steer class: must fail every task."""
+
+    label: str = "hard steer"
+    renders: bool = False
+
+    def policy(self, route, net):
+        return ConstantPolicy(0.5, 0.425, 0.0)
+
+
+SUITE = BenchConfig(tasks=("straight", "one_turn", "navigation"))
+
+
+def test_reference_driver_scores_full_marks_and_hard_steer_fails(ladder, tmp_path):
+    cfg = str(ladder / "ladder.sumocfg")
+    summary = run_benchmark(None, tmp_path / "ref", episodes=2, towns=(cfg,), config=SUITE, seed=3)
+    results = summary["results"]["ladder"]
+    assert list(results) == ["straight", "one_turn", "navigation"]
+    for task, r in results.items():
+        assert r["episodes"] == 2, task
+        assert r["success_rate"] == 1.0 and r["route_completion"] == 1.0 and r["driving_score"] == 1.0, task
+        assert r["infractions_per_km"] == 0.0, task
+    on_disk = json.loads((tmp_path / "ref" / "summary.json").read_text())
+    assert on_disk["results"]["ladder"] == results and on_disk["driver"] == "reference"
+    with open(tmp_path / "ref" / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 3 and float(rows[0]["success_rate"]) == 1.0
+    assert len(json.loads((tmp_path / "ref" / "episodes.json").read_text())) == 6
+    assert (tmp_path / "ref" / "trajectories.png").stat().st_size > 10_000
+    assert "| ladder | navigation | 2 | 100 % |" in (tmp_path / "ref" / "results.md").read_text()
+
+    bad = run_benchmark(None, tmp_path / "bad", episodes=2, towns=(cfg,), config=SUITE, seed=3,
+                        driver=HardSteerDriver())
+    for task, r in bad["results"]["ladder"].items():
+        assert r["success_rate"] == 0.0 and r["driving_score"] < 0.5, task
+        assert r["infractions"]["off_road_events"] >= 2, task
+    episodes = json.loads((tmp_path / "bad" / "episodes.json").read_text())
+    assert {e["end_reason"] for e in episodes} == {"left the route"}
+
+
+def test_parallel_episodes_give_the_serial_results(ladder, tmp_path):
+    cfg = str(ladder / "ladder.sumocfg")
+    config = BenchConfig(tasks=("straight", "one_turn"), group_episodes=1)
+    serial = run_benchmark(None, tmp_path / "serial", episodes=1, towns=(cfg,), config=config, seed=5)
+    parallel = run_benchmark(None, tmp_path / "parallel", episodes=1, jobs=2, towns=(cfg,), config=config, seed=5)
+    assert parallel["results"] == serial["results"]
+    assert (json.loads((tmp_path / "parallel" / "episodes.json").read_text())
+            == json.loads((tmp_path / "serial" / "episodes.json").read_text()))
+
+
+def test_bad_arguments_name_the_option(ladder, tmp_path):
+    cfg = str(ladder / "ladder.sumocfg")
+    with pytest.raises(CrchflError, match="--episodes must be >= 1"):
+        run_benchmark(None, tmp_path, episodes=0, towns=(cfg,))
+    with pytest.raises(CrchflError, match="--jobs must be >= 1"):
+        run_benchmark(None, tmp_path, jobs=0, towns=(cfg,))
+    with pytest.raises(CrchflError, match="--towns: town09"):
+        run_benchmark(None, tmp_path, towns=("town09",))
+    with pytest.raises(CrchflError, match="MODEL: no checkpoint at"):
+        run_benchmark(tmp_path / "missing.pt", tmp_path, towns=(cfg,))
+    with pytest.raises(CrchflError, match="--tasks: unknown task 'loops'"):
+        BenchConfig(tasks=("loops",))
