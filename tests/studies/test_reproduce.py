@@ -10,13 +10,11 @@ import pytest
 
 from crchfl_sumo.core.config import deep_merge, toml_text
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.studies.reproduce import (
+from crchfl_sumo.studies.reproduce import best_seed, reproduce, reproduce_command
+from crchfl_sumo.studies.reproduce_plan import (
     ReproduceConfig,
-    best_seed,
     load_reproduce_config,
     plan_parts,
-    reproduce,
-    reproduce_command,
     run_config,
     run_mapping,
 )

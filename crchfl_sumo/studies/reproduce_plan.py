@@ -1,0 +1,184 @@
+"""What a reproduction runs: its settings (a preset or a TOML), every part in order, each federated run's config.
+
+Pure planning, no side effects; reproduce.py carries the plan out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.schemes import SCHEMES
+from crchfl_sumo.data.generation import GenerateConfig
+from crchfl_sumo.driving.drive import DriveConfig
+
+PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
+
+
+REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
+
+
+CENTRALIZED = "centralized"
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    """What `reproduce` runs (TOML: reproduce_quick.toml / reproduce_full.toml).
+
+    name: a label for the report ("quick", "full", ...).
+    scenario: the scenario the data set is generated in and the federation runs on.
+    seeds: federated runs per scheme (seeds first_seed, first_seed + 1, ...).
+    schemes: the schemes of experiment B.
+    ablation_edge_intervals: experiment D: CRCHFL with edge_interval fixed to each
+        of these (allocation.fix_edge_interval); empty = no ablation.
+    ablation_seeds: seeds per ablation setting (the first ones of ``seeds``; at most ``seeds``).
+    centralized_epochs: epochs of the centralized upper bound (0 = none); one per seed.
+    drive_routes: named routes (scenarios/drive_routes.toml) each model drives; empty = no drives.
+    drive_max_s: simulated seconds a drive may last at most.
+    drive_seed: SUMO seed of the drives (the same traffic for every model).
+    drive_video: also write each drive's MP4.
+    drive: the drives' settings (DriveConfig: warm-up, insertion, end conditions).
+    generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
+    run: settings laid over every built-in scheme config (scenarios/experiments/SCHEME.toml):
+        a partial run config, e.g. ``[run.ledger]``, ``[run.train]``, ``[run.clock]``.
+        ``scenario`` and ``dataset`` are set by reproduce, ``federation.seed`` per run.
+    """
+
+    name: str = "full"
+    scenario: str = "paper"
+    seeds: int = 3
+    first_seed: int = 0
+    schemes: tuple[str, ...] = SCHEMES
+    ablation_edge_intervals: tuple[int, ...] = (2, 3, 4)
+    ablation_seeds: int = 3
+    centralized_epochs: int = 20
+    drive_routes: tuple[str, ...] = ("town01_right_left", "town02_south_loop")
+    drive_max_s: float = 120.0
+    drive_seed: int = 0
+    drive_video: bool = False
+    drive: DriveConfig = field(default_factory=DriveConfig)
+    generate: GenerateConfig = field(default_factory=GenerateConfig)
+    run: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.seeds < 1:
+            raise CrchflError(f"reproduce.seeds: {self.seeds} must be >= 1")
+        if self.first_seed < 0:
+            raise CrchflError(f"reproduce.first_seed: {self.first_seed} must be >= 0")
+        unknown = sorted(set(self.schemes) - set(SCHEMES))
+        if unknown or not self.schemes or len(set(self.schemes)) != len(self.schemes):
+            raise CrchflError(
+                f"reproduce.schemes: {list(self.schemes)}; list each of {', '.join(SCHEMES)} at most once"
+            )
+        if any(k < 2 for k in self.ablation_edge_intervals):
+            raise CrchflError(
+                f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be >= 2 "
+                "(the paper requires 0 < cloud_interval < edge_interval)"
+            )
+        if self.ablation_seeds < 0:
+            raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be >= 0")
+        if self.centralized_epochs < 0:
+            raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
+        if not self.drive_max_s > 0:
+            raise CrchflError(f"reproduce.drive_max_s: {self.drive_max_s} must be > 0")
+        for key, instead in (("scenario", "reproduce.scenario"), ("dataset", "reproduce.generate")):
+            if key in self.run:
+                raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use {instead})")
+        if "seed" in self.run.get("federation", {}):
+            raise CrchflError("reproduce.run.federation.seed: set per run from reproduce.seeds; remove it")
+        for scheme in self.schemes:  # every run config must be valid before anything starts
+            run_config(run_mapping(self, scheme, self.first_seed, Path("data")), f"reproduce.run ({scheme})")
+
+    @property
+    def seed_list(self) -> list[int]:
+        return list(range(self.first_seed, self.first_seed + self.seeds))
+
+    @property
+    def ablation_seed_list(self) -> list[int]:
+        return self.seed_list[: min(self.ablation_seeds, self.seeds)] if self.ablation_edge_intervals else []
+
+
+def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) -> ReproduceConfig:
+    """A preset ("quick", "full") or a TOML file; ``seeds`` overrides the file's ``seeds``."""
+    preset = PRESETS.get(str(preset_or_path))
+    path = experiments_dir() / preset if preset else Path(preset_or_path)
+    mapping = read_toml(path)
+    if seeds is not None:
+        mapping = {**mapping, "seeds": int(seeds)}
+    return from_mapping(ReproduceConfig, mapping, where=str(path))
+
+
+def run_mapping(
+    config: ReproduceConfig, scheme: str, seed: int, data_dir: Path, fix_edge_interval: int | None = None
+) -> dict[str, Any]:
+    """The run config of one federated run: the built-in scheme config, the overrides, data, seed."""
+    mapping = deep_merge(read_toml(experiments_dir() / f"{scheme}.toml"), config.run)
+    mapping = deep_merge(
+        mapping, {"scenario": config.scenario, "dataset": str(data_dir), "federation": {"seed": int(seed)}}
+    )
+    if fix_edge_interval is not None:
+        mapping = deep_merge(mapping, {"allocation": {"fix_edge_interval": int(fix_edge_interval)}})
+    return mapping
+
+
+def run_config(mapping: Mapping[str, Any], where: str):
+    from crchfl_sumo.federation.run_config import RunConfig
+
+    return from_mapping(RunConfig, mapping, where=where)
+
+
+@dataclass(frozen=True)
+class ReproductionPart:
+    """One unit of work: its key in timings.json (also its folder, relative to the results folder)."""
+
+    key: str
+    kind: str  # "dataset", "centralized", "federated", "ablation", "drive"
+    scheme: str = ""
+    seed: int = 0
+    edge_interval: int | None = None
+    route: str = ""
+
+
+def plan_parts(config: ReproduceConfig) -> list[ReproductionPart]:
+    """Every part in the order they run: data, upper bound, experiment B, experiment D.
+
+    Drives come after (``drive_parts``): which seed's model drives is known only then.
+    """
+    parts = [ReproductionPart("data", "dataset")]
+    if config.centralized_epochs:
+        parts += [ReproductionPart(f"{CENTRALIZED}/seed-{s}", "centralized", CENTRALIZED, s) for s in config.seed_list]
+    for seed in config.seed_list:  # seed by seed, so that a partial result already compares the schemes
+        parts += [ReproductionPart(f"runs/{scheme}/seed-{seed}", "federated", scheme, seed) for scheme in config.schemes]
+    for seed in config.ablation_seed_list:
+        parts += [
+            ReproductionPart(f"ablation/ie-{k}/seed-{seed}", "ablation", "crchfl", seed, edge_interval=k)
+            for k in config.ablation_edge_intervals
+        ]
+    return parts
+
+
+def drive_labels(config: ReproduceConfig) -> list[str]:
+    return [*config.schemes, *([CENTRALIZED] if config.centralized_epochs else []), REFERENCE]
+
+
+def drive_parts(config: ReproduceConfig) -> list[ReproductionPart]:
+    return [
+        ReproductionPart(f"drives/{route}/{label}", "drive", label, route=route)
+        for route in config.drive_routes
+        for label in drive_labels(config)
+    ]
+
+
+def describe(config: ReproduceConfig) -> str:
+    """One paragraph of what a reproduction runs (for logs and the CLI's start line)."""
+    sizes = [n for town in config.generate.dataset.towns for n in town.train_samples]
+    return (
+        f"{config.name}: {sum(sizes)} training samples over {len(sizes)} vehicles, schemes "
+        f"{', '.join(config.schemes)} x seeds {config.seed_list}, ablation edge_interval "
+        f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
+        f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}"
+    )
