@@ -3,7 +3,7 @@
 Pure functions of a scheme (``crchfl``/``hfl`` hierarchical, ``sfl`` vehicles
 straight to the cloud), a topology and an accounting rule (``paper`` or
 ``physical``; the two rule sets are tabulated in docs/ledger.md). The
-federation loop charges them (ledger.py) and problem P prices them
+federation loop charges them (accounting/ledger.py) and problem P prices them
 (planning/problem.py), so the two always agree on bytes.
 """
 

@@ -19,13 +19,13 @@ hierarchy without stage I and without the optimizer.
 
 Time: local training takes ``compute_s_per_sample`` x samples x epochs of
 simulated time; every wireless transfer runs over the vehicle's link on the
-clock (``fl_clock``), every wireline one takes latency + size / rate. An
+clock (links/clock.py), every wireline one takes latency + size / rate. An
 aggregation waits for its vehicles' uploads until ``deadline_s`` after its
 window opened; a model that has not arrived by then is a straggler's,
 recorded and left out of that FedAvg (weights renormalised over the rest).
 
-Bytes: every step's transfers come from the ledger's schedule functions
-(``ledger.stage_one_schedule``, ``edge_aggregation_schedule``,
+Bytes: every step's transfers come from the schedule functions
+(``schedules.stage_one_schedule``, ``edge_aggregation_schedule``,
 ``cloud_aggregation_schedule``) for the step's actual topology, and are
 charged with their simulated start and end times. Training stops when the
 rest of the budget cannot carry one more model transfer; a step whose

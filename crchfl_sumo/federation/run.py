@@ -70,7 +70,7 @@ def resolve_hyper(config: RunConfig, inputs: RunData, model_bytes: int, clock: C
     """The four hyper-parameters: the config's, or (CRCHFL, use_plan) the optimizer's for this run.
 
     The plan takes the run's topology, its sample counts, and its timing: the
-    loop's compute model and the wireless rate measured on ``clock`` (plan_timing.py).
+    loop's compute model and the wireless rate measured on ``clock`` (planning/timing.py).
     """
     fed = config.federation
     if not fed.use_plan:

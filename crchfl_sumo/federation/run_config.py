@@ -63,7 +63,7 @@ class RunConfig:
         vehicles' data, its test shards the test set.
     data_mode: "fixed": each vehicle trains on its generated shard (the
         paper's setting); "online": vehicles also keep collecting samples as
-        they drive (online.py; needs the SUMO clock).
+        they drive (data/online.py; needs the SUMO clock).
     """
 
     scenario: str = "paper"

@@ -28,7 +28,7 @@ class FederationConfig:
 
     scheme: "crchfl" (stage I + hierarchy), "hfl" (hierarchy only), "sfl"
         (vehicles straight to the cloud).
-    use_plan: CRCHFL only: ask the resource optimizer (allocation.make_plan)
+    use_plan: CRCHFL only: ask the resource optimizer (planning.problem.make_plan)
         for the four values below instead of taking them from here.
     pretrain_batch: samples uploaded for cloud pretraining (CRCHFL; 0 = no stage I).
     edge_interval: local epochs between two edge aggregations (SFL: between

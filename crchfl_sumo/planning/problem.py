@@ -23,7 +23,7 @@ open, all documented in docs/allocation.md:
 * Local epochs are not free: a wall-clock budget W bounds the whole training,
   T * round_time(I_e, I_c) + stage_one_time(x) <= W. In a run, the epoch time
   is the loop's compute model and the wireless rate is measured on the run's
-  mobility (plan_timing.py); `plan --scenario` measures the rate the same way.
+  mobility (planning/timing.py); `plan --scenario` measures the rate the same way.
 * T >= 1 stands for the paper's 0 < T (T is an integer).
 
 Solution, the paper's way: search every integer pair (I_e, I_c) within the
@@ -77,7 +77,7 @@ class AllocationConfig:
     pretrain_time_per_sample_s: cloud pretraining compute per uploaded sample
         over all pretraining epochs [s].
         In a run (and in `plan --scenario` for the rate) these four come from the
-        run itself, not from here: plan_timing.py.
+        run itself, not from here: planning/timing.py.
     rate_window_s: simulated seconds of mobility over which the wireless rate is measured.
     calibration_file: a `crchfl-sumo calibrate` output (path relative to the
         current directory); its alpha, gamma and d replace the three above.

@@ -1,6 +1,6 @@
 """The timing problem P's wall-clock bound takes from a run: link rates from mobility, epoch time from the loop.
 
-The optimizer bounds I_e, I_c and T with a wall-clock budget (allocation.py,
+The optimizer bounds I_e, I_c and T with a wall-clock budget (planning/problem.py,
 "The wall-clock bound"). In a run its inputs are not free settings:
 
 * the mean wireless rate is measured on the run's own clock (the SUMO

@@ -1,10 +1,10 @@
 """`crchfl-sumo report DIR`: figures, tables, report.md and summary.json from a results folder alone.
 
-Reads only what the runs wrote (experiment.py lays the folder out):
-``runs/SCHEME/seed-S/`` and ``ablation/ie-K/seed-S/`` (run.py: summary.json,
-metrics.jsonl, config.json), ``centralized/seed-S/`` (local.py's
-metrics.jsonl and experiment.py's summary.json), ``drives/ROUTE/LABEL/``
-(drive.py: metrics.json, trajectory.csv), ``reproduce.json`` and
+Reads only what the runs wrote (studies/reproduce.py lays the folder out):
+``runs/SCHEME/seed-S/`` and ``ablation/ie-K/seed-S/`` (federation/run.py: summary.json,
+metrics.jsonl, config.json), ``centralized/seed-S/`` (learning/training.py's
+metrics.jsonl and studies/reproduce.py's summary.json), ``drives/ROUTE/LABEL/``
+(driving/drive.py: metrics.json, trajectory.csv), ``reproduce.json`` and
 ``timings.json``. Writes ``figures/*.png``, ``report.md`` and
 ``summary.json``, each atomically. Every statistic over seeds is the mean and
 the sample standard deviation (ddof = 1; none for a single seed).

@@ -6,12 +6,12 @@ One results folder holds every part (each written by its owning module):
   timings.json                wall and CPU seconds of every finished part (also: which parts are finished)
   data/                       the data set, generated once and shared by every run
   configs/NAME.toml           the run config each federated run was started with
-  centralized/seed-S/         the centralized upper bound (local.train_centralized)
-  runs/SCHEME/seed-S/         experiment B: CRCHFL, HFL and SFL under one budget (run.py's folder)
+  centralized/seed-S/         the centralized upper bound (learning.training.train_centralized)
+  runs/SCHEME/seed-S/         experiment B: CRCHFL, HFL and SFL under one budget (federation/run.py's folder)
   ablation/ie-K/seed-S/       experiment D: CRCHFL with edge_interval fixed to K
   drives/ROUTE/LABEL/         closed loop: each scheme's best model, the centralized
-                              model and the scripted reference drive ROUTE (drive.py)
-  figures/, report.md, summary.json   written by report.py from the folders above alone
+                              model and the scripted reference drive ROUTE (driving/drive.py)
+  figures/, report.md, summary.json   written by studies/report.py from the folders above alone
 
 Resumable: a part recorded in timings.json is not redone; an unfinished
 federated run continues from its checkpoint; an unfinished centralized run
@@ -249,7 +249,7 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
 
 
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
-    """The upper bound: one model trained on every vehicle's data; summary.json beside local.py's files."""
+    """The upper bound: one model trained on every vehicle's data; summary.json beside learning/training.py's files."""
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.learning.training import train_centralized
 

@@ -1,6 +1,6 @@
 """One simulation step as plain numpy arrays: what every consumer of SUMO state takes.
 
-The simulator (sim.py) produces Frames; mobility, the rasterizer and the expert
+The simulator (sumo/simulation.py) produces Frames; mobility, the rasterizer and the expert
 consume them without ever touching the simulator. Coordinates are SUMO's
 network frame: x east [m], y north [m]. Headings follow the mathematical
 convention: radians, 0 = east (+x), counter-clockwise positive, so that
@@ -26,7 +26,7 @@ class Frame:
     Attributes (V = number of vehicles):
       ids             [V] str   vehicle ids, sorted, so two frames index alike
       x_m, y_m        [V] f64   centre of the vehicle's footprint [m] (SUMO
-                                reports the front bumper; sim.py shifts it)
+                                reports the front bumper; sumo/simulation.py shifts it)
       heading_rad     [V] f64   direction of travel, math convention (module doc)
       speed_mps       [V] f64
       accel_mps2      [V] f64   acceleration SUMO applied in the last step

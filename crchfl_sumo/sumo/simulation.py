@@ -230,7 +230,7 @@ class Simulation:
     def tls_ids(self) -> tuple[str, ...]:
         return self._tls_ids
 
-    # --- a vehicle driven from outside (drive.py) --------------------------------------------
+    # --- a vehicle driven from outside (driving/drive.py) --------------------------------------------
 
     def vehicle_type_ids(self) -> tuple[str, ...]:
         """The vehicle types this simulation knows."""

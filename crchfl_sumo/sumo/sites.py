@@ -1,7 +1,7 @@
 """Edge servers (road-side units) placed in the network frame, by hand or automatically.
 
 A site is plain data: where the antenna stands. Which vehicles it serves is
-mobility.py's business, what rate it gives is channel.py's.
+links/mobility.py's business, what rate it gives is links/channel.py's.
 """
 
 from __future__ import annotations
