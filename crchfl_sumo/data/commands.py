@@ -39,7 +39,7 @@ class CommandConfig:
     lookahead_m: a junction's command starts this far (vehicle centre to the
         junction's outline) before it. 25 m is 1.8 s at the towns' 13.9 m/s
         limit, more than the 11 m the steer label leads a turn by, and shorter
-        than the shortest road between two junctions (Town02: ~37 m), so that
+        than the shortest road between two junctions (Town02: 33 m), so that
         FOLLOW separates the commands of consecutive junctions.
     straight_within_deg: a pass that turns by at most this much is STRAIGHT.
     """
