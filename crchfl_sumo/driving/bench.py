@@ -14,6 +14,7 @@ bench_plots.py draws them. docs/drive.md describes the benchmark.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -31,6 +32,7 @@ from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
     TASK_NAMES,
+    TASKS,
     Episode,
     TaskConfig,
     draw_episodes,
@@ -38,7 +40,7 @@ from crchfl_sumo.driving.bench_tasks import (
     without_traffic,
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
-from crchfl_sumo.driving.drive_command import _single_torch_thread
+from crchfl_sumo.driving.drive_command import _single_torch_thread  # the drive command's: one torch thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
@@ -91,11 +93,6 @@ class ReferenceDriver:
     def policy(self, route: RouteGeometry, net) -> Policy:
         return RoutePolicy(route)
 
-    def camera(self):
-        from crchfl_sumo.vision.camera import CameraConfig
-
-        return CameraConfig()
-
 
 @dataclass
 class ModelDriver:
@@ -144,8 +141,6 @@ def driver_for(model: str | Path | None) -> ReferenceDriver | ModelDriver:
 
 def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], config: BenchConfig) -> list[dict]:
     """Drive ``episodes`` (all in one town) one after the other; one record per episode."""
-    from crchfl_sumo.driving.bench_tasks import TASKS
-
     scenario = load_scenario(scenario_name)
     empty = without_traffic(scenario)
     traffic_of = {t.name: t.traffic for t in TASKS}
@@ -166,22 +161,21 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
                 driver.policy(route, net),
                 seed=episode.sumo_seed,
                 max_s=episode.time_limit_s,
-                config=DriveConfig(**{**asdict(config.drive), "warmup_s": episode.warmup_s}),
+                config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s),
                 renderer=renderer,
                 keep_frames=False,
             )
-            records.append(episode_record(episode, result, config.drive.finish_before_end_m))
+            records.append(episode_record(episode, result, config.drive.finish_before_end_m, scenario.step_length_s))
     return records
 
 
-def episode_record(episode: Episode, result, finish_before_end_m: float) -> dict[str, Any]:
+def episode_record(episode: Episode, result, finish_before_end_m: float, step_s: float) -> dict[str, Any]:
     """What the benchmark keeps of a drive: the episode, its metrics, its score and its path (JSON-ready)."""
     log, metrics = result.log, result.metrics
     completion = route_completion(
         log.progress_m, log.on_road, float(log.progress_m[0]), result.route.length_m - finish_before_end_m
     )
-    dt = float(log.t_s[1] - log.t_s[0]) if len(log) > 1 else 1.0
-    every = max(1, round(PATH_EVERY_S / dt))
+    every = max(1, round(PATH_EVERY_S / step_s))
     keep = list(range(0, len(log), every)) + ([len(log) - 1] if (len(log) - 1) % every else [])
     return {
         **asdict(episode),
@@ -212,9 +206,10 @@ def run_benchmark(
 
     ``model``: a checkpoint path, or None / 'reference' for the scripted
     driver. ``driver`` (instead of ``model``) is any object with ``label``,
-    ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it renders, ``camera()``. Returns the summary:
-    ``results[TOWN][TASK]`` holds episodes, success_rate, route_completion,
-    driving_score and infractions_per_km.
+    ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it
+    renders, ``camera()``; with ``jobs`` > 1 it must pickle. Returns the
+    summary: ``results[TOWN][TASK]`` holds episodes, success_rate,
+    route_completion, driving_score and infractions_per_km.
     """
     if episodes < 1:
         raise CrchflError(f"--episodes must be >= 1 (episodes per task and town), got {episodes}")
@@ -255,7 +250,10 @@ def run_benchmark(
         key=lambda r: (town_names.index(r["town"]), config.tasks.index(r["task"]), r["index"]),
     )
     results = {
-        town: {task: summarize_task([r for r in records if r["town"] == town and r["task"] == task]) for task in config.tasks}
+        town: {
+            task: summarize_task([r for r in records if r["town"] == town and r["task"] == task])
+            for task in config.tasks
+        }
         for town in town_names
     }
     summary = {
