@@ -23,7 +23,8 @@ from crchfl_sumo.federation.settings import FederationConfig
 from crchfl_sumo.learning.model import ModelConfig
 from crchfl_sumo.learning.training import TrainConfig
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
-from crchfl_sumo.links.mobility import MacroLinkConfig, MobilityConfig
+from crchfl_sumo.links.macro import MacroLinkConfig
+from crchfl_sumo.links.mobility import MobilityConfig
 from crchfl_sumo.links.transfer import TransferConfig
 from crchfl_sumo.planning.problem import AllocationConfig
 from crchfl_sumo.sumo.scenario import SumoConfig

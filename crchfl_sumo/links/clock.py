@@ -34,7 +34,8 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MacroLinkConfig, MobilityConfig, macro_link_model
+from crchfl_sumo.links.macro import MacroLinkConfig, macro_link_model
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
 from crchfl_sumo.links.transfer import TransferConfig, transfer
 from crchfl_sumo.sumo.scenario import Scenario
 

@@ -23,7 +23,8 @@ from crchfl_sumo.core.atomic import atomic_write_bytes, temporary_beside
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.vision.camera import CAMERA_NAMES, ground_rays
-from crchfl_sumo.vision.raster import LAMP_RGB, Renderer, lit_lamps, vehicle_rgb
+from crchfl_sumo.vision.objects import LAMP_RGB, lit_lamps, vehicle_rgb
+from crchfl_sumo.vision.raster import Renderer
 from crchfl_sumo.vision.world import SKY_RGB
 
 log = logging.getLogger(__name__)

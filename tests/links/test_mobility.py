@@ -10,16 +10,8 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links import channel as ch
 from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.links.mobility import (
-    LinkModel,
-    MacroLinkConfig,
-    MobilityConfig,
-    associate,
-    hex_grid_sites,
-    l3_filter,
-    macro_link_model,
-    rate_series,
-)
+from crchfl_sumo.links.macro import MacroLinkConfig, hex_grid_sites, macro_link_model
+from crchfl_sumo.links.mobility import LinkModel, MobilityConfig, associate, l3_filter, rate_series
 from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.sumo.sites import EdgeSite
 

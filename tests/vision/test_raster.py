@@ -19,15 +19,8 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
-from crchfl_sumo.vision.raster import (
-    LAMP_GREEN_RGB,
-    LAMP_HEIGHTS_M,
-    LAMP_RED_RGB,
-    VEHICLE_PALETTE_RGB,
-    RasterConfig,
-    Renderer,
-    lit_lamps,
-)
+from crchfl_sumo.vision.objects import LAMP_GREEN_RGB, LAMP_HEIGHTS_M, LAMP_RED_RGB, VEHICLE_PALETTE_RGB, lit_lamps
+from crchfl_sumo.vision.raster import RasterConfig, Renderer
 from crchfl_sumo.vision.world import (
     SKY_RGB,
     WHITE_RGB,

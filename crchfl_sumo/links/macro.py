@@ -1,0 +1,108 @@
+"""SFL's links: vehicles straight to the cloud over a grid of macro cells (the same association and rate models as the edges, other sites and radio settings).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.links.mobility import LinkModel, MobilityConfig
+from crchfl_sumo.sumo.sites import EdgeSite
+
+
+@dataclass(frozen=True)
+class MacroLinkConfig:
+    """SFL's long-range vehicle <-> cloud link over public macro cells (TOML ``[sfl_link]``).
+
+    The vehicle side (transmit power, antenna, fading, rate model) comes from
+    ``[channel]``; these keys set the macro side: TR 38.901 UMa, NR band n78
+    at 3.5 GHz, 25 m masts on a hexagonal grid of 500 m inter-site distance
+    (TR 38.901 Table 7.2-1), 8 dBi base-station antenna element and 5 dB
+    noise figure (ITU-R M.2412 / TR 38.802 evaluation assumptions), and
+    10 MHz per cell for the simulated vehicles (the carrier is shared with
+    other users of a public network).
+    """
+
+    carrier_hz: float = 3.5e9
+    bandwidth_hz: float = 10e6
+    site_antenna_gain_dbi: float = 8.0
+    noise_figure_db: float = 5.0
+    site_height_m: float = 25.0
+    inter_site_distance_m: float = 500.0
+    coverage_radius_m: float = 2000.0
+    min_rx_power_dbm: float = -109.0  # about -10 dB SNR in 10 MHz with a 5 dB noise figure
+    # Explicit macro sites; empty = a hexagonal grid over the network with a
+    # site at the network's centre.
+    sites: tuple[EdgeSite, ...] = ()
+
+    def __post_init__(self) -> None:
+        for key in ("carrier_hz", "bandwidth_hz", "site_height_m", "inter_site_distance_m", "coverage_radius_m"):
+            if not getattr(self, key) > 0:
+                raise CrchflError(f"sfl_link.{key} must be > 0, got {getattr(self, key)}")
+
+    def channel_config(self, base: ChannelConfig) -> ChannelConfig:
+        """``base`` (the vehicle side) with the macro side of this config."""
+        return dataclasses.replace(
+            base,
+            scenario="uma",
+            carrier_hz=self.carrier_hz,
+            bandwidth_hz=self.bandwidth_hz,
+            site_antenna_gain_dbi=self.site_antenna_gain_dbi,
+            noise_figure_db=self.noise_figure_db,
+        )
+
+    def mobility_config(self, base: MobilityConfig) -> MobilityConfig:
+        """``base`` handover settings with macro coverage."""
+        return dataclasses.replace(
+            base, coverage_radius_m=self.coverage_radius_m, min_rx_power_dbm=self.min_rx_power_dbm
+        )
+
+    def resolve_sites(self, bounds_m: tuple[float, float, float, float]) -> tuple[EdgeSite, ...]:
+        """The explicit sites, or a hexagonal grid covering ``bounds_m`` = (xmin, ymin, xmax, ymax)."""
+        if self.sites:
+            return self.sites
+        return hex_grid_sites(bounds_m, self.inter_site_distance_m, self.site_height_m)
+
+
+def hex_grid_sites(
+    bounds_m: tuple[float, float, float, float], spacing_m: float, height_m: float, prefix: str = "macro"
+) -> tuple[EdgeSite, ...]:
+    """Sites on a hexagonal lattice (neighbours ``spacing_m`` apart) centred on the bounds.
+
+    Every point of the bounds is within one spacing of a site; sites are
+    named ``{prefix}{i}`` in row-major order.
+    """
+    xmin, ymin, xmax, ymax = bounds_m
+    if not (xmax >= xmin and ymax >= ymin and spacing_m > 0):
+        raise CrchflError(f"hex_grid_sites: bad bounds {bounds_m} or spacing {spacing_m}")
+    cx, cy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0
+    row_m = spacing_m * math.sqrt(3.0) / 2.0
+    n_rows = math.ceil((ymax - cy) / row_m) + 1
+    n_cols = math.ceil((xmax - cx) / spacing_m) + 1
+    sites = []
+    for r in range(-n_rows, n_rows + 1):
+        offset = spacing_m / 2.0 if r % 2 else 0.0
+        for c in range(-n_cols, n_cols + 1):
+            x, y = cx + c * spacing_m + offset, cy + r * row_m
+            # keep sites whose cell can touch the bounds
+            if xmin - spacing_m <= x <= xmax + spacing_m and ymin - spacing_m <= y <= ymax + spacing_m:
+                sites.append((x, y))
+    return tuple(EdgeSite(f"{prefix}{i}", x, y, height_m) for i, (x, y) in enumerate(sites))
+
+
+def macro_link_model(
+    macro: MacroLinkConfig,
+    bounds_m: tuple[float, float, float, float],
+    channel: ChannelConfig = ChannelConfig(),
+    mobility: MobilityConfig = MobilityConfig(),
+    seed: int | np.random.Generator = 0,
+) -> LinkModel:
+    """The LinkModel of SFL's direct vehicle <-> cloud link."""
+    return LinkModel(
+        macro.resolve_sites(bounds_m), macro.channel_config(channel), macro.mobility_config(mobility), seed
+    )
