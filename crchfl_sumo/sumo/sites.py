@@ -77,6 +77,9 @@ def _farthest_point_init(points: np.ndarray, k: int) -> np.ndarray:
 
 
 def _kmeans(points: np.ndarray, centres: np.ndarray, iterations: int) -> np.ndarray:
+    # Lloyd's iterations by hand rather than scipy's kmeans2: these ten lines keep an empty
+    # cluster's centre where the farthest-point start put it and stop at a fixed point, so
+    # placement is reproducible without a seed and the same on every scipy version.
     for _ in range(iterations):
         nearest = np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1)).argmin(axis=1)
         updated = np.array(
