@@ -311,3 +311,15 @@ def test_bad_arguments_name_the_option(ladder, tmp_path):
         run_benchmark(tmp_path / "missing.pt", tmp_path, towns=(cfg,))
     with pytest.raises(CrchflError, match="--tasks: unknown task 'loops'"):
         BenchConfig(tasks=("loops",))
+
+
+def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tmp_path, capsys):
+    from crchfl_sumo.cli import main
+
+    cfg = str(ladder / "ladder.sumocfg")
+    assert main(["drive-bench", "reference", "--out", str(tmp_path / "b"), "--episodes", "1",
+                 "--towns", cfg, "--tasks", "straight"]) == 0
+    assert "| ladder | straight | 1 | 100 % |" in capsys.readouterr().out
+    assert json.loads((tmp_path / "b" / "summary.json").read_text())["results"]["ladder"]["straight"]["episodes"] == 1
+    assert main(["drive-bench", "reference", "--out", str(tmp_path / "c"), "--episodes", "0", "--towns", cfg]) == 2
+    assert "--episodes must be >= 1" in capsys.readouterr().err
