@@ -40,7 +40,7 @@ from crchfl_sumo.driving.bench_tasks import (
     without_traffic,
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
-from crchfl_sumo.driving.drive_command import _single_torch_thread  # the drive command's: one torch thread
+from crchfl_sumo.driving.drive_command import single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
@@ -152,7 +152,7 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
 
         renderer = Renderer(build_world(scenario.net_path), RasterConfig(camera=driver.camera()))
     records = []
-    with _single_torch_thread(driver.renders):
+    with single_torch_thread(driver.renders):
         for episode in episodes:
             route = route_geometry(net, episode.edges)
             result = drive(

@@ -56,7 +56,7 @@ def drive_command(
         camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
         label = Path(model_path).stem
     renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))
-    with _single_torch_thread(model_path is not None):
+    with single_torch_thread(model_path is not None):
         result = drive(
             loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
             renderer=renderer if model_path is not None else None,
@@ -76,7 +76,7 @@ def drive_command(
 
 
 @contextlib.contextmanager
-def _single_torch_thread(active: bool):
+def single_torch_thread(active: bool):
     """One torch thread while a model drives: one sample a step gains nothing from more, and on a
     busy machine the threads' spinning made a step 100 times slower (docs/drive.md)."""
     if not active:
