@@ -18,8 +18,9 @@
   the error of the steer the vehicle would get after the DAC;
 - throttle_error, brake_error: mean absolute error of the two pedals.
 
-``always_straight(samples)`` gives the accuracy and balanced accuracy of the
-constant prediction "class 0" (straight) on the same set.
+``always_straight(samples)`` gives the accuracy, balanced accuracy and steer
+error (mean |true steer|) of the constant prediction "class 0" (straight) on
+the same set.
 """
 
 from __future__ import annotations
@@ -93,11 +94,15 @@ def balanced_accuracy(confusion: np.ndarray) -> float:
 
 
 def always_straight(samples: Samples) -> dict[str, float]:
-    """Accuracy and balanced accuracy of predicting class 0 (straight) for every sample of ``samples``."""
+    """Accuracy, balanced accuracy and DAC steer error of predicting class 0 (straight) for every sample."""
     true_class = samples.steer_class.cpu().numpy()
     confusion = confusion_matrix(true_class, np.full_like(true_class, STRAIGHT_CLASS))
-    accuracy = float(confusion[STRAIGHT_CLASS, STRAIGHT_CLASS] / len(true_class)) if len(true_class) else math.nan
-    return {"accuracy": accuracy, "balanced_accuracy": balanced_accuracy(confusion)}
+    n = len(true_class)
+    return {
+        "accuracy": float(confusion[STRAIGHT_CLASS, STRAIGHT_CLASS] / n) if n else math.nan,
+        "balanced_accuracy": balanced_accuracy(confusion),
+        "steer_error": float(samples.actions[:, 1].abs().double().mean()) if n else math.nan,
+    }
 
 
 @torch.no_grad()

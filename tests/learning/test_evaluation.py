@@ -54,12 +54,16 @@ def test_confusion_recall_and_balanced_accuracy_by_hand():
 
 
 def test_always_straight_baseline():
-    samples = _samples(np.zeros((5, 3)), [0, 0, 0, 2, 6])
-    assert always_straight(samples) == {"accuracy": 0.6, "balanced_accuracy": pytest.approx(1 / 3)}
+    actions = np.zeros((5, 3))
+    actions[3:, 1] = [0.3, -0.4]  # the two turning samples' analogue steer
+    samples = _samples(actions, [0, 0, 0, 2, 6])
+    assert always_straight(samples) == {
+        "accuracy": 0.6, "balanced_accuracy": pytest.approx(1 / 3), "steer_error": pytest.approx(0.7 / 5)
+    }
     every_class = _samples(np.zeros((7, 3)), list(range(7)))
     assert always_straight(every_class)["balanced_accuracy"] == pytest.approx(1 / 7)
     no_straight = _samples(np.zeros((2, 3)), [1, 4])
-    assert always_straight(no_straight) == {"accuracy": 0.0, "balanced_accuracy": 0.0}
+    assert always_straight(no_straight) == {"accuracy": 0.0, "balanced_accuracy": 0.0, "steer_error": 0.0}
 
 
 def test_evaluate_model_by_hand():
