@@ -96,6 +96,7 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
     lines += _experiment_b(summary, figures)
     lines += _experiment_d(summary, figures)
     lines += _closed_loop(summary, figures)
+    lines += _drive_bench(summary)
     lines += _settings(summary, results)
     lines += _environment(summary, results, figures)
     return "\n".join(lines)
@@ -214,6 +215,35 @@ def _closed_loop(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list
         lines += _table(["model", *DRIVE_COLUMNS], rows)
         if f"fig5_{route}" in figures:
             lines += _figure(f"Fig. 5, {route}", figures[f"fig5_{route}"])
+    return lines
+
+
+def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
+    """The closed-loop benchmark: per town, each model's success, route completion and driving score per task."""
+    bench = summary.get("drive_bench") or {}
+    if not bench:
+        return []
+    lines = [
+        "", "## Closed-loop benchmark (`drive-bench`)", "",
+        "Each model drives the CoRL2017-style suites of start/goal routes drawn apart from the data vehicles' "
+        "routes (docs/drive.md). A cell: success rate / route completion / driving score (route completion "
+        "x the CARLA Leaderboard's infraction penalty), each in %; infractions per km after the bar.",
+    ]
+    towns = list(dict.fromkeys(town for results in bench.values() for town in results))
+    for town in towns:
+        tasks = list(dict.fromkeys(t for results in bench.values() for t in results.get(town, {})))
+        rows = []
+        for label, results in bench.items():
+            cells = []
+            for task in tasks:
+                r = results.get(town, {}).get(task)
+                cells.append("-" if r is None else (
+                    f"{100 * r['success_rate']:.0f} / {100 * r['route_completion']:.0f} / "
+                    f"{100 * r['driving_score']:.0f} | {_fmt(r['infractions_per_km'], 2)}"
+                ))
+            rows.append([NAMES.get(label, label), *cells])
+        lines += ["", f"### {town}", ""]
+        lines += _table(["model", *tasks], rows)
     return lines
 
 

@@ -220,6 +220,8 @@ def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, 
         _centralized(config, out_dir, part.seed, out_dir / part.key)
     elif part.kind == "drive":
         _drive_part(config, out_dir, part)
+    elif part.kind == "bench":
+        _bench_part(config, out_dir, part)
     else:
         _federated(config, out_dir, part)
     # CPU time beside wall time: on a shared machine it is disturbed less by other jobs; the start
@@ -291,6 +293,17 @@ def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
     drive_command(
         model, None, part.route, out_dir / part.key, seed=config.drive_seed, max_s=config.drive_max_s,
         config=config.drive, video=config.drive_video,
+    )
+
+
+def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
+    """The closed-loop benchmark for one model (its own process already: the episodes run one by one)."""
+    from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+
+    model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
+    run_benchmark(
+        model, out_dir / part.key, episodes=config.bench_episodes, jobs=1, seed=config.bench_seed,
+        towns=config.bench_towns, config=BenchConfig(tasks=config.bench_tasks),
     )
 
 

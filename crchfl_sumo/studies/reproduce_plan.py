@@ -14,6 +14,8 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
+from crchfl_sumo.driving.bench import DEFAULT_TOWNS
+from crchfl_sumo.driving.bench_tasks import TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
 
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
@@ -42,6 +44,9 @@ class ReproduceConfig:
     drive_seed: SUMO seed of the drives (the same traffic for every model).
     drive_video: also write each drive's MP4.
     drive: the drives' settings (DriveConfig: warm-up, insertion, end conditions).
+    bench_episodes: episodes per task and town of the closed-loop benchmark (`drive-bench`) that
+        each scheme's best model, the centralized model and the reference drive; 0 = no benchmark.
+    bench_towns, bench_tasks, bench_seed: the benchmark's towns, task suites and seed.
     generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
     run: settings laid over every built-in scheme config (scenarios/experiments/SCHEME.toml):
         a partial run config, e.g. ``[run.ledger]``, ``[run.train]``, ``[run.clock]``.
@@ -61,6 +66,10 @@ class ReproduceConfig:
     drive_seed: int = 0
     drive_video: bool = False
     drive: DriveConfig = field(default_factory=DriveConfig)
+    bench_episodes: int = 5
+    bench_towns: tuple[str, ...] = DEFAULT_TOWNS
+    bench_tasks: tuple[str, ...] = TASK_NAMES
+    bench_seed: int = 0
     generate: GenerateConfig = field(default_factory=GenerateConfig)
     run: dict[str, Any] = field(default_factory=dict)
 
@@ -83,6 +92,14 @@ class ReproduceConfig:
             raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be >= 0")
         if self.centralized_epochs < 0:
             raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
+        if self.bench_episodes < 0:
+            raise CrchflError(f"reproduce.bench_episodes: {self.bench_episodes} must be >= 0 (0 = no benchmark)")
+        if self.bench_episodes and (not self.bench_towns or not self.bench_tasks):
+            raise CrchflError("reproduce.bench_towns / bench_tasks: name at least one of each, or set bench_episodes = 0")
+        for task in self.bench_tasks:
+            task_by_name(task)
+        if self.bench_seed < 0:
+            raise CrchflError(f"reproduce.bench_seed: {self.bench_seed} must be >= 0")
         if not self.drive_max_s > 0:
             raise CrchflError(f"reproduce.drive_max_s: {self.drive_max_s} must be > 0")
         for key, instead in (("scenario", "reproduce.scenario"), ("dataset", "reproduce.generate")):
@@ -166,11 +183,14 @@ def drive_labels(config: ReproduceConfig) -> list[str]:
 
 
 def drive_parts(config: ReproduceConfig) -> list[ReproductionPart]:
-    return [
+    """The closed-loop parts: every model drives each named route, then the benchmark's suites."""
+    drives = [
         ReproductionPart(f"drives/{route}/{label}", "drive", label, route=route)
         for route in config.drive_routes
         for label in drive_labels(config)
     ]
+    bench = [ReproductionPart(f"drive_bench/{label}", "bench", label) for label in drive_labels(config)]
+    return drives + (bench if config.bench_episodes else [])
 
 
 def describe(config: ReproduceConfig) -> str:
@@ -180,5 +200,6 @@ def describe(config: ReproduceConfig) -> str:
         f"{config.name}: {sum(sizes)} training samples over {len(sizes)} vehicles, schemes "
         f"{', '.join(config.schemes)} x seeds {config.seed_list}, ablation edge_interval "
         f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
-        f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}"
+        f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}, drive-bench "
+        f"{config.bench_episodes} episodes per task in {', '.join(config.bench_towns)}"
     )

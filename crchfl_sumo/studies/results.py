@@ -77,6 +77,11 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
                 drives[route_dir.name] = {
                     label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, LABEL_ORDER)
                 }
+    bench_dir = out_dir / "drive_bench"
+    bench = {}
+    if bench_dir.is_dir():
+        labels = [p.name for p in bench_dir.iterdir() if (p / "summary.json").is_file()]
+        bench = {label: read_json(bench_dir / label / "summary.json") for label in _ordered(labels, LABEL_ORDER)}
     if not schemes and not ablation:
         raise CrchflError(
             f"{out_dir}: no finished run (runs/SCHEME/seed-S/summary.json); "
@@ -90,6 +95,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
         "ablation": ablation,
         "centralized": read_seed_runs(out_dir / "centralized"),
         "drives": drives,
+        "drive_bench": bench,
         "reproduce": read_json(reproduce_path) if reproduce_path.is_file() else {},
         "timings": read_json(timings_path) if timings_path.is_file() else {},
     }

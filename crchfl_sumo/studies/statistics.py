@@ -171,5 +171,6 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "centralized": centralized_stats(results["centralized"]),
         "ablation": ablation,
         "closed_loop": results["drives"],
+        "drive_bench": {label: bench["results"] for label, bench in results["drive_bench"].items()},
         "running_time_s": timing_groups(results["timings"]),
     }

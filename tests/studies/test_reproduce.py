@@ -92,6 +92,9 @@ ablation_edge_intervals = [2, 3]
 centralized_epochs = 1
 drive_routes = ["town01_right_left"]
 drive_max_s = 3.0
+bench_episodes = 1
+bench_towns = ["town02"]
+bench_tasks = ["straight"]
 
 [drive]
 warmup_s = 0.0
@@ -134,7 +137,7 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
         out_dir=out, config_path=path, progress=lambda u: seen.append((u.done, u.total, u.detail["part"]))
     )
     assert folder == out
-    assert seen[0] == (0, 16, "data") and seen[-1] == (16, 16, "report")  # 1 + 2 + 6 + 2 + 5 parts
+    assert seen[0] == (0, 21, "data") and seen[-1] == (21, 21, "report")  # 1 + 2 + 6 + 2 + 5 + 5 parts
     assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
     # 5 GB of 150 MB models: SFL 10 transfers a round (3 rounds), HFL 14 (2 rounds)
     assert summary["schemes"]["sfl"]["cloud_rounds"]["values"] == [3, 3]
@@ -156,7 +159,16 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     for figure in summary["figures"].values():
         assert (out / figure).is_file()
     timings = json.loads((out / "timings.json").read_text())
-    assert len(timings) == 16 and all(t["wall_s"] >= 0 for t in timings.values())
+    assert len(timings) == 21 and all(t["wall_s"] >= 0 for t in timings.values())
+    # the benchmark: every model and the reference, results[TOWN][TASK] with the keys other tools read
+    bench = summary["drive_bench"]
+    assert list(bench) == ["crchfl", "hfl", "sfl", "centralized", "reference"]
+    for results in bench.values():
+        assert set(results["town02"]["straight"]) >= {"episodes", "success_rate", "route_completion",
+                                                      "driving_score", "infractions_per_km"}
+        assert results["town02"]["straight"]["episodes"] == 1
+    assert bench["reference"]["town02"]["straight"]["success_rate"] == 1.0
+    assert "## Closed-loop benchmark" in (out / "report.md").read_text()
 
     # finished parts are not redone; the report is rebuilt the same
     with pytest.raises(CrchflError, match="--resume"):
@@ -181,7 +193,7 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
 def test_parts_run_side_by_side_give_the_same_results(tmp_path):
     # one seed, no ablation, no drives: the data set, then 4 parts that --jobs 2 runs two at a time
     text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
-    text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []")
+    text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []").replace("bench_episodes = 1", "bench_episodes = 0")
     path = tmp_path / "tiny.toml"
     path.write_text(text)
     seen = []
