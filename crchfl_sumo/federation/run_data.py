@@ -123,6 +123,7 @@ def make_clock(config: RunConfig, inputs: RunData):
 
 def online_collector(config: RunConfig, inputs: RunData, scenario):
     """The online mode's collector, rendering and labelling exactly as the data set was made."""
+    from crchfl_sumo.data.commands import CommandConfig
     from crchfl_sumo.data.expert import ExpertConfig
     from crchfl_sumo.data.online import OnlineCollector
     from crchfl_sumo.data.shards import read_manifest, read_shard
@@ -134,6 +135,7 @@ def online_collector(config: RunConfig, inputs: RunData, scenario):
     raster = from_mapping(RasterConfig, manifest.camera.get("raster", {}), f"{where}: camera.raster")
     world = from_mapping(WorldConfig, manifest.camera.get("world", {}), f"{where}: camera.world")
     expert = from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    command = from_mapping(CommandConfig, manifest.labels.get("command", {}), f"{where}: labels.command")
     if (raster.camera.height_px, raster.camera.width_px) != (manifest.image_height, manifest.image_width):
         raise CrchflError(f"{where}: camera settings do not match the image size; regenerate the data set")
     # each vehicle goes on collecting after the last sample of its shard
@@ -151,6 +153,7 @@ def online_collector(config: RunConfig, inputs: RunData, scenario):
         world,
         expert,
         config.online,
+        command,
     )
 
 

@@ -247,7 +247,9 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
     from crchfl_sumo.sumo.scenario import load_scenario
 
     gen = config.generate
-    generate_dataset(load_scenario(config.scenario), data_dir, gen.seed, gen.dataset, gen.raster, gen.world, gen.expert)
+    generate_dataset(
+        load_scenario(config.scenario), data_dir, gen.seed, gen.dataset, gen.raster, gen.world, gen.expert, command=gen.command
+    )
 
 
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
