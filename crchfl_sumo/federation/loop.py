@@ -44,7 +44,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -68,6 +68,9 @@ from crchfl_sumo.links.transfer import wireline_transfer_time_s
 from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)
+
+# The test metrics that an edge evaluation averages over edges (the rest: per-class counts and rates).
+SCALAR_METRICS = ("loss", "accuracy", "balanced_accuracy", "steer_error", "throttle_error", "brake_error")
 
 
 # ------------------------------------------------------------------ one step
@@ -225,8 +228,9 @@ class Federation:
         new = self.trainer.train([state.vehicle_models[v] for v in vehicles], samples, epochs, seed)
         return dict(zip(vehicles, new)), {v: len(x) for v, x in zip(vehicles, samples)}
 
-    def _line(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics=None, **extra) -> dict:
-        loss, accuracy = metrics if metrics is not None else (None, None)
+    def _line(
+        self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics: Mapping | None = None, **extra
+    ) -> dict:
         line = {
             "step": state.steps + 1,
             "stage": stage,
@@ -234,18 +238,17 @@ class Federation:
             "edge_aggregations": state.edge_aggregations,
             **_bytes_line(ledger),
             "sim_time_s": t_s,
-            "loss": loss,
-            "accuracy": accuracy,
+            "loss": None,
+            "accuracy": None,
+            **(metrics or {}),
             **extra,
         }
         state.metrics.append(line)
         return line
 
     def _evaluate_cloud(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, **extra) -> None:
-        loss, accuracy = self.trainer.evaluate(state.cloud_model)
-        line = self._line(state, ledger, stage, t_s, (loss, accuracy), **extra)
-        better = state.best is None or _better(accuracy, loss, state.best["accuracy"], state.best["loss"])
-        if better:
+        line = self._line(state, ledger, stage, t_s, self.trainer.evaluate(state.cloud_model), **extra)
+        if state.best is None or _better(line, state.best):
             state.best, state.best_model = dict(line), state.cloud_model
 
     # -- stage I
@@ -432,11 +435,12 @@ class Federation:
             else:
                 self._straggler(state, v, stage, f"download {out.reason}", out.end_s)
 
-    def _evaluate_edges(self, models, weights, edges) -> tuple[float, float]:
-        """Sample-weighted mean of the edge models' test Loss and Accuracy."""
+    def _evaluate_edges(self, models, weights, edges) -> dict[str, float]:
+        """Sample-weighted means of the edge models' scalar test metrics."""
         results = [(self.trainer.evaluate(models[e]), weights[e]) for e in edges]
         total = sum(w for _, w in results) or 1.0
-        return (sum(m[0] * w for m, w in results) / total, sum(m[1] * w for m, w in results) / total)
+        keys = [k for k in SCALAR_METRICS if all(k in m for m, _ in results)]
+        return {k: sum(m[k] * w for m, w in results) / total for k in keys}
 
     def _gather_uploads(self, state, uploads, receiver: str, stage: str, missed_at, events):
         """Arrival time of each vehicle's upload to ``receiver`` and the vehicles whose model arrived.
@@ -504,10 +508,17 @@ class Federation:
         self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received), samples=sum(counts.values()))
 
 
-def _better(accuracy: float, loss: float, best_accuracy: float, best_loss: float) -> bool:
-    """Higher Accuracy wins; equal Accuracy: lower Loss (NaN never wins)."""
-    if math.isnan(accuracy):
-        return False
-    if math.isnan(best_accuracy) or accuracy > best_accuracy:
-        return True
-    return accuracy == best_accuracy and loss < best_loss
+def _rank(line: Mapping[str, Any]) -> tuple[float, float, float]:
+    """A model's place: balanced accuracy (the plain accuracy where there is none), then accuracy, then lower loss.
+
+    Balanced accuracy first, because a model that always says "straight" has a high accuracy on data that is
+    mostly straight, and cannot drive. NaN ranks last.
+    """
+    primary = line.get("balanced_accuracy")
+    values = (line["accuracy"] if primary is None else primary, line["accuracy"], -line["loss"])
+    return tuple(-math.inf if math.isnan(v) else v for v in values)
+
+
+def _better(line: Mapping[str, Any], best: Mapping[str, Any]) -> bool:
+    """``line``'s model beats the best so far (a NaN score never wins)."""
+    return _rank(line)[0] > -math.inf and _rank(line) > _rank(best)

@@ -25,7 +25,7 @@ import dataclasses
 import json
 import logging
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import torch
 
@@ -47,6 +47,7 @@ from crchfl_sumo.federation.run_data import RunData, make_clock, read_inputs
 from crchfl_sumo.federation.settings import HyperParameters
 from crchfl_sumo.federation.state import FederationState, LoopInputs, initial_state, sim_time_s
 from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
@@ -143,6 +144,7 @@ def _run_with_trainer(
     out_dir.mkdir(parents=True, exist_ok=True)
     fed = config.federation
     first = trainer.initial_state()
+    baseline = always_straight(inputs.test)  # what the accuracies are read against
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
@@ -171,8 +173,8 @@ def _run_with_trainer(
         if resume and checkpoint_path.exists():
             state = _load_state(checkpoint_path, resolved)
             if state.done:  # finished before: only the derived files may be missing
-                _write_outputs(out_dir, config, setup, state, _handovers(clock, state))
-                return summarize(config, setup, state, _handovers(clock, state))
+                _write_outputs(out_dir, config, setup, state, _handovers(clock, state), baseline)
+                return summarize(config, setup, state, _handovers(clock, state), baseline)
             log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
         else:
             if config_text is not None:
@@ -187,12 +189,12 @@ def _run_with_trainer(
             _save_state(checkpoint_path, resolved, new)
             if after_checkpoint is not None:
                 after_checkpoint(new)
-            _write_outputs(out_dir, config, setup, new, _handovers(clock, new))
+            _write_outputs(out_dir, config, setup, new, _handovers(clock, new), baseline)
             if progress is not None:  # a step's postfix costs a pass over the records
                 report(progress, "step", new.steps, None, **progress_postfix(progress_info(new, sizes.budget_bytes, hyper)))
 
         state = federation.run(state, on_step)
-        return summarize(config, setup, state, _handovers(clock, state))
+        return summarize(config, setup, state, _handovers(clock, state), baseline)
 
 
 def _handovers(clock, state: FederationState) -> int | None:
@@ -240,7 +242,15 @@ def progress_postfix(info: dict) -> dict[str, str]:
     }
 
 
-def summarize(config: RunConfig, setup: LoopInputs, state: FederationState, handovers: int | None = None) -> dict:
+def summarize(
+    config: RunConfig,
+    setup: LoopInputs,
+    state: FederationState,
+    handovers: int | None = None,
+    baseline: Mapping[str, float] | None = None,
+) -> dict:
+    """summary.json. The best model is the cloud model of the highest balanced accuracy (loop._rank);
+    best_* are its figures. ``baseline``: the always-straight prediction on the same test set."""
     ledger = Ledger(setup.sizes, state.records)
     cloud_lines = [m for m in state.metrics if m["stage"] in ("I", "III")]
     final = cloud_lines[-1] if cloud_lines else None
@@ -257,14 +267,18 @@ def summarize(config: RunConfig, setup: LoopInputs, state: FederationState, hand
         "model_bytes": setup.sizes.model_bytes,
         "sample_bytes": setup.sizes.sample_bytes,
         "best_accuracy": None if best is None else best["accuracy"],
+        "balanced_accuracy": None if best is None else best.get("balanced_accuracy"),
+        "best_steer_error": None if best is None else best.get("steer_error"),
         "best_loss": None if best is None else best["loss"],
         "best_cloud_round": None if best is None else best["cloud_round"],
         "final_accuracy": None if final is None else final["accuracy"],
+        "final_balanced_accuracy": None if final is None else final.get("balanced_accuracy"),
         "final_loss": None if final is None else final["loss"],
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
         "handovers": handovers,
         "stop_reason": state.stop_reason,
+        "baselines": {"always_straight": dict(baseline)} if baseline is not None else {},
         "hyper": dataclasses.asdict(setup.hyper),
         "vehicles": list(setup.vehicles),
         "samples_per_vehicle": {v: setup.count(v) for v in setup.vehicles},
@@ -294,7 +308,12 @@ def _load_state(path: Path, resolved: dict) -> FederationState:
 
 
 def _write_outputs(
-    out_dir: Path, config: RunConfig, setup: LoopInputs, state: FederationState, handovers: int | None = None
+    out_dir: Path,
+    config: RunConfig,
+    setup: LoopInputs,
+    state: FederationState,
+    handovers: int | None = None,
+    baseline: Mapping[str, float] | None = None,
 ) -> None:
     atomic_write_text(out_dir / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in state.metrics))
     atomic_write_text(out_dir / "stragglers.jsonl", "".join(json.dumps(s) + "\n" for s in state.stragglers))
@@ -303,7 +322,7 @@ def _write_outputs(
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:
         save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})
-    summary = summarize(config, setup, state, handovers)
+    summary = summarize(config, setup, state, handovers, baseline)
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
 
 

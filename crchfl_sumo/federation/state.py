@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Literal, Mapping, Protocol, Sequence
+from typing import Any, Literal, Mapping, Protocol, Sequence
 
 from crchfl_sumo.accounting.ledger import Record
 from crchfl_sumo.accounting.schedules import (
@@ -28,8 +28,11 @@ class Trainer(Protocol):
 
     def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> list[State]: ...
 
-    def evaluate(self, state: State) -> tuple[float, float]:
-        """(Loss, Accuracy) on the test set."""
+    def evaluate(self, state: State) -> Mapping[str, Any]:
+        """Test-set metrics: at least ``loss`` and ``accuracy``; every key goes into the metric line.
+
+        The loop ranks models by ``balanced_accuracy`` where the metrics carry it.
+        """
         ...
 
 

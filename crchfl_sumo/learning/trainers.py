@@ -7,8 +7,8 @@ vehicles and a test-set evaluation. ``TorchTrainer`` does them here;
 
 Evaluation: ``evaluation(state)`` gives the full test metrics
 (evaluation.Evaluation: balanced accuracy, recall, confusion, steer and
-pedal errors ...); ``evaluate(state)`` keeps the loop's (loss, accuracy)
-pair and is computed from the same Evaluation. ``always_straight`` holds the
+pedal errors ...); ``evaluate(state)`` gives the same as the plain values the
+loop writes into its metric lines. ``always_straight`` holds the
 constant-straight baseline on the same test set.
 """
 
@@ -57,10 +57,11 @@ class TorchTrainer:
         self._eval_model.load_state_dict(state)
         return evaluate(self._eval_model, self.test, self.config)
 
-    def evaluate(self, state) -> tuple[float, float]:
-        """(Loss, Accuracy) on the test set: the loop's Trainer protocol."""
-        metrics = self.evaluation(state)
-        return metrics.loss, metrics.accuracy
+    def evaluate(self, state) -> dict[str, Any]:
+        """The loop's Trainer protocol: the test metrics as the metric line's values (Evaluation.record)."""
+        record = self.evaluation(state).record()
+        del record["samples"]  # the same every time; the run's summary states the test set's size
+        return record
 
 
 class RayTrainer(TorchTrainer):

@@ -32,7 +32,7 @@ class SumTrainer:
 
     def evaluate(self, state):
         total = float(state["w"].sum())
-        return 1.0 / (1.0 + total), total / (1.0 + total)
+        return {"loss": 1.0 / (1.0 + total), "accuracy": total / (1.0 + total)}
 
 
 class FixedTrainer(SumTrainer):
@@ -320,10 +320,26 @@ def test_a_vehicle_that_cannot_start_before_the_deadline_is_not_charged():
     assert {r.receiver for r in state.records if r.direction == "downlink" and r.link == "wireless"} == {"a", "b"}
 
 
+def test_the_best_model_is_the_one_of_highest_balanced_accuracy():
+    # accuracy rises round by round (towards always-straight) while balanced accuracy falls after round 1
+    class Majority(SumTrainer):
+        def evaluate(self, state):
+            w = float(state["w"][0])
+            return {"loss": 1.0, "accuracy": w / (1.0 + w), "balanced_accuracy": 1.0 / (1.0 + abs(w - 1.0))}
+
+    config = FederationConfig(scheme="sfl", edge_interval=1, cloud_rounds=3, compute_s_per_sample=0.0)
+    setup = _setup(config, _hyper(config), {"a": 1, "b": 1}, {"a": 0, "b": 0}, ledger=SMALL, edges=("e0",))
+    state = _run(setup, ScriptedClock.constant({"a": 0, "b": 0}, 8e6), Majority())
+    lines = [m for m in state.metrics if m["stage"] == "III"]
+    assert [m["accuracy"] for m in lines] == [0.5, 2 / 3, 0.75]  # w = 1, 2, 3 after rounds 1, 2, 3
+    assert [m["balanced_accuracy"] for m in lines] == [1.0, 0.5, 1 / 3]
+    assert state.best["cloud_round"] == 1 and state.best_model["w"].tolist() == [1.0, 1.0]
+
+
 def test_best_model_is_kept_when_accuracy_falls():
     class Falling(SumTrainer):
         def evaluate(self, state):
-            return float(state["w"][0]), 1.0 / (1.0 + float(state["w"][0]))
+            return {"loss": float(state["w"][0]), "accuracy": 1.0 / (1.0 + float(state["w"][0]))}
 
     config = FederationConfig(scheme="sfl", edge_interval=1, cloud_rounds=3, compute_s_per_sample=0.0)
     setup = _setup(config, _hyper(config), {"a": 1, "b": 1}, {"a": 0, "b": 0}, ledger=SMALL, edges=("e0",))

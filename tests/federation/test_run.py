@@ -35,7 +35,7 @@ class SumTrainer:
 
     def evaluate(self, state):
         total = float(state["w"].sum())
-        return 100.0 / (1.0 + total), total / (1.0 + total)
+        return {"loss": 100.0 / (1.0 + total), "accuracy": total / (1.0 + total)}
 
 
 def test_run_command_writes_the_results_folder(tmp_path, dataset):
@@ -52,14 +52,18 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text()) == summary
     for key in ("scheme", "cloud_rounds", "edge_aggregations", "consumed_bytes", "budget_bytes", "best_accuracy",
-                "final_accuracy", "best_loss", "sim_time_s"):
+                "final_accuracy", "best_loss", "sim_time_s", "balanced_accuracy", "final_balanced_accuracy"):
         assert key in summary
+    assert 0.0 <= summary["balanced_accuracy"] <= 1.0
+    # the always-straight baseline on the 4 test samples of write_dataset (random classes 0..6)
+    assert set(summary["baselines"]["always_straight"]) >= {"accuracy", "balanced_accuracy"}
     assert (summary["scheme"], summary["cloud_rounds"], summary["edge_aggregations"]) == ("crchfl", 1, 1)
     lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [m["stage"] for m in lines] == ["I", "II", "III"]
     assert lines[-1]["consumed_bytes"] == summary["consumed_bytes"]
     assert lines[-1]["wireless_bytes"] + lines[-1]["wireline_bytes"] == summary["consumed_bytes"]
     assert 0.0 <= lines[-1]["accuracy"] <= 1.0
+    assert len(lines[-1]["confusion"]) == 7 and sum(map(sum, lines[-1]["confusion"])) == 4  # every test sample
     # one update a loop step, counting the steps; the last shows the finished round and the budget
     assert [u.stage for u in seen] == ["step"] * len(seen) and [u.done for u in seen] == list(range(1, len(seen) + 1))
     postfix = seen[-1].detail
