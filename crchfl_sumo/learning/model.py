@@ -17,7 +17,8 @@ Two architectures share that topology (``ModelConfig.arch``):
   conditioning in the manner of Conditional Imitation Learning (Codevilla et
   al. 2018): the steer branch has one output head per route command and the
   command picks the head (or, ``command_input = "concat"``, the command is a
-  one-hot input), and the current speed is an input of both branches.
+  one-hot input); the current speed can be an input of both branches
+  (``speed_input``, off by default).
 - ``paper``: the paper's network exactly as before (no normalisation, MLP
   widths down to 10 units, PyTorch's default initialisation, no command, no
   speed); checkpoints written before ``arch`` existed load as this one.
@@ -94,7 +95,8 @@ class ModelConfig:
         (GroupNorm with one group) or "none".
     command_input: "branched" (default; one steer head per command, picked by
         the command), "concat" (the command one-hot into the steer MLP) or "none".
-    speed_input: the current speed (speed_mps / 10) is an input of both MLPs.
+    speed_input: the current speed (speed_mps / 10) is an input of both MLPs
+        (default off: it did not help the pedals in docs/model.md's measurements).
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -103,7 +105,7 @@ class ModelConfig:
     arch: Literal["cil", "paper"] = "cil"
     norm: Literal["group", "batch", "layer", "none"] = "group"
     command_input: Literal["branched", "concat", "none"] = "branched"
-    speed_input: bool = True
+    speed_input: bool = False
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:

@@ -82,8 +82,8 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     deterministic: bool = False
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
-    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "class_balanced"
-    class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "none"
+    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "uniform"
+    class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
 
     def __post_init__(self) -> None:
         if not self.learning_rate > 0:

@@ -40,7 +40,7 @@ def _run(model, images, command=None, speed=None):
 @pytest.mark.parametrize(
     "options",
     [{}, {"arch": "paper"}, {"norm": "batch"}, {"norm": "layer"}, {"norm": "none"}, {"command_input": "concat"},
-     {"command_input": "none", "speed_input": False}],
+     {"command_input": "none", "speed_input": True}],
 )
 def test_output_shapes_and_ranges(height, width, options):
     config = ModelConfig("compact", height, width, **options)
@@ -101,10 +101,11 @@ def test_branched_heads_are_picked_by_the_command():
 
 
 @pytest.mark.parametrize("options,command_matters,speed_matters", [
-    ({}, True, True),
-    ({"command_input": "concat"}, True, True),
+    ({}, True, False),
+    ({"speed_input": True}, True, True),
+    ({"command_input": "concat"}, True, False),
     ({"command_input": "none", "speed_input": False}, False, False),
-    ({"command_input": "none"}, False, True),
+    ({"command_input": "none", "speed_input": True}, False, True),
 ])
 def test_command_and_speed_reach_the_outputs_as_configured(options, command_matters, speed_matters):
     model = build_model(ModelConfig("compact", 48, 64, **options), seed=0).eval()
@@ -184,11 +185,11 @@ def test_config_validation_and_round_trip():
         ModelConfig("compact", 32, 64)
     with pytest.raises(CrchflError, match="size"):
         ModelConfig("huge")
-    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", speed_input=False)
+    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", speed_input=True)
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
-        "arch": "cil", "norm": "batch", "command_input": "concat", "speed_input": False,
+        "arch": "cil", "norm": "batch", "command_input": "concat", "speed_input": True,
     }
     for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film")):
         with pytest.raises(CrchflError, match=f"model.{key}: '{value}' is unknown"):

@@ -74,8 +74,8 @@ def _max_difference(a, b):
         # One epoch for the normalised network: in a second epoch on random data Adam amplifies the float32
         # rounding of grouped convolutions to about one step in a few weights (measured); the ragged
         # drop-out of vehicles happens within the first epoch already.
-        (SMALL, dict(sampling="class_balanced", class_weighting="none"), 1),  # the defaults
-        (SMALL, dict(sampling="uniform", class_weighting="inverse"), 1),
+        (SMALL, dict(sampling="uniform", class_weighting="sqrt_inverse"), 1),  # the defaults
+        (ModelConfig("compact", 48, 64, speed_input=True), dict(sampling="class_balanced"), 1),
         (ModelConfig("compact", 48, 64, arch="paper"), dict(sampling="command_balanced", learning_rate=1e-4), 2),
     ],
 )
@@ -93,9 +93,10 @@ def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles(model_config
     step = TrainConfig(**balance).learning_rate
     for v in range(4):
         moved = _max_difference(seq_states[v], start[v])
-        # Stated tolerance: float32 rounding of grouped vs plain convolutions. Measured with the defaults:
+        # Stated tolerance: float32 rounding of grouped vs plain convolutions. Measured with these configs:
         # mean |difference| about 1e-9 against a mean move of 2e-3; the largest, in a few weights whose
-        # gradient is near 0 (where Adam's step is the gradient's sign), 2e-5 to 1.5e-4.
+        # gradient is near 0 (where Adam's step is the gradient's sign), 2e-5 to 1.5e-4. (Some other
+        # combinations amplify it further, docs/model.md.)
         difference = torch.cat([(seq_states[v][k] - vmap_states[v][k]).flatten() for k in start[v]]).abs()
         assert difference.mean() < 1e-4 * step and difference.max() < 0.3 * step
         assert (moved > step) == (v != 2)
@@ -126,7 +127,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
     assert raw["format"] == "crchfl-sumo-model/2"
     assert raw["model_config"] == {
         "size": "compact", "image_height": 48, "image_width": 64,
-        "arch": "cil", "norm": "group", "command_input": "branched", "speed_input": True,
+        "arch": "cil", "norm": "group", "command_input": "branched", "speed_input": False,
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
