@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping, Sequence
 from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.studies.report_figures import (
     FIGURES,
     NAMES,
@@ -127,7 +128,8 @@ def _experiment_b(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
     rows = []
     for name, s in summary["schemes"].items():
         rows.append([
-            NAMES.get(name, name), _pm(s["cloud_rounds"], 1), _pm(s["best_accuracy"]), _pm(s["final_accuracy"]),
+            NAMES.get(name, name), _pm(s["cloud_rounds"], 1), _pm(s["best_accuracy"]), _pm(s["balanced_accuracy"]),
+            _pm(s["final_accuracy"]),
             _pm(s["best_loss"]), _pm(s["final_loss"]), _pm(s["consumed_bytes"], 2, 1 / GIB),
             _fmt(s["budget_bytes"] / GIB if s["budget_bytes"] else None, 2), _seeds(s),
         ])
@@ -135,15 +137,26 @@ def _experiment_b(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
     if central:
         rows.append([
             f"Centralized ({central['epochs']} epochs)", "-", _pm(central["best_accuracy"]),
-            _pm(central["final_accuracy"]), _pm(central["best_loss"]), _pm(central["final_loss"]), "-", "-",
-            str(len(central["seeds"])),
+            _pm(central["balanced_accuracy"]), _pm(central["final_accuracy"]), _pm(central["best_loss"]),
+            _pm(central["final_loss"]), "-", "-", str(len(central["seeds"])),
         ])
+    straight = (summary.get("baselines") or {}).get("always_straight")
+    if straight:
+        rows.append(["Always straight (baseline)", "-", _fmt(straight["accuracy"]), _fmt(straight["balanced_accuracy"]),
+                     "-", "-", "-", "-", "-", "-"])
     lines += _table(
-        ["scheme", "cloud rounds", "best accuracy", "final accuracy", "best loss", "final loss", "consumed GB",
-         "budget GB", "seeds"],
+        ["scheme", "cloud rounds", "best accuracy", "balanced accuracy", "final accuracy", "best loss", "final loss",
+         "consumed GB", "budget GB", "seeds"],
         rows,
     )
+    lines += [
+        "",
+        "The best model of a run is its cloud model of the highest balanced accuracy (mean recall over the steer "
+        "classes in the test set); best accuracy and best loss are that model's. Always straight predicts class 0 "
+        "for every test sample: an accuracy at or below its figure is no learning.",
+    ]
     lines += _gains(summary["gains"])
+    lines += _learning(summary)
     for key, caption in (
         ("fig3", "Fig. 3: Accuracy and Loss against FL rounds (round 0: CRCHFL's pretrained model)"),
         ("fig4", "Fig. 4: Accuracy and Loss against consumed bytes"),
@@ -151,6 +164,36 @@ def _experiment_b(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
     ):
         if key in figures:
             lines += _figure(caption, figures[key])
+    return lines
+
+
+def _learning(summary: Mapping[str, Any]) -> list[str]:
+    """Per model: the errors after the DAC and per-class recall; each scheme's confusion matrix."""
+    models = {NAMES.get(k, k): s for k, s in summary["schemes"].items()}
+    if summary["centralized"]:
+        models["Centralized"] = summary["centralized"]
+    if not any(s.get("recall") for s in models.values()):
+        return []
+    classes = [f"{v:+.3f}" for v in STEER_CLASS_VALUES]
+    lines = [
+        "", "### What the best models learned", "",
+        "Means over seeds. Steer error: mean |steer after the DAC - the expert's steer|; throttle and brake: mean "
+        "absolute error. Recall per steer class (its DAC value; + = right): the share of the test samples of that "
+        "class the model classed right.",
+        "",
+    ]
+    rows = [
+        [name, _pm(s["balanced_accuracy"]), _pm(s["best_steer_error"], 3), _pm(s["best_throttle_error"], 3),
+         _pm(s["best_brake_error"], 3), *(_fmt(r, 2) for r in (s.get("recall") or [None] * len(classes)))]
+        for name, s in models.items()
+    ]
+    lines += _table(["model", "balanced accuracy", "steer error", "throttle error", "brake error", *classes], rows)
+    for name, s in models.items():
+        if s.get("confusion"):
+            lines += ["", f"Confusion of {name}'s best models, summed over seeds (row: true class, column: predicted):",
+                      ""]
+            rows = [[c, *map(str, row)] for c, row in zip(classes, s["confusion"])]
+            lines += _table(["true / predicted", *classes], rows)
     return lines
 
 
@@ -206,7 +249,7 @@ def _closed_loop(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list
         return []
     lines = [
         "", "## Closed loop: each scheme's best model drives", "",
-        "The model of the seed with the highest best accuracy (its best_model.pt; centralized: the last "
+        "The model of the seed with the highest balanced accuracy (its best_model.pt; centralized: the last "
         "epoch of the seed that ended best) drives each route in SUMO; the reference is the scripted driver.",
     ]
     for route, labels in summary["closed_loop"].items():

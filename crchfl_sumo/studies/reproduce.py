@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 # ------------------------------------------------------------------ the parts
 
 
-def best_seed(summaries: Mapping[int, Mapping[str, Any]], key: str = "best_accuracy") -> int:
+def best_seed(summaries: Mapping[int, Mapping[str, Any]], key: str = "balanced_accuracy") -> int:
     """The seed whose run reached the highest ``key`` (ties: the smallest seed; None counts lowest)."""
     if not summaries:
         raise CrchflError("no finished run to pick a model from; run the federated parts first")
@@ -261,7 +261,8 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     train = load_samples(out_dir / "data", "train")
     test = load_samples(out_dir / "data", "test")
     records = train_centralized(train, test, config.centralized_epochs, folder, run.model, run.train, seed)
-    best = max(records, key=lambda r: (r["accuracy"], -r["loss"]))
+    # the best epoch as the federation ranks its models: balanced accuracy, then accuracy, then loss
+    best = max(records, key=lambda r: (r["balanced_accuracy"], r["accuracy"], -r["loss"]))
     summary = {
         "scheme": CENTRALIZED,
         "seed": seed,
@@ -273,6 +274,14 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
         "best_epoch": best["epoch"],
         "final_accuracy": records[-1]["accuracy"],
         "final_loss": records[-1]["loss"],
+        "balanced_accuracy": best["balanced_accuracy"],
+        "final_balanced_accuracy": records[-1]["balanced_accuracy"],
+        "best_steer_error": best["steer_error"],
+        "best_throttle_error": best["throttle_error"],
+        "best_brake_error": best["brake_error"],
+        "best_recall": best["recall"],
+        "best_confusion": best["confusion"],
+        "baselines": {"always_straight": best["always_straight"]},
     }
     atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
 
@@ -317,5 +326,5 @@ def model_for(out_dir: Path, label: str) -> Path:
     for path in sorted(folder.glob("seed-*/summary.json")):
         summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))
     if label == CENTRALIZED:
-        return folder / f"seed-{best_seed(summaries, 'final_accuracy')}" / "checkpoint.pt"
+        return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / "checkpoint.pt"
     return folder / f"seed-{best_seed(summaries)}" / "best_model.pt"

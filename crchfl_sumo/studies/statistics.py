@@ -14,6 +14,11 @@ from crchfl_sumo.accounting.schedules import STAGES
 PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}
 
 
+# What a run's summary says of how its best model learned, beside accuracy and loss.
+LEARNING_KEYS = ("balanced_accuracy", "final_balanced_accuracy", "best_steer_error", "best_throttle_error",
+                 "best_brake_error")
+
+
 def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
     """Mean and sample standard deviation (ddof = 1) of the values that are not None.
 
@@ -74,9 +79,10 @@ def scheme_stats(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     summaries = [r["summary"] for r in runs.values()]
     stats: dict[str, Any] = {"seeds": list(runs)}
     for key in ("cloud_rounds", "edge_aggregations", "best_accuracy", "final_accuracy", "best_loss", "final_loss",
-                "consumed_bytes", "sim_time_s"):
+                "consumed_bytes", "sim_time_s", *LEARNING_KEYS):
         values = [s.get(key) for s in summaries]
         stats[key] = {**mean_std(values), "values": values}
+    stats.update(class_stats(summaries))
     stats["budget_bytes"] = summaries[0].get("budget_bytes")
     stats["stop_reason"] = [s.get("stop_reason") for s in summaries]
     stats["hyper"] = summaries[0].get("hyper")
@@ -90,27 +96,54 @@ def centralized_stats(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any] |
         return None
     summaries = [r["summary"] for r in runs.values()]
     stats: dict[str, Any] = {"seeds": list(runs), "epochs": summaries[0].get("epochs")}
-    for key in ("best_accuracy", "final_accuracy", "best_loss", "final_loss"):
+    for key in ("best_accuracy", "final_accuracy", "best_loss", "final_loss", *LEARNING_KEYS):
         values = [s.get(key) for s in summaries]
         stats[key] = {**mean_std(values), "values": values}
+    stats.update(class_stats(summaries))
     return stats
+
+
+def class_stats(summaries: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Per steer class: the best models' recall (mean over the seeds that have the class) and their
+    confusion matrices summed over seeds; None where the runs carry none."""
+    recalls = [s["best_recall"] for s in summaries if s.get("best_recall")]
+    confusions = [s["best_confusion"] for s in summaries if s.get("best_confusion")]
+    recall = None
+    if recalls:
+        recall = [mean_std(r[c] for r in recalls)["mean"] for c in range(len(recalls[0]))]
+    confusion = np.sum(np.asarray(confusions, dtype=np.int64), axis=0).tolist() if confusions else None
+    return {"recall": recall, "confusion": confusion}
+
+
+def baselines(results: Mapping[str, Any]) -> dict[str, Any]:
+    """The always-straight prediction on the test set, as the runs measured it (the same data for every run)."""
+    for runs in (*results["schemes"].values(), *results["ablation"].values(), results["centralized"]):
+        for run in runs.values():
+            found = (run["summary"].get("baselines") or {}).get("always_straight")
+            if found:
+                return {"always_straight": found}
+    return {}
 
 
 def gains(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") -> dict[str, Any]:
     """CRCHFL's accuracy over each other scheme: relative (% of theirs) and in points, for the
-    best and the final accuracy (means over seeds), next to the paper's figures."""
+    best and final accuracy and the balanced accuracy (means over seeds), next to the paper's figures.
+
+    No relative gain over a scheme one of whose seeds scored 0: a percentage of a mean pulled down by a
+    broken run says nothing (the points still show the difference)."""
     out: dict[str, Any] = {"paper_percent": dict(PAPER_GAINS_PERCENT)}
     if ours not in schemes:
         return out
-    for key in ("best_accuracy", "final_accuracy"):
+    for key in ("best_accuracy", "final_accuracy", "balanced_accuracy"):
         mine = schemes[ours][key]["mean"]
         out[key] = {}
         for other, stats in schemes.items():
             if other == ours:
                 continue
             theirs = stats[key]["mean"]
+            broken = any(v == 0 for v in stats[key]["values"])
             out[key][other] = {
-                "relative_percent": relative_gain_percent(mine, theirs),
+                "relative_percent": None if broken else relative_gain_percent(mine, theirs),
                 "points": None if mine is None or theirs is None else 100.0 * (mine - theirs),
             }
     return out
@@ -168,6 +201,7 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "seeds": reproduce.get("seeds"),
         "schemes": schemes,
         "gains": gains(schemes),
+        "baselines": baselines(results),
         "centralized": centralized_stats(results["centralized"]),
         "ablation": ablation,
         "closed_loop": results["drives"],

@@ -133,6 +133,11 @@ def _fake_run(folder: Path, scheme: str, seed: int, best: float, rounds: int, ed
         "bytes_by_stage": {"I": int(1.5 * GIB) if scheme == "crchfl" else 0, "II": 6 * GIB, "III": 12 * GIB},
         "hyper": {"pretrain_batch": 449 if scheme == "crchfl" else 0, "edge_interval": edge_interval,
                   "cloud_interval": 1, "cloud_rounds": rounds},
+        "balanced_accuracy": best / 2, "final_balanced_accuracy": best / 4, "best_steer_error": 0.1,
+        "best_throttle_error": 0.2, "best_brake_error": 0.3,
+        "best_recall": [best, None, 0.5, None, None, None, float(seed)],  # classes 1, 3-5 absent
+        "best_confusion": [[seed + 1 if (i, j) == (0, 0) else 0 for j in range(7)] for i in range(7)],
+        "baselines": {"always_straight": {"accuracy": 0.55, "balanced_accuracy": 1 / 7}},
     })
 
 
@@ -197,6 +202,20 @@ def test_report_of_a_folder(results):
     for text in ("+10.33 %", "+12.41 %", "+10.00 %", "+20.00 %", "0.6600 ± 0.0283", "town01_right_left", "2.13.0"):
         assert text in report, text
     assert not list(results.rglob(".*.partial-*"))
+    # balanced accuracy beside accuracy, the baseline on the same test set, what the best models learned
+    assert crchfl["balanced_accuracy"]["mean"] == pytest.approx(0.33) and crchfl["balanced_accuracy"]["n"] == 2
+    assert summary["baselines"] == {"always_straight": {"accuracy": 0.55, "balanced_accuracy": 1 / 7}}
+    assert crchfl["recall"] == pytest.approx([0.66, None, 0.5, None, None, None, 0.5], nan_ok=True)
+    assert crchfl["confusion"][0][0] == 3 and sum(map(sum, crchfl["confusion"])) == 3  # 1 + 2 over the seeds
+    for text in ("Always straight (baseline)", "0.5500", "0.1429", "What the best models learned", "true / predicted"):
+        assert text in report, text
+
+
+def test_no_relative_gain_over_a_scheme_with_a_seed_at_zero(results):
+    _fake_run(results / "runs" / "hfl" / "seed-1", "hfl", 1, 0.0, ROUNDS["hfl"])  # a broken run
+    gain = report_command(results)["gains"]["best_accuracy"]["hfl"]
+    assert gain["relative_percent"] is None  # a percentage of a mean pulled down by 0 says nothing
+    assert gain["points"] == pytest.approx(100 * (0.66 - 0.29))
 
 
 def test_unfinished_runs_are_named_in_the_table(results):

@@ -77,8 +77,9 @@ def test_presets_and_seed_override():
 
 
 def test_best_seed():
-    assert best_seed({0: {"best_accuracy": 0.5}, 1: {"best_accuracy": 0.7}, 2: {"best_accuracy": 0.7}}) == 1
-    assert best_seed({0: {"best_accuracy": None}, 3: {"best_accuracy": 0.1}}) == 3
+    assert best_seed({0: {"balanced_accuracy": 0.5}, 1: {"balanced_accuracy": 0.7}, 2: {"balanced_accuracy": 0.7}}) == 1
+    assert best_seed({0: {"balanced_accuracy": None}, 3: {"balanced_accuracy": 0.1}}) == 3
+    assert best_seed({0: {"best_accuracy": 0.9}, 1: {"best_accuracy": 0.1}}, key="best_accuracy") == 0
     with pytest.raises(CrchflError):
         best_seed({})
 
@@ -169,6 +170,10 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
         assert results["town02"]["straight"]["episodes"] == 1
     assert bench["reference"]["town02"]["straight"]["success_rate"] == 1.0
     assert "## Closed-loop benchmark" in (out / "report.md").read_text()
+    # balanced accuracy beside accuracy, and the always-straight baseline on the same test set
+    assert set(summary["baselines"]["always_straight"]) >= {"accuracy", "balanced_accuracy"}
+    for stats in (*summary["schemes"].values(), summary["centralized"]):
+        assert stats["balanced_accuracy"]["n"] == 2 and 0.0 <= stats["balanced_accuracy"]["mean"] <= 1.0
 
     # finished parts are not redone; the report is rebuilt the same
     with pytest.raises(CrchflError, match="--resume"):
