@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.learning.settings import ARCHS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -243,6 +244,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt")
     p.add_argument("--epochs", type=int, default=10, help="epochs over all training shards (default 10)")
     p.add_argument("--size", choices=("compact", "paper"), default="compact", help="model size (default compact)")
+    p.add_argument("--arch", choices=ARCHS, default="cil",
+                   help="cil (default: normalised, one steer head per route command) or paper (the paper's network)")
     p.add_argument("--seed", type=int, default=0, help="seed of initialisation and shuffling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
@@ -251,18 +254,23 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 def _run_train(args) -> int:
     from crchfl_sumo.core.errors import CrchflError
     from crchfl_sumo.data.dataset import load_samples
-    from crchfl_sumo.learning.model import ModelConfig
-    from crchfl_sumo.learning.training import TrainConfig, train_centralized
+    from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+    from crchfl_sumo.learning.training import train_centralized
 
     if args.epochs < 1:
         raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
-    model_config = ModelConfig(args.size, *train.image_hw)
+    model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch)
     config = TrainConfig(device=args.device, deterministic=args.deterministic)
     with ProgressBars("sample") as bars:
         records = train_centralized(train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars)
     last = records[-1]
-    print(f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} -> {args.out}")
+    straight = last["always_straight"]
+    print(
+        f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "
+        f"(always straight {straight['accuracy']:.3f}), balanced accuracy {last['balanced_accuracy']:.3f} "
+        f"(always straight {straight['balanced_accuracy']:.3f}) -> {args.out}"
+    )
     return 0
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import crchfl_sumo
@@ -86,3 +88,10 @@ def test_no_import_circles():
         if module not in state:
             visit(module, [module])
     assert circles == []
+
+
+def test_a_run_config_reads_without_torch():
+    # RunConfig is read by many modules and commands: none of them should need torch to reach it
+    code = "import sys, crchfl_sumo.federation.run_config; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.strip() == "False"

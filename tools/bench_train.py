@@ -24,8 +24,9 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
-from crchfl_sumo.learning.training import Learner, TrainConfig, branch_losses, resolve_device, train_vehicles
+from crchfl_sumo.learning.model import DrivingModel, build_model
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import Learner, branch_losses, resolve_device, train_vehicles
 
 PAPER_VEHICLE_SAMPLES = (2928, 2928, 2586, 2587, 1555)
 

@@ -21,7 +21,6 @@ those counts. Collected samples never leave the vehicle (nothing is charged).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -32,6 +31,7 @@ from crchfl_sumo.data.commands import CommandConfig, track_commands
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels
 from crchfl_sumo.data.generation import FUTURE_S
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.data.settings import OnlineConfig
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
 from crchfl_sumo.sumo.turns import arc_length_m, choice_junctions
@@ -39,21 +39,6 @@ from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
 
 _COLUMNS = ("x_m", "y_m", "heading_rad", "speed_mps", "accel_mps2", "max_accel_mps2", "max_decel_mps2")
-
-
-@dataclass(frozen=True)
-class OnlineConfig:
-    """Settings of the online data mode (TOML ``[online]``).
-
-    max_samples: collected samples a vehicle keeps, the newest (each is four
-        uint8 images: about 98 KB at 64 x 128, so 2000 take about 200 MB a vehicle).
-    """
-
-    max_samples: int = 2000
-
-    def __post_init__(self) -> None:
-        if self.max_samples < 1:
-            raise CrchflError(f"online.max_samples: {self.max_samples} must be >= 1")
 
 
 class OnlineCollector:

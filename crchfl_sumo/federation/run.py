@@ -32,6 +32,7 @@ import torch
 from crchfl_sumo.accounting.ledger import Ledger, resolve_sizes
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.backend import Executor
+from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
@@ -257,6 +258,7 @@ def summarize(
     best = state.best
     return {
         "scheme": config.federation.scheme,
+        "model": to_mapping(config.model),  # which network learned (arch, size, inputs)
         "rule": setup.rule,
         "cloud_rounds": state.cloud_rounds,
         "edge_aggregations": state.edge_aggregations,

@@ -18,10 +18,9 @@ from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
-from crchfl_sumo.data.online import OnlineConfig
+from crchfl_sumo.data.settings import OnlineConfig
 from crchfl_sumo.federation.settings import FederationConfig
-from crchfl_sumo.learning.model import ModelConfig
-from crchfl_sumo.learning.training import TrainConfig
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig
 from crchfl_sumo.links.mobility import MobilityConfig

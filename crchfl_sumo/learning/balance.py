@@ -31,9 +31,6 @@ import torch
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
 
-SAMPLINGS = ("uniform", "class_balanced", "command_balanced")
-CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
-
 
 def inverse_frequency(codes: torch.Tensor, num_codes: int) -> torch.Tensor:
     """float64 [len(codes)]: 1 / (how often each sample's code occurs)."""

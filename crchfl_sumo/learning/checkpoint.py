@@ -20,7 +20,8 @@ import torch
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, model_from_state
+from crchfl_sumo.learning.model import DrivingModel, model_from_state
+from crchfl_sumo.learning.settings import ModelConfig
 
 CHECKPOINT_FORMAT = "crchfl-sumo-model/2"
 LEGACY_FORMAT = "crchfl-sumo-model/1"  # before ModelConfig.arch: the paper architecture

@@ -35,106 +35,15 @@ and are normalised inside the network, so uint8 can stay uint8 in memory.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 from torch import nn
 
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, steer_from_class
+from crchfl_sumo.learning.settings import SPEED_SCALE_MPS, BranchShape, ModelConfig
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
-
-MIN_IMAGE_HEIGHT = 48
-MIN_IMAGE_WIDTH = 64
-SPEED_SCALE_MPS = 10.0  # speed enters the network as speed_mps / 10: about [0, 1.5] in the towns
-ARCHS = ("cil", "paper")
-NORMS = ("group", "batch", "layer", "none")
-COMMAND_INPUTS = ("branched", "concat", "none")
-
-
-@dataclass(frozen=True)
-class BranchShape:
-    """Widths of one branch: conv layers as (out_channels, kernel, stride), pool grid, MLP widths."""
-
-    convs: tuple[tuple[int, int, int], ...]
-    pool_hw: tuple[int, int]
-    hidden: tuple[int, ...]
-
-
-# The two sizes; the stride pattern of PilotNet (three 5x5/2 convs, two 3x3/1 convs) in both.
-SIZES: dict[str, BranchShape] = {
-    "compact": BranchShape(
-        convs=((24, 5, 2), (36, 5, 2), (48, 5, 2), (64, 3, 1), (64, 3, 1)),
-        pool_hw=(2, 8),
-        hidden=(100, 50, 10),
-    ),
-    "paper": BranchShape(
-        convs=((64, 5, 2), (128, 5, 2), (256, 5, 2), (384, 3, 1), (384, 3, 1)),
-        pool_hw=(2, 8),
-        hidden=(2256, 1024, 256),
-    ),
-}
-
-
-@dataclass(frozen=True)
-class ModelConfig:
-    """Settings of the driving network.
-
-    size: "compact" (default, ~0.5 M parameters) or "paper" (~39.4 M, ~150 MiB).
-    image_height, image_width: camera image size in pixels (default 64 x 128,
-        the default of camera.CameraConfig); at least 48 x 64.
-    arch: "cil" (default; normalised, conditioned on command and speed) or
-        "paper" (the paper's network exactly; no command, no speed).
-    The next three apply to arch "cil" only (arch "paper" needs their defaults):
-    norm: after every convolution: "group" (default; GroupNorm, up to 8
-        groups), "batch" (BatchNorm; running statistics average poorly under
-        FedAvg and it cannot train with multi_vehicle = "vmap"), "layer"
-        (GroupNorm with one group) or "none".
-    command_input: "branched" (default; one steer head per command, picked by
-        the command), "concat" (the command one-hot into the steer MLP) or "none".
-    speed_input: the current speed (speed_mps / 10) is an input of both MLPs
-        (default off: it did not help the pedals in docs/model.md's measurements).
-    """
-
-    size: Literal["compact", "paper"] = "compact"
-    image_height: int = 64
-    image_width: int = 128
-    arch: Literal["cil", "paper"] = "cil"
-    norm: Literal["group", "batch", "layer", "none"] = "group"
-    command_input: Literal["branched", "concat", "none"] = "branched"
-    speed_input: bool = False
-
-    def __post_init__(self) -> None:
-        if self.size not in SIZES:
-            raise CrchflError(f"model.size: {self.size!r} is unknown; use one of {', '.join(map(repr, SIZES))}")
-        for key, allowed in (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS)):
-            if getattr(self, key) not in allowed:
-                raise CrchflError(
-                    f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
-                )
-        if not isinstance(self.speed_input, bool):
-            raise CrchflError(f"model.speed_input: {self.speed_input!r} must be true or false")
-        if self.arch == "paper":
-            defaults = ModelConfig.__dataclass_fields__
-            for key in ("norm", "command_input", "speed_input"):
-                if getattr(self, key) != defaults[key].default:
-                    raise CrchflError(
-                        f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
-                        f"has no normalisation, command or speed input; drop the key or set arch = 'cil'"
-                    )
-        if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
-            raise CrchflError(
-                f"model.image_height/image_width: {self.image_height} x {self.image_width} is too small; "
-                f"use at least {MIN_IMAGE_HEIGHT} x {MIN_IMAGE_WIDTH} pixels"
-            )
-
-    @property
-    def shape(self) -> BranchShape:
-        """Widths of each branch for this size."""
-        return SIZES[self.size]
 
 
 class GridAveragePool(nn.Module):

@@ -22,9 +22,9 @@ import torch
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, build_model
+from crchfl_sumo.learning.model import DrivingModel, build_model
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import (
-    TrainConfig,
     configure_determinism,
     evaluate,
     resolve_device,

@@ -33,7 +33,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -46,68 +46,17 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.balance import CLASS_WEIGHTINGS, SAMPLINGS, class_weights, epoch_batches
+from crchfl_sumo.learning.balance import class_weights, epoch_batches
 from crchfl_sumo.learning.checkpoint import save_checkpoint
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
-from crchfl_sumo.learning.model import DrivingModel, ModelConfig, State, build_model, model_from_state
+from crchfl_sumo.learning.model import DrivingModel, State, build_model, model_from_state
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 
 log = logging.getLogger(__name__)
 
 
 METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_FILE = "checkpoint.pt"
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Settings of local training (the paper's Table II, except the measured learning rate and balancing).
-
-    learning_rate, beta1, beta2, weight_decay, adam_eps: Adam of each branch
-        (the paper's learning rate is 1e-4; docs/model.md gives the measurements).
-    batch_size: training batch (32); eval_batch_size: batch for evaluation only.
-    device: "auto" (CUDA when present, else CPU), "cpu" or "cuda".
-    deterministic: torch.use_deterministic_algorithms for reproducible runs.
-    multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
-    sampling: "uniform", "class_balanced" or "command_balanced" (balance.py).
-    class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
-    """
-
-    learning_rate: float = 1e-3
-    beta1: float = 0.9
-    beta2: float = 0.999
-    weight_decay: float = 3e-3
-    adam_eps: float = 1e-8
-    batch_size: int = 32
-    eval_batch_size: int = 256
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    deterministic: bool = False
-    multi_vehicle: Literal["sequential", "vmap"] = "sequential"
-    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "uniform"
-    class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
-
-    def __post_init__(self) -> None:
-        if not self.learning_rate > 0:
-            raise CrchflError(f"train.learning_rate: {self.learning_rate} must be > 0 (paper: 1e-4)")
-        for key in ("beta1", "beta2"):
-            if not 0 <= getattr(self, key) < 1:
-                raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")
-        if self.weight_decay < 0:
-            raise CrchflError(f"train.weight_decay: {self.weight_decay} must be >= 0 (paper: 3e-3)")
-        if not self.adam_eps > 0:
-            raise CrchflError(f"train.adam_eps: {self.adam_eps} must be > 0")
-        if self.batch_size < 1 or self.eval_batch_size < 1:
-            raise CrchflError("train.batch_size and train.eval_batch_size must be >= 1 (paper: 32)")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise CrchflError(f"train.device: {self.device!r} is unknown; use 'auto', 'cpu' or 'cuda'")
-        if self.multi_vehicle not in ("sequential", "vmap"):
-            raise CrchflError(f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use 'sequential' or 'vmap'")
-        if self.sampling not in SAMPLINGS:
-            raise CrchflError(f"train.sampling: {self.sampling!r} is unknown; use one of {', '.join(map(repr, SAMPLINGS))}")
-        if self.class_weighting not in CLASS_WEIGHTINGS:
-            raise CrchflError(
-                f"train.class_weighting: {self.class_weighting!r} is unknown; "
-                f"use one of {', '.join(map(repr, CLASS_WEIGHTINGS))}"
-            )
 
 
 @dataclass(frozen=True)

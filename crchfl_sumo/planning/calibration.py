@@ -37,8 +37,9 @@ from crchfl_sumo.core.config import toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.aggregate import weighted_average
-from crchfl_sumo.learning.model import ModelConfig, State, build_model, model_from_state
-from crchfl_sumo.learning.training import TrainConfig, evaluate, train_vehicle
+from crchfl_sumo.learning.model import State, build_model, model_from_state
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import evaluate, train_vehicle
 from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)

@@ -155,6 +155,9 @@ def _experiment_b(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
         "classes in the test set); best accuracy and best loss are that model's. Always straight predicts class 0 "
         "for every test sample: an accuracy at or below its figure is no learning.",
     ]
+    network = summary.get("model")
+    if network:
+        lines += ["", "Network: " + ", ".join(f"{k} {v}" for k, v in network.items()) + " (model.* of the run configs)."]
     lines += _gains(summary["gains"])
     lines += _learning(summary)
     for key, caption in (

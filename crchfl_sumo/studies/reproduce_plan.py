@@ -17,6 +17,7 @@ from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench import DEFAULT_TOWNS
 from crchfl_sumo.driving.bench_tasks import TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.federation.run_config import RunConfig
 
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 
@@ -142,9 +143,7 @@ def run_mapping(
     return mapping
 
 
-def run_config(mapping: Mapping[str, Any], where: str):
-    from crchfl_sumo.federation.run_config import RunConfig
-
+def run_config(mapping: Mapping[str, Any], where: str) -> RunConfig:
     return from_mapping(RunConfig, mapping, where=where)
 
 

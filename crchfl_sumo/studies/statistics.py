@@ -202,6 +202,8 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "schemes": schemes,
         "gains": gains(schemes),
         "baselines": baselines(results),
+        "model": next((run["summary"].get("model") for runs in results["schemes"].values() for run in runs.values()),
+                      None),
         "centralized": centralized_stats(results["centralized"]),
         "ablation": ablation,
         "closed_loop": results["drives"],

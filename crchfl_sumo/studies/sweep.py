@@ -47,6 +47,13 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping, read_toml, set_path, toml_text
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.federation.run_config import (
+    RunConfig,
+    load_run_config,
+    resolve_config_path,
+    resolved_config,
+    with_backend,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -146,7 +153,6 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     Each value is checked on its own first (so a bad path or value names its
     --param), then every point as a whole.
     """
-    from crchfl_sumo.federation.run_config import RunConfig
 
     paths = [p.path for p in params]
     if len(set(paths)) != len(paths):
@@ -208,7 +214,6 @@ def run_point(mapping: dict, out_dir: str) -> dict:
     import torch
 
     from crchfl_sumo.federation.run import run_federation_dir
-    from crchfl_sumo.federation.run_config import RunConfig
     from crchfl_sumo.federation.run_data import read_inputs
 
     torch.set_num_threads(1)  # several runs share the machine's cores
@@ -221,7 +226,6 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 
     A finished run made with other settings (the base config changed since) is an error, never a stale row.
     """
-    from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 
     path = run_dir / "summary.json"
     if not path.is_file():
@@ -280,7 +284,6 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
 def _absolute_paths(base: dict) -> dict:
     """Data set and scenario file paths made absolute: the runs may work in another directory."""
     out = dict(base)
-    from crchfl_sumo.federation.run_config import RunConfig
 
     defaults = RunConfig()
     dataset = Path(out.get("dataset", defaults.dataset))
@@ -335,7 +338,6 @@ def sweep_command(
     address: str | None = None,
 ) -> list[dict]:
     """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--backend B] [--address A]` does."""
-    from crchfl_sumo.federation.run_config import load_run_config, resolve_config_path, with_backend
 
     if not param_texts:
         raise CrchflError("sweep: give at least one --param PATH=V1,V2,...")

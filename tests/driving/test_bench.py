@@ -273,7 +273,8 @@ def test_reference_driver_scores_full_marks_and_hard_steer_fails(ladder, tmp_pat
 
 def test_a_checkpoint_drives_the_benchmark_with_its_cameras_and_commands(ladder, tmp_path):
     from crchfl_sumo.learning.checkpoint import save_checkpoint
-    from crchfl_sumo.learning.model import ModelConfig, build_model
+    from crchfl_sumo.learning.model import build_model
+    from crchfl_sumo.learning.settings import ModelConfig
 
     model = build_model(ModelConfig(), seed=0)
     save_checkpoint(tmp_path / "untrained.pt", model.config, model.state_dict())

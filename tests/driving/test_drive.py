@@ -39,7 +39,8 @@ from crchfl_sumo.driving.policies import (
     RoutePolicyConfig,
 )
 from crchfl_sumo.learning.checkpoint import save_checkpoint
-from crchfl_sumo.learning.model import ModelConfig, build_model
+from crchfl_sumo.learning.model import build_model
+from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.sumo.route import (
     Crossing,
     RouteGeometry,

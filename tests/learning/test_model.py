@@ -10,13 +10,13 @@ from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.learning.model import (
     DrivingModel,
     GridAveragePool,
-    ModelConfig,
     build_model,
     count_parameters,
     model_from_state,
     predict_actions,
     state_size_bytes,
 )
+from crchfl_sumo.learning.settings import ModelConfig
 
 SMALL = ModelConfig("compact", 48, 64)
 PAPER_ARCH = ModelConfig("compact", 48, 64, arch="paper")

@@ -4,9 +4,8 @@ import pytest
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.evaluation import Evaluation
-from crchfl_sumo.learning.model import ModelConfig
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
-from crchfl_sumo.learning.training import TrainConfig
 
 SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu", deterministic=True)

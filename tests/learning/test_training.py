@@ -10,15 +10,9 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
-from crchfl_sumo.learning.model import ModelConfig, build_model
-from crchfl_sumo.learning.training import (
-    Learner,
-    TrainConfig,
-    evaluate,
-    resolve_device,
-    train_centralized,
-    train_vehicles,
-)
+from crchfl_sumo.learning.model import build_model
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import Learner, evaluate, resolve_device, train_centralized, train_vehicles
 
 SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu")

@@ -1,0 +1,169 @@
+"""The settings of the network and of its training, apart from the network itself so that a config (RunConfig, ReproduceConfig) reads without torch.
+
+ModelConfig is model.py's config (nanoGPT keeps it beside the network; here it sits one file away for that
+reason); TrainConfig is training.py's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from crchfl_sumo.core.errors import CrchflError
+
+MIN_IMAGE_HEIGHT = 48
+
+
+MIN_IMAGE_WIDTH = 64
+
+
+SPEED_SCALE_MPS = 10.0  # speed enters the network as speed_mps / 10: about [0, 1.5] in the towns
+
+
+ARCHS = ("cil", "paper")
+
+
+NORMS = ("group", "batch", "layer", "none")
+
+
+COMMAND_INPUTS = ("branched", "concat", "none")
+
+
+@dataclass(frozen=True)
+class BranchShape:
+    """Widths of one branch: conv layers as (out_channels, kernel, stride), pool grid, MLP widths."""
+
+    convs: tuple[tuple[int, int, int], ...]
+    pool_hw: tuple[int, int]
+    hidden: tuple[int, ...]
+
+
+# The two sizes; the stride pattern of PilotNet (three 5x5/2 convs, two 3x3/1 convs) in both.
+SIZES: dict[str, BranchShape] = {
+    "compact": BranchShape(
+        convs=((24, 5, 2), (36, 5, 2), (48, 5, 2), (64, 3, 1), (64, 3, 1)),
+        pool_hw=(2, 8),
+        hidden=(100, 50, 10),
+    ),
+    "paper": BranchShape(
+        convs=((64, 5, 2), (128, 5, 2), (256, 5, 2), (384, 3, 1), (384, 3, 1)),
+        pool_hw=(2, 8),
+        hidden=(2256, 1024, 256),
+    ),
+}
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Settings of the driving network.
+
+    size: "compact" (default, ~0.5 M parameters) or "paper" (~39.4 M, ~150 MiB).
+    image_height, image_width: camera image size in pixels (default 64 x 128,
+        the default of camera.CameraConfig); at least 48 x 64.
+    arch: "cil" (default; normalised, conditioned on command and speed) or
+        "paper" (the paper's network exactly; no command, no speed).
+    The next three apply to arch "cil" only (arch "paper" needs their defaults):
+    norm: after every convolution: "group" (default; GroupNorm, up to 8
+        groups), "batch" (BatchNorm; running statistics average poorly under
+        FedAvg and it cannot train with multi_vehicle = "vmap"), "layer"
+        (GroupNorm with one group) or "none".
+    command_input: "branched" (default; one steer head per command, picked by
+        the command), "concat" (the command one-hot into the steer MLP) or "none".
+    speed_input: the current speed (speed_mps / 10) is an input of both MLPs
+        (default off: it did not help the pedals in docs/model.md's measurements).
+    """
+
+    size: Literal["compact", "paper"] = "compact"
+    image_height: int = 64
+    image_width: int = 128
+    arch: Literal["cil", "paper"] = "cil"
+    norm: Literal["group", "batch", "layer", "none"] = "group"
+    command_input: Literal["branched", "concat", "none"] = "branched"
+    speed_input: bool = False
+
+    def __post_init__(self) -> None:
+        if self.size not in SIZES:
+            raise CrchflError(f"model.size: {self.size!r} is unknown; use one of {', '.join(map(repr, SIZES))}")
+        for key, allowed in (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS)):
+            if getattr(self, key) not in allowed:
+                raise CrchflError(
+                    f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
+                )
+        if not isinstance(self.speed_input, bool):
+            raise CrchflError(f"model.speed_input: {self.speed_input!r} must be true or false")
+        if self.arch == "paper":
+            defaults = ModelConfig.__dataclass_fields__
+            for key in ("norm", "command_input", "speed_input"):
+                if getattr(self, key) != defaults[key].default:
+                    raise CrchflError(
+                        f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
+                        f"has no normalisation, command or speed input; drop the key or set arch = 'cil'"
+                    )
+        if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
+            raise CrchflError(
+                f"model.image_height/image_width: {self.image_height} x {self.image_width} is too small; "
+                f"use at least {MIN_IMAGE_HEIGHT} x {MIN_IMAGE_WIDTH} pixels"
+            )
+
+    @property
+    def shape(self) -> BranchShape:
+        """Widths of each branch for this size."""
+        return SIZES[self.size]
+
+
+SAMPLINGS = ("uniform", "class_balanced", "command_balanced")
+
+
+CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of local training (the paper's Table II, except the measured learning rate and balancing).
+
+    learning_rate, beta1, beta2, weight_decay, adam_eps: Adam of each branch
+        (the paper's learning rate is 1e-4; docs/model.md gives the measurements).
+    batch_size: training batch (32); eval_batch_size: batch for evaluation only.
+    device: "auto" (CUDA when present, else CPU), "cpu" or "cuda".
+    deterministic: torch.use_deterministic_algorithms for reproducible runs.
+    multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
+    sampling: "uniform", "class_balanced" or "command_balanced" (balance.py).
+    class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
+    """
+
+    learning_rate: float = 1e-3
+    beta1: float = 0.9
+    beta2: float = 0.999
+    weight_decay: float = 3e-3
+    adam_eps: float = 1e-8
+    batch_size: int = 32
+    eval_batch_size: int = 256
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    deterministic: bool = False
+    multi_vehicle: Literal["sequential", "vmap"] = "sequential"
+    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "uniform"
+    class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
+
+    def __post_init__(self) -> None:
+        if not self.learning_rate > 0:
+            raise CrchflError(f"train.learning_rate: {self.learning_rate} must be > 0 (paper: 1e-4)")
+        for key in ("beta1", "beta2"):
+            if not 0 <= getattr(self, key) < 1:
+                raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")
+        if self.weight_decay < 0:
+            raise CrchflError(f"train.weight_decay: {self.weight_decay} must be >= 0 (paper: 3e-3)")
+        if not self.adam_eps > 0:
+            raise CrchflError(f"train.adam_eps: {self.adam_eps} must be > 0")
+        if self.batch_size < 1 or self.eval_batch_size < 1:
+            raise CrchflError("train.batch_size and train.eval_batch_size must be >= 1 (paper: 32)")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise CrchflError(f"train.device: {self.device!r} is unknown; use 'auto', 'cpu' or 'cuda'")
+        if self.multi_vehicle not in ("sequential", "vmap"):
+            raise CrchflError(f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use 'sequential' or 'vmap'")
+        if self.sampling not in SAMPLINGS:
+            raise CrchflError(f"train.sampling: {self.sampling!r} is unknown; use one of {', '.join(map(repr, SAMPLINGS))}")
+        if self.class_weighting not in CLASS_WEIGHTINGS:
+            raise CrchflError(
+                f"train.class_weighting: {self.class_weighting!r} is unknown; "
+                f"use one of {', '.join(map(repr, CLASS_WEIGHTINGS))}"
+            )
