@@ -111,7 +111,7 @@ def _scenario_argument(parser: argparse.ArgumentParser) -> None:
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="reduced size, about 5 minutes on 2 cores (docs/reproduce.md)")
     p.add_argument("--out", type=Path, default=None, help="results folder (default results/quick or results/full)")
-    p.add_argument("--seeds", type=int, default=None, help="seeds per scheme (default: quick 2, full 3)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per scheme (default: quick 1, full 3)")
     p.add_argument("--resume", action="store_true", help="finish the reproduction in --out; finished parts are kept")
     p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
     p.add_argument("--jobs", type=int, default=1,

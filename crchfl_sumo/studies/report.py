@@ -190,6 +190,10 @@ def _learning(summary: Mapping[str, Any]) -> list[str]:
          _pm(s["best_brake_error"], 3), *(_fmt(r, 2) for r in (s.get("recall") or [None] * len(classes)))]
         for name, s in models.items()
     ]
+    straight = (summary.get("baselines") or {}).get("always_straight")
+    if straight:
+        rows.append(["Always straight (baseline)", _fmt(straight["balanced_accuracy"]),
+                     _fmt(straight.get("steer_error"), 3), "-", "-", "1.00", *["0.00"] * (len(classes) - 1)])
     lines += _table(["model", "balanced accuracy", "steer error", "throttle error", "brake error", *classes], rows)
     for name, s in models.items():
         if s.get("confusion"):
