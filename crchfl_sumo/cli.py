@@ -73,16 +73,17 @@ class ProgressBars:
     """
 
     def __init__(self, unit: str) -> None:
+        from tqdm import tqdm
+
+        self._tqdm = tqdm
         self._unit = unit
         self._stage: str | None = None
         self._bar = None
 
     def __call__(self, update) -> None:
-        from tqdm import tqdm
-
         if update.stage != self._stage or self._bar is None or update.done < self._bar.n:
             self.close()
-            self._bar = tqdm(total=update.total, unit=self._unit, desc=update.stage, dynamic_ncols=True,
+            self._bar = self._tqdm(total=update.total, unit=self._unit, desc=update.stage, dynamic_ncols=True,
                              leave=False, disable=None)
             self._stage = update.stage
         self._bar.update(update.done - self._bar.n)

@@ -31,6 +31,7 @@ from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
+    DEFAULT_TOWNS,
     TASK_NAMES,
     TASKS,
     Episode,
@@ -46,7 +47,6 @@ from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
 
-DEFAULT_TOWNS = ("town01", "town02")
 REFERENCE = "reference"
 PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
 # An episode ends when the ego has not moved on for one signal cycle of the towns (90 s):

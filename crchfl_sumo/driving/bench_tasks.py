@@ -27,6 +27,8 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.route import GREEN_LETTERS, RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario
 
+DEFAULT_TOWNS = ("town01", "town02")  # where the benchmark drives unless told otherwise
+
 TURN_DIRECTIONS = ("l", "r", "L", "R")  # SUMO link directions that need the wheel turned
 U_TURN_DIRECTIONS = ("t", "T")  # routes with a U-turn are not drawn (the towns have none)
 # CoRL2017's time budget (CARLA driving-benchmarks, calculate_time_out): the route at

@@ -521,4 +521,5 @@ def _rank(line: Mapping[str, Any]) -> tuple[float, float, float]:
 
 def _better(line: Mapping[str, Any], best: Mapping[str, Any]) -> bool:
     """``line``'s model beats the best so far (a NaN score never wins)."""
-    return _rank(line)[0] > -math.inf and _rank(line) > _rank(best)
+    rank = _rank(line)
+    return rank[0] > -math.inf and rank > _rank(best)

@@ -29,7 +29,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crchfl_sumo.accounting.ledger import Ledger, resolve_sizes
+from crchfl_sumo.accounting.ledger import GIB, Ledger, resolve_sizes
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.core.config import to_mapping
@@ -192,7 +192,7 @@ def _run_with_trainer(
                 after_checkpoint(new)
             _write_outputs(out_dir, config, setup, new, _handovers(clock, new), baseline)
             if progress is not None:  # a step's postfix costs a pass over the records
-                report(progress, "step", new.steps, None, **progress_postfix(progress_info(new, sizes.budget_bytes, hyper)))
+                report(progress, "step", new.steps, None, **progress_detail(new, sizes.budget_bytes, hyper))
 
         state = federation.run(state, on_step)
         return summarize(config, setup, state, _handovers(clock, state), baseline)
@@ -214,32 +214,16 @@ def _online_data(clock, inputs: RunData) -> Callable[[str, float], Samples]:
     return data
 
 
-def progress_info(state: FederationState, budget_bytes: int, hyper: HyperParameters) -> dict:
-    """What a progress bar shows: round, bytes used / budget, latest loss and accuracy."""
-    ledger_bytes = sum(r.size_bytes for r in state.records)
+def progress_detail(state: FederationState, budget_bytes: int, hyper: HyperParameters) -> dict[str, str]:
+    """What a progress bar shows beside a step: round, GB used / budget, latest loss and accuracy."""
     last = next((m for m in reversed(state.metrics) if m["loss"] is not None), None)
+    rounds = hyper.cloud_rounds
+    spent = sum(r.size_bytes for r in state.records)
     return {
-        "cloud_round": state.cloud_rounds,
-        "cloud_rounds": hyper.cloud_rounds or None,
-        "edge_aggregations": state.edge_aggregations,
-        "consumed_bytes": ledger_bytes,
-        "budget_bytes": budget_bytes,
-        "loss": None if last is None else last["loss"],
-        "accuracy": None if last is None else last["accuracy"],
-        "sim_time_s": sim_time_s(state),
-        "done": state.done,
-    }
-
-
-def progress_postfix(info: dict) -> dict[str, str]:
-    """A progress bar's postfix for ``progress_info``: round, GB used / budget, loss, accuracy."""
-    rounds = info["cloud_rounds"]
-    gib = 1024**3
-    return {
-        "round": f"{info['cloud_round']}/{rounds}" if rounds else str(info["cloud_round"]),
-        "GB": f"{info['consumed_bytes'] / gib:.2f}/{info['budget_bytes'] / gib:.2f}",
-        "loss": "-" if info["loss"] is None else f"{info['loss']:.4f}",
-        "acc": "-" if info["accuracy"] is None else f"{info['accuracy']:.3f}",
+        "round": f"{state.cloud_rounds}/{rounds}" if rounds else str(state.cloud_rounds),
+        "GB": f"{spent / GIB:.2f}/{budget_bytes / GIB:.2f}",
+        "loss": "-" if last is None else f"{last['loss']:.4f}",
+        "acc": "-" if last is None else f"{last['accuracy']:.3f}",
     }
 
 

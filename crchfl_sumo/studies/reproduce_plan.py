@@ -14,8 +14,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
-from crchfl_sumo.driving.bench import DEFAULT_TOWNS
-from crchfl_sumo.driving.bench_tasks import TASK_NAMES, task_by_name
+from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.federation.run_config import RunConfig
 

@@ -153,7 +153,6 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     Each value is checked on its own first (so a bad path or value names its
     --param), then every point as a whole.
     """
-
     paths = [p.path for p in params]
     if len(set(paths)) != len(paths):
         raise CrchflError(f"--param: a path is swept twice ({', '.join(paths)}); give each once")
@@ -226,7 +225,6 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 
     A finished run made with other settings (the base config changed since) is an error, never a stale row.
     """
-
     path = run_dir / "summary.json"
     if not path.is_file():
         return None
@@ -338,7 +336,6 @@ def sweep_command(
     address: str | None = None,
 ) -> list[dict]:
     """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--backend B] [--address A]` does."""
-
     if not param_texts:
         raise CrchflError("sweep: give at least one --param PATH=V1,V2,...")
     config_path = resolve_config_path(config_path)
