@@ -42,7 +42,8 @@ from crchfl_sumo.driving.bench_tasks import (
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
-from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.driving.policies import DEFAULT_STEER_DECODING, ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.learning.settings import STEER_DECODINGS
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -64,12 +65,15 @@ class BenchConfig:
     drive           the drive loop's settings (an episode ends stuck after STUCK_S); each episode
                     sets its own warm-up
     group_episodes  episodes a worker drives one after the other (one process start, one renderer each)
+    steer_decoding  how a model's steer scores become a steer (learning.settings.STEER_DECODINGS;
+                    the reference driver has none)
     """
 
     tasks: tuple[str, ...] = TASK_NAMES
     routes: TaskConfig = field(default_factory=TaskConfig)
     drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
     group_episodes: int = 4
+    steer_decoding: str = DEFAULT_STEER_DECODING
 
     def __post_init__(self) -> None:
         if not self.tasks:
@@ -78,6 +82,8 @@ class BenchConfig:
             task_by_name(name)
         if self.group_episodes < 1:
             raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
+        if self.steer_decoding not in STEER_DECODINGS:
+            raise CrchflError(f"--steer-decoding: use one of {', '.join(STEER_DECODINGS)}, got {self.steer_decoding!r}")
 
 
 # --- drivers: what makes the policy of an episode --------------------------------------------------------
@@ -100,6 +106,7 @@ class ModelDriver:
 
     path: str
     label: str = ""
+    steer_decoding: str = DEFAULT_STEER_DECODING
     renders: bool = True
     _model: Any = field(default=None, repr=False, compare=False)
 
@@ -115,7 +122,9 @@ class ModelDriver:
 
     def policy(self, route: RouteGeometry, net) -> Policy:
         # The commands as the training data was labelled: at the junctions of the net with a choice.
-        return ModelPolicy(self.model(), RouteCommands(route, choice_junctions(net)))
+        return ModelPolicy(
+            self.model(), RouteCommands(route, choice_junctions(net)), steer_decoding=self.steer_decoding
+        )
 
     def camera(self):
         from crchfl_sumo.vision.camera import CameraConfig
@@ -124,14 +133,16 @@ class ModelDriver:
         return CameraConfig(height_px=config.image_height, width_px=config.image_width)
 
 
-def driver_for(model: str | Path | None) -> ReferenceDriver | ModelDriver:
+def driver_for(
+    model: str | Path | None, steer_decoding: str = DEFAULT_STEER_DECODING
+) -> ReferenceDriver | ModelDriver:
     """The driver of MODEL|reference; a model path must name a checkpoint file."""
     if model is None or str(model) == REFERENCE:
         return ReferenceDriver()
     path = Path(model)
     if not path.is_file():
         raise CrchflError(f"MODEL: no checkpoint at {path}; give a checkpoint.pt written by crchfl-sumo, or 'reference'")
-    driver = ModelDriver(str(path), label=path.stem)
+    driver = ModelDriver(str(path), label=path.stem, steer_decoding=steer_decoding)
     driver.model()  # a file that is not a checkpoint fails here, before any episode runs
     return driver
 
@@ -219,7 +230,7 @@ def run_benchmark(
         raise CrchflError(f"--seed must be >= 0, got {seed}")
     if not towns:
         raise CrchflError(f"--towns: name at least one town ({', '.join(DEFAULT_TOWNS)} or a .sumocfg)")
-    driver = driver or driver_for(model)
+    driver = driver or driver_for(model, config.steer_decoding)
     started = time.perf_counter()
     tasks = [task_by_name(t) for t in config.tasks]
     scenarios: dict[str, Scenario] = {}

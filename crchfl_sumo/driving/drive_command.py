@@ -14,7 +14,7 @@ from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
-from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.driving.policies import DEFAULT_STEER_DECODING, ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -32,6 +32,7 @@ def drive_command(
     max_s: float = 120.0,
     config: DriveConfig = DriveConfig(),
     video: bool = True,
+    steer_decoding: str = DEFAULT_STEER_DECODING,
 ) -> dict[str, Any]:
     """The `crchfl-sumo drive` body: drive a route, write metrics, trajectory, pictures; return the metrics.
 
@@ -52,7 +53,7 @@ def drive_command(
         from crchfl_sumo.learning.checkpoint import load_model
 
         model = load_model(model_path)
-        policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)))
+        policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding)
         camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
         label = Path(model_path).stem
     renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))

@@ -14,6 +14,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
+from crchfl_sumo.learning.settings import STEER_DECODINGS
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -27,6 +28,7 @@ from crchfl_sumo.sumo.route import (
 )
 
 Action = tuple[float, float, float]  # (throttle, steer, brake), labels.py conventions
+DEFAULT_STEER_DECODING = "argmax"
 
 
 # --- policies ------------------------------------------------------------------------------------
@@ -212,9 +214,17 @@ class ModelPolicy:
     ``frame.speed_mps``.
     ``one_pedal``: apply only the stronger pedal (``one_pedal``), as the
     expert does; False passes both through to the dynamics.
+    ``steer_decoding``: how the steer head's scores become a steer
+    (learning.settings.STEER_DECODINGS).
     """
 
-    def __init__(self, model, commands: PathCommands | None = None, one_pedal: bool = True) -> None:
+    def __init__(
+        self,
+        model,
+        commands: PathCommands | None = None,
+        one_pedal: bool = True,
+        steer_decoding: str = DEFAULT_STEER_DECODING,
+    ) -> None:
         if commands is None and model.config.arch != "paper":
             raise CrchflError(
                 "the model policy needs the route's commands for a command-conditioned model (arch "
@@ -223,6 +233,9 @@ class ModelPolicy:
         self.model = model
         self.commands = commands
         self.one_pedal = one_pedal
+        if steer_decoding not in STEER_DECODINGS:
+            raise CrchflError(f"steer decoding must be one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
+        self.steer_decoding = steer_decoding
 
     def command(self, observation: Observation) -> int:
         """The route command (labels.COMMAND_NAMES code) at the ego's position; FOLLOW without commands."""
@@ -240,7 +253,7 @@ class ModelPolicy:
         images = torch.from_numpy(np.ascontiguousarray(observation.images))
         speed_mps = float(observation.frame.speed_mps[observation.ego_row])
         throttle, steer, brake = (
-            float(v) for v in predict_actions(self.model, images, self.command(observation), speed_mps)
+            float(v) for v in predict_actions(self.model, images, self.command(observation), speed_mps, self.steer_decoding)
         )
         if self.one_pedal:
             throttle, brake = one_pedal(throttle, brake)

@@ -10,7 +10,10 @@ Sampling (``TrainConfig.sampling``), one epoch = N draws for N samples:
 - ``class_balanced``: N draws with replacement, sample i drawn with
   probability proportional to 1 / (samples of its steer class): every class
   present is drawn equally often on average;
-- ``command_balanced``: the same with the route command in place of the class.
+- ``command_balanced``: the same with the route command in place of the class;
+- ``pedal_balanced``: the same with the pedal state (``pedal_states``: holding
+  still, throttle, cruising, braking) in place of the class. Standing at red
+  and cruising make most samples; pulling away and braking are rare.
 
 Loss weighting (``TrainConfig.class_weighting``), per steer class c with n_c of N samples
 and K classes present:
@@ -38,6 +41,25 @@ def inverse_frequency(codes: torch.Tensor, num_codes: int) -> torch.Tensor:
     return 1.0 / counts[codes.cpu()]
 
 
+HOLD, THROTTLE, CRUISE, BRAKE = range(4)  # pedal states
+NUM_PEDAL_STATES = 4
+THROTTLE_STATE_MIN = 0.5  # throttle (or brake) above this is pulling away (or braking), below it cruising
+
+
+def pedal_states(actions: torch.Tensor, speed_mps: torch.Tensor, stop_speed_mps: float = 0.1) -> torch.Tensor:
+    """int64 [N]: each sample's pedal state from its label (actions [N, 3]) and speed [N].
+
+    HOLD: standing (speed below ``stop_speed_mps``, the expert's) without throttle; THROTTLE:
+    throttle above THROTTLE_STATE_MIN; BRAKE: moving with brake above it; CRUISE: the rest.
+    """
+    throttle, brake = actions[:, 0], actions[:, 2]
+    states = torch.full((len(actions),), CRUISE, dtype=torch.int64)
+    states[(speed_mps >= stop_speed_mps) & (brake > THROTTLE_STATE_MIN)] = BRAKE
+    states[(speed_mps < stop_speed_mps) & (throttle <= THROTTLE_STATE_MIN)] = HOLD
+    states[throttle > THROTTLE_STATE_MIN] = THROTTLE
+    return states
+
+
 def epoch_batches(samples: Samples, batch_size: int, sampling: str, generator: torch.Generator) -> list[torch.Tensor]:
     """Index batches (CPU int64) of one epoch by ``sampling``; the last batch may be shorter."""
     n = len(samples)
@@ -46,9 +68,11 @@ def epoch_batches(samples: Samples, batch_size: int, sampling: str, generator: t
     if sampling == "uniform":
         order = torch.randperm(n, generator=generator)
     else:
-        codes, num_codes = (
-            (samples.steer_class, NUM_STEER_CLASSES) if sampling == "class_balanced" else (samples.command, NUM_COMMANDS)
-        )
+        codes, num_codes = {
+            "class_balanced": lambda: (samples.steer_class, NUM_STEER_CLASSES),
+            "command_balanced": lambda: (samples.command, NUM_COMMANDS),
+            "pedal_balanced": lambda: (pedal_states(samples.actions, samples.speed_mps), NUM_PEDAL_STATES),
+        }[sampling]()
         order = torch.multinomial(inverse_frequency(codes, num_codes), n, replacement=True, generator=generator)
     return list(order.split(batch_size))
 

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, steer_from_class
-from crchfl_sumo.learning.settings import SPEED_SCALE_MPS, BranchShape, ModelConfig
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES, steer_from_class
+from crchfl_sumo.learning.settings import SPEED_SCALE_MPS, STEER_DECODINGS, BranchShape, ModelConfig
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
 
@@ -189,16 +189,13 @@ class DrivingModel(nn.Module):
             self.branch_throttle_brake = Branch(3, 2, shape)  # branch I: CamH
             self.branch_steer = Branch(9, NUM_STEER_CLASSES, shape)  # branch II: CamF|CamL|CamR
             return
-        self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, 1, False, config.speed_input)
-        self.branch_steer = ConditionedBranch(
-            9,
-            NUM_STEER_CLASSES,
-            shape,
-            config.norm,
-            NUM_COMMANDS if config.command_input == "branched" else 1,
-            config.command_input == "concat",
-            config.speed_input,
-        )
+        heads = NUM_COMMANDS if config.command_input == "branched" else 1
+        one_hot = config.command_input == "concat"
+        if config.command_pedals:
+            self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, heads, one_hot, config.speed_input)
+        else:
+            self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, 1, False, config.speed_input)
+        self.branch_steer = ConditionedBranch(9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input)
         _initialise(self)
 
     def forward(
@@ -251,13 +248,19 @@ def predict_actions(
     images: torch.Tensor,
     command: torch.Tensor | np.ndarray | int,
     speed_mps: torch.Tensor | np.ndarray | float,
+    steer_decoding: str = "argmax",
 ) -> np.ndarray:
     """uint8 images [B, 4, H, W, 3] with command [B] and speed_mps [B] -> float32 [B, 3];
     one sample ([4, H, W, 3], an int command, a float speed) -> float32 [3].
 
-    Columns are (throttle, steer, brake); the steer is the DAC value of the most
-    likely class.
+    Columns are (throttle, steer, brake). ``steer_decoding`` (STEER_DECODINGS):
+    "argmax" is the paper's DAC, the value of the most likely class; "expected"
+    is the classes' values weighted by their softmax probabilities, a steer
+    between the classes (0.125 steps are a 33 m radius each: argmax can only
+    steer in those steps).
     """
+    if steer_decoding not in STEER_DECODINGS:
+        raise ValueError(f"predict_actions: steer_decoding must be one of {STEER_DECODINGS}, got {steer_decoding!r}")
     single = images.dim() == 4
     batch = images.unsqueeze(0) if single else images
     device = next(model.parameters()).device
@@ -274,6 +277,10 @@ def predict_actions(
     finally:
         model.train(was_training)
     throttle_brake = throttle_brake.cpu().numpy()
-    steer = steer_from_class(steer_logits.argmax(dim=1).cpu().numpy())
+    if steer_decoding == "expected":
+        probabilities = torch.softmax(steer_logits.float(), dim=1).cpu().numpy()
+        steer = probabilities @ STEER_CLASS_VALUES
+    else:
+        steer = steer_from_class(steer_logits.argmax(dim=1).cpu().numpy())
     actions = np.stack([throttle_brake[:, 0], steer, throttle_brake[:, 1]], axis=1).astype(np.float32)
     return actions[0] if single else actions

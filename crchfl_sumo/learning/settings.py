@@ -69,6 +69,9 @@ class ModelConfig:
         (GroupNorm with one group) or "none".
     command_input: "branched" (default; one steer head per command, picked by
         the command), "concat" (the command one-hot into the steer MLP) or "none".
+    command_pedals: the command conditions the throttle/brake branch too, in the
+        same way (command_input) as the steer branch: whether to slow before a
+        junction depends on the turn to come, which CamH cannot show.
     speed_input: the current speed (speed_mps / 10) is an input of both MLPs
         (default off: it did not help the pedals in docs/model.md's measurements).
     """
@@ -79,6 +82,7 @@ class ModelConfig:
     arch: Literal["cil", "paper"] = "cil"
     norm: Literal["group", "batch", "layer", "none"] = "group"
     command_input: Literal["branched", "concat", "none"] = "branched"
+    command_pedals: bool = False
     speed_input: bool = False
 
     def __post_init__(self) -> None:
@@ -89,11 +93,12 @@ class ModelConfig:
                 raise CrchflError(
                     f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
                 )
-        if not isinstance(self.speed_input, bool):
-            raise CrchflError(f"model.speed_input: {self.speed_input!r} must be true or false")
+        for key in ("command_pedals", "speed_input"):
+            if not isinstance(getattr(self, key), bool):
+                raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
-            for key in ("norm", "command_input", "speed_input"):
+            for key in ("norm", "command_input", "command_pedals", "speed_input"):
                 if getattr(self, key) != defaults[key].default:
                     raise CrchflError(
                         f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
@@ -111,7 +116,10 @@ class ModelConfig:
         return SIZES[self.size]
 
 
-SAMPLINGS = ("uniform", "class_balanced", "command_balanced")
+# How a steer head's class scores become one steer value (learning.model.predict_actions):
+# the paper's DAC ("argmax") or the probability-weighted class values ("expected").
+STEER_DECODINGS = ("argmax", "expected")
+SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
@@ -127,7 +135,7 @@ class TrainConfig:
     device: "auto" (CUDA when present, else CPU), "cpu" or "cuda".
     deterministic: torch.use_deterministic_algorithms for reproducible runs.
     multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
-    sampling: "uniform", "class_balanced" or "command_balanced" (balance.py).
+    sampling: "uniform", "class_balanced", "command_balanced" or "pedal_balanced" (balance.py).
     class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
     """
 
@@ -141,7 +149,7 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     deterministic: bool = False
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
-    sampling: Literal["uniform", "class_balanced", "command_balanced"] = "uniform"
+    sampling: Literal["uniform", "class_balanced", "command_balanced", "pedal_balanced"] = "uniform"
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
 
     def __post_init__(self) -> None:

@@ -74,7 +74,9 @@ class RasterConfig:
     max_object_distance_m  vehicles and signal heads farther than this are not drawn [m]
     vehicle_height_m       height of the vehicle boxes [m]
     lamp_min_radius_px     a lit lamp is never drawn smaller, so that a signal
-                           30 m away still covers pixels at the default size
+                           30 m away still covers pixels at the default size (2.5 px:
+                           a 5 px disc at 64 x 128 that the pedal branch can tell
+                           red from green by; docs/model.md)
     interpolation          ground texture sampling, "nearest" (fast) or "linear"
     """
 
@@ -82,7 +84,7 @@ class RasterConfig:
     max_ground_distance_m: float = 40.0
     max_object_distance_m: float = 60.0
     vehicle_height_m: float = 1.5
-    lamp_min_radius_px: float = 1.0
+    lamp_min_radius_px: float = 2.5
     interpolation: Literal["nearest", "linear"] = "nearest"
 
     def __post_init__(self):

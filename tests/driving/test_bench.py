@@ -312,6 +312,8 @@ def test_bad_arguments_name_the_option(ladder, tmp_path):
         run_benchmark(tmp_path / "missing.pt", tmp_path, towns=(cfg,))
     with pytest.raises(CrchflError, match="--tasks: unknown task 'loops'"):
         BenchConfig(tasks=("loops",))
+    with pytest.raises(CrchflError, match="--steer-decoding: use one of argmax, expected"):
+        BenchConfig(steer_decoding="mean")
 
 
 def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tmp_path, capsys):

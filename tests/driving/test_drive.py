@@ -403,6 +403,8 @@ def test_untrained_model_drives_through_the_loop(roads):
     with pytest.raises(CrchflError, match="needs the route's commands"):
         ModelPolicy(model)
     ModelPolicy(build_model(ModelConfig(arch="paper"), seed=0))  # the paper's network sees no command
+    with pytest.raises(CrchflError, match="steer decoding must be one of argmax, expected"):
+        ModelPolicy(model, commands, steer_decoding="mean")
 
 
 class _Commands:

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.balance import class_weights, epoch_batches
+from crchfl_sumo.learning.balance import BRAKE, CRUISE, HOLD, THROTTLE, class_weights, epoch_batches, pedal_states
 
 
 def _samples(classes, commands):
@@ -31,6 +31,27 @@ def test_balanced_sampling_draws_the_minority_as_often_as_the_majority(sampling)
     assert len(drawn) == 50 * 100  # an epoch is still N draws
     minority = (drawn >= 90).float().mean().item()
     assert minority == pytest.approx(0.5, abs=0.03)  # 10 % of the samples, half of the draws
+
+
+def test_pedal_states_by_hand():
+    # (throttle, steer, brake), speed: standing on the brake, pulling away from standstill,
+    # accelerating, cruising on a little throttle, braking, coasting, and standing with no pedal.
+    actions = torch.tensor([[0.0, 0, 0.9], [0.8, 0, 0.0], [1.0, 0, 0.0], [0.08, 0, 0.0], [0.0, 0, 0.7],
+                            [0.0, 0, 0.2], [0.0, 0, 0.0]])
+    speed = torch.tensor([0.0, 0.0, 5.0, 12.0, 8.0, 8.0, 0.05])
+    assert pedal_states(actions, speed).tolist() == [HOLD, THROTTLE, THROTTLE, CRUISE, BRAKE, CRUISE, HOLD]
+
+
+def test_pedal_balanced_sampling_draws_each_pedal_state_equally():
+    n_hold, n_brake = 90, 10
+    actions = np.zeros((n_hold + n_brake, 3), np.float32)
+    actions[:, 2] = 0.9
+    speed = np.r_[np.zeros(n_hold), np.full(n_brake, 6.0)].astype(np.float32)
+    samples = Samples.from_numpy(np.zeros((100, 4, 48, 64, 3), np.uint8), actions, np.zeros(100, np.int64),
+                                 np.zeros(100, np.int64), speed)
+    generator = torch.Generator().manual_seed(0)
+    drawn = torch.cat([torch.cat(epoch_batches(samples, 32, "pedal_balanced", generator)) for _ in range(50)])
+    assert (drawn >= n_hold).float().mean().item() == pytest.approx(0.5, abs=0.03)
 
 
 def test_sampling_is_seeded():

@@ -100,21 +100,23 @@ def test_branched_heads_are_picked_by_the_command():
     assert logits.argmax(dim=1).tolist() == [1, 2, 3, 4, 2]
 
 
-@pytest.mark.parametrize("options,command_matters,speed_matters", [
-    ({}, True, False),
-    ({"speed_input": True}, True, True),
-    ({"command_input": "concat"}, True, False),
-    ({"command_input": "none", "speed_input": False}, False, False),
-    ({"command_input": "none", "speed_input": True}, False, True),
+@pytest.mark.parametrize("options,command_matters,pedals_see_command,speed_matters", [
+    ({"command_pedals": False}, True, False, False),
+    ({"command_pedals": False, "speed_input": True}, True, False, True),
+    ({"command_pedals": True}, True, True, False),
+    ({"command_pedals": True, "command_input": "concat"}, True, True, False),
+    ({"command_pedals": False, "command_input": "concat"}, True, False, False),
+    ({"command_pedals": True, "command_input": "none", "speed_input": False}, False, False, False),
+    ({"command_input": "none", "speed_input": True}, False, False, True),
 ])
-def test_command_and_speed_reach_the_outputs_as_configured(options, command_matters, speed_matters):
+def test_command_and_speed_reach_the_outputs_as_configured(options, command_matters, pedals_see_command, speed_matters):
     model = build_model(ModelConfig("compact", 48, 64, **options), seed=0).eval()
     images = _images(4)
     base = _run(model, images, torch.tensor([0, 0, 0, 0]), torch.full((4,), 2.0))
     other_command = _run(model, images, torch.tensor([1, 2, 3, 1]), torch.full((4,), 2.0))
     other_speed = _run(model, images, torch.tensor([0, 0, 0, 0]), torch.full((4,), 9.0))
     assert (not torch.equal(base[1], other_command[1])) == command_matters
-    assert torch.equal(base[0], other_command[0])  # branch I does not see the command
+    assert (not torch.equal(base[0], other_command[0])) == pedals_see_command
     assert (not torch.equal(base[0], other_speed[0])) == speed_matters
     assert (not torch.equal(base[1], other_speed[1])) == speed_matters
 
@@ -154,6 +156,24 @@ def test_predict_actions_decodes_steer_with_the_dac():
     assert model.training  # the training flag is restored
 
 
+def test_expected_steer_decoding_weights_the_class_values_by_probability():
+    model = build_model(PAPER_ARCH, seed=0)
+    last = model.branch_steer.layers[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        # logits ln 3 for class 1 (0.125) and ln 1 = 0 for class 4 (-0.125), -inf-like elsewhere:
+        # probabilities 3/4 and 1/4, so the expected steer is 0.75 * 0.125 - 0.25 * 0.125 = 0.0625.
+        last.bias.copy_(torch.tensor([-50.0, float(np.log(3.0)), -50.0, -50.0, 0.0, -50.0, -50.0]))
+    images = _images(2)
+    expected = predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "expected")
+    argmax = predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "argmax")
+    assert expected[:, 1] == pytest.approx([0.0625, 0.0625], abs=1e-6)
+    assert argmax[:, 1] == pytest.approx([0.125, 0.125])
+    assert expected[:, [0, 2]] == pytest.approx(argmax[:, [0, 2]])  # the pedals do not depend on the decoding
+    with pytest.raises(ValueError, match="steer_decoding"):
+        predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "mean")
+
+
 def test_predict_actions_passes_command_and_speed():
     model = build_model(SMALL, seed=0)
     images = _images(3)
@@ -185,17 +205,21 @@ def test_config_validation_and_round_trip():
         ModelConfig("compact", 32, 64)
     with pytest.raises(CrchflError, match="size"):
         ModelConfig("huge")
-    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", speed_input=True)
+    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True)
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
-        "arch": "cil", "norm": "batch", "command_input": "concat", "speed_input": True,
+        "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
     }
     for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film")):
         with pytest.raises(CrchflError, match=f"model.{key}: '{value}' is unknown"):
             ModelConfig(**{key: value})
     with pytest.raises(CrchflError, match="model.speed_input"):
         ModelConfig(speed_input="yes")
+    with pytest.raises(CrchflError, match="model.command_pedals: 1 must be true or false"):
+        ModelConfig(command_pedals=1)
+    with pytest.raises(CrchflError, match="model.command_pedals: True applies to arch 'cil' only"):
+        ModelConfig(arch="paper", command_pedals=True)
     with pytest.raises(CrchflError, match="model.norm: 'batch' applies to arch 'cil' only"):
         ModelConfig(arch="paper", norm="batch")
     with pytest.raises(CrchflError, match="model.command_input"):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
@@ -121,7 +121,8 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
     assert raw["format"] == "crchfl-sumo-model/2"
     assert raw["model_config"] == {
         "size": "compact", "image_height": 48, "image_width": 64,
-        "arch": "cil", "norm": "group", "command_input": "branched", "speed_input": False,
+        "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
+        "speed_input": False,
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
@@ -148,6 +149,16 @@ def test_a_format_1_checkpoint_loads_as_the_paper_architecture(tmp_path):
     save_checkpoint(tmp_path / "mixed.pt", SMALL, model.state_dict())
     with pytest.raises(CrchflError, match="mixed.pt: weights do not fit"):
         load_model(tmp_path / "mixed.pt")
+
+
+def test_a_format_2_checkpoint_without_command_pedals_has_an_unconditioned_pedal_branch(tmp_path):
+    before = ModelConfig("compact", 48, 64, command_pedals=False)
+    model = build_model(before, seed=0)
+    mapping = {k: v for k, v in to_mapping(before).items() if k != "command_pedals"}  # written before the key
+    torch.save({"format": "crchfl-sumo-model/2", "model_config": mapping, "state_dict": model.state_dict(),
+                "extra": {}}, tmp_path / "before.pt")
+    assert load_checkpoint(tmp_path / "before.pt").model_config == before
+    assert _max_difference(load_model(tmp_path / "before.pt").state_dict(), model.state_dict()) == 0
 
 
 def test_checkpoint_errors_name_the_file(tmp_path):

@@ -203,11 +203,12 @@ def test_red_and_green_differ_at_the_lamp_from_stop_distance(renderer, decel_mps
     rows, cols = np.nonzero(differ[CAM_H])
     assert len(rows) > 0
     config = renderer.config.camera
+    reach_px = renderer.config.lamp_min_radius_px + 1.0  # at this distance the lamp is drawn at its minimum radius
     for image, lamp, rgb in ((red, 0, LAMP_RED_RGB), (green, 2, LAMP_GREEN_RGB)):
         u, v = lamp_pixels(config, ego_x, lamp)
         lit = np.argwhere((image[CAM_H] == rgb).all(axis=-1))
         assert len(lit) > 0
-        assert np.abs(lit[:, 1] - u).max() <= 2.0 and np.abs(lit[:, 0] - v).max() <= 2.0
+        assert np.abs(lit[:, 1] - u).max() <= reach_px and np.abs(lit[:, 0] - v).max() <= reach_px
 
 
 def test_lamps_face_the_approaching_traffic_only(renderer):
