@@ -15,7 +15,7 @@ import torch
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
-from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES, digitize_steer
 from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
@@ -23,6 +23,7 @@ from crchfl_sumo.driving.drive import (
     lane_departed,
     red_light_violations,
 )
+from crchfl_sumo.driving.dagger import ExpertLabelled
 from crchfl_sumo.driving.drive_command import drive_command
 from crchfl_sumo.driving.dynamics import (
     VehicleState,
@@ -468,3 +469,36 @@ def test_one_pedal_keeps_the_stronger_pedal():
     assert one_pedal(0.2, 0.7) == (0.0, 0.7)
     assert one_pedal(0.5, 0.5) == (0.0, 0.5)  # a tie brakes
     assert one_pedal(0.0, 0.0) == (0.0, 0.0)
+
+
+def test_expert_labelled_drive_records_the_route_policys_actions_on_the_learners_states(roads):
+    scenario = load_scenario(roads / "straight.sumocfg")
+    net = read_net(Path(scenario.net_path))
+    geometry = route_geometry(net, ["AC"])
+    commands = RouteCommands(geometry, choice_junctions(net))
+    renderer = Renderer(build_world(scenario.net_path))
+    learner = ModelPolicy(build_model(ModelConfig(), seed=0), commands)
+    expert = RoutePolicy(geometry)
+    seen = []
+
+    class Checked(ExpertLabelled):
+        def __call__(self, observation):
+            seen.append((observation, expert(observation), learner(observation)))
+            return super().__call__(observation)
+
+    policy = Checked(learner, expert, every=3)
+    result = drive(scenario, geometry, policy, seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
+    arrays = policy.arrays()
+    acted = len(result.log) - 1
+    assert acted == 8 and len(arrays["actions"]) == 3  # steps 0, 3 and 6 of 8
+    # The learner drove: the log holds its actions, not the expert's.
+    np.testing.assert_allclose(result.log.steer[:-1], [s[2][1] for s in seen])
+    for i, step in enumerate((0, 3, 6)):
+        observation, expert_action, _ = seen[step]
+        np.testing.assert_allclose(arrays["actions"][i], expert_action, rtol=1e-6)
+        np.testing.assert_array_equal(arrays["images"][i], observation.images)
+        assert arrays["command"][i] == learner.command(observation)
+        assert arrays["speed_mps"][i] == pytest.approx(observation.frame.speed_mps[observation.ego_row])
+    assert arrays["steer_class"].tolist() == digitize_steer(arrays["actions"][:, 1]).tolist()
+    assert arrays["actions"][0, 0] > 0  # from standstill on an empty road the expert pulls away
+    assert arrays["images"].dtype == np.uint8 and arrays["images"].shape[1:] == (4, 64, 128, 3)

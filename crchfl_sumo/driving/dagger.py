@@ -1,0 +1,141 @@
+"""DAgger (Ross et al. 2011): the learner drives, the expert labels the states the learner visits.
+
+A model that strays from its data (stops short of a green stop line, drifts
+off the lane centre) meets states the expert's data never showed. Here the
+scripted RoutePolicy, which knows the route and reads the signals, labels
+every ``every``-th step of the learner's own drives with the action it would
+take there, in the data set's conventions (expert.pedals, the steer's
+class by labels.digitize_steer). The images are the ones the learner saw, the
+command the one it was given and the speed its own. Aggregating these samples
+with the data set and retraining is one DAgger iteration (tools/dagger.py
+runs them and measures each with drive-bench).
+
+Routes are drawn like drive-bench's episodes (bench_tasks.draw_episodes), by
+a seed of their own: use another seed than the benchmark's, so the learner
+is not trained on the episodes it is scored on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.driving.bench import STUCK_S, ModelDriver
+from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
+from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.drive_command import single_torch_thread
+from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy
+from crchfl_sumo.sumo.route import read_net, route_geometry
+from crchfl_sumo.sumo.scenario import load_scenario
+
+
+class ExpertLabelled:
+    """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step."""
+
+    def __init__(self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1) -> None:
+        if every < 1:
+            raise CrchflError(f"dagger.every must be >= 1, got {every}")
+        self.learner, self.expert, self.every = learner, expert, every
+        self.steps = 0
+        self.images: list[np.ndarray] = []
+        self.actions: list[Action] = []
+        self.commands: list[int] = []
+        self.speeds: list[float] = []
+
+    def __call__(self, observation: Observation) -> Action:
+        action = self.learner(observation)
+        if self.steps % self.every == 0:
+            self.images.append(observation.images)
+            self.actions.append(self.expert(observation))
+            self.commands.append(self.learner.command(observation))
+            self.speeds.append(float(observation.frame.speed_mps[observation.ego_row]))
+        self.steps += 1
+        return action
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
+        actions = np.asarray(self.actions, dtype=np.float32).reshape(-1, 3)
+        return {
+            "images": np.asarray(self.images, dtype=np.uint8),
+            "actions": actions,
+            "steer_class": digitize_steer(actions[:, 1]),
+            "command": np.asarray(self.commands, dtype=np.int64),
+            "speed_mps": np.asarray(self.speeds, dtype=np.float32),
+        }
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """Settings of one round of expert-labelled drives.
+
+    tasks     drive-bench suites the routes are drawn from
+    episodes  drives per task and town
+    seed      draws the routes (not the benchmark's seed)
+    every     one labelled sample every this many steps
+    max_s     a drive ends after this long (or when stuck for STUCK_S, as in drive-bench)
+    """
+
+    tasks: tuple[str, ...] = ("straight", "one_turn", "navigation")
+    episodes: int = 4
+    seed: int = 1000
+    every: int = 2
+    max_s: float = 90.0
+    drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
+
+    def __post_init__(self) -> None:
+        for name in self.tasks:
+            task_by_name(name)
+        if self.episodes < 1 or self.every < 1:
+            raise CrchflError("dagger.episodes and dagger.every must be >= 1")
+        if not (math.isfinite(self.max_s) and self.max_s > 0):
+            raise CrchflError(f"dagger.max_s must be a finite number > 0, got {self.max_s}")
+
+
+def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> dict:
+    """Drive ``episodes`` with the learner, labelled by the expert; the arrays of all of them."""
+    from crchfl_sumo.vision.raster import RasterConfig, Renderer
+    from crchfl_sumo.vision.world import build_world
+
+    scenario = load_scenario(town)
+    traffic = {name: task_by_name(name).traffic for name in config.tasks}
+    net = read_net(Path(scenario.net_path))
+    renderer = Renderer(build_world(scenario.net_path), RasterConfig(camera=driver.camera()))
+    parts = []
+    with single_torch_thread(True):
+        for episode in episodes:
+            route = route_geometry(net, episode.edges)
+            policy = ExpertLabelled(driver.policy(route, net), RoutePolicy(route), config.every)
+            drive(
+                scenario if traffic[episode.task] else without_traffic(scenario), route, policy,
+                seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),
+                config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s), renderer=renderer,
+                keep_frames=False,
+            )
+            parts.append(policy.arrays())
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def collect(
+    checkpoint: str | Path, towns: Sequence[str], config: DaggerConfig = DaggerConfig(), jobs: int = 1
+) -> Samples:
+    """One round: the checkpoint drives routes of ``towns``; every visited state labelled by the expert."""
+    driver = ModelDriver(str(checkpoint), label=Path(checkpoint).stem)
+    driver.model()  # a bad checkpoint fails here, before any drive
+    tasks = [task_by_name(name) for name in config.tasks]
+    calls = []
+    for town in towns:
+        episodes = draw_episodes(load_scenario(town), tasks, config.episodes, config.seed)
+        groups = max(1, min(jobs, len(episodes)))
+        calls += [(driver, town, episodes[g::groups], config) for g in range(groups)]
+    with Executor(BackendConfig(num_cpus=jobs)) as executor:
+        parts = executor.map(labelled_drives, calls, isolate=jobs > 1)
+    return Samples.concat([Samples.from_numpy(**p) for p in parts])

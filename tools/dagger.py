@@ -1,0 +1,87 @@
+"""Benchmark: does DAgger help? Iterations of expert-labelled drives, retraining and drive-bench, side by side.
+
+Starting from a trained checkpoint (crchfl-sumo train), each iteration
+  1. lets the current model drive routes drawn with the DAgger seed (not the
+     benchmark's), the scripted expert labelling every visited state
+     (crchfl_sumo.driving.dagger),
+  2. adds those samples to everything collected so far and to the data set's
+     training split, and fine-tunes the current model on the aggregate,
+  3. scores the new model on the same drive-bench episodes as the start model.
+Prints one line per model: balanced accuracy on the data set's test split and
+the closed-loop success, completion and driving score per task.
+
+Usage: python tools/dagger.py CHECKPOINT DATASET --out DIR [--iterations 1] [--episodes 4]
+       [--epochs 3] [--bench-episodes 6] [--tasks straight,one_turn] [--towns town01] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.dagger import DaggerConfig, collect
+from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
+from crchfl_sumo.learning.settings import TrainConfig
+from crchfl_sumo.learning.training import evaluate, train_centralized
+
+
+def bench_line(name: str, summary: dict, balanced: float) -> str:
+    line = f"{name}: balanced {balanced:.3f}"
+    for town, tasks in summary["results"].items():
+        for task, r in tasks.items():
+            line += (f" | {town} {task}: success {r['success_rate']:.2f}, completion {r['route_completion']:.2f}, "
+                     f"score {r['driving_score']:.2f}")
+    return line
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("dataset")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--iterations", type=int, default=1)
+    parser.add_argument("--episodes", type=int, default=4, help="DAgger drives per task and town")
+    parser.add_argument("--epochs", type=int, default=3, help="fine-tuning epochs per iteration")
+    parser.add_argument("--bench-episodes", type=int, default=6)
+    parser.add_argument("--tasks", default="straight,one_turn")
+    parser.add_argument("--towns", default="town01")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
+    args = parser.parse_args()
+    towns = tuple(args.towns.split(","))
+    bench = BenchConfig(tasks=tuple(args.tasks.split(",")))
+    train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+    checkpoint = args.checkpoint
+    start = load_checkpoint(checkpoint)
+    lines = []
+    if not args.no_start_bench:
+        lines.append(bench_line("start", run_benchmark(checkpoint, args.out / "bench-0", episodes=args.bench_episodes,
+                                                       jobs=args.jobs, towns=towns, config=bench),
+                                evaluate(load_model(checkpoint), test).balanced_accuracy))
+        print(lines[-1], flush=True)
+    collected: list[Samples] = []
+    for iteration in range(1, args.iterations + 1):
+        config = DaggerConfig(episodes=args.episodes, seed=1000 + iteration)
+        collected.append(collect(checkpoint, towns, config, jobs=args.jobs))
+        folder = args.out / f"iteration-{iteration}"
+        records = train_centralized(
+            Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
+            args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
+        )
+        checkpoint = folder / "checkpoint.pt"
+        summary = run_benchmark(checkpoint, folder / "bench", episodes=args.bench_episodes, jobs=args.jobs,
+                                towns=towns, config=bench)
+        lines.append(bench_line(f"iteration {iteration} (+{sum(len(c) for c in collected)} expert-labelled samples)",
+                                summary, records[-1]["balanced_accuracy"]))
+        print(lines[-1], flush=True)
+    (args.out / "dagger.txt").write_text("\n".join(lines) + "\n")
+    print(json.dumps({"dagger_samples": [len(c) for c in collected]}))
+
+
+if __name__ == "__main__":
+    main()
