@@ -387,12 +387,16 @@ def test_on_road_by_hand(roads):
     assert not on_road(area, 100.0, -5.0) and not on_road(area, 100.0, 20.0)
 
 
-def test_untrained_model_drives_through_the_loop(roads):
+def _straight_road_with_cameras(roads):
+    """The straight road's scenario, route AC, its commands and a renderer: what a model needs to drive it."""
     scenario = load_scenario(roads / "straight.sumocfg")
     net = read_net(Path(scenario.net_path))
     geometry = route_geometry(net, ["AC"])
-    commands = RouteCommands(geometry, choice_junctions(net))
-    renderer = Renderer(build_world(scenario.net_path))
+    return scenario, geometry, RouteCommands(geometry, choice_junctions(net)), Renderer(build_world(scenario.net_path))
+
+
+def test_untrained_model_drives_through_the_loop(roads):
+    scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
     model = build_model(ModelConfig(), seed=0)
     result = drive(scenario, geometry, ModelPolicy(model, commands), seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
     acted = result.log.steer[:-1]
@@ -472,11 +476,7 @@ def test_one_pedal_keeps_the_stronger_pedal():
 
 
 def test_expert_labelled_drive_records_the_route_policys_actions_on_the_learners_states(roads):
-    scenario = load_scenario(roads / "straight.sumocfg")
-    net = read_net(Path(scenario.net_path))
-    geometry = route_geometry(net, ["AC"])
-    commands = RouteCommands(geometry, choice_junctions(net))
-    renderer = Renderer(build_world(scenario.net_path))
+    scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
     learner = ModelPolicy(build_model(ModelConfig(), seed=0), commands)
     expert = RoutePolicy(geometry)
     seen = []
