@@ -292,8 +292,7 @@ def _add_drive(p: argparse.ArgumentParser) -> None:
 
 
 def _steer_decoding_argument(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.driving.policies import DEFAULT_STEER_DECODING
-    from crchfl_sumo.learning.settings import STEER_DECODINGS
+    from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
 
     p.add_argument("--steer-decoding", choices=STEER_DECODINGS, default=DEFAULT_STEER_DECODING,
                    help="a model's steer: 'argmax' (the paper's DAC: the likeliest class's value) or 'expected' "

@@ -51,6 +51,16 @@ def parse_recipe(text: str) -> tuple[str, dict, dict]:
     return name, model, train
 
 
+def task_columns(results: dict) -> str:
+    """' | TOWN TASK: success S, completion C, score D' for every task of a drive-bench summary's results."""
+    return "".join(
+        f" | {town} {task}: success {r['success_rate']:.2f}, completion {r['route_completion']:.2f}, "
+        f"score {r['driving_score']:.2f}"
+        for town, tasks in results.items()
+        for task, r in tasks.items()
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("dataset")
@@ -80,13 +90,9 @@ def main() -> None:
         rows.append((name, best, summary))
     print(f"{len(train)} training samples, {args.epochs} epochs, seed {args.seed}, {args.episodes} episodes per task")
     for name, best, summary in rows:
-        line = (f"{name}: balanced {best['balanced_accuracy']:.3f} (always-straight "
-                f"{best['always_straight']['balanced_accuracy']:.3f}), steer error {best['steer_error']:.3f}")
-        for town, tasks in summary["results"].items():
-            for task, r in tasks.items():
-                line += (f" | {town} {task}: success {r['success_rate']:.2f}, completion {r['route_completion']:.2f},"
-                         f" score {r['driving_score']:.2f}")
-        print(line)
+        print(f"{name}: balanced {best['balanced_accuracy']:.3f} (always-straight "
+              f"{best['always_straight']['balanced_accuracy']:.3f}), steer error {best['steer_error']:.3f}"
+              + task_columns(summary["results"]))
     (args.out / "closed_loop.json").write_text(json.dumps([
         {"recipe": name, "final": best, "results": summary["results"]} for name, best, summary in rows
     ], indent=1))

@@ -20,6 +20,8 @@ import argparse
 import json
 from pathlib import Path
 
+from bench_closed_loop import task_columns  # tools/ is on the path when this script runs
+
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
@@ -30,12 +32,7 @@ from crchfl_sumo.learning.training import evaluate, train_centralized
 
 
 def bench_line(name: str, summary: dict, balanced: float) -> str:
-    line = f"{name}: balanced {balanced:.3f}"
-    for town, tasks in summary["results"].items():
-        for task, r in tasks.items():
-            line += (f" | {town} {task}: success {r['success_rate']:.2f}, completion {r['route_completion']:.2f}, "
-                     f"score {r['driving_score']:.2f}")
-    return line
+    return f"{name}: balanced {balanced:.3f}" + task_columns(summary["results"])
 
 
 def main() -> None:

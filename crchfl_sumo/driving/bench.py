@@ -42,8 +42,8 @@ from crchfl_sumo.driving.bench_tasks import (
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
-from crchfl_sumo.driving.policies import DEFAULT_STEER_DECODING, ModelPolicy, Policy, RoutePolicy
-from crchfl_sumo.learning.settings import STEER_DECODINGS
+from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions

@@ -14,7 +14,8 @@ from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
-from crchfl_sumo.driving.policies import DEFAULT_STEER_DECODING, ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions

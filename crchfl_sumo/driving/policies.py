@@ -14,7 +14,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
-from crchfl_sumo.learning.settings import STEER_DECODINGS
+from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -28,7 +28,6 @@ from crchfl_sumo.sumo.route import (
 )
 
 Action = tuple[float, float, float]  # (throttle, steer, brake), labels.py conventions
-DEFAULT_STEER_DECODING = "argmax"
 
 
 # --- policies ------------------------------------------------------------------------------------
@@ -252,9 +251,8 @@ class ModelPolicy:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")
         images = torch.from_numpy(np.ascontiguousarray(observation.images))
         speed_mps = float(observation.frame.speed_mps[observation.ego_row])
-        throttle, steer, brake = (
-            float(v) for v in predict_actions(self.model, images, self.command(observation), speed_mps, self.steer_decoding)
-        )
+        actions = predict_actions(self.model, images, self.command(observation), speed_mps, self.steer_decoding)
+        throttle, steer, brake = (float(v) for v in actions)
         if self.one_pedal:
             throttle, brake = one_pedal(throttle, brake)
         return (throttle, steer, brake)

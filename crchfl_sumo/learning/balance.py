@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import torch
 
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
 
@@ -43,20 +44,22 @@ def inverse_frequency(codes: torch.Tensor, num_codes: int) -> torch.Tensor:
 
 HOLD, THROTTLE, CRUISE, BRAKE = range(4)  # pedal states
 NUM_PEDAL_STATES = 4
-THROTTLE_STATE_MIN = 0.5  # throttle (or brake) above this is pulling away (or braking), below it cruising
+PRESSED_MIN = 0.5  # a throttle (or brake) above this is pulling away (or braking); below it, cruising
 
 
-def pedal_states(actions: torch.Tensor, speed_mps: torch.Tensor, stop_speed_mps: float = 0.1) -> torch.Tensor:
+def pedal_states(
+    actions: torch.Tensor, speed_mps: torch.Tensor, stop_speed_mps: float = ExpertConfig.stop_speed_mps
+) -> torch.Tensor:
     """int64 [N]: each sample's pedal state from its label (actions [N, 3]) and speed [N].
 
     HOLD: standing (speed below ``stop_speed_mps``, the expert's) without throttle; THROTTLE:
-    throttle above THROTTLE_STATE_MIN; BRAKE: moving with brake above it; CRUISE: the rest.
+    throttle above PRESSED_MIN; BRAKE: moving with brake above it; CRUISE: the rest.
     """
     throttle, brake = actions[:, 0], actions[:, 2]
     states = torch.full((len(actions),), CRUISE, dtype=torch.int64)
-    states[(speed_mps >= stop_speed_mps) & (brake > THROTTLE_STATE_MIN)] = BRAKE
-    states[(speed_mps < stop_speed_mps) & (throttle <= THROTTLE_STATE_MIN)] = HOLD
-    states[throttle > THROTTLE_STATE_MIN] = THROTTLE
+    states[(speed_mps >= stop_speed_mps) & (brake > PRESSED_MIN)] = BRAKE
+    states[(speed_mps < stop_speed_mps) & (throttle <= PRESSED_MIN)] = HOLD
+    states[throttle > PRESSED_MIN] = THROTTLE
     return states
 
 

@@ -41,7 +41,13 @@ import torch
 from torch import nn
 
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES, steer_from_class
-from crchfl_sumo.learning.settings import SPEED_SCALE_MPS, STEER_DECODINGS, BranchShape, ModelConfig
+from crchfl_sumo.learning.settings import (
+    DEFAULT_STEER_DECODING,
+    SPEED_SCALE_MPS,
+    STEER_DECODINGS,
+    BranchShape,
+    ModelConfig,
+)
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
 
@@ -191,11 +197,13 @@ class DrivingModel(nn.Module):
             return
         heads = NUM_COMMANDS if config.command_input == "branched" else 1
         one_hot = config.command_input == "concat"
-        if config.command_pedals:
-            self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, heads, one_hot, config.speed_input)
-        else:
-            self.branch_throttle_brake = ConditionedBranch(3, 2, shape, config.norm, 1, False, config.speed_input)
-        self.branch_steer = ConditionedBranch(9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input)
+        pedal_heads, pedal_one_hot = (heads, one_hot) if config.command_pedals else (1, False)
+        self.branch_throttle_brake = ConditionedBranch(
+            3, 2, shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
+        )
+        self.branch_steer = ConditionedBranch(
+            9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input
+        )
         _initialise(self)
 
     def forward(
@@ -248,7 +256,7 @@ def predict_actions(
     images: torch.Tensor,
     command: torch.Tensor | np.ndarray | int,
     speed_mps: torch.Tensor | np.ndarray | float,
-    steer_decoding: str = "argmax",
+    steer_decoding: str = DEFAULT_STEER_DECODING,
 ) -> np.ndarray:
     """uint8 images [B, 4, H, W, 3] with command [B] and speed_mps [B] -> float32 [B, 3];
     one sample ([4, H, W, 3], an int command, a float speed) -> float32 [3].

@@ -119,6 +119,7 @@ class ModelConfig:
 # How a steer head's class scores become one steer value (learning.model.predict_actions):
 # the paper's DAC ("argmax") or the probability-weighted class values ("expected").
 STEER_DECODINGS = ("argmax", "expected")
+DEFAULT_STEER_DECODING = "argmax"
 SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 
