@@ -255,6 +255,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 def _run_train(args) -> int:
     from crchfl_sumo.core.errors import CrchflError
     from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.data.shards import read_manifest
     from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
     from crchfl_sumo.learning.training import train_centralized
 
@@ -264,7 +265,10 @@ def _run_train(args) -> int:
     model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch)
     config = TrainConfig(device=args.device, deterministic=args.deterministic)
     with ProgressBars("sample") as bars:
-        records = train_centralized(train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars)
+        records = train_centralized(
+            train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
+            camera=read_manifest(args.dataset).camera,
+        )
     last = records[-1]
     straight = last["always_straight"]
     print(

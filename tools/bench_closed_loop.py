@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 
 from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import train_centralized
@@ -82,7 +83,7 @@ def main() -> None:
         records = train_centralized(
             train, test, args.epochs, folder,
             ModelConfig(**{"image_height": 64, "image_width": 128, **model_overrides}),
-            TrainConfig(**train_overrides), args.seed,
+            TrainConfig(**train_overrides), args.seed, camera=read_manifest(args.dataset).camera,
         )
         best = records[-1]
         summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.episodes, jobs=args.jobs,

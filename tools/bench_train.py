@@ -24,7 +24,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.model import DrivingModel, build_model
+from crchfl_sumo.learning.model import DrivingModel, build_model, longitudinal_target
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import Learner, branch_losses, resolve_device, train_vehicles
 
@@ -39,6 +39,7 @@ def synthetic_samples(num_samples: int, height: int, width: int, rng: np.random.
         rng.integers(0, 7, size=num_samples),
         rng.integers(0, 4, size=num_samples),
         rng.uniform(0, 14, size=num_samples),
+        rng.uniform(0, 14, size=num_samples),
     )
 
 
@@ -47,8 +48,9 @@ def train_flops_per_sample(model_config: ModelConfig, batch_size: int) -> float:
     model = DrivingModel(model_config)
     batch = synthetic_samples(batch_size, model_config.image_height, model_config.image_width, np.random.default_rng(0))
     with FlopCounterMode(display=False) as counter:
-        throttle_brake, steer_logits = model(batch.images, batch.command, batch.speed_mps)
-        loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, batch.actions, batch.steer_class)
+        longitudinal, steer_logits = model(batch.images, batch.command, batch.speed_mps)
+        target = longitudinal_target(model_config, batch.actions, batch.target_speed_mps)
+        loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, batch.steer_class)
         (loss_tb + loss_steer).backward()
     return counter.get_total_flops() / batch_size
 

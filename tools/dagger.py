@@ -69,6 +69,7 @@ def main() -> None:
         records = train_centralized(
             Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
             args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
+            camera=start.extra.get("camera"),
         )
         checkpoint = folder / "checkpoint.pt"
         summary = run_benchmark(checkpoint, folder / "bench", episodes=args.bench_episodes, jobs=args.jobs,

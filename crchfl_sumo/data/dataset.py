@@ -19,9 +19,12 @@ import numpy as np
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.data.shards import Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from crchfl_sumo.data.samples import FIELDS, NUM_ACTIONS, Samples
+from crchfl_sumo.data.shards import LABEL_DATASETS, Manifest, ShardEntry, read_manifest, read_shard, verify_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
+
+SAMPLE_LABELS = FIELDS[1:]  # what a Samples holds besides the images, each a shard dataset of that name
+LABEL_SHAPES = {"actions": (NUM_ACTIONS,)}  # per-sample shape where not a scalar
 
 
 @dataclass(frozen=True)
@@ -145,14 +148,13 @@ def load_samples(
     n = sum(s.samples for s in shards)
     # Read straight into one preallocated array: no second copy of the images.
     images = np.empty((n, len(CAMERA_NAMES), manifest.image_height, manifest.image_width, 3), np.uint8)
-    actions, steer_class = np.empty((n, 3), np.float32), np.empty(n, np.int64)
-    command, speed_mps = np.empty(n, np.int64), np.empty(n, np.float32)
+    columns = {name: np.empty((n, *LABEL_SHAPES.get(name, ())), LABEL_DATASETS[name]) for name in SAMPLE_LABELS}
     start = 0
     for entry in shards:
         labels = read_shard(root, entry, verify, images=False)
         end = start + entry.samples
-        actions[start:end], steer_class[start:end] = labels.actions, labels.steer_class
-        command[start:end], speed_mps[start:end] = labels.command, labels.speed_mps
+        for name, column in columns.items():
+            column[start:end] = getattr(labels, name)
         if entry.samples:
             with h5py.File(root / entry.file, "r") as f:
                 if f["images"].shape != images[start:end].shape:
@@ -162,7 +164,7 @@ def load_samples(
                     )
                 f["images"].read_direct(images, dest_sel=np.s_[start:end])
         start = end
-    return Samples.from_numpy(images, actions, steer_class, command, speed_mps)
+    return Samples.from_numpy(images, **columns)
 
 
 def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = True) -> dict[str, Samples]:
@@ -173,12 +175,12 @@ def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = 
 
 
 def _to_samples(data) -> Samples:
-    return Samples.from_numpy(data.images, data.actions, data.steer_class, data.command, data.speed_mps)
+    return Samples.from_numpy(data.images, **{name: getattr(data, name) for name in SAMPLE_LABELS})
 
 
 class ShardDataset(torch.utils.data.Dataset):
     """Per-sample reads from the shards: item i -> (images uint8 [4,H,W,3], actions f32 [3], steer_class i64,
-    command i64, speed_mps f32).
+    command i64, speed_mps f32, target_speed_mps f32).
 
     Checksums are verified once, when the dataset is built. Files are opened
     lazily in each process (safe with DataLoader workers).
@@ -213,6 +215,7 @@ class ShardDataset(torch.utils.data.Dataset):
             torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
             torch.tensor(int(f["command"][row]), dtype=torch.int64),
             torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
+            torch.tensor(float(f["target_speed_mps"][row]), dtype=torch.float32),
         )
 
     def _file(self, shard: int) -> h5py.File:

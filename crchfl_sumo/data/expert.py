@@ -28,6 +28,15 @@ throttle / brake (from the acceleration SUMO applied, plus what holding speed co
     down gently gives neither pedal, and the two are never pressed together.
     At a standstill (speed < stop_speed_mps and not accelerating away) the
     driver holds the brake: brake = max(brake, hold_brake), throttle 0.
+
+target speed (what a model of ``longitudinal = "target_speed"`` learns instead of the pedals)
+    target = the speed the vehicle has speed_horizon_s later on its own track
+             (linear in time between samples; past the track's end, its last speed)
+    A controller turns a target back into pedals (pedals_towards): the
+    acceleration (target - speed) / speed_horizon_s through the pedal mapping
+    above. The label says "go" or "stop" whatever the current speed, where the
+    throttle label of a car cruising (~0.08) and of one standing at a red
+    light (0) are almost the same.
 """
 
 from __future__ import annotations
@@ -43,6 +52,13 @@ from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.sumo.frame import Frame
 
 GRAVITY_MPS2 = 9.81
+# SUMO's passenger-car limits (every vehicle type of the built-in towns): the pedal scale where
+# a sample does not carry its vehicle's own (evaluation of a target-speed model).
+PASSENGER_MAX_ACCEL_MPS2 = 2.6
+PASSENGER_MAX_DECEL_MPS2 = 4.5
+# A target speed below this means "stand": the labels put a standing queue at 0 and a start from
+# standing at about 5 m/s, so a model's small positive guess at a red light does not creep forward.
+STAND_TARGET_MPS = 1.0
 
 
 @dataclass(frozen=True)
@@ -58,6 +74,9 @@ class ExpertConfig:
     drag_per_mass_per_m: 0.5 * rho_air * Cd * A / mass [1/m] (1.2*0.3*2.2/2/1500).
     stop_speed_mps: below this speed a vehicle counts as standing.
     hold_brake: brake a driver holds at a standstill.
+    speed_horizon_s: the target speed is the speed this long ahead; 2 s
+        spans a start from standing (about 5 m/s at SUMO's 2.6 m/s^2) and
+        averages out SUMO's per-step dawdling.
     """
 
     lookahead_min_m: float = 5.0
@@ -68,9 +87,10 @@ class ExpertConfig:
     drag_per_mass_per_m: float = 2.64e-4
     stop_speed_mps: float = 0.1
     hold_brake: float = 0.9
+    speed_horizon_s: float = 2.0
 
     def __post_init__(self) -> None:
-        positive = ("lookahead_min_m", "wheelbase_m", "max_steer_angle_deg", "stop_speed_mps")
+        positive = ("lookahead_min_m", "wheelbase_m", "max_steer_angle_deg", "stop_speed_mps", "speed_horizon_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise CrchflError(f"expert.{name} must be > 0, got {getattr(self, name)}")
@@ -79,6 +99,8 @@ class ExpertConfig:
                 raise CrchflError(f"expert.{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.hold_brake <= 1:
             raise CrchflError(f"expert.hold_brake must lie in [0, 1], got {self.hold_brake}")
+        if self.speed_horizon_s > 5.0:  # further ahead, the target no longer says what to do now
+            raise CrchflError(f"expert.speed_horizon_s must be at most 5 s, got {self.speed_horizon_s}")
         if self.max_steer_angle_deg >= 90:
             raise CrchflError(f"expert.max_steer_angle_deg must be < 90, got {self.max_steer_angle_deg}")
 
@@ -232,3 +254,37 @@ def expert_labels(track: Track, config: ExpertConfig = ExpertConfig()) -> tuple[
     """(actions float32 [T, 3], steer_class int64 [T]) for ``track``."""
     actions = expert_actions(track, config)
     return actions, digitize_steer(actions[:, 1])
+
+
+def target_speeds(track: Track, config: ExpertConfig = ExpertConfig()) -> np.ndarray:
+    """float32 [T]: the speed ``track`` has ``config.speed_horizon_s`` after each of its samples."""
+    if len(track) == 0:
+        return np.zeros(0, np.float32)
+    # np.interp holds the last value past the end: the last recorded speed.
+    return np.interp(track.t_s + config.speed_horizon_s, track.t_s, track.speed_mps).astype(np.float32)
+
+
+def target_speed_from_accel(speed_mps: float, accel_mps2: float, config: ExpertConfig = ExpertConfig()) -> float:
+    """The speed an acceleration held for speed_horizon_s leads to (never below 0).
+
+    For a driver with no recorded future (the route expert labelling a learner's state).
+    """
+    return max(0.0, float(speed_mps) + config.speed_horizon_s * float(accel_mps2))
+
+
+def pedals_towards(
+    speed_mps: np.ndarray,
+    target_mps: np.ndarray,
+    max_accel_mps2: np.ndarray,
+    max_decel_mps2: np.ndarray,
+    config: ExpertConfig = ExpertConfig(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """(throttle, brake) that reach ``target_mps`` in speed_horizon_s: the inverse of target_speeds.
+
+    A target below STAND_TARGET_MPS is a stop; a standing vehicle told to stop
+    holds the brake (pedals).
+    """
+    speed = np.asarray(speed_mps, dtype=np.float64)
+    target = np.asarray(target_mps, dtype=np.float64)
+    target = np.where(target < STAND_TARGET_MPS, 0.0, target)
+    return pedals(speed, (target - speed) / config.speed_horizon_s, max_accel_mps2, max_decel_mps2, config)

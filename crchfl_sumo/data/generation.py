@@ -38,7 +38,14 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.commands import CommandConfig, track_commands
 from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
-from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels, is_standing, tracks_from_frames
+from crchfl_sumo.data.expert import (
+    ExpertConfig,
+    Track,
+    expert_labels,
+    is_standing,
+    target_speeds,
+    tracks_from_frames,
+)
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.recovery import draw_perturbations, perturbed_frame, recovery_steer
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
@@ -249,6 +256,7 @@ def generate_dataset(
             steer_class=labels.steer_class,
             command=labels.command,
             speed_mps=labels.speed_mps,
+            target_speed_mps=labels.target_speed_mps,
             perturbation=labels.perturbation,
             t_s=track.t_s[rows],
             x_m=track.x_m[rows],
@@ -271,6 +279,7 @@ class SampleLabels:
     steer_class: np.ndarray  # int64 [R]
     command: np.ndarray  # int64 [R]
     speed_mps: np.ndarray  # float32 [R]
+    target_speed_mps: np.ndarray  # float32 [R]; a recovery sample keeps its track's (only its pose moves)
     perturbation: np.ndarray  # float32 [R, 2] (lateral_m, yaw_deg)
 
 
@@ -297,6 +306,7 @@ def sample_labels(
         steer_class=digitize_steer(actions[:, 1]),
         command=track_commands(track.x_m, track.y_m, junctions, command)[rows],
         speed_mps=track.speed_mps[rows].astype(np.float32),
+        target_speed_mps=target_speeds(track, expert)[rows],
         perturbation=perturbation,
     )
 

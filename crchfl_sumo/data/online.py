@@ -28,7 +28,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import CommandConfig, track_commands
-from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels
+from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels, target_speeds
 from crchfl_sumo.data.generation import FUTURE_S
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.settings import OnlineConfig
@@ -79,7 +79,7 @@ class OnlineCollector:
         self._rows: dict[str, dict[str, list[float]]] = {v: {c: [] for c in ("t_s", *_COLUMNS)} for v in self.vehicles}
         self._sample_t: dict[str, list[float]] = {v: [] for v in self.vehicles}
         self._images: dict[str, list[np.ndarray]] = {v: [] for v in self.vehicles}
-        self._labels: dict[str, tuple[int, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._labels: dict[str, tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.t_s = -math.inf
 
     def observe(self, frame: Frame) -> None:
@@ -128,14 +128,14 @@ class OnlineCollector:
         if keep[0] > 0:  # on-board storage: the older samples are gone for good
             del self._sample_t[vehicle][: keep[0]], self._images[vehicle][: keep[0]]
             times, keep = times[keep[0] :], keep - keep[0]
-        actions, steer_class, commands = self._labels_for(vehicle)
+        actions, steer_class, commands, targets = self._labels_for(vehicle)
         rows = np.searchsorted(track_t, times[keep] - 1e-9)
         images = np.stack([self._images[vehicle][k] for k in keep])
         speed_mps = np.asarray(self._rows[vehicle]["speed_mps"], dtype=np.float32)[rows]
-        return Samples.from_numpy(images, actions[rows], steer_class[rows], commands[rows], speed_mps)
+        return Samples.from_numpy(images, actions[rows], steer_class[rows], commands[rows], speed_mps, targets[rows])
 
-    def _labels_for(self, vehicle: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Expert labels and commands over the vehicle's whole track so far (cached until the track grows)."""
+    def _labels_for(self, vehicle: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Expert labels, commands and target speeds over the vehicle's whole track so far (cached until it grows)."""
         store = self._rows[vehicle]
         n = len(store["t_s"])
         cached = self._labels.get(vehicle)
@@ -143,6 +143,6 @@ class OnlineCollector:
             track = Track(vehicle, *(np.asarray(store[c], dtype=np.float64) for c in ("t_s", *_COLUMNS)))
             actions, steer_class = expert_labels(track, self._expert)
             commands = track_commands(track.x_m, track.y_m, self._junctions, self._command)
-            cached = (n, actions, steer_class, commands)
+            cached = (n, actions, steer_class, commands, target_speeds(track, self._expert))
             self._labels[vehicle] = cached
-        return cached[1], cached[2], cached[3]
+        return cached[1:]

@@ -3,7 +3,8 @@
 One sample is one time step of one vehicle: the four camera images (order
 ``CAMERA_NAMES`` = CamH, CamF, CamL, CamR; HWC RGB, uint8), the action
 vector (throttle, steer, brake), the steer class (``labels.digitize_steer``),
-the route command (``labels.COMMAND_NAMES``) and the vehicle's speed [m/s].
+the route command (``labels.COMMAND_NAMES``), the vehicle's speed [m/s] and its
+target speed [m/s] (its speed ``ExpertConfig.speed_horizon_s`` later, data/expert.py).
 Images stay uint8 in memory (4x smaller than float32); the model normalises them.
 """
 
@@ -20,7 +21,7 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3
-FIELDS = ("images", "actions", "steer_class", "command", "speed_mps")  # the tensors, in constructor order
+FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps")  # the tensors, in constructor order
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,7 @@ class Samples:
     """N samples as torch tensors on the CPU (or any one device).
 
     images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N];
-    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps: float32 [N].
+    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N].
     """
 
     images: torch.Tensor
@@ -36,6 +37,7 @@ class Samples:
     steer_class: torch.Tensor
     command: torch.Tensor
     speed_mps: torch.Tensor
+    target_speed_mps: torch.Tensor
 
     def __post_init__(self) -> None:
         n = self.images.shape[0] if self.images.dim() else -1
@@ -55,12 +57,12 @@ class Samples:
             raise ValueError(f"command must be int64 [{n}], got {self.command.dtype} {tuple(self.command.shape)}")
         if n and (int(self.command.min()) < 0 or int(self.command.max()) >= NUM_COMMANDS):
             raise ValueError(f"command values must lie in 0..{NUM_COMMANDS - 1}")
-        if self.speed_mps.dtype != torch.float32 or tuple(self.speed_mps.shape) != (n,):
-            raise ValueError(
-                f"speed_mps must be float32 [{n}], got {self.speed_mps.dtype} {tuple(self.speed_mps.shape)}"
-            )
-        if n and not bool(torch.isfinite(self.speed_mps).all() and (self.speed_mps >= 0).all()):
-            raise ValueError("speed_mps values must be finite and >= 0")
+        for name in ("speed_mps", "target_speed_mps"):
+            speed = getattr(self, name)
+            if speed.dtype != torch.float32 or tuple(speed.shape) != (n,):
+                raise ValueError(f"{name} must be float32 [{n}], got {speed.dtype} {tuple(speed.shape)}")
+            if n and not bool(torch.isfinite(speed).all() and (speed >= 0).all()):
+                raise ValueError(f"{name} values must be finite and >= 0")
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -92,7 +94,12 @@ class Samples:
 
     @staticmethod
     def from_numpy(
-        images: np.ndarray, actions: np.ndarray, steer_class: np.ndarray, command: np.ndarray, speed_mps: np.ndarray
+        images: np.ndarray,
+        actions: np.ndarray,
+        steer_class: np.ndarray,
+        command: np.ndarray,
+        speed_mps: np.ndarray,
+        target_speed_mps: np.ndarray,
     ) -> Samples:
         """Build from numpy arrays (images are not copied when already uint8 and contiguous)."""
         return Samples(
@@ -101,6 +108,7 @@ class Samples:
             torch.from_numpy(np.ascontiguousarray(steer_class, dtype=np.int64)),
             torch.from_numpy(np.ascontiguousarray(command, dtype=np.int64)),
             torch.from_numpy(np.ascontiguousarray(speed_mps, dtype=np.float32)),
+            torch.from_numpy(np.ascontiguousarray(target_speed_mps, dtype=np.float32)),
         )
 
     @staticmethod
@@ -111,5 +119,6 @@ class Samples:
             torch.zeros((0, NUM_ACTIONS), dtype=torch.float32),
             torch.zeros((0,), dtype=torch.int64),
             torch.zeros((0,), dtype=torch.int64),
+            torch.zeros((0,), dtype=torch.float32),
             torch.zeros((0,), dtype=torch.float32),
         )

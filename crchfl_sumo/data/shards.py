@@ -7,7 +7,7 @@ Layout of a data set folder::
     DIR/<name>.h5         one vehicle's samples: datasets images uint8
                           [N,4,H,W,3] (one chunk per sample), actions float32
                           [N,3], steer_class int64 [N], command int64 [N],
-                          speed_mps float32 [N], perturbation float32 [N,2]
+                          speed_mps, target_speed_mps float32 [N], perturbation float32 [N,2]
                           (lateral_m, yaw_deg of a recovery sample's pose), t_s,
                           x_m, y_m, heading_rad float64 [N]; attributes
                           vehicle, town, edge, split
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "crchfl-sumo-dataset"
-FORMAT_VERSION = 2  # 2: command, speed_mps and perturbation per sample
+FORMAT_VERSION = 3  # 2: command, speed_mps and perturbation per sample; 3: target_speed_mps
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
 PERTURBATION_NAMES = ("lateral_m", "yaw_deg")  # positive = the rendered pose is left of / turned left of the track
@@ -51,6 +51,7 @@ LABEL_DATASETS = {
     "steer_class": np.int64,
     "command": np.int64,
     "speed_mps": np.float32,
+    "target_speed_mps": np.float32,
     "perturbation": np.float32,
     "t_s": np.float64,
     "x_m": np.float64,
@@ -83,6 +84,7 @@ class ShardData:
     steer_class: np.ndarray  # int64 [N]
     command: np.ndarray  # int64 [N], labels.COMMAND_NAMES
     speed_mps: np.ndarray  # float32 [N]
+    target_speed_mps: np.ndarray  # float32 [N], data/expert.py's target_speeds
     perturbation: np.ndarray  # float32 [N, 2] (lateral_m, yaw_deg); (0, 0) = rendered on the track
     t_s: np.ndarray  # float64 [N] simulated time of each sample
     x_m: np.ndarray  # float64 [N] vehicle centre
@@ -98,7 +100,7 @@ class ShardData:
             raise ValueError(f"actions must be [{n}, 3], got {self.actions.shape}")
         if self.perturbation.shape != (n, len(PERTURBATION_NAMES)):
             raise ValueError(f"perturbation must be [{n}, 2], got {self.perturbation.shape}")
-        for name in ("steer_class", "command", "speed_mps", "t_s", "x_m", "y_m", "heading_rad"):
+        for name in ("steer_class", "command", "speed_mps", "target_speed_mps", "t_s", "x_m", "y_m", "heading_rad"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be [{n}], got {getattr(self, name).shape}")
 

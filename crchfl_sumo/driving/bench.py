@@ -41,7 +41,7 @@ from crchfl_sumo.driving.bench_tasks import (
     without_traffic,
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
-from crchfl_sumo.driving.drive_command import single_torch_thread
+from crchfl_sumo.driving.drive_command import model_renderer, single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
@@ -120,17 +120,17 @@ class ModelDriver:
             self._model = load_model(self.path)
         return self._model
 
+    def renderer(self, net_path: str):
+        """The cameras as the model's training data drew them (drive_command.model_renderer)."""
+        from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+        return model_renderer(net_path, self.model().config, load_checkpoint(self.path).extra, self.path)
+
     def policy(self, route: RouteGeometry, net) -> Policy:
         # The commands as the training data was labelled: at the junctions of the net with a choice.
         return ModelPolicy(
             self.model(), RouteCommands(route, choice_junctions(net)), steer_decoding=self.steer_decoding
         )
-
-    def camera(self):
-        from crchfl_sumo.vision.camera import CameraConfig
-
-        config = self.model().config
-        return CameraConfig(height_px=config.image_height, width_px=config.image_width)
 
 
 def driver_for(
@@ -156,12 +156,7 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
     empty = without_traffic(scenario)
     traffic_of = {t.name: t.traffic for t in TASKS}
     net = read_net(Path(scenario.net_path))
-    renderer = None
-    if driver.renders:
-        from crchfl_sumo.vision.raster import RasterConfig, Renderer
-        from crchfl_sumo.vision.world import build_world
-
-        renderer = Renderer(build_world(scenario.net_path), RasterConfig(camera=driver.camera()))
+    renderer = driver.renderer(scenario.net_path) if driver.renders else None
     records = []
     with single_torch_thread(driver.renders):
         for episode in episodes:
@@ -218,7 +213,7 @@ def run_benchmark(
     ``model``: a checkpoint path, or None / 'reference' for the scripted
     driver. ``driver`` (instead of ``model``) is any object with ``label``,
     ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it
-    renders, ``camera()``; with ``jobs`` > 1 it must pickle. Returns the
+    renders, ``renderer(net_path)``; with ``jobs`` > 1 it must pickle. Returns the
     summary: ``results[TOWN][TASK]`` holds episodes, success_rate,
     route_completion, driving_score and infractions_per_km.
     """

@@ -27,6 +27,7 @@ import numpy as np
 
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.driving.bench import STUCK_S, ModelDriver
@@ -50,6 +51,7 @@ class ExpertLabelled:
         self.actions: list[Action] = []
         self.commands: list[int] = []
         self.speeds: list[float] = []
+        self.target_speeds: list[float] = []
 
     def __call__(self, observation: Observation) -> Action:
         action = self.learner(observation)
@@ -57,7 +59,11 @@ class ExpertLabelled:
             self.images.append(observation.images)
             self.actions.append(self.expert(observation))
             self.commands.append(self.learner.command(observation))
-            self.speeds.append(float(observation.frame.speed_mps[observation.ego_row]))
+            speed_mps = float(observation.frame.speed_mps[observation.ego_row])
+            self.speeds.append(speed_mps)
+            # No recorded future here: the speed the expert's wanted acceleration leads to.
+            wanted = self.expert.wanted_accel_mps2(observation)
+            self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.expert.expert))
         self.steps += 1
         return action
 
@@ -70,6 +76,7 @@ class ExpertLabelled:
             "steer_class": digitize_steer(actions[:, 1]),
             "command": np.asarray(self.commands, dtype=np.int64),
             "speed_mps": np.asarray(self.speeds, dtype=np.float32),
+            "target_speed_mps": np.asarray(self.target_speeds, dtype=np.float32),
         }
 
 
@@ -102,13 +109,10 @@ class DaggerConfig:
 
 def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> dict:
     """Drive ``episodes`` with the learner, labelled by the expert; the arrays of all of them."""
-    from crchfl_sumo.vision.raster import RasterConfig, Renderer
-    from crchfl_sumo.vision.world import build_world
-
     scenario = load_scenario(town)
     traffic = {name: task_by_name(name).traffic for name in config.tasks}
     net = read_net(Path(scenario.net_path))
-    renderer = Renderer(build_world(scenario.net_path), RasterConfig(camera=driver.camera()))
+    renderer = driver.renderer(scenario.net_path)
     parts = []
     with single_torch_thread(True):
         for episode in episodes:

@@ -10,6 +10,7 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
@@ -21,7 +22,7 @@ from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.vision.raster import RasterConfig, Renderer
-from crchfl_sumo.vision.world import build_world
+from crchfl_sumo.vision.world import WorldConfig, build_world
 
 
 def drive_command(
@@ -48,16 +49,15 @@ def drive_command(
     geometry = route_geometry(net, edges)
     if model_path is None:
         policy: Policy = RoutePolicy(geometry)
-        camera = CameraConfig()
+        renderer = Renderer(build_world(loaded.net_path))
         label = "route policy"
     else:
-        from crchfl_sumo.learning.checkpoint import load_model
+        from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
 
         model = load_model(model_path)
         policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding)
-        camera = CameraConfig(height_px=model.config.image_height, width_px=model.config.image_width)
+        renderer = model_renderer(loaded.net_path, model.config, load_checkpoint(model_path).extra, str(model_path))
         label = Path(model_path).stem
-    renderer = Renderer(build_world(loaded.net_path), RasterConfig(camera=camera))
     with single_torch_thread(model_path is not None):
         result = drive(
             loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
@@ -75,6 +75,19 @@ def drive_command(
     }
     write_drive_outputs(result, loaded, renderer, Path(out_dir), metrics, label, video=video)
     return metrics
+
+
+def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], where: str) -> Renderer:
+    """A model's cameras as its training data drew them: the data set's raster and world settings
+    (a checkpoint's extra "camera", copied from the manifest), or today's defaults at the model's image
+    size for a checkpoint written without them."""
+    camera = extra.get("camera")
+    if camera is None:
+        raster = RasterConfig(camera=CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width))
+        return Renderer(build_world(net_path), raster)
+    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}: extra.camera.raster")
+    world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}: extra.camera.world")
+    return Renderer(build_world(net_path, world), raster)
 
 
 @contextlib.contextmanager

@@ -210,7 +210,8 @@ class ModelPolicy:
     what data.commands expects): ``RouteCommands(route, choice_junctions(net))``,
     the same definition the training data was labelled with. A model of
     arch "paper" sees no command and may go without. The speed is the ego's
-    ``frame.speed_mps``.
+    ``frame.speed_mps``; a target-speed model's pedals are scaled by the ego's
+    acceleration limits.
     ``one_pedal``: apply only the stronger pedal (``one_pedal``), as the
     expert does; False passes both through to the dynamics.
     ``steer_decoding``: how the steer head's scores become a steer
@@ -250,8 +251,11 @@ class ModelPolicy:
         if observation.images is None:
             raise CrchflError("the model policy needs camera images; give drive() a renderer")
         images = torch.from_numpy(np.ascontiguousarray(observation.images))
-        speed_mps = float(observation.frame.speed_mps[observation.ego_row])
-        actions = predict_actions(self.model, images, self.command(observation), speed_mps, self.steer_decoding)
+        frame, row = observation.frame, observation.ego_row
+        actions = predict_actions(
+            self.model, images, self.command(observation), float(frame.speed_mps[row]), self.steer_decoding,
+            float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row]),
+        )
         throttle, steer, brake = (float(v) for v in actions)
         if self.one_pedal:
             throttle, brake = one_pedal(throttle, brake)

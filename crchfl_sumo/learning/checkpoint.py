@@ -69,8 +69,9 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         if "arch" in mapping:
             raise CrchflError(f"{path}: a format-1 checkpoint names model_config.arch; it was not written by crchfl-sumo")
         mapping["arch"] = "paper"
-    # Format-2 files written before command_pedals existed have an unconditioned pedal branch.
+    # Format-2 files written before command_pedals / longitudinal existed: an unconditioned pedal branch.
     mapping.setdefault("command_pedals", False)
+    mapping.setdefault("longitudinal", "pedals")
     model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     return Checkpoint(model_config, dict(payload["state_dict"]), dict(payload["extra"]))
 

@@ -2,7 +2,8 @@
 
 ``evaluate_model(model, samples)`` (``training.evaluate`` with a TrainConfig) gives, over a set of N samples:
 
-- loss: MSE of branch I (mean over throttle and brake) + cross-entropy of branch II;
+- loss: MSE of branch I (mean over throttle and brake, or on the scaled target
+  speed: model.longitudinal_target) + cross-entropy of branch II;
   loss_throttle_brake and loss_steer are the two parts (plain, unweighted means);
 - accuracy: top-1 steer-class accuracy, the paper's Accuracy;
 - confusion: the 7 x 7 matrix of counts, row = true class, column = predicted class;
@@ -16,7 +17,11 @@
   all seven;
 - steer_error: mean |steer_from_class(predicted class) - true analogue steer|,
   the error of the steer the vehicle would get after the DAC;
-- throttle_error, brake_error: mean absolute error of the two pedals.
+- throttle_error, brake_error: mean absolute error of the two pedals (a
+  target-speed model's pedals are model.longitudinal_pedals' at the sample's
+  speed, for SUMO's passenger car);
+- target_speed_error: mean absolute error of the target speed [m/s] (NaN for a
+  model that predicts pedals).
 
 ``always_straight(samples)`` gives the accuracy, balanced accuracy and steer
 error (mean |true steer|) of the constant prediction "class 0" (straight) on
@@ -34,7 +39,8 @@ from torch.nn import functional as F
 
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.model import DrivingModel
+from crchfl_sumo.learning.model import DrivingModel, longitudinal_pedals, longitudinal_target
+from crchfl_sumo.learning.settings import SPEED_SCALE_MPS
 
 STRAIGHT_CLASS = 0  # labels.STEER_CLASS_VALUES[0] == 0.0
 
@@ -54,6 +60,7 @@ class Evaluation:
     steer_error: float
     throttle_error: float
     brake_error: float
+    target_speed_error: float
 
     def record(self) -> dict:
         """The metrics as plain JSON values (NaN recall as None), num_samples as ``samples``."""
@@ -66,6 +73,7 @@ class Evaluation:
             "steer_error": self.steer_error,
             "throttle_error": self.throttle_error,
             "brake_error": self.brake_error,
+            "target_speed_error": None if math.isnan(self.target_speed_error) else self.target_speed_error,
             "recall": [None if math.isnan(r) else r for r in self.recall],
             "confusion": [list(row) for row in self.confusion],
             "samples": self.num_samples,
@@ -111,31 +119,34 @@ def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int =
     device = next(model.parameters()).device
     was_training = model.training
     model.eval()
-    sums = torch.zeros(5, dtype=torch.float64, device=device)  # MSE, CE, |throttle|, |brake|, |steer| sums
+    sums = np.zeros(6)  # MSE, CE, |throttle|, |brake|, |steer|, |target speed| sums
     predicted = []
     values = torch.as_tensor(STEER_CLASS_VALUES, device=device)
     try:
         for start in range(0, len(samples), eval_batch_size):
             batch = samples.subset(slice(start, start + eval_batch_size)).to(device)
-            throttle_brake, steer_logits = model(batch.images, batch.command, batch.speed_mps)
+            longitudinal, steer_logits = model(batch.images, batch.command, batch.speed_mps)
             guess = steer_logits.argmax(dim=1)
-            pedal_error = (throttle_brake - batch.actions[:, [0, 2]]).abs().double()
-            sums += torch.stack(
-                [
-                    (throttle_brake - batch.actions[:, [0, 2]]).double().square().mean(dim=1).sum(),
-                    F.cross_entropy(steer_logits.double(), batch.steer_class, reduction="sum"),
-                    pedal_error[:, 0].sum(),
-                    pedal_error[:, 1].sum(),
-                    (values[guess] - batch.actions[:, 1]).abs().double().sum(),
-                ]
-            )
+            target = longitudinal_target(model.config, batch.actions, batch.target_speed_mps)
+            output = longitudinal.double().cpu().numpy()
+            throttle, brake = longitudinal_pedals(model.config, output, batch.speed_mps.cpu().numpy())
+            actions = batch.actions.double().cpu().numpy()
+            speed_error = np.abs(output[:, 0] * SPEED_SCALE_MPS - batch.target_speed_mps.cpu().numpy()).sum()
+            sums += [
+                float((longitudinal - target).double().square().mean(dim=1).sum()),
+                float(F.cross_entropy(steer_logits.double(), batch.steer_class, reduction="sum")),
+                np.abs(throttle - actions[:, 0]).sum(),
+                np.abs(brake - actions[:, 2]).sum(),
+                float((values[guess] - batch.actions[:, 1]).abs().double().sum()),
+                speed_error if model.config.longitudinal == "target_speed" else math.nan,
+            ]
             predicted.append(guess.cpu())
     finally:
         model.train(was_training)
     n = len(samples)
     guesses = torch.cat(predicted).numpy() if predicted else np.zeros(0, np.int64)
     confusion = confusion_matrix(samples.steer_class.cpu().numpy(), guesses)
-    mse, ce, throttle, brake, steer = (v / n if n else math.nan for v in sums.tolist())
+    mse, ce, throttle, brake, steer, speed = (v / n if n else math.nan for v in sums.tolist())
     return Evaluation(
         loss=mse + ce,
         accuracy=float(np.trace(confusion) / n) if n else math.nan,
@@ -148,4 +159,5 @@ def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int =
         steer_error=steer,
         throttle_error=throttle,
         brake_error=brake,
+        target_speed_error=speed,
     )

@@ -1,6 +1,8 @@
 """The two-branch driving network of the CRCHFL paper, in one file with its config.
 
-Branch I sees the head camera (CamH) and regresses (throttle, brake).
+Branch I sees the head camera (CamH) and regresses (throttle, brake), or, with
+``ModelConfig.longitudinal = "target_speed"``, the speed to drive at
+(data/expert.py: the expert's speed 2 s ahead), which a controller turns into pedals.
 Branch II sees the front, left and right cameras stacked into 9 channels and
 classifies the steer into the 7 classes of ``labels.STEER_CLASS_VALUES``.
 Both branches share one topology (a PilotNet-like conv stack, adaptive average
@@ -40,6 +42,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from crchfl_sumo.data.expert import PASSENGER_MAX_ACCEL_MPS2, PASSENGER_MAX_DECEL_MPS2, pedals_towards
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES, steer_from_class
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
@@ -182,9 +185,12 @@ def _initialise(module: nn.Module) -> None:
 
 class DrivingModel(nn.Module):
     """(uint8 images [B, 4, H, W, 3], command int64 [B], speed_mps float [B]) ->
-    (throttle_brake [B, 2] in [0, 1], steer_logits [B, 7]).
+    (branch I [B, 2] or [B, 1], steer_logits [B, 7]).
 
-    Commands are 0..3 (labels.COMMAND_NAMES); the paper architecture ignores command and speed.
+    Branch I gives throttle and brake in [0, 1], or (longitudinal "target_speed")
+    the target speed / SPEED_SCALE_MPS, unbounded (longitudinal_target says what
+    it learns). Commands are 0..3 (labels.COMMAND_NAMES); the paper
+    architecture ignores command and speed.
     """
 
     def __init__(self, config: ModelConfig) -> None:
@@ -199,7 +205,7 @@ class DrivingModel(nn.Module):
         one_hot = config.command_input == "concat"
         pedal_heads, pedal_one_hot = (heads, one_hot) if config.command_pedals else (1, False)
         self.branch_throttle_brake = ConditionedBranch(
-            3, 2, shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
+            3, longitudinal_width(config), shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
         )
         self.branch_steer = ConditionedBranch(
             9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input
@@ -214,9 +220,42 @@ class DrivingModel(nn.Module):
         # [B, H, W, C] -> [B, C, H, W] is a view in channels_last layout: no copy.
         head = x[:, 0].permute(0, 3, 1, 2)
         sides = x[:, 1:4].permute(0, 2, 3, 1, 4).reshape(batch, height, width, 9).permute(0, 3, 1, 2)
-        throttle_brake = torch.sigmoid(self.branch_throttle_brake(head, command, speed_mps))
+        longitudinal = self.branch_throttle_brake(head, command, speed_mps)
+        if self.config.longitudinal == "pedals":
+            longitudinal = torch.sigmoid(longitudinal)
         steer_logits = self.branch_steer(sides, command, speed_mps)
-        return throttle_brake, steer_logits
+        return longitudinal, steer_logits
+
+
+def longitudinal_width(config: ModelConfig) -> int:
+    """Branch I's outputs: throttle and brake, or one target speed."""
+    return 2 if config.longitudinal == "pedals" else 1
+
+
+def longitudinal_target(config: ModelConfig, actions: torch.Tensor, target_speed_mps: torch.Tensor) -> torch.Tensor:
+    """What branch I learns, [B, longitudinal_width]: (throttle, brake) of ``actions``, or the scaled target speed."""
+    if config.longitudinal == "pedals":
+        return actions[:, [0, 2]]
+    return (target_speed_mps / SPEED_SCALE_MPS)[:, None]
+
+
+def longitudinal_pedals(
+    config: ModelConfig,
+    longitudinal: np.ndarray,
+    speed_mps: np.ndarray,
+    max_accel_mps2: np.ndarray | float = PASSENGER_MAX_ACCEL_MPS2,
+    max_decel_mps2: np.ndarray | float = PASSENGER_MAX_DECEL_MPS2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Branch I's output [B, width] -> (throttle [B], brake [B]); a target speed through expert.pedals_towards.
+
+    The vehicle's acceleration limits scale a target speed's pedals (SUMO's
+    passenger car unless given); predicted pedals pass through.
+    """
+    longitudinal = np.asarray(longitudinal, dtype=np.float64)
+    if config.longitudinal == "pedals":
+        return longitudinal[:, 0], longitudinal[:, 1]
+    target = np.maximum(longitudinal[:, 0] * SPEED_SCALE_MPS, 0.0)
+    return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -257,11 +296,14 @@ def predict_actions(
     command: torch.Tensor | np.ndarray | int,
     speed_mps: torch.Tensor | np.ndarray | float,
     steer_decoding: str = DEFAULT_STEER_DECODING,
+    max_accel_mps2: float = PASSENGER_MAX_ACCEL_MPS2,
+    max_decel_mps2: float = PASSENGER_MAX_DECEL_MPS2,
 ) -> np.ndarray:
     """uint8 images [B, 4, H, W, 3] with command [B] and speed_mps [B] -> float32 [B, 3];
     one sample ([4, H, W, 3], an int command, a float speed) -> float32 [3].
 
-    Columns are (throttle, steer, brake). ``steer_decoding`` (STEER_DECODINGS):
+    Columns are (throttle, steer, brake); a target-speed model's pedals are
+    longitudinal_pedals' for a vehicle of the given acceleration limits. ``steer_decoding`` (STEER_DECODINGS):
     "argmax" is the paper's DAC, the value of the most likely class; "expected"
     is the classes' values weighted by their softmax probabilities, a steer
     between the classes (0.125 steps are a 33 m radius each: argmax can only
@@ -281,14 +323,16 @@ def predict_actions(
     was_training = model.training
     model.eval()
     try:
-        throttle_brake, steer_logits = model(batch.to(device), command, speed_mps)
+        longitudinal, steer_logits = model(batch.to(device), command, speed_mps)
     finally:
         model.train(was_training)
-    throttle_brake = throttle_brake.cpu().numpy()
+    throttle, brake = longitudinal_pedals(
+        model.config, longitudinal.cpu().numpy(), speed_mps.cpu().numpy(), max_accel_mps2, max_decel_mps2
+    )
     if steer_decoding == "expected":
         probabilities = torch.softmax(steer_logits.float(), dim=1).cpu().numpy()
         steer = probabilities @ STEER_CLASS_VALUES
     else:
         steer = steer_from_class(steer_logits.argmax(dim=1).cpu().numpy())
-    actions = np.stack([throttle_brake[:, 0], steer, throttle_brake[:, 1]], axis=1).astype(np.float32)
+    actions = np.stack([throttle, steer, brake], axis=1).astype(np.float32)
     return actions[0] if single else actions

@@ -29,6 +29,9 @@ NORMS = ("group", "batch", "layer", "none")
 COMMAND_INPUTS = ("branched", "concat", "none")
 
 
+LONGITUDINALS = ("pedals", "target_speed")  # what branch I predicts (ModelConfig.longitudinal)
+
+
 @dataclass(frozen=True)
 class BranchShape:
     """Widths of one branch: conv layers as (out_channels, kernel, stride), pool grid, MLP widths."""
@@ -74,6 +77,9 @@ class ModelConfig:
         junction depends on the turn to come, which CamH cannot show.
     speed_input: the current speed (speed_mps / 10) is an input of both MLPs
         (default off: it did not help the pedals in docs/model.md's measurements).
+    longitudinal: what branch I predicts: "pedals" (the paper: throttle and
+        brake) or "target_speed" (the expert's speed ExpertConfig.speed_horizon_s
+        ahead, scaled by 1/10; expert.pedals_towards turns it into pedals).
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -84,11 +90,13 @@ class ModelConfig:
     command_input: Literal["branched", "concat", "none"] = "branched"
     command_pedals: bool = False
     speed_input: bool = False
+    longitudinal: Literal["pedals", "target_speed"] = "pedals"
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:
             raise CrchflError(f"model.size: {self.size!r} is unknown; use one of {', '.join(map(repr, SIZES))}")
-        for key, allowed in (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS)):
+        choices = (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS), ("longitudinal", LONGITUDINALS))
+        for key, allowed in choices:
             if getattr(self, key) not in allowed:
                 raise CrchflError(
                     f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
@@ -98,11 +106,11 @@ class ModelConfig:
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
-            for key in ("norm", "command_input", "command_pedals", "speed_input"):
+            for key in ("norm", "command_input", "command_pedals", "speed_input", "longitudinal"):
                 if getattr(self, key) != defaults[key].default:
                     raise CrchflError(
                         f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
-                        f"has no normalisation, command or speed input; drop the key or set arch = 'cil'"
+                        f"has no normalisation, command or speed input and predicts pedals; drop the key or set arch = 'cil'"
                     )
         if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
             raise CrchflError(

@@ -49,7 +49,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.balance import class_weights, epoch_batches
 from crchfl_sumo.learning.checkpoint import save_checkpoint
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
-from crchfl_sumo.learning.model import DrivingModel, State, build_model, model_from_state
+from crchfl_sumo.learning.model import DrivingModel, State, build_model, longitudinal_target, model_from_state
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 
 log = logging.getLogger(__name__)
@@ -106,18 +106,17 @@ def vehicle_seed(seed: int, vehicle_index: int) -> int:
 
 
 def branch_losses(
-    throttle_brake: torch.Tensor,
+    longitudinal: torch.Tensor,
     steer_logits: torch.Tensor,
-    actions: torch.Tensor,
+    longitudinal_target: torch.Tensor,
     steer_class: torch.Tensor,
     class_weight: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(MSE of branch I on throttle and brake, cross-entropy of branch II), batch means.
+    """(MSE of branch I on its target, model.longitudinal_target; cross-entropy of branch II), batch means.
 
     ``class_weight`` [7] (balance.class_weights) makes the cross-entropy a weighted mean.
     """
-    target = actions[:, [0, 2]]
-    return F.mse_loss(throttle_brake, target), F.cross_entropy(steer_logits, steer_class, weight=class_weight)
+    return F.mse_loss(longitudinal, longitudinal_target), F.cross_entropy(steer_logits, steer_class, weight=class_weight)
 
 
 def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
@@ -168,11 +167,14 @@ class Learner:
         done = 0
         for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator):
             indices = indices.to(self.device)
-            images, actions, steer_class = samples.images[indices], samples.actions[indices], samples.steer_class[indices]
+            images, steer_class = samples.images[indices], samples.steer_class[indices]
+            target = longitudinal_target(
+                self.model.config, samples.actions[indices], samples.target_speed_mps[indices]
+            )
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
-            throttle_brake, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
-            loss_tb, loss_steer = branch_losses(throttle_brake, steer_logits, actions, steer_class, weight)
+            longitudinal, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
+            loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, steer_class, weight)
             # The branches share no weights, so one backward of the sum gives each branch its own gradient.
             (loss_tb + loss_steer).backward()
             for optimizer in self.optimizers:
@@ -279,13 +281,13 @@ def _train_vehicles_vmap(
         images: torch.Tensor,
         command: torch.Tensor,
         speed_mps: torch.Tensor,
-        actions: torch.Tensor,
+        target: torch.Tensor,
         steer_class: torch.Tensor,
         weight: torch.Tensor,
         class_weight: torch.Tensor,
     ):
-        throttle_brake, steer_logits = functional_call(template, p, (images, command, speed_mps))
-        per_sample_tb = (throttle_brake - actions[:, [0, 2]]).square().mean(dim=1)
+        longitudinal, steer_logits = functional_call(template, p, (images, command, speed_mps))
+        per_sample_tb = (longitudinal - target).square().mean(dim=1)
         per_sample_steer = F.cross_entropy(steer_logits, steer_class, reduction="none")
         n = weight.sum()
         steer_weight = weight * class_weight[steer_class]  # torch's weighted mean, padding rows at 0
@@ -298,7 +300,7 @@ def _train_vehicles_vmap(
     num_steps = max((len(s) for s in schedules), default=0)
     for step in range(num_steps):
         active = [v for v in range(num_vehicles) if step < len(schedules[v])]
-        images, commands, speeds, actions, classes, weights = [], [], [], [], [], []
+        images, commands, speeds, targets, classes, weights = [], [], [], [], [], []
         for v in active:
             indices = schedules[v][step][1].to(device)
             n = len(indices)
@@ -310,7 +312,7 @@ def _train_vehicles_vmap(
             images.append(samples.images[indices])
             commands.append(samples.command[indices])
             speeds.append(samples.speed_mps[indices])
-            actions.append(samples.actions[indices])
+            targets.append(longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices]))
             classes.append(samples.steer_class[indices])
             weights.append(weight)
         every = len(active) == num_vehicles
@@ -321,7 +323,7 @@ def _train_vehicles_vmap(
             torch.stack(images),
             torch.stack(commands),
             torch.stack(speeds),
-            torch.stack(actions),
+            torch.stack(targets),
             torch.stack(classes),
             torch.stack(weights),
             steer_weights_on_device[rows],
@@ -382,8 +384,12 @@ def train_centralized(
     seed: int,
     progress: Progress | None = None,
     initial_state: State | None = None,
+    camera: dict | None = None,
 ) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
+
+    ``camera``: the data set's raster and world settings (``Manifest.camera``),
+    kept in the checkpoint's extra so that a drive renders what the model learned from.
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch and the test metrics of evaluation.py: loss,
@@ -442,6 +448,9 @@ def train_centralized(
             out_dir / CHECKPOINT_FILE,
             model_config,
             trainer.model.state_dict(),
-            {"epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record},
+            {
+                "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
+                **({} if camera is None else {"camera": camera}),
+            },
         )
     return records

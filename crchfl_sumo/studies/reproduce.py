@@ -255,12 +255,16 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
     """The upper bound: one model trained on every vehicle's data; summary.json beside learning/training.py's files."""
     from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.data.shards import read_manifest
     from crchfl_sumo.learning.training import train_centralized
 
     run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
     train = load_samples(out_dir / "data", "train")
     test = load_samples(out_dir / "data", "test")
-    records = train_centralized(train, test, config.centralized_epochs, folder, run.model, run.train, seed)
+    records = train_centralized(
+        train, test, config.centralized_epochs, folder, run.model, run.train, seed,
+        camera=read_manifest(out_dir / "data").camera,
+    )
     # the best epoch as the federation ranks its models: balanced accuracy, then accuracy, then loss
     best = max(records, key=lambda r: (r["balanced_accuracy"], r["accuracy"], -r["loss"]))
     summary = {

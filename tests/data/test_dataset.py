@@ -45,6 +45,7 @@ def fake_shard(n, seed):
         steer_class=digitize_steer(actions[:, 1]),
         command=rng.integers(0, 4, size=n),
         speed_mps=np.where(rng.random(n) < 0.3, 0.0, 8.0).astype(np.float32),
+        target_speed_mps=rng.uniform(0, 14, n).astype(np.float32),
         perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n)], axis=1).astype(np.float32)
         * (rng.random(n) < 0.5)[:, None],
         t_s=t_s,
@@ -217,11 +218,12 @@ def test_fast_path_and_torch_dataset_agree(tmp_path):
     dataset = ShardDataset(tmp_path, split="train")
     assert len(dataset) == 15
     for i in (0, 4, 5, 8, 9, 14, -1):
-        images, actions, steer_class, command, speed_mps = dataset[i]
+        images, actions, steer_class, command, speed_mps, target_speed_mps = dataset[i]
         assert torch.equal(images, samples.images[i])
         assert torch.equal(actions, samples.actions[i])
         assert int(steer_class) == int(samples.steer_class[i])
         assert int(command) == int(samples.command[i]) and float(speed_mps) == float(samples.speed_mps[i])
+        assert float(target_speed_mps) == float(samples.target_speed_mps[i])
     with pytest.raises(IndexError):
         dataset[15]
     batch = next(iter(torch.utils.data.DataLoader(dataset, batch_size=6)))

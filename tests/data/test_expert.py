@@ -10,9 +10,12 @@ from crchfl_sumo.data.expert import (
     expert_actions,
     expert_labels,
     pedals,
+    pedals_towards,
     pursuit_curvature,
     resistance_mps2,
     steer_from_curvature,
+    target_speed_from_accel,
+    target_speeds,
     tracks_from_frames,
 )
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
@@ -194,7 +197,37 @@ def test_tracks_from_frames_groups_by_vehicle_in_time_order():
     assert tracks_from_frames([]) == {}
 
 
+def test_target_speed_is_the_speed_two_seconds_later_on_the_track():
+    # 0.25 s samples: standing 1 s, then +1 m/s per sample (4 m/s^2) up to 6 m/s, then cruising.
+    speed = np.array([0.0] * 4 + [1.0, 2.0, 3.0, 4.0, 5.0, 6.0] + [6.0] * 6)
+    track = make_track(np.zeros(len(speed)), np.zeros(len(speed)), np.zeros(len(speed)), speed)
+    target = target_speeds(track, CFG)
+    assert target.dtype == np.float32 and len(target) == len(speed)
+    assert target[0] == speed[8] == 5.0  # 2 s = 8 samples ahead
+    assert target[3] == 6.0 and target[-1] == 6.0  # past the end: the last speed
+    assert target_speeds(track, ExpertConfig(speed_horizon_s=0.375))[4] == pytest.approx(2.5)  # between samples
+    assert len(target_speeds(make_track([], [], [], []), CFG)) == 0
+
+
+def test_pedals_towards_inverts_the_target_speed_of_a_constant_acceleration():
+    speed, accel = np.array([0.0, 4.0, 10.0, 10.0]), np.array([2.0, 1.0, 0.0, -3.0])
+    target = speed + CFG.speed_horizon_s * accel  # what a track holding these accelerations has 2 s later
+    limits = np.full(4, 2.6), np.full(4, 4.5)
+    assert [target_speed_from_accel(v, a) for v, a in zip(speed, accel)] == pytest.approx(target)
+    towards = pedals_towards(speed, target, *limits, CFG)
+    direct = pedals(speed, accel, *limits, CFG)
+    assert towards[0] == pytest.approx(direct[0]) and towards[1] == pytest.approx(direct[1])
+    # below STAND_TARGET_MPS a target is a stop: standing, the brake is held; moving, it brakes
+    throttle, brake = pedals_towards(np.array([0.0, 3.0]), np.array([0.8, 0.8]), *(a[:2] for a in limits), CFG)
+    assert throttle.tolist() == [0.0, 0.0] and brake[0] == CFG.hold_brake and brake[1] > 0
+    assert target_speed_from_accel(1.0, -4.5) == 0.0  # never below standing
+
+
 def test_config_rejects_bad_values():
+    with pytest.raises(CrchflError, match="speed_horizon_s"):
+        ExpertConfig(speed_horizon_s=0)
+    with pytest.raises(CrchflError, match="speed_horizon_s must be at most 5 s"):
+        ExpertConfig(speed_horizon_s=8)
     with pytest.raises(CrchflError, match="max_steer_angle_deg"):
         ExpertConfig(max_steer_angle_deg=0)
     with pytest.raises(CrchflError, match="hold_brake"):

@@ -13,6 +13,7 @@ def _make(n, h=8, w=10, seed=0):
         rng.integers(0, 7, size=n),
         rng.integers(0, 4, size=n),
         rng.uniform(0, 14, size=n),
+        rng.uniform(0, 14, size=n),
     )
 
 
@@ -33,6 +34,7 @@ def test_subset_picks_rows_in_order():
     assert sub.steer_class.tolist() == [s.steer_class[4].item(), s.steer_class[1].item()]
     assert sub.command.tolist() == [s.command[4].item(), s.command[1].item()]
     assert sub.speed_mps.tolist() == [s.speed_mps[4].item(), s.speed_mps[1].item()]
+    assert sub.target_speed_mps.tolist() == [s.target_speed_mps[4].item(), s.target_speed_mps[1].item()]
     assert len(s.subset(slice(1, 4))) == 3
 
 
@@ -43,6 +45,7 @@ def test_concat_round_trips_subsets():
     assert torch.equal(back.actions, s.actions)
     assert torch.equal(back.steer_class, s.steer_class)
     assert torch.equal(back.command, s.command) and torch.equal(back.speed_mps, s.speed_mps)
+    assert torch.equal(back.target_speed_mps, s.target_speed_mps)
 
 
 def test_concat_rejects_mixed_sizes_and_empty_list():
@@ -54,7 +57,7 @@ def test_concat_rejects_mixed_sizes_and_empty_list():
 
 def test_validation_rejects_bad_shapes_and_classes():
     s = _make(3)
-    rest = (s.command, s.speed_mps)
+    rest = (s.command, s.speed_mps, s.target_speed_mps)
     with pytest.raises(ValueError, match="images"):
         Samples(s.images.float(), s.actions, s.steer_class, *rest)
     with pytest.raises(ValueError, match="actions"):
@@ -62,13 +65,15 @@ def test_validation_rejects_bad_shapes_and_classes():
     with pytest.raises(ValueError, match="steer_class"):
         Samples(s.images, s.actions, torch.tensor([0, 7, 1]), *rest)
     with pytest.raises(ValueError, match="command"):
-        Samples(s.images, s.actions, s.steer_class, torch.tensor([0, 4, 1]), s.speed_mps)
+        Samples(s.images, s.actions, s.steer_class, torch.tensor([0, 4, 1]), *rest[1:])
     with pytest.raises(ValueError, match="command"):
-        Samples(s.images, s.actions, s.steer_class, s.command.int(), s.speed_mps)
+        Samples(s.images, s.actions, s.steer_class, s.command.int(), *rest[1:])
     with pytest.raises(ValueError, match="speed_mps"):
-        Samples(s.images, s.actions, s.steer_class, s.command, s.speed_mps.double())
+        Samples(s.images, s.actions, s.steer_class, s.command, s.speed_mps.double(), s.target_speed_mps)
     with pytest.raises(ValueError, match="speed_mps"):
-        Samples(s.images, s.actions, s.steer_class, s.command, torch.tensor([1.0, -0.5, 2.0]))
+        Samples(s.images, s.actions, s.steer_class, s.command, torch.tensor([1.0, -0.5, 2.0]), s.target_speed_mps)
+    with pytest.raises(ValueError, match="target_speed_mps"):
+        Samples(s.images, s.actions, s.steer_class, s.command, s.speed_mps, torch.tensor([1.0, float("nan"), 2.0]))
 
 
 def test_to_keeps_every_field():

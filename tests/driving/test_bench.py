@@ -326,3 +326,33 @@ def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tm
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["results"]["ladder"]["straight"]["episodes"] == 1
     assert main(["drive-bench", "reference", "--out", str(tmp_path / "c"), "--episodes", "0", "--towns", cfg]) == 2
     assert "--episodes must be >= 1" in capsys.readouterr().err
+
+
+def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
+    from crchfl_sumo.core.config import to_mapping
+    from crchfl_sumo.driving.bench import ModelDriver
+    from crchfl_sumo.learning.checkpoint import save_checkpoint
+    from crchfl_sumo.learning.model import build_model
+    from crchfl_sumo.learning.settings import ModelConfig
+    from crchfl_sumo.vision.camera import CameraConfig
+    from crchfl_sumo.vision.raster import RasterConfig
+    from crchfl_sumo.vision.world import WorldConfig
+
+    model = build_model(ModelConfig(image_height=48, image_width=64), seed=0)
+    net = str(ladder / "ladder.net.xml")
+    # A data set drawn with 1 px lamps and coarse ground: the manifest's camera block travels in the checkpoint.
+    raster = RasterConfig(camera=CameraConfig(height_px=48, width_px=64), lamp_min_radius_px=1.0)
+    world = WorldConfig(metres_per_pixel=0.2)
+    camera = {"raster": to_mapping(raster), "world": to_mapping(world)}
+    save_checkpoint(tmp_path / "with.pt", model.config, model.state_dict(), {"camera": camera})
+    renderer = ModelDriver(str(tmp_path / "with.pt")).renderer(net)
+    assert renderer.config == raster and renderer.world.config == world
+    # Written without it: today's defaults at the model's image size.
+    save_checkpoint(tmp_path / "without.pt", model.config, model.state_dict())
+    renderer = ModelDriver(str(tmp_path / "without.pt")).renderer(net)
+    assert renderer.config == RasterConfig(camera=CameraConfig(height_px=48, width_px=64))
+    assert renderer.world.config == WorldConfig()
+    bad = {"camera": {"raster": {**to_mapping(raster), "lamp_size": 3}, "world": to_mapping(world)}}
+    save_checkpoint(tmp_path / "bad.pt", model.config, model.state_dict(), bad)
+    with pytest.raises(CrchflError, match="bad.pt: extra.camera.raster"):
+        ModelDriver(str(tmp_path / "bad.pt")).renderer(net)

@@ -10,7 +10,7 @@ def _samples(classes, commands):
     n = len(classes)
     return Samples.from_numpy(
         np.zeros((n, 4, 48, 64, 3), np.uint8), np.zeros((n, 3), np.float32), np.array(classes), np.array(commands),
-        np.zeros(n, np.float32),
+        np.zeros(n, np.float32), np.zeros(n, np.float32),
     )
 
 
@@ -48,7 +48,7 @@ def test_pedal_balanced_sampling_draws_each_pedal_state_equally():
     actions[:, 2] = 0.9
     speed = np.r_[np.zeros(n_hold), np.full(n_brake, 6.0)].astype(np.float32)
     samples = Samples.from_numpy(np.zeros((100, 4, 48, 64, 3), np.uint8), actions, np.zeros(100, np.int64),
-                                 np.zeros(100, np.int64), speed)
+                                 np.zeros(100, np.int64), speed, speed)
     generator = torch.Generator().manual_seed(0)
     drawn = torch.cat([torch.cat(epoch_batches(samples, 32, "pedal_balanced", generator)) for _ in range(50)])
     assert (drawn >= n_hold).float().mean().item() == pytest.approx(0.5, abs=0.03)

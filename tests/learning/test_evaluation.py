@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.learning.evaluation import (
     always_straight,
     balanced_accuracy,
@@ -17,8 +18,9 @@ from crchfl_sumo.learning.evaluation import (
 class FixedModel(torch.nn.Module):
     """Predicts given pedals and steer classes for samples 0..N-1, whatever the input."""
 
-    def __init__(self, pedals, classes):
+    def __init__(self, pedals, classes, config=ModelConfig()):
         super().__init__()
+        self.config = config
         self.weight = torch.nn.Parameter(torch.zeros(1))  # evaluate reads the device from a parameter
         self.pedals = torch.tensor(pedals, dtype=torch.float32)
         self.classes = torch.tensor(classes)
@@ -36,7 +38,8 @@ def _samples(actions, classes, commands=None):
     images = np.zeros((n, 4, 48, 64, 3), np.uint8)
     images[:, 0, 0, 0, 0] = np.arange(n)
     commands = np.zeros(n, np.int64) if commands is None else commands
-    return Samples.from_numpy(images, np.array(actions, np.float32), np.array(classes), commands, np.arange(n) * 1.5)
+    return Samples.from_numpy(images, np.array(actions, np.float32), np.array(classes), commands, np.arange(n) * 1.5,
+                              np.arange(n) * 2.0)
 
 
 def test_confusion_recall_and_balanced_accuracy_by_hand():
@@ -93,6 +96,29 @@ def test_evaluate_model_by_hand():
     record = result.record()
     assert record["recall"][2] is None and record["recall"][5] == 1.0
     assert record["confusion"][0] == [1, 0, 1, 0, 0, 0, 0] and record["samples"] == 4
+
+
+def test_evaluate_target_speed_model_by_hand():
+    # sample speeds 0, 1.5, 3, 4.5 m/s, true target speeds 0, 2, 4, 6; predicted 0, 5, 1, 10 (scaled by 1/10)
+    actions = [[0.5, 0.0, 0.0], [0.0, 0.125, 1.0], [0.2, -0.275, 0.0], [1.0, 0.0, 0.0]]
+    model = FixedModel([[0.0], [0.5], [0.1], [1.0]], [0, 1, 5, 0], ModelConfig(longitudinal="target_speed"))
+    result = evaluate_model(model, _samples(actions, [0, 1, 5, 0]))
+    assert result.target_speed_error == pytest.approx((0 + 3 + 3 + 4) / 4)
+    assert result.loss_throttle_brake == pytest.approx((0 + 0.09 + 0.09 + 0.16) / 4)
+    # pedals through (target - v) / 2 s plus rolling resistance and drag, for 2.6 / 4.5 m/s^2:
+    # standing and told to stop -> hold brake 0.9; 1.5 -> 5 m/s: 1.75 m/s^2; 3 -> 1: -1; 4.5 -> 10: full throttle
+    resistance = [0.015 * 9.81 + 2.64e-4 * v * v for v in (1.5, 3.0)]
+    throttle = [0.0, (1.75 + resistance[0]) / 2.6, 0.0, 1.0]
+    brake = [0.9, 0.0, (1.0 - resistance[1]) / 4.5, 0.0]
+    assert result.throttle_error == pytest.approx(np.mean(np.abs(np.array(throttle) - [0.5, 0.0, 0.2, 1.0])))
+    assert result.brake_error == pytest.approx(np.mean(np.abs(np.array(brake) - [0.0, 1.0, 0.0, 0.0])))
+    assert result.record()["target_speed_error"] == pytest.approx(2.5)
+
+
+def test_a_pedal_model_has_no_target_speed_error():
+    model = FixedModel([[0.5, 0.0]] * 2, [0, 0])
+    result = evaluate_model(model, _samples([[0.5, 0.0, 0.0]] * 2, [0, 0]))
+    assert math.isnan(result.target_speed_error) and result.record()["target_speed_error"] is None
 
 
 def test_evaluate_model_on_no_samples():

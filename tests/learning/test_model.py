@@ -50,6 +50,35 @@ def test_output_shapes_and_ranges(height, width, options):
     assert torch.isfinite(steer_logits).all()
 
 
+def test_a_target_speed_model_has_one_unbounded_branch_i_output():
+    config = ModelConfig("compact", 48, 64, longitudinal="target_speed")
+    model = build_model(config, seed=0)
+    with torch.no_grad():
+        model.branch_throttle_brake.heads[0][-1].bias.fill_(1.3)  # 13 m/s: beyond a sigmoid's range
+    target, steer_logits = model(_images(5, config), COMMANDS, SPEEDS)
+    assert target.shape == (5, 1) and steer_logits.shape == (5, 7)
+    assert target.min() > 1.0
+
+
+def test_predict_actions_of_a_target_speed_model_drives_towards_it():
+    config = ModelConfig("compact", 48, 64, longitudinal="target_speed")
+    model = build_model(config, seed=0)
+    head = model.branch_throttle_brake.heads[0][-1]
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.fill_(0.5)  # 5 m/s whatever the images
+    speed = torch.tensor([0.0, 5.0, 9.0])
+    actions = predict_actions(model, _images(3), torch.tensor([0, 0, 0]), speed, max_accel_mps2=2.0, max_decel_mps2=4.0)
+    # (5 - v) / 2 s: +2.5 m/s^2 (full throttle), 0 (throttle for rolling resistance and drag), -2 (brake)
+    assert actions[0, 0] == pytest.approx(1.0) and actions[0, 2] == 0
+    assert actions[1, 0] == pytest.approx((0.015 * 9.81 + 2.64e-4 * 25) / 2.0, rel=1e-5) and actions[1, 2] == 0
+    assert actions[2, 0] == 0 and actions[2, 2] == pytest.approx((2.0 - 0.015 * 9.81 - 2.64e-4 * 81) / 4.0, rel=1e-5)
+    with torch.no_grad():
+        head.bias.fill_(0.09)  # 0.9 m/s: below STAND_TARGET_MPS, a stop
+    standing = predict_actions(model, _images(1)[0], 0, 0.0)
+    assert standing[0] == 0 and standing[2] == pytest.approx(0.9)  # holds the brake, does not creep
+
+
 def test_parameter_count_does_not_depend_on_image_size():
     for options in ({}, {"arch": "paper"}):
         counts = {
@@ -205,13 +234,17 @@ def test_config_validation_and_round_trip():
         ModelConfig("compact", 32, 64)
     with pytest.raises(CrchflError, match="size"):
         ModelConfig("huge")
-    config = ModelConfig("paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True)
+    config = ModelConfig(
+        "paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True,
+        longitudinal="target_speed",
+    )
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
+        "longitudinal": "target_speed",
     }
-    for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film")):
+    for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film"), ("longitudinal", "gear")):
         with pytest.raises(CrchflError, match=f"model.{key}: '{value}' is unknown"):
             ModelConfig(**{key: value})
     with pytest.raises(CrchflError, match="model.speed_input"):
@@ -224,6 +257,8 @@ def test_config_validation_and_round_trip():
         ModelConfig(arch="paper", norm="batch")
     with pytest.raises(CrchflError, match="model.command_input"):
         ModelConfig(arch="paper", command_input="concat")
+    with pytest.raises(CrchflError, match="model.longitudinal: 'target_speed' applies to arch 'cil' only"):
+        ModelConfig(arch="paper", longitudinal="target_speed")
 
 
 def test_model_from_state_copies_weights_and_leaves_the_rng_alone():

@@ -19,6 +19,7 @@ def _samples(n, seed):
         np.where(rng.random(n) < 0.8, 0, rng.integers(1, 7, size=n)),
         rng.integers(0, 4, size=n),
         rng.random(n, dtype=np.float32) * 12,
+        rng.random(n, dtype=np.float32) * 12,
     )
 
 

@@ -26,6 +26,7 @@ def _samples(n, seed):
         rng.integers(0, 7, size=n),
         rng.integers(0, 4, size=n),
         rng.uniform(0, 14, size=n),
+        rng.uniform(0, 14, size=n),
     )
 
 
@@ -69,7 +70,7 @@ def _max_difference(a, b):
         # rounding of grouped convolutions to about one step in a few weights (measured); the ragged
         # drop-out of vehicles happens within the first epoch already.
         (SMALL, dict(sampling="uniform", class_weighting="sqrt_inverse"), 1),  # the defaults
-        (ModelConfig("compact", 48, 64, speed_input=True), dict(sampling="class_balanced"), 1),
+        (ModelConfig("compact", 48, 64, speed_input=True, longitudinal="target_speed"), dict(sampling="class_balanced"), 1),
         (ModelConfig("compact", 48, 64, arch="paper"), dict(sampling="command_balanced", learning_rate=1e-4), 2),
     ],
 )
@@ -122,7 +123,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
     assert raw["model_config"] == {
         "size": "compact", "image_height": 48, "image_width": 64,
         "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
-        "speed_input": False,
+        "speed_input": False, "longitudinal": "pedals",
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
@@ -154,7 +155,8 @@ def test_a_format_1_checkpoint_loads_as_the_paper_architecture(tmp_path):
 def test_a_format_2_checkpoint_without_command_pedals_has_an_unconditioned_pedal_branch(tmp_path):
     before = ModelConfig("compact", 48, 64, command_pedals=False)
     model = build_model(before, seed=0)
-    mapping = {k: v for k, v in to_mapping(before).items() if k != "command_pedals"}  # written before the key
+    new_keys = ("command_pedals", "longitudinal")
+    mapping = {k: v for k, v in to_mapping(before).items() if k not in new_keys}  # written before the keys
     torch.save({"format": "crchfl-sumo-model/2", "model_config": mapping, "state_dict": model.state_dict(),
                 "extra": {}}, tmp_path / "before.pt")
     assert load_checkpoint(tmp_path / "before.pt").model_config == before

@@ -136,6 +136,7 @@ def _random_samples(n: int, rng: np.random.Generator) -> Samples:
         rng.integers(0, 7, size=n).astype(np.int64),
         rng.integers(0, 4, size=n),
         rng.uniform(0, 14, size=n),
+        rng.uniform(0, 14, size=n),
     )
 
 
