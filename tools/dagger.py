@@ -11,7 +11,8 @@ Prints one line per model: balanced accuracy on the data set's test split and
 the closed-loop success, completion and driving score per task.
 
 Usage: python tools/dagger.py CHECKPOINT DATASET --out DIR [--iterations 1] [--episodes 4]
-       [--epochs 3] [--bench-episodes 6] [--tasks straight,one_turn] [--towns town01] [--jobs 2]
+       [--epochs 3] [--dagger-tasks straight,one_turn,navigation] [--towns town01]
+       [--bench-episodes 6] [--tasks straight,one_turn] [--bench-towns TOWNS] [--jobs 2]
 """
 
 from __future__ import annotations
@@ -44,13 +45,16 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=4, help="DAgger drives per task and town")
     parser.add_argument("--epochs", type=int, default=3, help="fine-tuning epochs per iteration")
     parser.add_argument("--bench-episodes", type=int, default=6)
-    parser.add_argument("--tasks", default="straight,one_turn")
-    parser.add_argument("--towns", default="town01")
+    parser.add_argument("--dagger-tasks", default=",".join(DaggerConfig().tasks), help="suites the DAgger drives use")
+    parser.add_argument("--tasks", default="straight,one_turn", help="suites the benchmark scores")
+    parser.add_argument("--towns", default="town01", help="towns the DAgger drives use")
+    parser.add_argument("--bench-towns", default=None, help="towns the benchmark scores (default: --towns)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
     args = parser.parse_args()
     towns = tuple(args.towns.split(","))
+    bench_towns = towns if args.bench_towns is None else tuple(args.bench_towns.split(","))
     bench = BenchConfig(tasks=tuple(args.tasks.split(",")))
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
     checkpoint = args.checkpoint
@@ -58,12 +62,12 @@ def main() -> None:
     lines = []
     if not args.no_start_bench:
         lines.append(bench_line("start", run_benchmark(checkpoint, args.out / "bench-0", episodes=args.bench_episodes,
-                                                       jobs=args.jobs, towns=towns, config=bench),
+                                                       jobs=args.jobs, towns=bench_towns, config=bench),
                                 evaluate(load_model(checkpoint), test).balanced_accuracy))
         print(lines[-1], flush=True)
     collected: list[Samples] = []
     for iteration in range(1, args.iterations + 1):
-        config = DaggerConfig(episodes=args.episodes, seed=1000 + iteration)
+        config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes, seed=1000 + iteration)
         collected.append(collect(checkpoint, towns, config, jobs=args.jobs))
         folder = args.out / f"iteration-{iteration}"
         records = train_centralized(
@@ -73,7 +77,7 @@ def main() -> None:
         )
         checkpoint = folder / "checkpoint.pt"
         summary = run_benchmark(checkpoint, folder / "bench", episodes=args.bench_episodes, jobs=args.jobs,
-                                towns=towns, config=bench)
+                                towns=bench_towns, config=bench)
         lines.append(bench_line(f"iteration {iteration} (+{sum(len(c) for c in collected)} expert-labelled samples)",
                                 summary, records[-1]["balanced_accuracy"]))
         print(lines[-1], flush=True)

@@ -77,9 +77,11 @@ class ModelConfig:
         junction depends on the turn to come, which CamH cannot show.
     speed_input: the current speed (speed_mps / 10) is an input of both MLPs
         (default off: it did not help the pedals in docs/model.md's measurements).
-    longitudinal: what branch I predicts: "pedals" (the paper: throttle and
-        brake) or "target_speed" (the expert's speed ExpertConfig.speed_horizon_s
-        ahead, scaled by 1/10; expert.pedals_towards turns it into pedals).
+    longitudinal: what branch I predicts: "target_speed" (the default of arch
+        "cil": the expert's speed ExpertConfig.speed_horizon_s ahead, scaled by
+        1/10; expert.pedals_towards turns it into pedals) or "pedals" (throttle
+        and brake, the paper's; the only choice of arch "paper"). Unset, it is
+        the architecture's default (docs/model.md measures both).
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -90,9 +92,11 @@ class ModelConfig:
     command_input: Literal["branched", "concat", "none"] = "branched"
     command_pedals: bool = False
     speed_input: bool = False
-    longitudinal: Literal["pedals", "target_speed"] = "pedals"
+    longitudinal: Literal["pedals", "target_speed"] | None = None
 
     def __post_init__(self) -> None:
+        if self.longitudinal is None:  # frozen: the architecture's default is filled in once, here
+            object.__setattr__(self, "longitudinal", "pedals" if self.arch == "paper" else "target_speed")
         if self.size not in SIZES:
             raise CrchflError(f"model.size: {self.size!r} is unknown; use one of {', '.join(map(repr, SIZES))}")
         choices = (("arch", ARCHS), ("norm", NORMS), ("command_input", COMMAND_INPUTS), ("longitudinal", LONGITUDINALS))
@@ -106,8 +110,9 @@ class ModelConfig:
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
-            for key in ("norm", "command_input", "command_pedals", "speed_input", "longitudinal"):
-                if getattr(self, key) != defaults[key].default:
+            paper_values = {key: defaults[key].default for key in ("norm", "command_input", "command_pedals", "speed_input")}
+            for key, value in {**paper_values, "longitudinal": "pedals"}.items():
+                if getattr(self, key) != value:
                     raise CrchflError(
                         f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
                         f"has no normalisation, command or speed input and predicts pedals; drop the key or set arch = 'cil'"

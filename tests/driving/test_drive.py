@@ -423,13 +423,13 @@ def test_model_policy_feeds_the_route_command_and_the_ego_speed(roads):
     scenario = load_scenario(roads / "straight.sumocfg")
     geometry = route_geometry(read_net(Path(scenario.net_path)), ["AC"])
     model = build_model(ModelConfig(), seed=0)
-    with torch.no_grad():  # steer head k says class k + 1, whatever the images; full throttle
+    with torch.no_grad():  # steer head k says class k + 1, whatever the images; a 14 m/s target speed
         for k, head in enumerate(model.branch_steer.heads):
             head[-1].weight.zero_()
             head[-1].bias.copy_(torch.nn.functional.one_hot(torch.tensor(k + 1), 7) * 5.0)
-        pedals_out = model.branch_throttle_brake.heads[0][-1]
-        pedals_out.weight.zero_()
-        pedals_out.bias.copy_(torch.tensor([5.0, -5.0]))
+        target_out = model.branch_throttle_brake.heads[0][-1]
+        target_out.weight.zero_()
+        target_out.bias.fill_(1.4)
     seen = []
     model.branch_throttle_brake.register_forward_pre_hook(lambda module, args: seen.append(args[2].clone()))
     renderer = Renderer(build_world(scenario.net_path))

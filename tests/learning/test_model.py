@@ -44,10 +44,12 @@ def _run(model, images, command=None, speed=None):
 )
 def test_output_shapes_and_ranges(height, width, options):
     config = ModelConfig("compact", height, width, **options)
-    throttle_brake, steer_logits = build_model(config, seed=0)(_images(5, config), COMMANDS, SPEEDS)
-    assert throttle_brake.shape == (5, 2) and steer_logits.shape == (5, 7)
-    assert throttle_brake.min() >= 0 and throttle_brake.max() <= 1
-    assert torch.isfinite(steer_logits).all()
+    longitudinal, steer_logits = build_model(config, seed=0)(_images(5, config), COMMANDS, SPEEDS)
+    assert config.longitudinal == ("pedals" if options.get("arch") == "paper" else "target_speed")  # the defaults
+    assert longitudinal.shape == (5, 2 if config.longitudinal == "pedals" else 1) and steer_logits.shape == (5, 7)
+    if config.longitudinal == "pedals":
+        assert longitudinal.min() >= 0 and longitudinal.max() <= 1
+    assert torch.isfinite(longitudinal).all() and torch.isfinite(steer_logits).all()
 
 
 def test_a_target_speed_model_has_one_unbounded_branch_i_output():
@@ -204,7 +206,7 @@ def test_expected_steer_decoding_weights_the_class_values_by_probability():
 
 
 def test_predict_actions_passes_command_and_speed():
-    model = build_model(SMALL, seed=0)
+    model = build_model(ModelConfig("compact", 48, 64, longitudinal="pedals"), seed=0)
     images = _images(3)
     command, speed = torch.tensor([1, 2, 3]), torch.tensor([0.0, 4.0, 11.0])
     throttle_brake, logits = model.eval()(images, command, speed)

@@ -45,8 +45,8 @@ def test_evaluate_matches_a_direct_computation_and_ignores_batching():
     model = build_model(SMALL, seed=0)
     small_batches = evaluate(model, samples, TrainConfig(device="cpu", eval_batch_size=5))
     with torch.no_grad():
-        throttle_brake, logits = model.eval()(samples.images, samples.command, samples.speed_mps)
-    mse = ((throttle_brake - samples.actions[:, [0, 2]]) ** 2).mean().item()
+        target_speed, logits = model.eval()(samples.images, samples.command, samples.speed_mps)
+    mse = ((target_speed[:, 0] - samples.target_speed_mps / 10) ** 2).mean().item()  # the default: target speed
     ce = torch.nn.functional.cross_entropy(logits, samples.steer_class).item()
     accuracy = (logits.argmax(1) == samples.steer_class).float().mean().item()
     assert small_batches.loss_throttle_brake == pytest.approx(mse, rel=1e-5)
@@ -70,7 +70,7 @@ def _max_difference(a, b):
         # rounding of grouped convolutions to about one step in a few weights (measured); the ragged
         # drop-out of vehicles happens within the first epoch already.
         (SMALL, dict(sampling="uniform", class_weighting="sqrt_inverse"), 1),  # the defaults
-        (ModelConfig("compact", 48, 64, speed_input=True, longitudinal="target_speed"), dict(sampling="class_balanced"), 1),
+        (ModelConfig("compact", 48, 64, speed_input=True, longitudinal="pedals"), dict(sampling="class_balanced"), 1),
         (ModelConfig("compact", 48, 64, arch="paper"), dict(sampling="command_balanced", learning_rate=1e-4), 2),
     ],
 )
@@ -123,7 +123,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
     assert raw["model_config"] == {
         "size": "compact", "image_height": 48, "image_width": 64,
         "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
-        "speed_input": False, "longitudinal": "pedals",
+        "speed_input": False, "longitudinal": "target_speed",
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
@@ -153,7 +153,7 @@ def test_a_format_1_checkpoint_loads_as_the_paper_architecture(tmp_path):
 
 
 def test_a_format_2_checkpoint_without_command_pedals_has_an_unconditioned_pedal_branch(tmp_path):
-    before = ModelConfig("compact", 48, 64, command_pedals=False)
+    before = ModelConfig("compact", 48, 64, command_pedals=False, longitudinal="pedals")
     model = build_model(before, seed=0)
     new_keys = ("command_pedals", "longitudinal")
     mapping = {k: v for k, v in to_mapping(before).items() if k not in new_keys}  # written before the keys
