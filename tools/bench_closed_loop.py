@@ -11,7 +11,11 @@ Recipes are NAME=KEY:VALUE,KEY:VALUE with keys of ModelConfig or TrainConfig,
 for example  base=  speed=speed_input:true  pedals=speed_input:true,sampling:pedal_balanced
 
 Usage: python tools/bench_closed_loop.py DATASET --out DIR [--epochs 6] [--episodes 6]
-       [--tasks straight,one_turn] [--towns town01] [--jobs 2] [--steer-decoding argmax] RECIPE...
+       [--tasks straight,one_turn] [--towns town01] [--train-towns TOWNS] [--jobs 2]
+       [--steer-decoding argmax] RECIPE...
+
+--train-towns trains on those towns' shards only (the test split stays whole):
+train on town01, drive in town02 to measure generalisation to an unseen town.
 """
 
 from __future__ import annotations
@@ -70,12 +74,20 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=6)
     parser.add_argument("--episodes", type=int, default=6)
     parser.add_argument("--tasks", default="straight,one_turn")
-    parser.add_argument("--towns", default="town01")
+    parser.add_argument("--towns", default="town01", help="towns the benchmark drives")
+    parser.add_argument("--train-towns", default=None, help="train on these towns' shards only (default: all)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--steer-decoding", default="argmax")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+    manifest = read_manifest(Path(args.dataset))
+    vehicles = None
+    if args.train_towns is not None:
+        towns = set(args.train_towns.split(","))
+        vehicles = [s.vehicle for s in manifest.select("train") if s.town in towns]
+        if not vehicles:
+            raise SystemExit(f"--train-towns {args.train_towns}: no training shard of those towns in {args.dataset}")
+    train, test = load_samples(args.dataset, "train", vehicles), load_samples(args.dataset, "test")
     config = BenchConfig(tasks=tuple(args.tasks.split(",")), steer_decoding=args.steer_decoding)
     rows = []
     for name, model_overrides, train_overrides in map(parse_recipe, args.recipes):
@@ -83,7 +95,7 @@ def main() -> None:
         records = train_centralized(
             train, test, args.epochs, folder,
             ModelConfig(**{"image_height": 64, "image_width": 128, **model_overrides}),
-            TrainConfig(**train_overrides), args.seed, camera=read_manifest(args.dataset).camera,
+            TrainConfig(**train_overrides), args.seed, camera=manifest.camera,
         )
         best = records[-1]
         summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.episodes, jobs=args.jobs,

@@ -21,15 +21,35 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 from bench_closed_loop import task_columns  # tools/ is on the path when this script runs
 
+from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.data.dataset import load_samples
-from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.dagger import DaggerConfig, collect
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.training import evaluate, train_centralized
+
+
+def expert_samples(folder: Path, checkpoint: Path, towns: tuple[str, ...], config: DaggerConfig, jobs: int) -> Samples:
+    """One iteration's expert-labelled samples: read back from FOLDER/expert_samples.npz, else collected and kept there.
+
+    A rerun with more --iterations and the same --out goes on from the last finished iteration.
+    The collection is deterministic (seeded drives, one torch thread), so an earlier run's
+    iteration without the file is collected again from its start checkpoint.
+    """
+    path = folder / "expert_samples.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as stored:
+            return Samples.from_numpy(**{name: stored[name] for name in FIELDS})
+    samples = collect(checkpoint, towns, config, jobs=jobs)
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temp, open(temp, "wb") as out:
+        np.savez(out, **{name: getattr(samples, name).numpy() for name in FIELDS})
+    return samples
 
 
 def bench_line(name: str, summary: dict, balanced: float) -> str:
@@ -67,17 +87,21 @@ def main() -> None:
         print(lines[-1], flush=True)
     collected: list[Samples] = []
     for iteration in range(1, args.iterations + 1):
-        config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes, seed=1000 + iteration)
-        collected.append(collect(checkpoint, towns, config, jobs=args.jobs))
         folder = args.out / f"iteration-{iteration}"
-        records = train_centralized(
-            Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
-            args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
-            camera=start.extra.get("camera"),
-        )
+        config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes, seed=1000 + iteration)
+        collected.append(expert_samples(folder, checkpoint, towns, config, args.jobs))
+        if (folder / "bench" / "summary.json").is_file():  # finished in an earlier run with the same --out
+            summary = json.loads((folder / "bench" / "summary.json").read_text())
+            records = [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
+        else:
+            records = train_centralized(
+                Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
+                args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
+                camera=start.extra.get("camera"),
+            )
+            summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.bench_episodes,
+                                    jobs=args.jobs, towns=bench_towns, config=bench)
         checkpoint = folder / "checkpoint.pt"
-        summary = run_benchmark(checkpoint, folder / "bench", episodes=args.bench_episodes, jobs=args.jobs,
-                                towns=bench_towns, config=bench)
         lines.append(bench_line(f"iteration {iteration} (+{sum(len(c) for c in collected)} expert-labelled samples)",
                                 summary, records[-1]["balanced_accuracy"]))
         print(lines[-1], flush=True)

@@ -21,7 +21,8 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3
-FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps")  # the tensors, in constructor order
+# The tensors, in constructor order.
+FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps")
 
 
 @dataclass(frozen=True)

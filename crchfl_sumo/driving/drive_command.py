@@ -83,7 +83,8 @@ def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], wh
     size for a checkpoint written without them."""
     camera = extra.get("camera")
     if camera is None:
-        raster = RasterConfig(camera=CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width))
+        size = CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width)
+        raster = RasterConfig(camera=size)
         return Renderer(build_world(net_path), raster)
     raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}: extra.camera.raster")
     world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}: extra.camera.world")

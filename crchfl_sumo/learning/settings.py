@@ -110,12 +110,13 @@ class ModelConfig:
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
-            paper_values = {key: defaults[key].default for key in ("norm", "command_input", "command_pedals", "speed_input")}
+            paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input")}
             for key, value in {**paper_values, "longitudinal": "pedals"}.items():
                 if getattr(self, key) != value:
                     raise CrchflError(
                         f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
-                        f"has no normalisation, command or speed input and predicts pedals; drop the key or set arch = 'cil'"
+                        "has no normalisation, command or speed input and predicts pedals; drop the key or set "
+                        "arch = 'cil'"
                     )
         if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
             raise CrchflError(

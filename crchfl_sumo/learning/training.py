@@ -116,7 +116,8 @@ def branch_losses(
 
     ``class_weight`` [7] (balance.class_weights) makes the cross-entropy a weighted mean.
     """
-    return F.mse_loss(longitudinal, longitudinal_target), F.cross_entropy(steer_logits, steer_class, weight=class_weight)
+    steer_loss = F.cross_entropy(steer_logits, steer_class, weight=class_weight)
+    return F.mse_loss(longitudinal, longitudinal_target), steer_loss
 
 
 def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
@@ -312,7 +313,8 @@ def _train_vehicles_vmap(
             images.append(samples.images[indices])
             commands.append(samples.command[indices])
             speeds.append(samples.speed_mps[indices])
-            targets.append(longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices]))
+            target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
+            targets.append(target)
             classes.append(samples.steer_class[indices])
             weights.append(weight)
         every = len(active) == num_vehicles

@@ -47,8 +47,8 @@ class FixedTrainer(SumTrainer):
 
 def _samples(n: int) -> Samples:
     return Samples.from_numpy(
-        np.zeros((n, 4, 1, 1, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64), np.zeros(n), np.zeros(n),
-        np.zeros(n),
+        np.zeros((n, 4, 1, 1, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64), np.zeros(n),
+        np.zeros(n), np.zeros(n),
     )
 
 

@@ -5,7 +5,6 @@ import pytest
 import torch
 
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.learning.evaluation import (
     always_straight,
     balanced_accuracy,
@@ -13,6 +12,7 @@ from crchfl_sumo.learning.evaluation import (
     evaluate_model,
     recall_per_class,
 )
+from crchfl_sumo.learning.settings import ModelConfig
 
 
 class FixedModel(torch.nn.Module):
