@@ -243,16 +243,17 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     }
 
 
-def link_handovers(clock, vehicles, back_within_s: float = 5.0) -> tuple[int, int]:
+def link_handovers(clock, vehicles) -> tuple[int, int]:
     """Site-to-site changes of the clients' serving edge site over the simulated span the run used,
-    and how many of them went back to the site served before within ``back_within_s`` (ping-pong)."""
-    count = back = 0
+    and how many of them went back to the site served before within 5 s (mobility.ping_pongs)."""
+    from crchfl_sumo.links.mobility import Handover, ping_pongs
+
+    events = []
     for v in vehicles:
         link = clock.series(v, "edge", clock.start_s, clock.t_s)
-        changes = [(t, a, b) for t, a, b in zip(link.t_s[1:], link.site[:-1], link.site[1:]) if a != b and a >= 0 and b >= 0]
-        count += len(changes)
-        back += sum(1 for (t0, a0, _), (t1, _, b1) in zip(changes, changes[1:]) if b1 == a0 and t1 - t0 <= back_within_s)
-    return count, back
+        events += [Handover(float(t), v, int(a), int(b))
+                   for t, a, b in zip(link.t_s[1:], link.site[:-1], link.site[1:]) if a != b and a >= 0 and b >= 0]
+    return len(events), ping_pongs(events)
 
 
 def ledger_figures(out_dir: Path, vehicles) -> dict:
