@@ -213,7 +213,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
         stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
         stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
-        for name in ("_save_state", "_write_outputs"):  # run.py's per-step files
+        for name in ("append_logs", "_save_state", "_write_outputs"):  # run.py's per-step files
             if hasattr(run_module, name):
                 timed = watch.wrap("checkpoint + outputs", getattr(run_module, name))
                 stack.enter_context(patched(run_module, name, timed))

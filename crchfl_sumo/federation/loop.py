@@ -32,9 +32,9 @@ rest of the budget cannot carry one more model transfer; a step whose
 transfers do not all fit is not counted and its models are dropped (its
 charged bytes stay spent, as ``ledger.replay`` does).
 
-The loop's whole memory is a ``FederationState`` (models, times, counters,
-ledger records, metric lines), so a checkpoint is the state and a resume
-continues from it. Mobility and training are injected (a ``Clock`` and a
+The loop's whole memory is a ``FederationState`` (models, times, counters;
+the ledger records and metric lines it appends to are history it never reads
+back), so a checkpoint is the state and a resume continues from it. Mobility and training are injected (a ``Clock`` and a
 ``Trainer``), so the loop runs with scripted tracks and tiny models in tests.
 """
 
@@ -170,7 +170,7 @@ class Federation:
             metrics=list(state.metrics),
             stragglers=list(state.stragglers),
         )
-        ledger = Ledger(self.setup.sizes, state.records)
+        ledger = Ledger(self.setup.sizes, byte_totals=state.ledger_totals)
         hyper = self.setup.hyper
         if hyper.cloud_rounds and state.cloud_rounds >= hyper.cloud_rounds:
             state.stop_reason = "cloud_rounds"
@@ -182,7 +182,10 @@ class Federation:
             self._edge_step(state, ledger)
         else:
             self._sfl_round(state, ledger)
-        state.records = list(ledger.records)
+        charged = ledger.records  # this step's
+        state.records.extend(charged)
+        state.ledger_totals = ledger.byte_totals()
+        state.transfers_end_s = max([state.transfers_end_s, *(r.end_s for r in charged)])
         state.steps += 1
         return state
 
