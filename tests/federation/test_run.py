@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -272,11 +273,11 @@ def test_the_bytes_a_step_writes_do_not_grow_with_the_record_count(tmp_path, dat
 
     run_federation_dir(config, inputs, out, trainer=SumTrainer(), after_checkpoint=note)
     assert len(seen) == 13  # 12 aggregation steps and the one that stops
-    for (_, before, _), (_, after, _) in zip(seen, seen[1:]):
+    for (_, before, _), (_, after, _) in itertools.pairwise(seen):
         for name in logs:  # append-only: every log starts with what it held a step before
             assert after[name].startswith(before[name]), name
     written = [rewritten + sum(len(texts[n]) - len(prev[n]) for n in logs)
-               for (_, prev, _), (_, texts, rewritten) in zip(seen, seen[1:])]
+               for (_, prev, _), (_, texts, rewritten) in itertools.pairwise(seen)]
     records = [count for count, _, _ in seen]
     assert records[11] >= 5 * records[1]
     # steps 2 .. 12 alternate edge-only and edge + cloud aggregations: compare like with like
