@@ -360,6 +360,10 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
           f"{clients * summary['sim_time_s'] / max(handovers, 1):.0f} s; {back} back to the previous site within 5 s); "
           f"{ledger['edge_moves']} changes of edge membership between aggregations (new_edge policy)")
     print(f"   stragglers: {len(stragglers)} {dict(reasons)}")
+    print(f"   failed downloads: {summary['downloads_failed']}/{summary['downloads']}; failed uploads: "
+          f"{summary['uploads_failed']}/{summary['uploads']}; relayed downloads: {summary['relayed_transfers']} "
+          f"({summary['relay_bytes'] / mib:.1f} MiB over the wireline, "
+          f"federation.download_handover = {config.federation.download_handover!r})")
 
     checkpoint = out_dir / "checkpoint.pt"
     print("\n4. memory")

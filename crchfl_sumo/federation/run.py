@@ -63,6 +63,7 @@ from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
 
 log = logging.getLogger(__name__)
 
+TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
 
 
@@ -257,6 +258,8 @@ def summarize(
         "budget_bytes": ledger.budget_bytes,
         "bytes_by_link": ledger.totals("link"),
         "bytes_by_stage": ledger.totals("stage"),
+        **{k: state.transfers.get(k, 0) for k in TRANSFER_COUNTS},
+        "relay_bytes": ledger.totals("link")["relay"],
         "model_bytes": setup.sizes.model_bytes,
         "sample_bytes": setup.sizes.sample_bytes,
         "best_accuracy": None if best is None else best["accuracy"],

@@ -102,6 +102,8 @@ class FederationState:
     tau: int = 0  # edge aggregations done in the current cloud round
     ledger_totals: dict[str, dict[str, int]] = field(default_factory=dict)  # bytes charged so far
     transfers_end_s: float = 0.0  # the latest end of a charged transfer
+    # wireless transfers that started: downloads, uploads, each *_failed; relayed_transfers: downloads relayed
+    transfers: dict[str, int] = field(default_factory=dict)
     records: list[Record] = field(default_factory=list)
     metrics: list[dict] = field(default_factory=list)
     stragglers: list[dict] = field(default_factory=list)

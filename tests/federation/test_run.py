@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 from pathlib import Path
@@ -16,6 +17,7 @@ from crchfl_sumo.federation.run import run_command, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig, builtin_experiments, load_run_config
 from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.checkpoint import load_checkpoint
+from crchfl_sumo.links.clock import ScriptedClock, Segment
 
 from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
 
@@ -325,3 +327,39 @@ def test_a_log_shorter_than_the_checkpoint_is_refused(tmp_path, dataset):
     (tmp_path / "out" / "metrics.jsonl").write_text("")
     with pytest.raises(CrchflError, match="metrics.jsonl: missing or shorter than checkpoint.pt"):
         run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
+
+
+def test_a_run_that_relays_killed_anywhere_resumes_exactly(tmp_path, dataset):
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+
+    def clock():  # t01_data_0 swaps between the two edges every 4 s; 10 MB take 10.5 s at 8 Mbit/s
+        tracks = {v: [Segment(0.0, inputs.home_site[v], 8e6)] for v in inputs.vehicles}
+        tracks["t01_data_0"] = [Segment(4.0 * k, k % 2, 8e6) for k in range(100)]
+        return contextlib.nullcontext(ScriptedClock(tracks, step_s=0.5))
+
+    whole = run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer(), clock_factory=clock)
+    assert whole["relayed_transfers"] >= 4 and whole["relay_bytes"] > 0
+    assert whole["downloads_failed"] == 0 and whole["downloads"] == 4 * len(inputs.vehicles)
+    assert whole["bytes_by_link"]["relay"] == whole["relay_bytes"]
+    relays = [json.loads(line) for line in (tmp_path / "whole" / "ledger.jsonl").read_text().splitlines()[1:]]
+    assert sum(r["size_bytes"] for r in relays if r["link"] == "relay") == whole["relay_bytes"]
+    for kill_at in (1, 3, 4):
+        out = tmp_path / f"killed{kill_at}"
+        with pytest.raises(Killed):
+            run_federation_dir(config, inputs, out, trainer=SumTrainer(), clock_factory=clock,
+                               after_checkpoint=kill_after(kill_at))
+        resumed = run_federation_dir(config, inputs, out, trainer=SumTrainer(), clock_factory=clock, resume=True)
+        assert resumed == whole
+        assert result_files(out) == result_files(tmp_path / "whole")
+    # where leaving the sending edge fails a download, relays save the ones that cross a handover
+    for policy, name in (("relay", "strict"), ("drop", "drop")):
+        mapping = run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2, download_handover=policy)
+        mapping["transfer"] = {"on_outage": "fail"}
+        summary = run_federation_dir(from_mapping(RunConfig, mapping), inputs, tmp_path / name, trainer=SumTrainer(),
+                                     clock_factory=clock)
+        if policy == "relay":
+            assert summary["downloads_failed"] == 0 and summary["relayed_transfers"] >= 4
+        else:
+            assert summary["relayed_transfers"] == 0 and summary["relay_bytes"] == 0
+            assert summary["downloads_failed"] >= 1
