@@ -2,6 +2,7 @@
 
     nice -n 10 python tools/bench_scale.py [--samples 8] [--test-samples 50] [--scheme hfl]
                                            [--rounds 3] [--cloud-interval 2] [--out DIR] [--profile N]
+                                           [--download-handover relay|restart|drop]
 
 1. Data: generates a data set for all 200 data vehicles of scale200 (the
    clients): --samples training samples each, --test-samples per test
@@ -163,7 +164,7 @@ def run_config(args: argparse.Namespace, data_dir: Path):
     from crchfl_sumo.federation.run_config import RunConfig
 
     federation = {"scheme": args.scheme, "edge_interval": 1, "cloud_interval": args.cloud_interval,
-                  "cloud_rounds": args.rounds, "seed": args.seed}
+                  "cloud_rounds": args.rounds, "seed": args.seed, "download_handover": args.download_handover}
     if args.scheme == "crchfl":  # fixed hyper-parameters: the optimizer would spend the whole 1 TB budget
         federation["pretrain_batch"] = args.pretrain_batch
     mapping = {
@@ -388,6 +389,8 @@ def main() -> None:
     parser.add_argument("--cloud-interval", type=int, default=2, help="edge aggregations per cloud round (default 2)")
     parser.add_argument("--pretrain-batch", type=int, default=200, help="crchfl: samples uploaded for pretraining")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--download-handover", choices=("relay", "restart", "drop"), default="relay",
+                        help="what a download does when its vehicle changes edge (default relay)")
     parser.add_argument("--out", type=Path, help="keep the data set and the run here (default: a temp folder)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
     args = parser.parse_args()
