@@ -2,6 +2,7 @@
 
     nice -n 10 python tools/bench_scale.py [--samples 8] [--test-samples 50] [--scheme hfl]
                                            [--rounds 3] [--cloud-interval 2] [--out DIR] [--profile N]
+                                           [--download-handover relay|restart|drop]
 
 1. Data: generates a data set for all 200 data vehicles of scale200 (the
    clients): --samples training samples each, --test-samples per test
@@ -163,7 +164,7 @@ def run_config(args: argparse.Namespace, data_dir: Path):
     from crchfl_sumo.federation.run_config import RunConfig
 
     federation = {"scheme": args.scheme, "edge_interval": 1, "cloud_interval": args.cloud_interval,
-                  "cloud_rounds": args.rounds, "seed": args.seed}
+                  "cloud_rounds": args.rounds, "seed": args.seed, "download_handover": args.download_handover}
     if args.scheme == "crchfl":  # fixed hyper-parameters: the optimizer would spend the whole 1 TB budget
         federation["pretrain_batch"] = args.pretrain_batch
     mapping = {
@@ -213,7 +214,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
         stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
         stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
-        for name in ("_save_state", "_write_outputs"):  # run.py's per-step files
+        for name in ("append_logs", "_save_state", "_write_outputs"):  # run.py's per-step files
             if hasattr(run_module, name):
                 timed = watch.wrap("checkpoint + outputs", getattr(run_module, name))
                 stack.enter_context(patched(run_module, name, timed))
@@ -243,16 +244,17 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     }
 
 
-def link_handovers(clock, vehicles, back_within_s: float = 5.0) -> tuple[int, int]:
+def link_handovers(clock, vehicles) -> tuple[int, int]:
     """Site-to-site changes of the clients' serving edge site over the simulated span the run used,
-    and how many of them went back to the site served before within ``back_within_s`` (ping-pong)."""
-    count = back = 0
+    and how many of them went back to the site served before within 5 s (mobility.ping_pongs)."""
+    from crchfl_sumo.links.mobility import Handover, ping_pongs
+
+    events = []
     for v in vehicles:
         link = clock.series(v, "edge", clock.start_s, clock.t_s)
-        changes = [(t, a, b) for t, a, b in zip(link.t_s[1:], link.site[:-1], link.site[1:]) if a != b and a >= 0 and b >= 0]
-        count += len(changes)
-        back += sum(1 for (t0, a0, _), (t1, _, b1) in zip(changes, changes[1:]) if b1 == a0 and t1 - t0 <= back_within_s)
-    return count, back
+        events += [Handover(float(t), v, int(a), int(b))
+                   for t, a, b in zip(link.t_s[1:], link.site[:-1], link.site[1:]) if a != b and a >= 0 and b >= 0]
+    return len(events), ping_pongs(events)
 
 
 def ledger_figures(out_dir: Path, vehicles) -> dict:
@@ -359,6 +361,10 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
           f"{clients * summary['sim_time_s'] / max(handovers, 1):.0f} s; {back} back to the previous site within 5 s); "
           f"{ledger['edge_moves']} changes of edge membership between aggregations (new_edge policy)")
     print(f"   stragglers: {len(stragglers)} {dict(reasons)}")
+    print(f"   failed downloads: {summary['downloads_failed']}/{summary['downloads']}; failed uploads: "
+          f"{summary['uploads_failed']}/{summary['uploads']}; relayed downloads: {summary['relayed_transfers']} "
+          f"({summary['relay_bytes'] / mib:.1f} MiB over the wireline, "
+          f"federation.download_handover = {config.federation.download_handover!r})")
 
     checkpoint = out_dir / "checkpoint.pt"
     print("\n4. memory")
@@ -383,6 +389,8 @@ def main() -> None:
     parser.add_argument("--cloud-interval", type=int, default=2, help="edge aggregations per cloud round (default 2)")
     parser.add_argument("--pretrain-batch", type=int, default=200, help="crchfl: samples uploaded for pretraining")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--download-handover", choices=("relay", "restart", "drop"), default="relay",
+                        help="what a download does when its vehicle changes edge (default relay)")
     parser.add_argument("--out", type=Path, help="keep the data set and the run here (default: a temp folder)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
     args = parser.parse_args()

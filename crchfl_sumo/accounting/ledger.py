@@ -127,11 +127,15 @@ class Record:
     end_s: float
 
     def to_dict(self) -> dict:
-        # Flat: ten times faster than dataclasses.asdict (a deep copy); a run saves every record each step.
+        # Flat: ten times faster than dataclasses.asdict (a deep copy).
         return {name: getattr(self, name) for name in _RECORD_FIELDS}
 
 
 _RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(Record))
+
+
+# The record fields a ledger keeps byte totals by, and their values.
+TOTALLED = {"link": LINKS, "stage": STAGES, "payload": ("model", "samples"), "direction": ("uplink", "downlink")}
 
 
 class Ledger:
@@ -139,12 +143,20 @@ class Ledger:
 
     ``charge`` refuses a transfer that does not fit (the caller checks
     ``can_carry`` first); ``can_carry_model`` is the stopping rule.
+
+    ``byte_totals`` (from an earlier ledger's ``byte_totals()``) continues that
+    ledger without its records: the totals and the budget carry on, and
+    ``records`` holds only what is charged from then on. So a long run need
+    not carry every record from step to step.
     """
 
-    def __init__(self, sizes: ByteSizes, records: Iterable[Record] = ()) -> None:
+    def __init__(
+        self, sizes: ByteSizes, records: Iterable[Record] = (), byte_totals: Mapping[str, Mapping[str, int]] | None = None
+    ) -> None:
         self.sizes = sizes
         self._records: list[Record] = []
-        self._spent_bytes = 0
+        self._totals = {by: {k: int((byte_totals or {}).get(by, {}).get(k, 0)) for k in keys} for by, keys in TOTALLED.items()}
+        self._spent_bytes = sum(self._totals["link"].values())
         for record in records:
             self._append(record)
 
@@ -188,14 +200,16 @@ class Ledger:
             )
         self._records.append(record)
         self._spent_bytes += record.size_bytes
+        for by, totals in self._totals.items():
+            totals[getattr(record, by)] += record.size_bytes
 
     def totals(self, by: Literal["link", "stage", "payload", "direction"]) -> dict[str, int]:
         """Bytes charged per value of one record field, e.g. ``totals("stage")`` -> {"I": .., "II": .., "III": ..}."""
-        keys = {"link": LINKS, "stage": STAGES, "payload": ("model", "samples"), "direction": ("uplink", "downlink")}[by]
-        out = {k: 0 for k in keys}
-        for record in self._records:
-            out[getattr(record, by)] += record.size_bytes
-        return out
+        return dict(self._totals[by])
+
+    def byte_totals(self) -> dict[str, dict[str, int]]:
+        """Every total (``TOTALLED``): what a ledger continued without its records starts from."""
+        return {by: dict(totals) for by, totals in self._totals.items()}
 
     # -- persistence
 
@@ -207,9 +221,8 @@ class Ledger:
             raise CrchflError(f"{path}: ledger files end in .jsonl or .csv")
         with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as handle:
             if suffix == ".jsonl":
-                handle.write(json.dumps({"sizes": dataclasses.asdict(self.sizes)}) + "\n")
-                for record in self._records:
-                    handle.write(json.dumps(record.to_dict()) + "\n")
+                handle.write(jsonl_header(self.sizes))
+                handle.writelines(jsonl_lines(self._records))
             else:
                 writer = csv.DictWriter(handle, fieldnames=_RECORD_FIELDS)
                 writer.writeheader()
@@ -241,6 +254,16 @@ class Ledger:
         except (ValueError, KeyError, TypeError) as exc:
             raise CrchflError(f"{path}: not a readable ledger ({exc}); delete it to start afresh") from None
         return cls(sizes, records)
+
+
+def jsonl_header(sizes: ByteSizes) -> str:
+    """The first line of a ledger.jsonl: the sizes it was charged with."""
+    return json.dumps({"sizes": dataclasses.asdict(sizes)}) + "\n"
+
+
+def jsonl_lines(records: Iterable[Record]) -> list[str]:
+    """One ledger.jsonl line per record (a run appends them step by step)."""
+    return [json.dumps(record.to_dict()) + "\n" for record in records]
 
 
 _FIELD_TYPES = {"size_bytes": int, "cloud_round": int, "start_s": float, "end_s": float}

@@ -18,7 +18,7 @@ from crchfl_sumo.core.schemes import SCHEMES, Scheme
 Rule = Literal["paper", "physical"]
 
 
-Link = Literal["wireless", "wireline"]
+Link = Literal["wireless", "wireline", "relay"]  # relay: edge -> edge, a download that followed its vehicle
 
 
 Direction = Literal["uplink", "downlink"]
@@ -36,7 +36,7 @@ CLOUD = "cloud"
 RULES = ("paper", "physical")
 
 
-LINKS = ("wireless", "wireline")
+LINKS = ("wireless", "wireline", "relay")
 
 
 STAGES = ("I", "II", "III")

@@ -32,10 +32,11 @@ rest of the budget cannot carry one more model transfer; a step whose
 transfers do not all fit is not counted and its models are dropped (its
 charged bytes stay spent, as ``ledger.replay`` does).
 
-The loop's whole memory is a ``FederationState`` (models, times, counters,
-ledger records, metric lines), so a checkpoint is the state and a resume
-continues from it. Mobility and training are injected (a ``Clock`` and a
-``Trainer``), so the loop runs with scripted tracks and tiny models in tests.
+The loop's whole memory is a ``FederationState`` (models, times, counters;
+the ledger records and metric lines it appends to are history it never reads
+back), so a checkpoint is the state and a resume continues from it. Mobility
+and training are injected (a ``Clock`` and a ``Trainer``), so the loop runs
+with scripted tracks and tiny models in tests.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ from crchfl_sumo.federation.state import FederationState, LoopInputs, Trainer
 from crchfl_sumo.learning.aggregate import fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
-from crchfl_sumo.links.clock import Clock, WirelessOutcome, wireless_transfer, with_deadline
+from crchfl_sumo.links.clock import Clock, Relay, WirelessOutcome, edge_download, wireless_transfer, with_deadline
 from crchfl_sumo.links.transfer import wireline_transfer_time_s
 from crchfl_sumo.planning.problem import split_pretrain_batch
 
@@ -94,19 +95,33 @@ def _wireless(outcome: WirelessOutcome) -> TransferEvent:
     return TransferEvent(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes)
 
 
+@dataclass(frozen=True)
+class DownloadRelays:
+    """The relays of one download (edge names, not site indices) and the stage it belongs to."""
+
+    stage: str
+    relays: tuple[Relay, ...]
+
+
 def _charge(
     ledger: Ledger,
     schedule: Sequence[Transfer],
     events: Mapping[tuple[str, str, str], TransferEvent],
     rule: str,
     cloud_round: int,
+    counts: dict[str, int],
+    relays: Sequence[DownloadRelays] = (),
+    edges: Sequence[str] = (),
 ) -> bool:
-    """Charge the schedule's transfers that happened, with their times; False when one does not fit.
+    """Charge the schedule's transfers that happened, with their times, then the downloads' relays;
+    False when one does not fit. Counts the relayed downloads in ``counts``.
 
     ``paper`` charges the schedule's size of every transfer that started,
     ``physical`` the bytes that crossed (fewer than the size for a failed
     transfer, or for a relay that lost some of its vehicles' samples).
     A transfer the schedule lists but that never started is not charged.
+    Relays are charged at the bytes they moved under either rule (the paper
+    has none).
     """
     for planned in schedule:
         event = events.get((planned.sender, planned.receiver, planned.direction))
@@ -117,7 +132,22 @@ def _charge(
             return False
         charged = dataclasses.replace(planned, size_bytes=size)
         ledger.charge(charged, cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
+    for download in relays:
+        counts["relayed_transfers"] = counts.get("relayed_transfers", 0) + 1
+        for relay in download.relays:
+            size = math.ceil(relay.size_bytes)
+            if not ledger.can_carry(size):
+                return False
+            moved = Transfer("relay", "downlink", download.stage, edges[relay.from_site], edges[relay.to_site],
+                             "model", size)
+            ledger.charge(moved, cloud_round=cloud_round, start_s=relay.start_s, end_s=relay.end_s)
     return True
+
+
+def _count(state: FederationState, kind: str, ok: bool) -> None:
+    """One more wireless transfer of ``kind`` (uploads, downloads) that started; ``{kind}_failed`` if it failed."""
+    state.transfers[kind] = state.transfers.get(kind, 0) + 1
+    state.transfers[f"{kind}_failed"] = state.transfers.get(f"{kind}_failed", 0) + (not ok)
 
 
 def _bytes_line(ledger: Ledger) -> dict:
@@ -125,6 +155,7 @@ def _bytes_line(ledger: Ledger) -> dict:
     return {
         "wireless_bytes": links["wireless"],
         "wireline_bytes": links["wireline"],
+        "relay_bytes": links["relay"],
         "consumed_bytes": ledger.spent_bytes,
     }
 
@@ -169,8 +200,9 @@ class Federation:
             records=list(state.records),
             metrics=list(state.metrics),
             stragglers=list(state.stragglers),
+            transfers=dict(state.transfers),
         )
-        ledger = Ledger(self.setup.sizes, state.records)
+        ledger = Ledger(self.setup.sizes, byte_totals=state.ledger_totals)
         hyper = self.setup.hyper
         if hyper.cloud_rounds and state.cloud_rounds >= hyper.cloud_rounds:
             state.stop_reason = "cloud_rounds"
@@ -182,7 +214,10 @@ class Federation:
             self._edge_step(state, ledger)
         else:
             self._sfl_round(state, ledger)
-        state.records = list(ledger.records)
+        charged = ledger.records  # this step's
+        state.records.extend(charged)
+        state.ledger_totals = ledger.byte_totals()
+        state.transfers_end_s = max([state.transfers_end_s, *(r.end_s for r in charged)])
         state.steps += 1
         return state
 
@@ -213,12 +248,16 @@ class Federation:
             cfg = dataclasses.replace(cfg, on_outage="fail")
         return wireless_transfer(self.clock, vehicle, "edge", start_s, size, cfg, only_site=home)
 
-    def _download(self, vehicle: str, start_s: float, size: int, edge: str | None) -> WirelessOutcome:
-        """Edge -> vehicle (only while that edge serves it) or, for SFL (edge None), cloud -> vehicle."""
+    def _download(
+        self, vehicle: str, start_s: float, size: int, edge: str | None
+    ) -> tuple[WirelessOutcome, tuple[Relay, ...]]:
+        """Edge -> vehicle (across handovers as ``download_handover`` says) or, for SFL (edge None), cloud -> vehicle."""
+        setup = self.setup
         if edge is None:
-            return wireless_transfer(self.clock, vehicle, "macro", start_s, size, self.setup.transfer)
-        site = self.setup.edges.index(edge)
-        return wireless_transfer(self.clock, vehicle, "edge", start_s, size, self.setup.transfer, only_site=site)
+            return wireless_transfer(self.clock, vehicle, "macro", start_s, size, setup.transfer), ()
+        site = setup.edges.index(edge)
+        return edge_download(self.clock, vehicle, site, start_s, size, setup.transfer, setup.wireline,
+                             self.config.download_handover)
 
     def _train(self, state: FederationState, epochs: int) -> tuple[dict[str, State], dict[str, int]]:
         """Every vehicle's model after ``epochs`` on its data, and the sample counts |T_nk| behind them."""
@@ -259,6 +298,7 @@ class Federation:
         shares = split_pretrain_batch(setup.hyper.pretrain_batch, counts)
         member = dict(state.member)
         events: dict[tuple[str, str, str], TransferEvent] = {}
+        relays: list[DownloadRelays] = []
         uploaded: dict[str, Samples] = {}
         for i, v in enumerate(setup.vehicles):
             if not shares[v]:
@@ -272,6 +312,7 @@ class Federation:
             if out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
             events[(v, member[v], "uplink")] = _wireless(out)
+            _count(state, "uploads", out.ok)
             if out.ok:
                 # the fixed uploaded subset: a seeded choice of the vehicle's samples
                 rng = np.random.default_rng([cfg.seed, 2, i])
@@ -300,10 +341,10 @@ class Federation:
             ev = _wireline(pretrained_s, sizes.model_bytes, setup.wireline)
             events[(CLOUD, e, "downlink")] = ev
             open_s[e] = ev.end_s
-            self._send_down(state, e, vehicles, ev.end_s, model, "I", events, models, ready)
+            self._send_down(state, e, vehicles, ev.end_s, model, "I", events, models, ready, relays)
         received = {v: shares[v] for v in setup.vehicles}
         schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, cloud_round=0):
+        if not _charge(ledger, schedule, events, setup.rule, 0, state.transfers, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.stage_one_done = True
@@ -325,6 +366,7 @@ class Federation:
         followed = state.tau + 1 == setup.hyper.cloud_interval
         trained, counts = self._train(state, setup.hyper.edge_interval)
         events: dict[tuple[str, str, str], TransferEvent] = {}
+        relays: list[DownloadRelays] = []
         uploads, member = self._vehicle_uploads(state, counts)
         topology = self._topology(member)
         agg_s, received_by, edge_models, edge_weights = self._edge_fedavg(
@@ -345,12 +387,14 @@ class Federation:
                 edge_models[e] = cloud_model
                 release_s[e] = events[(CLOUD, e, "downlink")].end_s
         stage = "III" if followed else "II"
-        models, ready, open_s = self._release(state, topology, release_s, edge_models, trained, events, stage)
+        models, ready, open_s = self._release(
+            state, topology, release_s, edge_models, trained, events, stage, relays
+        )
         next_round = state.cloud_rounds + 1
         schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
         if followed:
             schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, cloud_round=next_round):
+        if not _charge(ledger, schedule, events, setup.rule, next_round, state.transfers, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
@@ -407,7 +451,7 @@ class Federation:
                 edge_weights[e] = float(sum(counts[v] for v in received))
         return agg_s, received_by, edge_models, edge_weights
 
-    def _release(self, state, topology, release_s, edge_models, trained, events, stage):
+    def _release(self, state, topology, release_s, edge_models, trained, events, stage, relays):
         """Each edge sends its model to its vehicles from ``release_s[edge]`` on.
 
         Returns the vehicles' models (a failed download leaves the vehicle its own trained model),
@@ -416,19 +460,24 @@ class Federation:
         models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
         for e, vehicles in topology.active():
             open_s[e] = release_s[e]
-            self._send_down(state, e, vehicles, release_s[e], edge_models[e], stage, events, models, ready)
+            self._send_down(state, e, vehicles, release_s[e], edge_models[e], stage, events, models, ready, relays)
         return models, ready, open_s
 
-    def _send_down(self, state, sender: str, vehicles, start_s: float, model: State, stage: str, events, models, ready):
+    def _send_down(
+        self, state, sender: str, vehicles, start_s: float, model: State, stage: str, events, models, ready, relays
+    ):
         """``sender`` (an edge, or the cloud in SFL) sends ``model`` to each of ``vehicles`` from ``start_s`` on.
 
-        Records each download in ``events`` and its arrival in ``ready``; a vehicle whose download
-        fails keeps the model ``models`` holds for it and is recorded as a straggler.
+        Records each download in ``events``, its relays in ``relays`` and its arrival in ``ready``; a
+        vehicle whose download fails keeps the model ``models`` holds for it and is recorded as a straggler.
         """
         edge = None if sender == CLOUD else sender
         for v in vehicles:
-            out = self._download(v, start_s, self.setup.sizes.model_bytes, edge)
+            out, moved = self._download(v, start_s, self.setup.sizes.model_bytes, edge)
             events[(sender, v, "downlink")] = _wireless(out)
+            _count(state, "downloads", out.ok)
+            if moved:
+                relays.append(DownloadRelays(stage, moved))
             ready[v] = out.end_s
             if out.ok:
                 models[v] = model
@@ -456,6 +505,7 @@ class Federation:
                 self._straggler(state, v, stage, "no time to upload before the deadline", ends[-1])
                 continue
             events[(v, receiver, "uplink")] = _wireless(out)
+            _count(state, "uploads", out.ok)
             ends.append(out.end_s)
             if out.ok:
                 received.append(v)
@@ -484,6 +534,7 @@ class Federation:
         trained, counts = self._train(state, epochs)
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
+        relays: list[DownloadRelays] = []
         uploads = {
             v: self._upload(
                 v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.model_bytes, window_end
@@ -494,11 +545,11 @@ class Federation:
         cloud_s = max(ends)
         cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
         models, ready = dict(trained), dict(state.ready_s)
-        self._send_down(state, CLOUD, setup.vehicles, cloud_s, cloud_model, "III", events, models, ready)
+        self._send_down(state, CLOUD, setup.vehicles, cloud_s, cloud_model, "III", events, models, ready, relays)
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, next_round):
+        if not _charge(ledger, schedule, events, setup.rule, next_round, state.transfers):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s = models, ready

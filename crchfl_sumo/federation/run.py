@@ -4,10 +4,12 @@ DIR receives (every file written atomically):
 
   config.toml      the config file as given
   config.json      the resolved run: settings, the four hyper-parameters used, byte sizes
-  checkpoint.pt    the whole FederationState after the latest step (what --resume reads)
+  checkpoint.pt    the FederationState after the latest step less its history, and the logs' marks
+                   (what --resume reads)
   metrics.jsonl    one line per aggregation (stage I, each edge aggregation, each cloud aggregation)
-  ledger.jsonl     every charged transfer (ledger.Ledger.save; first line: the sizes)
+  ledger.jsonl     every charged transfer (first line: the sizes)
   stragglers.jsonl every vehicle that missed an aggregation or a download, and why
+                   (the three .jsonl logs are append-only: federation/logs.py)
   best_model.pt    the best cloud model so far (checkpoint.save_checkpoint format)
   final_model.pt   the last cloud model
   summary.json     scheme, cloud_rounds, edge_aggregations, consumed_bytes, budget_bytes,
@@ -16,7 +18,9 @@ DIR receives (every file written atomically):
 A run killed at any moment and resumed with --resume continues from the
 latest checkpoint and ends with the same files as an uninterrupted run with
 the same seed: every step's randomness derives from the seed and the step
-number, and the clock re-runs SUMO deterministically from the start.
+number, the clock re-runs SUMO deterministically from the start, and the
+logs are cut back to the checkpoint's marks. A step writes its log lines,
+then the checkpoint, then the files derived from the state (models, summary).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation.logs import Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
     RunConfig,
@@ -58,7 +63,8 @@ from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "crchfl-sumo-federation/1"
+TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
+CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
 
 
 def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
@@ -172,7 +178,7 @@ def _run_with_trainer(
         )
         state = None
         if resume and checkpoint_path.exists():
-            state = _load_state(checkpoint_path, resolved)
+            state, marks = _load_state(checkpoint_path, resolved, sizes)
             if state.done:  # finished before: only the derived files may be missing
                 _write_outputs(out_dir, config, setup, state, _handovers(clock, state), baseline)
                 return summarize(config, setup, state, _handovers(clock, state), baseline)
@@ -183,11 +189,14 @@ def _run_with_trainer(
             atomic_write_text(out_dir / "config.json", json.dumps(resolved, indent=2) + "\n")
         if state is None:
             state = initial_state(setup, trainer, clock.start_s)
+            marks = start_logs(out_dir, sizes)
         data = _online_data(clock, inputs) if config.data_mode == "online" else None
         federation = Federation(setup, clock, trainer, data)
 
         def on_step(new: FederationState) -> None:
-            _save_state(checkpoint_path, resolved, new)
+            nonlocal marks
+            marks = append_logs(out_dir, new, marks)
+            _save_state(checkpoint_path, resolved, new, marks)
             if after_checkpoint is not None:
                 after_checkpoint(new)
             _write_outputs(out_dir, config, setup, new, _handovers(clock, new), baseline)
@@ -218,7 +227,7 @@ def progress_detail(state: FederationState, budget_bytes: int, hyper: HyperParam
     """What a progress bar shows beside a step: round, GB used / budget, latest loss and accuracy."""
     last = next((m for m in reversed(state.metrics) if m["loss"] is not None), None)
     rounds = hyper.cloud_rounds
-    spent = sum(r.size_bytes for r in state.records)
+    spent = sum(state.ledger_totals.get("link", {}).values())
     return {
         "round": f"{state.cloud_rounds}/{rounds}" if rounds else str(state.cloud_rounds),
         "GB": f"{spent / GIB:.2f}/{budget_bytes / GIB:.2f}",
@@ -236,9 +245,8 @@ def summarize(
 ) -> dict:
     """summary.json. The best model is the cloud model of the highest balanced accuracy (loop._rank);
     best_* are its figures. ``baseline``: the always-straight prediction on the same test set."""
-    ledger = Ledger(setup.sizes, state.records)
-    cloud_lines = [m for m in state.metrics if m["stage"] in ("I", "III")]
-    final = cloud_lines[-1] if cloud_lines else None
+    ledger = Ledger(setup.sizes, byte_totals=state.ledger_totals)
+    final = next((m for m in reversed(state.metrics) if m["stage"] in ("I", "III")), None)
     best = state.best
     return {
         "scheme": config.federation.scheme,
@@ -250,6 +258,8 @@ def summarize(
         "budget_bytes": ledger.budget_bytes,
         "bytes_by_link": ledger.totals("link"),
         "bytes_by_stage": ledger.totals("stage"),
+        **{k: state.transfers.get(k, 0) for k in TRANSFER_COUNTS},
+        "relay_bytes": ledger.totals("link")["relay"],
         "model_bytes": setup.sizes.model_bytes,
         "sample_bytes": setup.sizes.sample_bytes,
         "best_accuracy": None if best is None else best["accuracy"],
@@ -275,12 +285,13 @@ def summarize(
     }
 
 
-def _save_state(path: Path, resolved: dict, state: FederationState) -> None:
+def _save_state(path: Path, resolved: dict, state: FederationState, marks: Marks) -> None:
     with atomic_path(path) as tmp:
-        torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload()}, tmp)
+        torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload(), "logs": marks}, tmp)
 
 
-def _load_state(path: Path, resolved: dict) -> FederationState:
+def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Marks]:
+    """The checkpointed state, its history read back from the logs (cut back to their marks), and the marks."""
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt files
@@ -288,13 +299,17 @@ def _load_state(path: Path, resolved: dict) -> FederationState:
             f"{path}: not a readable federation checkpoint ({exc}); delete the folder to start afresh"
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise CrchflError(f"{path}: not a crchfl-sumo federation checkpoint ({CHECKPOINT_FORMAT})")
+        raise CrchflError(
+            f"{path}: not a crchfl-sumo federation checkpoint of this version ({CHECKPOINT_FORMAT}); "
+            "rerun into another --out"
+        )
     if payload["resolved"] != resolved:
         raise CrchflError(
             f"{path}: written by a run with other settings or data; resume with the original config "
             "(see config.json there) or choose another --out"
         )
-    return FederationState.from_payload(payload["state"])
+    marks = payload["logs"]
+    return FederationState.from_payload(payload["state"], *restore_logs(path.parent, marks, sizes)), marks
 
 
 def _write_outputs(
@@ -305,9 +320,7 @@ def _write_outputs(
     handovers: int | None = None,
     baseline: Mapping[str, float] | None = None,
 ) -> None:
-    atomic_write_text(out_dir / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in state.metrics))
-    atomic_write_text(out_dir / "stragglers.jsonl", "".join(json.dumps(s) + "\n" for s in state.stragglers))
-    Ledger(setup.sizes, state.records).save(out_dir / "ledger.jsonl")
+    """The files derived from the state, rewritten each step (each of a fixed size); the logs are apart."""
     extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds}
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:

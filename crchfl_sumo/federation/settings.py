@@ -11,6 +11,7 @@ from typing import Literal, get_args
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import SCHEMES, Scheme
+from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
 HandoverPolicy = Literal["new_edge", "wait", "miss"]
 
@@ -43,6 +44,11 @@ class FederationConfig:
         "wait" (it is sent only while its own edge serves it, waiting out any
         time elsewhere, up to the deadline), "miss" (leaving its edge's
         coverage during the upload fails it: the vehicle misses that aggregation).
+    download_handover: what an edge -> vehicle download does when another site
+        takes the vehicle over: "relay" (the rest goes over the wireline to the
+        new edge, which sends it on; charged as link "relay"), "restart" (the
+        whole model is relayed and sent again), "drop" (it runs only while
+        the sending edge serves the vehicle).
     deadline_s: per aggregation: how long after its window opened an edge
         (or, in SFL, the cloud) waits for uploads [s]; inf = for all of them.
     compute_s_per_sample: simulated time of one sample of one local epoch on a
@@ -59,6 +65,7 @@ class FederationConfig:
     pretrain_epochs: int = 10
     evaluate_every_edge: bool = False
     handover_policy: HandoverPolicy = "new_edge"
+    download_handover: DownloadHandover = "relay"
     deadline_s: float = math.inf
     compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
     seed: int = 0
@@ -69,6 +76,10 @@ class FederationConfig:
         if self.handover_policy not in get_args(HandoverPolicy):
             raise CrchflError(
                 f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'wait', 'miss'"
+            )
+        if self.download_handover not in DOWNLOAD_HANDOVERS:
+            raise CrchflError(
+                f"federation.download_handover: {self.download_handover!r} is not one of 'relay', 'restart', 'drop'"
             )
         if self.use_plan and self.scheme != "crchfl":
             raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")

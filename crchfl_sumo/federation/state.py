@@ -74,12 +74,18 @@ class LoopInputs:
 
 @dataclass
 class FederationState:
-    """All the loop remembers; a checkpoint stores exactly this.
+    """All the loop remembers.
 
     member: vehicle -> edge name it belongs to now; ready_s: when each vehicle
     holds its current model; open_s: per edge (or the cloud, SFL) when its
     current aggregation window opened; steps: steps done (the training seed
     of step k derives from it).
+
+    The loop reads only the counters: ``ledger_totals`` (Ledger.byte_totals)
+    and ``transfers_end_s`` stand for the records; ``records``, ``metrics``
+    and ``stragglers`` are the run's history, which the loop only appends to.
+    A checkpoint stores everything but that history (``to_payload``); the
+    run's append-only logs hold it.
     """
 
     vehicle_models: dict[str, State]
@@ -94,6 +100,10 @@ class FederationState:
     cloud_rounds: int = 0
     edge_aggregations: int = 0
     tau: int = 0  # edge aggregations done in the current cloud round
+    ledger_totals: dict[str, dict[str, int]] = field(default_factory=dict)  # bytes charged so far
+    transfers_end_s: float = 0.0  # the latest end of a charged transfer
+    # wireless transfers that started: downloads, uploads, each *_failed; relayed_transfers: downloads relayed
+    transfers: dict[str, int] = field(default_factory=dict)
     records: list[Record] = field(default_factory=list)
     metrics: list[dict] = field(default_factory=list)
     stragglers: list[dict] = field(default_factory=list)
@@ -106,16 +116,17 @@ class FederationState:
         return self.stop_reason is not None
 
     def to_payload(self) -> dict:
-        """Plain dict of tensors and JSON-like values (torch.load(weights_only=True) reads it back)."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["records"] = [r.to_dict() for r in self.records]
-        return out
+        """The state less its history: plain tensors and JSON-like values (torch.load(weights_only=True) reads it)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in HISTORY}
 
     @classmethod
-    def from_payload(cls, payload: Mapping) -> "FederationState":
-        values = dict(payload)
-        values["records"] = [Record(**r) for r in payload["records"]]
-        return cls(**values)
+    def from_payload(
+        cls, payload: Mapping, records: list[Record], metrics: list[dict], stragglers: list[dict]
+    ) -> "FederationState":
+        return cls(**payload, records=records, metrics=metrics, stragglers=stragglers)
+
+
+HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
 
 
 def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> FederationState:
@@ -138,4 +149,4 @@ def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> Federa
 
 def sim_time_s(state: FederationState) -> float:
     """The latest simulated time the run reached (the last model's arrival)."""
-    return max(list(state.ready_s.values()) + [r.end_s for r in state.records], default=0.0)
+    return max([*state.ready_s.values(), state.transfers_end_s])

@@ -33,10 +33,10 @@ from typing import Literal, Mapping, Protocol, Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.links.channel import ChannelConfig
+from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig, macro_link_model
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
-from crchfl_sumo.links.transfer import TransferConfig, transfer
+from crchfl_sumo.links.transfer import TransferConfig, TransferResult, transfer, wireline_transfer_time_s
 from crchfl_sumo.sumo.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -326,3 +326,95 @@ def wireless_transfer(
 def with_deadline(cfg: TransferConfig, deadline_s: float) -> TransferConfig:
     """``cfg`` with its whole-transfer deadline cut to ``deadline_s`` (if that is shorter)."""
     return dataclasses.replace(cfg, deadline_s=min(cfg.deadline_s, deadline_s))
+
+
+# ------------------------------------------------------------------ downloads across handovers
+
+DownloadHandover = Literal["relay", "restart", "drop"]
+DOWNLOAD_HANDOVERS = ("relay", "restart", "drop")
+
+
+@dataclass(frozen=True)
+class Relay:
+    """Bytes of a download moved over the wireline from the site that held them to the vehicle's new site."""
+
+    from_site: int
+    to_site: int
+    start_s: float  # the handover
+    end_s: float  # arrival at the new site, which sends them on from then
+    size_bytes: float
+
+
+def edge_download(
+    clock: Clock,
+    vehicle: str,
+    site: int,
+    start_s: float,
+    size_bytes: float,
+    cfg: TransferConfig,
+    wireline: WirelineConfig,
+    policy: DownloadHandover,
+    *,
+    horizon_s: float = 60.0,
+    max_span_s: float = 86400.0,
+) -> tuple[WirelessOutcome, tuple[Relay, ...]]:
+    """Edge ``site`` sends ``size_bytes`` to ``vehicle`` from ``start_s``; ``policy`` says what a handover does.
+
+    drop: the download runs only while ``site`` serves the vehicle (time
+    elsewhere is an outage for ``cfg``). relay: when another site serves the
+    vehicle, the bytes not yet sent go over the wireline from the site holding
+    them to the new one (latency + size / rate), which sends them on once they
+    are there. restart: the same with the whole model, sent again from its
+    first byte. Coverage gaps are outages under ``cfg`` in all three, and
+    ``cfg.deadline_s`` counts from ``start_s``. ``sent_bytes`` counts every
+    byte sent over the air (a restart's lost ones too).
+    """
+    if policy == "drop":
+        out = wireless_transfer(clock, vehicle, "edge", start_s, size_bytes, cfg, only_site=site,
+                                horizon_s=horizon_s, max_span_s=max_span_s)
+        return out, ()
+    relays: list[Relay] = []
+    holder, leg_start_s, left, aired = site, start_s, float(size_bytes), 0.0
+    while True:
+        deadline_left_s = start_s + cfg.deadline_s - leg_start_s
+        if deadline_left_s <= _EPS_S:
+            return WirelessOutcome(False, start_s, start_s + cfg.deadline_s, aired, NO_SITE, "deadline"), tuple(relays)
+        result, handover = _download_leg(
+            clock, vehicle, holder, leg_start_s, left, with_deadline(cfg, deadline_left_s), horizon_s, max_span_s
+        )
+        aired += result.sent_bytes
+        if handover is None:
+            out = WirelessOutcome(result.ok, start_s, result.end_t_s, aired, holder if result.ok else NO_SITE,
+                                  result.reason)
+            return out, tuple(relays)
+        handover_s, new_site = handover
+        left = left - result.sent_bytes if policy == "relay" else float(size_bytes)
+        arrival_s = handover_s + wireline_transfer_time_s(left, wireline)
+        relays.append(Relay(holder, new_site, handover_s, arrival_s, left))
+        holder, leg_start_s = new_site, arrival_s
+
+
+def _download_leg(clock, vehicle, site, start_s, size_bytes, cfg, horizon_s, max_span_s):
+    """One leg of a download from ``site``: (result, None) if it settles there, else (result so far,
+    (handover time, the new site)) when another site takes the vehicle over first."""
+    span_s = horizon_s
+    while True:
+        link = clock.series(vehicle, "edge", start_s, start_s + span_s)
+        rate = np.where(link.site == site, link.rate_bps, 0.0)
+        moved = np.flatnonzero((link.site != site) & (link.site != NO_SITE))
+        if len(moved):
+            i = int(moved[0])
+            handover_s = max(float(link.t_s[i]), start_s)
+            # the leg's series ends at the handover (rate 0 from then: nothing more is sent from here)
+            t = np.append(link.t_s[:i], handover_s) if i else np.array([start_s])
+            r = np.append(rate[:i], 0.0) if i else np.array([0.0])
+            result = transfer(t, r, start_s, size_bytes, cfg)
+            if result.ok or result.end_t_s < handover_s - _EPS_S:
+                return result, None
+            return result, (handover_s, int(link.site[i]))
+        result = transfer(link.t_s, rate, start_s, size_bytes, cfg)
+        if result.end_t_s <= link.t_s[-1] + _EPS_S:
+            return result, None
+        if span_s >= max_span_s:
+            return TransferResult(False, start_s + max_span_s, result.sent_bytes, result.stalled_s, "outage"), None
+        span_s = min(2.0 * span_s, max_span_s)

@@ -22,6 +22,7 @@ LOS state and shadowing that the margin and time-to-trigger alone let through.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 from dataclasses import dataclass
@@ -39,6 +40,10 @@ log = logging.getLogger(__name__)
 
 NO_SITE = -1
 _EPS_S = 1e-9  # float slack when comparing simulated times
+# TS 38.331 5.5.3.2: F = (1 - a) F + a M with a = 1 / 2^(k / 4), k = filterCoefficient
+# (default fc4: a = 1/2), at the 200 ms sample rate the coefficient assumes;
+# as a time constant: (1 - a) = exp(-0.2 s / tau).
+L3_FILTER_FC4_S = 0.2 / math.log(2.0)
 
 
 @dataclass(frozen=True)
@@ -48,8 +53,9 @@ class MobilityConfig:
     coverage_radius_m: float = 300.0  # a road-side unit's service range
     min_rx_power_dbm: float = -100.0  # about -8 dB SNR with the default channel
     handover_margin_db: float = 3.0  # A3 offset + hysteresis
-    time_to_trigger_s: float = 0.48  # one of TS 38.331's TimeToTrigger values
-    l3_filter_s: float = 0.0  # time constant of the layer-3 filter on the compared power; 0 = off
+    time_to_trigger_s: float = 2.56  # TS 38.331 TimeToTrigger ms2560
+    l3_filter_s: float = L3_FILTER_FC4_S  # time constant of the layer-3 filter on the compared power; 0 = off
+    radio_link_failure_s: float = 1.0  # TS 38.331 T310 ms1000: how long a site may stay below min_rx_power_dbm
 
     def __post_init__(self) -> None:
         if not self.coverage_radius_m > 0:
@@ -60,6 +66,11 @@ class MobilityConfig:
             raise CrchflError(f"mobility.time_to_trigger_s must be >= 0, got {self.time_to_trigger_s}")
         if not (math.isfinite(self.l3_filter_s) and self.l3_filter_s >= 0):
             raise CrchflError(f"mobility.l3_filter_s must be a time >= 0 (0 = no filter), got {self.l3_filter_s}")
+        if not (math.isfinite(self.radio_link_failure_s) and self.radio_link_failure_s >= 0):
+            raise CrchflError(
+                f"mobility.radio_link_failure_s must be a time >= 0 (0 = leave a weak site at once), "
+                f"got {self.radio_link_failure_s}"
+            )
         if not math.isfinite(self.min_rx_power_dbm):
             raise CrchflError(f"mobility.min_rx_power_dbm must be a finite number, got {self.min_rx_power_dbm}")
 
@@ -112,6 +123,7 @@ class _State:
     shadow_z: np.ndarray  # [V, S] unit-variance shadowing process
     filtered_dbm: np.ndarray  # [V, S] layer-3 filtered received power (NaN: no history)
     serving: np.ndarray  # [V]
+    weak_since_s: np.ndarray  # [V] since when the serving site is below min_rx_power_dbm (NaN: it is not)
     beats_since_s: np.ndarray  # [V, S] since when a site beats the serving one by the margin (NaN: not now)
     fade_gain: np.ndarray  # [V, K] Rayleigh power gains of the current blocks
     fade_blocks: np.ndarray  # [V] how many of the K columns are in use
@@ -129,6 +141,7 @@ class _State:
             shadow_z=np.zeros((0, n_sites)),
             filtered_dbm=np.zeros((0, n_sites)),
             serving=np.zeros(0, dtype=np.int64),
+            weak_since_s=f,
             beats_since_s=np.zeros((0, n_sites)),
             fade_gain=np.ones((0, n_blocks)),
             fade_blocks=np.zeros(0, dtype=np.int64),
@@ -156,6 +169,7 @@ class _State:
             shadow_z=take(self.shadow_z, 0.0, (s,)),
             filtered_dbm=take(self.filtered_dbm, np.nan, (s,)),
             serving=take(self.serving, NO_SITE),
+            weak_since_s=take(self.weak_since_s, np.nan),
             beats_since_s=take(self.beats_since_s, np.nan, (s,)),
             fade_gain=take(self.fade_gain, 1.0, (k,)),
             fade_blocks=take(self.fade_blocks, 0),
@@ -246,8 +260,11 @@ class LinkModel:
 
         # Association compares the (optionally layer-3 filtered) power; the rate below uses this step's.
         filtered_dbm = l3_filter(prev.filtered_dbm, rx_dbm, dt_s, mob.l3_filter_s)
-        eligible = (d2d_m <= mob.coverage_radius_m) & (filtered_dbm >= mob.min_rx_power_dbm)
-        serving, beats_since_s = associate(prev.serving, prev.beats_since_s, filtered_dbm, eligible, t_s, mob)
+        in_range = d2d_m <= mob.coverage_radius_m
+        eligible = in_range & (filtered_dbm >= mob.min_rx_power_dbm)
+        serving, beats_since_s, weak_since_s = associate(
+            prev.serving, prev.beats_since_s, prev.weak_since_s, filtered_dbm, in_range, eligible, t_s, mob
+        )
 
         rows = np.arange(n)
         has_site = serving >= 0
@@ -280,6 +297,7 @@ class LinkModel:
             shadow_z=shadow_z,
             filtered_dbm=filtered_dbm,
             serving=serving,
+            weak_since_s=weak_since_s,
             beats_since_s=beats_since_s,
             fade_gain=gains,
             fade_blocks=blocks,
@@ -331,17 +349,19 @@ def l3_filter(previous_dbm: np.ndarray, measured_dbm: np.ndarray, dt_s: float, t
     return np.where(np.isnan(previous_dbm), measured_dbm, previous_dbm + weight * (measured_dbm - previous_dbm))
 
 
-def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: MobilityConfig):
+def associate(serving, beats_since_s, weak_since_s, rx_dbm, in_range, eligible, t_s: float, mob: MobilityConfig):
     """One association step, vectorised over vehicles x sites (pure).
 
     serving [V] int (-1 none), beats_since_s [V, S] (NaN where a site does not
-    beat the serving one), rx_dbm and eligible [V, S]. Returns the new
-    (serving, beats_since_s).
+    beat the serving one), weak_since_s [V] (NaN while the serving site is
+    strong enough), rx_dbm, in_range and eligible [V, S]. Returns the new
+    (serving, beats_since_s, weak_since_s).
 
-    A vehicle whose serving site is no longer eligible, or that has none,
-    attaches at once to the strongest eligible site (or to none). Otherwise a
-    site that beats the serving one by the margin starts a timer; the
-    strongest site whose timer reached the time-to-trigger takes over.
+    A vehicle without a site, one that left its site's range, or one whose
+    site has stayed below ``min_rx_power_dbm`` for ``radio_link_failure_s``
+    (T310) attaches at once to the strongest eligible site (or to none).
+    Otherwise a site that beats the serving one by the margin starts a timer;
+    the strongest site whose timer reached the time-to-trigger takes over.
     """
     n, n_sites = rx_dbm.shape
     rows = np.arange(n)
@@ -349,7 +369,11 @@ def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: Mobilit
     best = np.where(eligible.any(axis=1), np.argmax(masked, axis=1), NO_SITE)
 
     serving_col = np.where(serving >= 0, serving, 0)
-    keeps = (serving >= 0) & eligible[rows, serving_col]
+    reachable = (serving >= 0) & in_range[rows, serving_col]
+    weak = reachable & ~eligible[rows, serving_col]
+    weak_since_s = np.where(weak, np.where(np.isnan(weak_since_s), t_s, weak_since_s), np.nan)
+    link_failed = weak & (t_s - weak_since_s >= mob.radio_link_failure_s - _EPS_S)
+    keeps = reachable & ~link_failed
     rx_serving = np.where(keeps, rx_dbm[rows, serving_col], np.inf)
     others = np.arange(n_sites)[None, :] != serving[:, None]
     beats = keeps[:, None] & others & eligible & (rx_dbm > rx_serving[:, None] + mob.handover_margin_db)
@@ -359,8 +383,32 @@ def associate(serving, beats_since_s, rx_dbm, eligible, t_s: float, mob: Mobilit
 
     new_serving = np.where(keeps, np.where(ready.any(axis=1), target, serving), best)
     # Timers measure against the serving site: a new serving site restarts them.
-    since_s = np.where((new_serving != serving)[:, None], np.nan, since_s)
-    return new_serving.astype(np.int64), since_s
+    moved = new_serving != serving
+    since_s = np.where(moved[:, None], np.nan, since_s)
+    weak_since_s = np.where(moved, np.nan, weak_since_s)
+    return new_serving.astype(np.int64), since_s, weak_since_s
+
+
+PING_PONG_S = 5.0  # a handover undone within this time counts as a ping-pong
+
+
+def ping_pongs(handovers: Sequence[Handover], within_s: float = PING_PONG_S) -> int:
+    """How many site-to-site handovers went back to the site served before within ``within_s`` (pure).
+
+    Per vehicle, in time order, only changes between two sites count (attaches
+    and losses of coverage are not handovers): A -> B at t0 followed by
+    B -> A at t1 <= t0 + within_s is one ping-pong.
+    """
+    by_vehicle: dict[str, list[Handover]] = {}
+    for h in sorted(handovers, key=lambda h: h.t_s):
+        if h.from_site != NO_SITE and h.to_site != NO_SITE:
+            by_vehicle.setdefault(h.vehicle_id, []).append(h)
+    return sum(
+        1
+        for changes in by_vehicle.values()
+        for first, then in itertools.pairwise(changes)
+        if then.to_site == first.from_site and then.t_s - first.t_s <= within_s + _EPS_S
+    )
 
 
 # --- SFL: direct vehicle <-> cloud over macro cells ----------------------------

@@ -2,7 +2,7 @@
 
 DIR/trace.csv      per step and vehicle: t_s, vehicle, x_m, y_m, speed_mps, edge, rate_bps
 DIR/handovers.csv  every change of serving edge (t_s, vehicle, from, to; '' = no coverage)
-DIR/summary.json   vehicles, steps, handovers, mean_rate_bps, coverage_fraction, ...
+DIR/summary.json   vehicles, steps, handovers, ping_pongs, mean_rate_bps, coverage_fraction, ...
 DIR/map.png        network, edge sites with coverage circles, trajectories coloured by edge
 DIR/rate.png       rate over time: each edge's mean and the named data vehicles
 (summary.json also holds the settings used, under "config".)
@@ -28,7 +28,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.links.channel import ChannelConfig
-from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
 from crchfl_sumo.sumo.maps import draw_network
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
@@ -126,6 +126,7 @@ def summarize(trace: Trace, scenario: Scenario, duration_s: float, cfg: Simulate
         "step_length_s": scenario.step_length_s,
         "vehicles": int(len(np.unique(trace.vehicle))),
         "handovers": between_sites,
+        "ping_pongs": ping_pongs(trace.handovers),  # of those, undone within mobility.PING_PONG_S
         "coverage_changes": len(trace.handovers) - between_sites,
         "mean_rate_bps": float(trace.rate_bps[covered].mean()) if covered.any() else 0.0,
         "coverage_fraction": float(covered.mean()) if samples else 0.0,

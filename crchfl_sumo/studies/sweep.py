@@ -15,7 +15,7 @@ DIR receives (every file written atomically):
   runs/NAME/        one run folder per point (``run``'s files); NAME is made
                     from the point's values, so a rerun finds it again
   results.csv       one row per point: its values, accuracy, rounds, handovers,
-  results.md        stragglers, bytes per link kind, stop reason
+  results.md        stragglers, failed and relayed downloads, bytes per link kind, stop reason
   plots/PATH.png    each metric against each swept parameter
 
 The runs are independent tasks on the backend (``--backend local``: one
@@ -70,8 +70,11 @@ SUMMARY_COLUMNS = (
     "edge_aggregations",
     "handovers",
     "stragglers",
+    "downloads_failed",
+    "relayed_transfers",
     "wireless_bytes",
     "wireline_bytes",
+    "relay_bytes",
     "consumed_bytes",
     "sim_time_s",
     "stop_reason",

@@ -265,7 +265,7 @@ def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
     options: list[str] = []
     dropped: list[str] = []
     for element in root.iter():
-        value = element.get("value")
+        value = _config_value(element)
         if value is None or element is root:
             continue
         name = synonyms.get(element.tag, element.tag)
@@ -289,8 +289,17 @@ def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
     return options, dropped
 
 
+def _config_value(element: ET.Element) -> str | None:
+    """An option's value in any form sumo reads: ``value="..."``, ``v="..."`` or the element's text."""
+    value = element.get("value", element.get("v"))
+    if value is None and len(element) == 0 and element.text and element.text.strip():
+        value = element.text.strip()
+    return value
+
+
 def _split_files(value: str) -> list[str]:
-    return [p for p in value.replace(",", " ").split() if p]
+    # sumo separates file lists by commas only: a space may be part of a path
+    return [p.strip() for p in value.split(",") if p.strip()]
 
 
 def _option_value(options: list[str] | tuple[str, ...], name: str) -> str | None:
@@ -331,15 +340,18 @@ def sumo_tool_script(name: str) -> str:
 
 
 def read_net_bounds(net_path: Path) -> Bounds:
-    """The network's convBoundary, read without parsing the whole file."""
+    """The network's convBoundary, read without parsing the whole file (plain or gzipped, as sumo reads it)."""
+    import sumolib
+
     if not net_path.is_file():
         raise CrchflError(f"{net_path}: network file not found; check <net-file> in the configuration")
     try:
-        for _, element in ET.iterparse(net_path, events=("start",)):
-            if element.tag == "location":
-                xmin, ymin, xmax, ymax = (float(v) for v in element.get("convBoundary", "").split(","))
-                return Bounds(xmin, ymin, xmax, ymax)
-    except (ET.ParseError, ValueError) as exc:
+        with sumolib.openz(str(net_path), "rb") as source:
+            for _, element in ET.iterparse(source, events=("start",)):
+                if element.tag == "location":
+                    xmin, ymin, xmax, ymax = (float(v) for v in element.get("convBoundary", "").split(","))
+                    return Bounds(xmin, ymin, xmax, ymax)
+    except (ET.ParseError, ValueError, OSError, EOFError) as exc:
         raise CrchflError(f"{net_path}: malformed SUMO network ({exc}); rebuild it with netconvert") from None
     raise CrchflError(f"{net_path}: no <location> element: not a SUMO network; rebuild it with netconvert")
 

@@ -257,10 +257,10 @@ def _handover_clock(back_s=None):
     return ScriptedClock({"a": track_a, "b": [Segment(0.0, 0, 8e6)], "c": [Segment(0.0, 1, 8e6)]}, step_s=0.25)
 
 
-def _policy_run(policy, clock, deadline_s=math.inf, values=None):
+def _policy_run(policy, clock, deadline_s=math.inf, values=None, download_handover="relay"):
     config = FederationConfig(
         scheme="hfl", edge_interval=1, cloud_rounds=1, compute_s_per_sample=0.5,
-        handover_policy=policy, deadline_s=deadline_s,
+        handover_policy=policy, deadline_s=deadline_s, download_handover=download_handover,
     )
     setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=SMALL, rule="physical")
     trainer = FixedTrainer({2: 1.0}) if values is None else values
@@ -290,16 +290,28 @@ def test_wait_policy_waits_for_the_own_edge():
 
 def test_wait_policy_past_the_deadline_is_a_straggler_left_out_of_fedavg():
     trainer = FixedTrainer({2: 1.0})
-    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer)
+    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer, download_handover="drop")
     # a never returns to e0: its upload misses the deadline, and e0's release cannot reach it either
     assert [(s["vehicle"], s["reason"]) for s in state.stragglers] == [("a", "deadline"), ("a", "download outage")]
     assert [r.size_bytes for r in state.records if r.receiver == "a"] == [0]  # physical: nothing crossed
+    assert state.transfers == {"uploads": 3, "uploads_failed": 1, "downloads": 3, "downloads_failed": 1}
     assert state.edge_weights["e0"] == 2.0  # only b's samples behind e0's model
     (a_up,) = [r for r in state.records if r.sender == "a" and r.direction == "uplink"]
     assert a_up.end_s == pytest.approx(10.0)
     assert a_up.size_bytes == math.ceil(0.5 * 8e6 / 8)  # physical: the bytes sent before the handover
     e0_agg = [r for r in state.records if r.sender == "e0" and r.receiver == CLOUD][0]
     assert e0_agg.start_s == pytest.approx(10.0)  # the edge waited until its deadline
+    # relayed, e0's release reaches a through e1: the whole model crosses the wireline e0 -> e1 first
+    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer, download_handover="relay")
+    assert [(s["vehicle"], s["reason"]) for s in state.stragglers] == [("a", "deadline")]
+    (down,) = [r for r in state.records if r.receiver == "a"]
+    (relay,) = [r for r in state.records if r.link == "relay"]
+    assert (relay.sender, relay.receiver, relay.stage, relay.size_bytes) == ("e0", "e1", "III", down.size_bytes)
+    assert relay.start_s == down.start_s > 10.0  # at the release: a is on e1 from its start
+    assert down.end_s == pytest.approx(relay.end_s + WIRELESS_S)  # e1 sends it once it is there
+    assert state.transfers == {"uploads": 3, "uploads_failed": 1, "downloads": 3, "downloads_failed": 0,
+                               "relayed_transfers": 1}
+    assert state.metrics[-1]["relay_bytes"] == relay.size_bytes
 
 
 def test_miss_policy_fails_the_upload_at_the_handover():
@@ -382,9 +394,13 @@ def test_state_round_trips_through_its_payload():
     config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1)
     setup = _setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=SMALL)
     state = _run(setup, ScriptedClock.constant(HOME3, 8e6))
-    again = type(state).from_payload(state.to_payload())
-    assert again.records == state.records and again.metrics == state.metrics
-    assert again.cloud_model["w"].tolist() == state.cloud_model["w"].tolist()
+    payload = state.to_payload()
+    assert not {"records", "metrics", "stragglers"} & set(payload)  # the history lives in the logs
+    again = type(state).from_payload(payload, state.records, state.metrics, state.stragglers)
+    assert again == state
+    # the counters stand for the records
+    assert Ledger(setup.sizes, byte_totals=state.ledger_totals).totals("link") == Ledger(setup.sizes, state.records).totals("link")
+    assert state.transfers_end_s == max(r.end_s for r in state.records)
 
 
 def test_evaluate_every_edge_reports_the_sample_weighted_edge_metrics():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from crchfl_sumo.federation.run import run_command, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig, builtin_experiments, load_run_config
 from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.checkpoint import load_checkpoint
+from crchfl_sumo.links.clock import ScriptedClock, Segment
 
 from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
 
@@ -253,3 +256,110 @@ def test_a_planned_run_reads_the_calibration_file(tmp_path, dataset):
     # objective = alpha x + gamma s (T - d / (I_e I_c)) with the file's weights and the run's s = 10 samples
     t, ie, ic = plan["cloud_rounds"], plan["edge_interval"], plan["cloud_interval"]
     assert plan["objective"] == pytest.approx(0.5 * 10 * (t - 1.0 / (ie * ic)))
+
+
+def test_the_bytes_a_step_writes_do_not_grow_with_the_record_count(tmp_path, dataset):
+    # 12 edge aggregations (a cloud one every second); at every checkpoint, note what the
+    # step wrote: the checkpoint, the derived files (fixed size), what the logs grew by.
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=6))
+    inputs = read_inputs(config)
+    out = tmp_path / "run"
+    logs = ("ledger.jsonl", "metrics.jsonl", "stragglers.jsonl")
+    seen = []
+
+    def note(state):
+        texts = {name: (out / name).read_bytes() for name in logs}
+        rewritten = sum((out / name).stat().st_size for name in ("checkpoint.pt", "summary.json", "final_model.pt")
+                        if (out / name).exists())
+        seen.append((len(state.records), texts, rewritten))
+
+    run_federation_dir(config, inputs, out, trainer=SumTrainer(), after_checkpoint=note)
+    assert len(seen) == 13  # 12 aggregation steps and the one that stops
+    for (_, before, _), (_, after, _) in itertools.pairwise(seen):
+        for name in logs:  # append-only: every log starts with what it held a step before
+            assert after[name].startswith(before[name]), name
+    written = [rewritten + sum(len(texts[n]) - len(prev[n]) for n in logs)
+               for (_, prev, _), (_, texts, rewritten) in itertools.pairwise(seen)]
+    records = [count for count, _, _ in seen]
+    assert records[11] >= 5 * records[1]
+    # steps 2 .. 12 alternate edge-only and edge + cloud aggregations: compare like with like
+    assert max(written[1:11:2]) - min(written[1:11:2]) <= 64
+    assert max(written[2:11:2]) - min(written[2:11:2]) <= 64
+    assert (out / "ledger.jsonl").read_text().count("\n") == records[-1] + 1  # the header and every record
+
+
+def test_kill_between_the_logs_and_the_checkpoint_and_a_torn_log_line_resume_exactly(tmp_path, dataset, monkeypatch):
+    from crchfl_sumo.federation import run as run_module
+
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+    run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    save = run_module._save_state
+
+    def killed_before_checkpoint_3(path, resolved, state, marks):
+        if state.steps == 3:  # its log lines are appended, its checkpoint not written
+            raise Killed
+        save(path, resolved, state, marks)
+
+    monkeypatch.setattr(run_module, "_save_state", killed_before_checkpoint_3)
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer())
+    monkeypatch.setattr(run_module, "_save_state", save)
+    assert (tmp_path / "killed" / "ledger.jsonl").stat().st_size > 0
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
+
+    # killed while appending: half a line at the end of two logs
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "torn", trainer=SumTrainer(), after_checkpoint=kill_after(2))
+    for name in ("ledger.jsonl", "metrics.jsonl"):
+        with open(tmp_path / "torn" / name, "a") as handle:
+            handle.write('{"link": "wirel')
+    run_federation_dir(config, inputs, tmp_path / "torn", trainer=SumTrainer(), resume=True)
+    assert result_files(tmp_path / "torn") == result_files(tmp_path / "whole")
+
+
+def test_a_log_shorter_than_the_checkpoint_is_refused(tmp_path, dataset):
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=kill_after(2))
+    (tmp_path / "out" / "metrics.jsonl").write_text("")
+    with pytest.raises(CrchflError, match="metrics.jsonl: missing or shorter than checkpoint.pt"):
+        run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
+
+
+def test_a_run_that_relays_killed_anywhere_resumes_exactly(tmp_path, dataset):
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+
+    def clock():  # t01_data_0 swaps between the two edges every 4 s; 10 MB take 10.5 s at 8 Mbit/s
+        tracks = {v: [Segment(0.0, inputs.home_site[v], 8e6)] for v in inputs.vehicles}
+        tracks["t01_data_0"] = [Segment(4.0 * k, k % 2, 8e6) for k in range(100)]
+        return contextlib.nullcontext(ScriptedClock(tracks, step_s=0.5))
+
+    whole = run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer(), clock_factory=clock)
+    assert whole["relayed_transfers"] >= 4 and whole["relay_bytes"] > 0
+    assert whole["downloads_failed"] == 0 and whole["downloads"] == 4 * len(inputs.vehicles)
+    assert whole["bytes_by_link"]["relay"] == whole["relay_bytes"]
+    relays = [json.loads(line) for line in (tmp_path / "whole" / "ledger.jsonl").read_text().splitlines()[1:]]
+    assert sum(r["size_bytes"] for r in relays if r["link"] == "relay") == whole["relay_bytes"]
+    for kill_at in (1, 3, 4):
+        out = tmp_path / f"killed{kill_at}"
+        with pytest.raises(Killed):
+            run_federation_dir(config, inputs, out, trainer=SumTrainer(), clock_factory=clock,
+                               after_checkpoint=kill_after(kill_at))
+        resumed = run_federation_dir(config, inputs, out, trainer=SumTrainer(), clock_factory=clock, resume=True)
+        assert resumed == whole
+        assert result_files(out) == result_files(tmp_path / "whole")
+    # where leaving the sending edge fails a download, relays save the ones that cross a handover
+    for policy, name in (("relay", "strict"), ("drop", "drop")):
+        mapping = run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2, download_handover=policy)
+        mapping["transfer"] = {"on_outage": "fail"}
+        summary = run_federation_dir(from_mapping(RunConfig, mapping), inputs, tmp_path / name, trainer=SumTrainer(),
+                                     clock_factory=clock)
+        if policy == "relay":
+            assert summary["downloads_failed"] == 0 and summary["relayed_transfers"] >= 4
+        else:
+            assert summary["relayed_transfers"] == 0 and summary["relay_bytes"] == 0
+            assert summary["downloads_failed"] >= 1

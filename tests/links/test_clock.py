@@ -2,7 +2,8 @@
 
 import pytest
 
-from crchfl_sumo.links.clock import ScriptedClock, SumoClock, wireless_transfer
+from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.links.clock import Relay, ScriptedClock, Segment, SumoClock, edge_download, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig
 from crchfl_sumo.sumo.scenario import load_scenario
 
@@ -30,3 +31,46 @@ def test_sumo_series_starts_at_or_before_the_start():
         assert link.t_s[0] <= START_S < link.t_s[1]
         outcome = wireless_transfer(clock, "t02_data_0", "edge", START_S, 1e5, TransferConfig())
         assert outcome.end_s > START_S
+
+
+# A vehicle served by site 0 at 1 MB/s until t = 4 s, then by site 1 at 0.5 MB/s.
+CROSSING = {"v": [Segment(0.0, 0, 8e6), Segment(4.0, 1, 4e6)]}
+WIRE = WirelineConfig(rate_bps=1e9, latency_s=0.01)
+
+
+def test_a_download_across_a_handover_is_relayed_restarted_or_dropped():
+    clock = ScriptedClock(CROSSING, step_s=0.5)
+    # 10 MB from t = 1 s: 3 MB by the handover at 4 s; the other 7 MB cross the wireline
+    # in 0.01 + 8 * 7e6 / 1e9 = 0.066 s and site 1 sends them in 14 s.
+    out, relays = edge_download(clock, "v", 0, 1.0, 10e6, TransferConfig(), WIRE, "relay")
+    assert out.ok and out.site == 1 and out.sent_bytes == pytest.approx(10e6)
+    assert out.end_s == pytest.approx(4.066 + 14.0)
+    assert relays == (Relay(0, 1, 4.0, pytest.approx(4.066), pytest.approx(7e6)),)
+    # restart: the whole model is relayed (0.09 s) and sent again (20 s); 3 MB were sent for nothing
+    out, relays = edge_download(clock, "v", 0, 1.0, 10e6, TransferConfig(), WIRE, "restart")
+    assert out.ok and out.end_s == pytest.approx(4.09 + 20.0) and out.sent_bytes == pytest.approx(13e6)
+    assert [r.size_bytes for r in relays] == [10e6]
+    # drop: site 0 never serves the vehicle again
+    out, relays = edge_download(clock, "v", 0, 1.0, 10e6, TransferConfig(on_outage="fail"), WIRE, "drop")
+    assert not out.ok and out.reason == "outage" and out.end_s == pytest.approx(4.0) and relays == ()
+    assert out.sent_bytes == pytest.approx(3e6)
+    # a download that ends before the handover needs no relay
+    out, relays = edge_download(clock, "v", 0, 1.0, 2e6, TransferConfig(), WIRE, "relay")
+    assert out.ok and out.end_s == pytest.approx(3.0) and relays == ()
+
+
+def test_a_relay_waits_out_a_coverage_gap_and_follows_every_handover():
+    gap = ScriptedClock({"v": [Segment(0.0, 0, 8e6), Segment(4.0, -1, 0.0), Segment(6.0, 1, 8e6),
+                               Segment(8.0, 0, 8e6)]}, step_s=0.5)
+    out, relays = edge_download(gap, "v", 0, 1.0, 10e6, TransferConfig(), WIRE, "relay")
+    # 3 MB by 4 s; stalled 4-6 s; 7 MB relayed at 6 s (0.066 s); 1.934 MB by 8 s from site 1;
+    # the last 5.066 MB relayed back to site 0 (0.01 + 0.0405 s) and sent in 5.066 s
+    assert [(r.from_site, r.to_site, r.start_s) for r in relays] == [(0, 1, 6.0), (1, 0, 8.0)]
+    assert relays[1].size_bytes == pytest.approx(7e6 - 1.934e6)
+    assert out.ok and out.end_s == pytest.approx(8.0 + 0.01 + 8 * 5.066e6 / 1e9 + 5.066)
+    # under the fail policy the gap ends it, relay or not
+    out, _ = edge_download(gap, "v", 0, 1.0, 10e6, TransferConfig(on_outage="fail"), WIRE, "relay")
+    assert not out.ok and out.end_s == pytest.approx(4.0)
+    # the deadline counts from the first byte, over all legs
+    out, _ = edge_download(gap, "v", 0, 1.0, 10e6, TransferConfig(deadline_s=6.0), WIRE, "relay")
+    assert not out.ok and out.reason == "deadline" and out.end_s == pytest.approx(7.0)

@@ -41,6 +41,7 @@ def test_summary_figures_by_hand(grid_dir):
     assert summary["mean_rate_bps"] == pytest.approx(4e6)  # (4 + 2 + 6) / 3 over served samples
     assert summary["handovers"] == 1  # only e0 -> e1; attach and loss are coverage changes
     assert summary["coverage_changes"] == 2
+    assert summary["ping_pongs"] == 0
     assert summary["per_edge"]["e0"] == {"samples": 2, "mean_rate_bps": pytest.approx(5e6)}
 
 

@@ -127,6 +127,7 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
         assert row["final_accuracy"] == summary["final_accuracy"]
         assert row["wireless_bytes"] == summary["bytes_by_link"]["wireless"] > 0
         assert row["handovers"] == 0  # the constant clock has no mobility
+        assert row["relayed_transfers"] == row["relay_bytes"] == row["downloads_failed"] == 0
         # each point's folder holds its config, runnable on its own
         assert tomllib.loads((runs / point.name / "config.toml").read_text())["federation"]["edge_interval"] == row[
             "federation.edge_interval"

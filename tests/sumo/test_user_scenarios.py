@@ -1,5 +1,7 @@
 """Any SUMO scenario a user brings: here an OSM import with a 3-lane motorway and ramps."""
 
+import gzip
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -7,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crchfl_sumo.cli import main
+from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.studies.simulate import SimulateConfig, simulate, summarize
 from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 
@@ -54,3 +58,50 @@ def test_osm_motorway_with_ramps_runs_with_sites_placed_automatically(osm_scenar
     assert summary["teleports"] == 0
     assert summary["coverage_fraction"] > 0.5
     assert np.all(np.isfinite(trace.x_m)) and np.all(trace.rate_bps >= 0)
+
+
+def _gzip_copy(source: Path, target: Path) -> None:
+    with open(source, "rb") as plain, gzip.open(target, "wb") as packed:
+        shutil.copyfileobj(plain, packed)
+
+
+def test_gzipped_copy_of_a_builtin_town_simulates_like_the_plain_one(tmp_path):
+    # town01 with its network, routes and additional file gzipped, and the
+    # configuration written in the other forms sumo reads: 'v' for 'value',
+    # the value as the element's text, an option outside any section, a synonym.
+    town = scenarios_dir() / "town01"
+    for name in ("town01.net.xml", "town01.ego.rou.xml", "town01.bg.rou.xml", "vtypes.add.xml"):
+        _gzip_copy(town / name, tmp_path / f"{name}.gz")
+    (tmp_path / "packed.sumocfg").write_text(
+        """<configuration>
+  <input>
+    <net-file v="town01.net.xml.gz"/>
+    <route-files>town01.ego.rou.xml.gz, town01.bg.rou.xml.gz</route-files>
+  </input>
+  <a value="vtypes.add.xml.gz"/>
+  <step-length value="0.25"/>
+  <seed value="42"/>
+</configuration>
+"""
+    )
+    sites = load_scenario("town01").edge_sites
+    packed = load_scenario(tmp_path / "packed.sumocfg", edge_sites=sites)
+    plain = load_scenario("town01")
+    assert packed.bounds == plain.bounds
+    assert packed.step_length_s == pytest.approx(0.25)
+    cfg = SimulateConfig(seed=1)
+    a = summarize(simulate(packed, 15.0, cfg), packed, 15.0, cfg)
+    b = summarize(simulate(plain, 15.0, cfg), plain, 15.0, cfg)
+    assert a["steps"] == 60 and a["vehicles"] > 0
+    for key in ("vehicles", "handovers", "mean_rate_bps", "coverage_fraction"):
+        assert a[key] == b[key], key
+    # And through the command line.
+    assert main(["simulate", str(tmp_path / "packed.sumocfg"), "--duration-s", "5", "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "handovers.csv").is_file()
+
+
+def test_truncated_gzipped_network_is_refused_by_name(tmp_path, capsys):
+    (tmp_path / "net.net.xml.gz").write_bytes(gzip.compress(b"<net><location convBoundary='0,0,1,1'")[:-12])
+    (tmp_path / "x.sumocfg").write_text('<configuration><net-file value="net.net.xml.gz"/></configuration>')
+    assert main(["simulate", str(tmp_path / "x.sumocfg"), "--duration-s", "1", "--out", str(tmp_path / "o")]) == 2
+    assert "net.net.xml.gz: malformed SUMO network" in capsys.readouterr().err
