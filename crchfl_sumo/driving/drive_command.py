@@ -82,7 +82,7 @@ def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], wh
     (a checkpoint's extra "camera", copied from the manifest), or today's defaults at the model's image
     size for a checkpoint written without them."""
     camera = extra.get("camera")
-    if camera is None:
+    if not camera:  # written without it (or from a data set that recorded none)
         size = CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width)
         raster = RasterConfig(camera=size)
         return Renderer(build_world(net_path), raster)

@@ -40,6 +40,7 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.federation.logs import Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
@@ -152,6 +153,8 @@ def _run_with_trainer(
     fed = config.federation
     first = trainer.initial_state()
     baseline = always_straight(inputs.test)  # what the accuracies are read against
+    # Kept in the model files, so that a drive renders what the data showed (no folder: samples given in memory).
+    camera = None if inputs.root is None else read_manifest(inputs.root).camera
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
@@ -180,7 +183,7 @@ def _run_with_trainer(
         if resume and checkpoint_path.exists():
             state, marks = _load_state(checkpoint_path, resolved, sizes)
             if state.done:  # finished before: only the derived files may be missing
-                _write_outputs(out_dir, config, setup, state, _handovers(clock, state), baseline)
+                _write_outputs(out_dir, config, setup, state, camera, _handovers(clock, state), baseline)
                 return summarize(config, setup, state, _handovers(clock, state), baseline)
             log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
         else:
@@ -199,7 +202,7 @@ def _run_with_trainer(
             _save_state(checkpoint_path, resolved, new, marks)
             if after_checkpoint is not None:
                 after_checkpoint(new)
-            _write_outputs(out_dir, config, setup, new, _handovers(clock, new), baseline)
+            _write_outputs(out_dir, config, setup, new, camera, _handovers(clock, new), baseline)
             if progress is not None:  # a step's postfix costs a pass over the records
                 report(progress, "step", new.steps, None, **progress_detail(new, sizes.budget_bytes, hyper))
 
@@ -317,11 +320,17 @@ def _write_outputs(
     config: RunConfig,
     setup: LoopInputs,
     state: FederationState,
+    camera: dict | None,
     handovers: int | None = None,
     baseline: Mapping[str, float] | None = None,
 ) -> None:
-    """The files derived from the state, rewritten each step (each of a fixed size); the logs are apart."""
+    """The files derived from the state, rewritten each step (each of a fixed size); the logs are apart.
+
+    ``camera``: the data set's raster and world settings (Manifest.camera), kept in the model files.
+    """
     extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds}
+    if camera is not None:
+        extra["camera"] = camera
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:
         save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})

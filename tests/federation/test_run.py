@@ -73,6 +73,8 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     assert postfix["round"] == "1/1" and postfix["GB"].endswith("/20.00") and postfix["loss"] != "-"
     model = load_checkpoint(out / "best_model.pt")
     assert model.model_config.image_height == 48
+    # the data set's camera settings travel with the model, for the drives
+    assert model.extra["camera"] == json.loads((Path(dataset) / "manifest.json").read_text())["camera"]
     with pytest.raises(CrchflError, match="--resume"):
         run_command(path, out)
     # resuming a finished run changes nothing
