@@ -324,7 +324,7 @@ def test_forward_policy_forwards_an_upload_that_ends_at_another_edge():
     assert relay.size_bytes == a_up.size_bytes == MIB
     assert relay.start_s == pytest.approx(a_up.end_s) and relay.end_s == pytest.approx(a_up.end_s + WIRELINE_S)
     assert state.member["a"] == "e0" and state.edge_weights == {"e0": 4.0, "e1": 2.0} and state.stragglers == []
-    e0_agg = [r for r in state.records if r.sender == "e0" and r.receiver == CLOUD][0]
+    e0_agg = next(r for r in state.records if r.sender == "e0" and r.receiver == CLOUD)
     assert e0_agg.start_s == pytest.approx(relay.end_s)  # e0 waited for the forwarded model
     assert state.transfers["relayed_transfers"] == 2  # the upload, and e0's release that follows a to e1
     # forwarded past the deadline: a straggler, left out of e0's FedAvg
