@@ -70,6 +70,8 @@ from crchfl_sumo.planning.problem import split_pretrain_batch
 
 log = logging.getLogger(__name__)
 
+_EPS_S = 1e-9  # float slack when comparing simulated times
+
 # The test metrics that an edge evaluation averages over edges (the rest: per-class counts and rates).
 SCALAR_METRICS = ("loss", "accuracy", "balanced_accuracy", "steer_error", "throttle_error", "brake_error")
 
@@ -96,10 +98,13 @@ def _wireless(outcome: WirelessOutcome) -> TransferEvent:
 
 
 @dataclass(frozen=True)
-class DownloadRelays:
-    """The relays of one download (edge names, not site indices) and the stage it belongs to."""
+class RelayedTransfer:
+    """The edge-to-edge relays of one transfer: a download that followed its vehicle, or an upload
+    forwarded to the edge that aggregates it; with the stage, direction and payload of that transfer."""
 
     stage: str
+    direction: str
+    payload: str
     relays: tuple[Relay, ...]
 
 
@@ -110,11 +115,11 @@ def _charge(
     rule: str,
     cloud_round: int,
     counts: dict[str, int],
-    relays: Sequence[DownloadRelays] = (),
+    relays: Sequence[RelayedTransfer] = (),
     edges: Sequence[str] = (),
 ) -> bool:
-    """Charge the schedule's transfers that happened, with their times, then the downloads' relays;
-    False when one does not fit. Counts the relayed downloads in ``counts``.
+    """Charge the schedule's transfers that happened, with their times, then the relays;
+    False when one does not fit. Counts the relayed transfers in ``counts``.
 
     ``paper`` charges the schedule's size of every transfer that started,
     ``physical`` the bytes that crossed (fewer than the size for a failed
@@ -132,14 +137,14 @@ def _charge(
             return False
         charged = dataclasses.replace(planned, size_bytes=size)
         ledger.charge(charged, cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
-    for download in relays:
+    for relayed in relays:
         counts["relayed_transfers"] = counts.get("relayed_transfers", 0) + 1
-        for relay in download.relays:
+        for relay in relayed.relays:
             size = math.ceil(relay.size_bytes)
             if not ledger.can_carry(size):
                 return False
-            moved = Transfer("relay", "downlink", download.stage, edges[relay.from_site], edges[relay.to_site],
-                             "model", size)
+            moved = Transfer("relay", relayed.direction, relayed.stage, edges[relay.from_site], edges[relay.to_site],
+                             relayed.payload, size)
             ledger.charge(moved, cloud_round=cloud_round, start_s=relay.start_s, end_s=relay.end_s)
     return True
 
@@ -240,7 +245,7 @@ class Federation:
             return wireless_transfer(self.clock, vehicle, "macro", start_s, size, cfg)
         policy = self.config.handover_policy
         home = self.setup.edges.index(edge)
-        if policy == "new_edge":
+        if policy in ("new_edge", "forward"):
             return wireless_transfer(self.clock, vehicle, "edge", start_s, size, cfg)
         if policy == "wait":
             cfg = dataclasses.replace(cfg, on_outage="stall", max_outage_s=math.inf)
@@ -258,6 +263,19 @@ class Federation:
         site = setup.edges.index(edge)
         return edge_download(self.clock, vehicle, site, start_s, size, setup.transfer, setup.wireline,
                              self.config.download_handover)
+
+    def _forward(self, out: WirelessOutcome, receiver: str, size: int, payload: str, stage: str, relays) -> float:
+        """When an upload under the ``forward`` policy ended at another edge than ``receiver``, that edge
+        forwards it over the wireline (a relay); returns when it reaches ``receiver``."""
+        edges = self.setup.edges
+        if self.config.handover_policy != "forward" or not out.ok or receiver not in edges:
+            return out.end_s
+        home = edges.index(receiver)
+        if out.site == home:
+            return out.end_s
+        arrival_s = out.end_s + wireline_transfer_time_s(size, self.setup.wireline)
+        relays.append(RelayedTransfer(stage, "uplink", payload, (Relay(out.site, home, out.end_s, arrival_s, size),)))
+        return arrival_s
 
     def _train(self, state: FederationState, epochs: int) -> tuple[dict[str, State], dict[str, int]]:
         """Every vehicle's model after ``epochs`` on its data, and the sample counts |T_nk| behind them."""
@@ -298,8 +316,9 @@ class Federation:
         shares = split_pretrain_batch(setup.hyper.pretrain_batch, counts)
         member = dict(state.member)
         events: dict[tuple[str, str, str], TransferEvent] = {}
-        relays: list[DownloadRelays] = []
+        relays: list[RelayedTransfer] = []
         uploaded: dict[str, Samples] = {}
+        arrival_s: dict[str, float] = {}  # at the vehicle's edge (after forwarding)
         for i, v in enumerate(setup.vehicles):
             if not shares[v]:
                 continue
@@ -313,7 +332,10 @@ class Federation:
                 member[v] = setup.edges[out.site]
             events[(v, member[v], "uplink")] = _wireless(out)
             _count(state, "uploads", out.ok)
-            if out.ok:
+            arrival_s[v] = self._forward(out, member[v], shares[v] * sizes.sample_bytes, "samples", "I", relays)
+            if out.ok and arrival_s[v] > window_end + _EPS_S:
+                self._straggler(state, v, "I", "deadline", window_end)
+            elif out.ok:
                 # the fixed uploaded subset: a seeded choice of the vehicle's samples
                 rng = np.random.default_rng([cfg.seed, 2, i])
                 uploaded[v] = setup.samples[v].subset(np.sort(rng.permutation(counts[v])[: shares[v]]))
@@ -322,7 +344,7 @@ class Federation:
         topology = self._topology(member)
         relay_end = {}
         for e, vehicles in topology.active():
-            ends = [events[(v, e, "uplink")].end_s for v in vehicles if (v, e, "uplink") in events]
+            ends = [min(arrival_s[v], state.open_s[e] + cfg.deadline_s) for v in vehicles if v in arrival_s]
             if ends:
                 n = sum(len(uploaded[v]) for v in vehicles if v in uploaded)
                 events[(e, CLOUD, "uplink")] = _wireline(max(ends), n * sizes.sample_bytes, setup.wireline)
@@ -366,11 +388,11 @@ class Federation:
         followed = state.tau + 1 == setup.hyper.cloud_interval
         trained, counts = self._train(state, setup.hyper.edge_interval)
         events: dict[tuple[str, str, str], TransferEvent] = {}
-        relays: list[DownloadRelays] = []
+        relays: list[RelayedTransfer] = []
         uploads, member = self._vehicle_uploads(state, counts)
         topology = self._topology(member)
         agg_s, received_by, edge_models, edge_weights = self._edge_fedavg(
-            state, topology, uploads, trained, counts, events
+            state, topology, uploads, trained, counts, events, relays
         )
         edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
         for e in agg_s:
@@ -426,7 +448,7 @@ class Federation:
                 member[v] = setup.edges[out.site]
         return uploads, member
 
-    def _edge_fedavg(self, state, topology, uploads, trained, counts, events):
+    def _edge_fedavg(self, state, topology, uploads, trained, counts, events, relays):
         """Each edge averages the models that arrived, once its members' uploads ended (at the latest, its deadline).
 
         Returns (aggregation time, received vehicles, edge models, edge weights) per edge; records the
@@ -443,6 +465,7 @@ class Federation:
                 "II",
                 lambda v: state.open_s[state.member[v]] + self.config.deadline_s,
                 events,
+                relays,
             )
             agg_s[e] = max(ends)
             received_by[e] = received
@@ -477,7 +500,7 @@ class Federation:
             events[(sender, v, "downlink")] = _wireless(out)
             _count(state, "downloads", out.ok)
             if moved:
-                relays.append(DownloadRelays(stage, moved))
+                relays.append(RelayedTransfer(stage, "downlink", "model", moved))
             ready[v] = out.end_s
             if out.ok:
                 models[v] = model
@@ -491,7 +514,7 @@ class Federation:
         keys = [k for k in SCALAR_METRICS if all(k in m for m, _ in results)]
         return {k: sum(m[k] * w for m, w in results) / total for k in keys}
 
-    def _gather_uploads(self, state, uploads, receiver: str, stage: str, missed_at, events):
+    def _gather_uploads(self, state, uploads, receiver: str, stage: str, missed_at, events, relays):
         """Arrival time of each vehicle's upload to ``receiver`` and the vehicles whose model arrived.
 
         An upload that could not start before the deadline (None) ends at
@@ -506,10 +529,15 @@ class Federation:
                 continue
             events[(v, receiver, "uplink")] = _wireless(out)
             _count(state, "uploads", out.ok)
-            ends.append(out.end_s)
-            if out.ok:
+            arrival_s = self._forward(out, receiver, self.setup.sizes.model_bytes, "model", stage, relays)
+            if out.ok and arrival_s > missed_at(v) + _EPS_S:  # forwarded past the deadline
+                ends.append(missed_at(v))
+                self._straggler(state, v, stage, "deadline", ends[-1])
+            elif out.ok:
+                ends.append(arrival_s)
                 received.append(v)
             else:
+                ends.append(out.end_s)
                 self._straggler(state, v, stage, out.reason, out.end_s)
         return ends, received
 
@@ -534,14 +562,14 @@ class Federation:
         trained, counts = self._train(state, epochs)
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
-        relays: list[DownloadRelays] = []
+        relays: list[RelayedTransfer] = []
         uploads = {
             v: self._upload(
                 v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.model_bytes, window_end
             )
             for v in setup.vehicles
         }
-        ends, received = self._gather_uploads(state, uploads, CLOUD, "III", lambda v: window_end, events)
+        ends, received = self._gather_uploads(state, uploads, CLOUD, "III", lambda v: window_end, events, relays)
         cloud_s = max(ends)
         cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
         models, ready = dict(trained), dict(state.ready_s)

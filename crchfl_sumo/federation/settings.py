@@ -13,7 +13,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import SCHEMES, Scheme
 from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
-HandoverPolicy = Literal["new_edge", "wait", "miss"]
+HandoverPolicy = Literal["new_edge", "forward", "wait", "miss"]
 
 
 SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
@@ -41,6 +41,9 @@ class FederationConfig:
     handover_policy: what a vehicle's upload does when the vehicle is not (or
         no longer) served by its edge: "new_edge" (the model goes to whichever
         edge serves the vehicle when the upload ends; the vehicle joins it),
+        "forward" (it goes over whichever site serves the vehicle, and an edge
+        it reaches that is not the vehicle's own forwards it over the wireline
+        to that one, charged as link "relay"; the vehicle stays a member),
         "wait" (it is sent only while its own edge serves it, waiting out any
         time elsewhere, up to the deadline), "miss" (leaving its edge's
         coverage during the upload fails it: the vehicle misses that aggregation).
@@ -75,7 +78,7 @@ class FederationConfig:
             raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
         if self.handover_policy not in get_args(HandoverPolicy):
             raise CrchflError(
-                f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'wait', 'miss'"
+                f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'forward', 'wait', 'miss'"
             )
         if self.download_handover not in DOWNLOAD_HANDOVERS:
             raise CrchflError(

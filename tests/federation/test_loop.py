@@ -314,6 +314,26 @@ def test_wait_policy_past_the_deadline_is_a_straggler_left_out_of_fedavg():
     assert state.metrics[-1]["relay_bytes"] == relay.size_bytes
 
 
+def test_forward_policy_forwards_an_upload_that_ends_at_another_edge():
+    state = _policy_run("forward", _handover_clock())
+    # a trains 1 s, uploads 1 -> 1 + WIRELESS_S over e0 then e1 (from 1.5 s): e1 forwards it to e0
+    (a_up,) = [r for r in state.records if r.sender == "a" and r.direction == "uplink"]
+    (relay,) = [r for r in state.records if r.link == "relay" and r.direction == "uplink"]
+    assert (a_up.receiver, a_up.end_s) == ("e0", pytest.approx(1.0 + WIRELESS_S))
+    assert (relay.sender, relay.receiver, relay.direction, relay.stage, relay.payload) == ("e1", "e0", "uplink", "II",
+                                                                                            "model")
+    assert relay.size_bytes == a_up.size_bytes == MIB
+    assert relay.start_s == pytest.approx(a_up.end_s) and relay.end_s == pytest.approx(a_up.end_s + WIRELINE_S)
+    assert state.member["a"] == "e0" and state.edge_weights == {"e0": 4.0, "e1": 2.0} and state.stragglers == []
+    e0_agg = next(r for r in state.records if r.sender == "e0" and r.receiver == CLOUD)
+    assert e0_agg.start_s == pytest.approx(relay.end_s)  # e0 waited for the forwarded model
+    assert state.transfers["relayed_transfers"] == 2  # the upload, and e0's release that follows a to e1
+    # forwarded past the deadline: a straggler, left out of e0's FedAvg
+    late = _policy_run("forward", _handover_clock(), deadline_s=1.0 + WIRELESS_S + WIRELINE_S / 2)
+    assert [(x["vehicle"], x["reason"]) for x in late.stragglers] == [("a", "deadline")]
+    assert late.edge_weights["e0"] == 2.0
+
+
 def test_miss_policy_fails_the_upload_at_the_handover():
     state = _policy_run("miss", _handover_clock(back_s=4.0))
     assert [(s["vehicle"], s["reason"], s["t_s"]) for s in state.stragglers] == [("a", "outage", 1.5)]
