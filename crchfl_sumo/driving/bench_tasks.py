@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import sumolib
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.route import GREEN_LETTERS, RouteGeometry, read_net, route_geometry
@@ -133,7 +134,8 @@ def data_routes(scenario: Scenario) -> list[tuple[str, ...]]:
     wanted = {v for town in scenario.towns for v in town.data_vehicles}
     found: dict[str, tuple[str, ...]] = {}
     for path in route_files(scenario):
-        root = ET.parse(path).getroot()
+        with sumolib.openz(str(path), "rb") as source:  # plain or gzipped
+            root = ET.parse(source).getroot()
         named = {r.get("id"): tuple(r.get("edges", "").split()) for r in root.iter("route") if r.get("id")}
         for vehicle in root.iter("vehicle"):
             if vehicle.get("id") not in wanted:
@@ -168,8 +170,10 @@ def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
     the cycle wraps round, so a red at the end joins one at the start.
     """
     waits: dict[tuple[str, int], float] = {}
-    for _, element in ET.iterparse(net_path):
-        if element.tag != "tlLogic" or element.get("id") in {k[0] for k in waits}:
+    with sumolib.openz(str(net_path), "rb") as source:  # plain or gzipped
+        programs = [e for _, e in ET.iterparse(source) if e.tag == "tlLogic"]
+    for element in programs:
+        if element.get("id") in {k[0] for k in waits}:
             continue
         phases = [(float(p.get("duration")), p.get("state", "")) for p in element.iter("phase")]
         links = max((len(state) for _, state in phases), default=0)
@@ -184,7 +188,6 @@ def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
                 run = run + duration if stop else 0.0
                 longest = max(longest, run)
             waits[(element.get("id"), link)] = min(longest, cycle)
-        element.clear()
     return waits
 
 

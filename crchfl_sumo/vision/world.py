@@ -30,6 +30,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import sumolib
 
 from crchfl_sumo.core.errors import CrchflError
 
@@ -202,12 +203,13 @@ def _change_allowed(attribute: str | None) -> bool:
 def _read_lane_change_rules(net_path: Path) -> dict[str, tuple[bool, bool]]:
     """lane id -> (passenger may change left, may change right); sumolib does not keep these."""
     rules = {}
-    for _, element in ET.iterparse(net_path, events=("end",)):
-        if element.tag == "lane":
-            rules[element.get("id")] = (
-                _change_allowed(element.get("changeLeft")),
-                _change_allowed(element.get("changeRight")),
-            )
+    with sumolib.openz(str(net_path), "rb") as source:  # plain or gzipped, as SUMO reads them
+        for _, element in ET.iterparse(source, events=("end",)):
+            if element.tag == "lane":
+                rules[element.get("id")] = (
+                    _change_allowed(element.get("changeLeft")),
+                    _change_allowed(element.get("changeRight")),
+                )
         element.clear()
     return rules
 

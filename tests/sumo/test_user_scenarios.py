@@ -98,6 +98,15 @@ def test_gzipped_copy_of_a_builtin_town_simulates_like_the_plain_one(tmp_path):
     # And through the command line.
     assert main(["simulate", str(tmp_path / "packed.sumocfg"), "--duration-s", "5", "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "handovers.csv").is_file()
+    # The rasterizer's world and the benchmark's routes read the gzipped files too.
+    from crchfl_sumo.driving.bench_tasks import data_routes, longest_waits_s
+    from crchfl_sumo.vision.world import build_world
+
+    packed_world, plain_world = build_world(packed.net_path), build_world(plain.net_path)
+    assert np.array_equal(packed_world.texture, plain_world.texture) and packed_world.heads == plain_world.heads
+    waits = longest_waits_s(Path(packed.net_path))
+    assert waits == longest_waits_s(Path(plain.net_path)) and max(waits.values()) > 0
+    assert data_routes(packed) == []  # its gzipped route files parse; the copy names no data vehicles
 
 
 def test_truncated_gzipped_network_is_refused_by_name(tmp_path, capsys):
