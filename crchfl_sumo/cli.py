@@ -262,12 +262,13 @@ def _run_train(args) -> int:
     if args.epochs < 1:
         raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
-    model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch)
+    manifest = read_manifest(args.dataset)
+    model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
     config = TrainConfig(device=args.device, deterministic=args.deterministic)
     with ProgressBars("sample") as bars:
         records = train_centralized(
             train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-            camera=read_manifest(args.dataset).camera,
+            camera=manifest.camera,
         )
     last = records[-1]
     straight = last["always_straight"]

@@ -94,7 +94,8 @@ def main() -> None:
         folder = args.out / name
         records = train_centralized(
             train, test, args.epochs, folder,
-            ModelConfig(**{"image_height": 64, "image_width": 128, **model_overrides}),
+            ModelConfig(**{"image_height": 64, "image_width": 128, "speed_horizon_s": manifest.speed_horizon_s,
+                           **model_overrides}),
             TrainConfig(**train_overrides), args.seed, camera=manifest.camera,
         )
         best = records[-1]

@@ -27,6 +27,7 @@ from bench_closed_loop import task_columns  # tools/ is on the path when this sc
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.samples import FIELDS, Samples
+from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.dagger import DaggerConfig, collect
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
@@ -79,6 +80,8 @@ def main() -> None:
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
     checkpoint = args.checkpoint
     start = load_checkpoint(checkpoint)
+    if start.model_config.longitudinal == "target_speed":
+        read_manifest(Path(args.dataset)).check_horizon(start.model_config.speed_horizon_s, args.dataset)
     lines = []
     if not args.no_start_bench:
         lines.append(bench_line("start", run_benchmark(checkpoint, args.out / "bench-0", episodes=args.bench_episodes,

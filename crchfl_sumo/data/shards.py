@@ -34,6 +34,7 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, STEER_CLASS_VALUES
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -158,6 +159,19 @@ class Manifest:
     @property
     def samples(self) -> int:
         return sum(s.samples for s in self.shards)
+
+    @property
+    def speed_horizon_s(self) -> float:
+        """The horizon of the samples' target speeds (labels.expert.speed_horizon_s)."""
+        return float(self.labels.get("expert", {}).get("speed_horizon_s", ExpertConfig().speed_horizon_s))
+
+    def check_horizon(self, model_speed_horizon_s: float, where: str) -> None:
+        """Refuse a target-speed model of another horizon than these labels'."""
+        if abs(model_speed_horizon_s - self.speed_horizon_s) > 1e-9:
+            raise CrchflError(
+                f"model.speed_horizon_s: {model_speed_horizon_s} s, but the data set {where} labels the target "
+                f"speed {self.speed_horizon_s} s ahead; set model.speed_horizon_s = {self.speed_horizon_s}"
+            )
 
     @property
     def png_bytes_per_sample(self) -> float:

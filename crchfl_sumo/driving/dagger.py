@@ -46,6 +46,7 @@ class ExpertLabelled:
         if every < 1:
             raise CrchflError(f"dagger.every must be >= 1, got {every}")
         self.learner, self.expert, self.every = learner, expert, every
+        self.horizon = dataclasses.replace(expert.expert, speed_horizon_s=learner.model.config.speed_horizon_s)
         self.steps = 0
         self.images: list[np.ndarray] = []
         self.actions: list[Action] = []
@@ -61,9 +62,10 @@ class ExpertLabelled:
             self.commands.append(self.learner.command(observation))
             speed_mps = float(observation.frame.speed_mps[observation.ego_row])
             self.speeds.append(speed_mps)
-            # No recorded future here: the speed the expert's wanted acceleration leads to.
+            # No recorded future here: the speed the expert's wanted acceleration leads to, over the
+            # learner's own horizon.
             wanted = self.expert.wanted_accel_mps2(observation)
-            self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.expert.expert))
+            self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
         self.steps += 1
         return action
 

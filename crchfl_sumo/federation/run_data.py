@@ -42,6 +42,8 @@ def read_inputs(config: RunConfig) -> RunData:
             f"match the data set's {manifest.image_height} x {manifest.image_width} ({root}); "
             "set them to the data's size"
         )
+    if config.model.longitudinal == "target_speed":
+        manifest.check_horizon(config.model.speed_horizon_s, str(root))
     samples = load_vehicle_samples(root, "train")
     if not samples:
         raise CrchflError(f"{root}: the data set has no train shards; generate it with `crchfl-sumo dataset`")

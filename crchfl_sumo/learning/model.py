@@ -42,7 +42,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from crchfl_sumo.data.expert import PASSENGER_MAX_ACCEL_MPS2, PASSENGER_MAX_DECEL_MPS2, pedals_towards
+from crchfl_sumo.data.expert import (
+    PASSENGER_MAX_ACCEL_MPS2,
+    PASSENGER_MAX_DECEL_MPS2,
+    ExpertConfig,
+    pedals_towards,
+)
 from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES, steer_from_class
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
@@ -255,7 +260,7 @@ def longitudinal_pedals(
     if config.longitudinal == "pedals":
         return longitudinal[:, 0], longitudinal[:, 1]
     target = np.maximum(longitudinal[:, 0] * SPEED_SCALE_MPS, 0.0)
-    return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2)
+    return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2, ExpertConfig(speed_horizon_s=config.speed_horizon_s))
 
 
 def count_parameters(model: nn.Module) -> int:

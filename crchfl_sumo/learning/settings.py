@@ -82,6 +82,9 @@ class ModelConfig:
         1/10; expert.pedals_towards turns it into pedals) or "pedals" (throttle
         and brake, the paper's; the only choice of arch "paper"). Unset, it is
         the architecture's default (docs/model.md measures both).
+    speed_horizon_s: how far ahead the target speed looks (the data set's
+        expert.speed_horizon_s, 2 s by default); the controller reaches a
+        target over the same time. Training refuses data of another horizon.
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -93,6 +96,7 @@ class ModelConfig:
     command_pedals: bool = False
     speed_input: bool = False
     longitudinal: Literal["pedals", "target_speed"] | None = None
+    speed_horizon_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.longitudinal is None:  # frozen: the architecture's default is filled in once, here
@@ -105,6 +109,8 @@ class ModelConfig:
                 raise CrchflError(
                     f"model.{key}: {getattr(self, key)!r} is unknown; use one of {', '.join(map(repr, allowed))}"
                 )
+        if not (isinstance(self.speed_horizon_s, (int, float)) and 0 < self.speed_horizon_s <= 5):
+            raise CrchflError(f"model.speed_horizon_s must lie in (0, 5] s, got {self.speed_horizon_s!r}")
         for key in ("command_pedals", "speed_input"):
             if not isinstance(getattr(self, key), bool):
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")

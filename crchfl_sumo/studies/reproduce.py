@@ -261,9 +261,11 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
     train = load_samples(out_dir / "data", "train")
     test = load_samples(out_dir / "data", "test")
+    manifest = read_manifest(out_dir / "data")
+    if run.model.longitudinal == "target_speed":
+        manifest.check_horizon(run.model.speed_horizon_s, str(out_dir / "data"))
     records = train_centralized(
-        train, test, config.centralized_epochs, folder, run.model, run.train, seed,
-        camera=read_manifest(out_dir / "data").camera,
+        train, test, config.centralized_epochs, folder, run.model, run.train, seed, camera=manifest.camera
     )
     # the best epoch as the federation ranks its models: balanced accuracy, then accuracy, then loss
     best = max(records, key=lambda r: (r["balanced_accuracy"], r["accuracy"], -r["loss"]))

@@ -23,6 +23,7 @@ from crchfl_sumo.data.shards import (
     DatasetWriter,
     Manifest,
     ShardData,
+    label_schema,
     png_bytes_per_sample,
     read_manifest,
     read_shard,
@@ -320,3 +321,12 @@ def test_version_1_manifest_is_refused_for_reading_and_resuming(tmp_path):
         load_samples(tmp_path)
     with pytest.raises(CrchflError, match="version 1"):
         DatasetWriter(tmp_path, header(3))
+
+
+def test_a_manifest_refuses_a_model_of_another_target_speed_horizon():
+    manifest = Manifest("paper", 0, 0.25, 48, 64, labels={**label_schema(), "expert": {"speed_horizon_s": 1.0}})
+    assert manifest.speed_horizon_s == 1.0
+    manifest.check_horizon(1.0, "DIR")
+    with pytest.raises(CrchflError, match="set model.speed_horizon_s = 1.0"):
+        manifest.check_horizon(2.0, "DIR")
+    assert Manifest("paper", 0, 0.25, 48, 64).speed_horizon_s == 2.0  # the expert's default

@@ -238,14 +238,17 @@ def test_config_validation_and_round_trip():
         ModelConfig("huge")
     config = ModelConfig(
         "paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True,
-        longitudinal="target_speed",
+        longitudinal="target_speed", speed_horizon_s=1.5,
     )
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
-        "longitudinal": "target_speed",
+        "longitudinal": "target_speed", "speed_horizon_s": 1.5,
     }
+    for bad in (0.0, 7.0, float("nan")):
+        with pytest.raises(CrchflError, match="model.speed_horizon_s must lie in"):
+            ModelConfig(speed_horizon_s=bad)
     for key, value in (("arch", "resnet"), ("norm", "instance"), ("command_input", "film"), ("longitudinal", "gear")):
         with pytest.raises(CrchflError, match=f"model.{key}: '{value}' is unknown"):
             ModelConfig(**{key: value})
@@ -285,3 +288,15 @@ def test_grid_pool_equals_adaptive_average_pooling(height, width):
     x = torch.randn(3, 4, height, width)
     expected = torch.nn.functional.adaptive_avg_pool2d(x, (2, 8))
     assert torch.allclose(GridAveragePool((2, 8))(x), expected, atol=1e-6)
+
+
+def test_the_controller_reaches_the_target_over_the_models_horizon():
+    config = ModelConfig("compact", 48, 64, speed_horizon_s=1.0)
+    model = build_model(config, seed=0)
+    head = model.branch_throttle_brake.heads[0][-1]
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.fill_(0.6)  # 6 m/s
+    # at 5 m/s: +1 m/s over 1 s (not 0.5 m/s^2 over the default 2 s), plus rolling resistance and drag
+    throttle = predict_actions(model, _images(1)[0], 0, 5.0)[0]
+    assert throttle == pytest.approx((1.0 + 0.015 * 9.81 + 2.64e-4 * 25) / 2.6, rel=1e-5)
