@@ -57,8 +57,9 @@ GRAVITY_MPS2 = 9.81
 PASSENGER_MAX_ACCEL_MPS2 = 2.6
 PASSENGER_MAX_DECEL_MPS2 = 4.5
 # A target speed below this means "stand": the labels put a standing queue at 0 and a start from
-# standing at about 5 m/s, so a model's small positive guess at a red light does not creep forward.
+# standing at 2.6 m/s or more, so a model's small positive guess at a red light does not creep forward.
 STAND_TARGET_MPS = 1.0
+DEFAULT_SPEED_HORIZON_S = 1.0  # the target speed's horizon (ExpertConfig and ModelConfig)
 
 
 @dataclass(frozen=True)
@@ -74,9 +75,10 @@ class ExpertConfig:
     drag_per_mass_per_m: 0.5 * rho_air * Cd * A / mass [1/m] (1.2*0.3*2.2/2/1500).
     stop_speed_mps: below this speed a vehicle counts as standing.
     hold_brake: brake a driver holds at a standstill.
-    speed_horizon_s: the target speed is the speed this long ahead; 2 s
-        spans a start from standing (about 5 m/s at SUMO's 2.6 m/s^2) and
-        averages out SUMO's per-step dawdling.
+    speed_horizon_s: the target speed is the speed this long ahead (and the
+        controller reaches a target over this long); 1 s drove better than 2 s
+        in traffic (docs/model.md), and a start from standing still reads 2.6
+        m/s, above STAND_TARGET_MPS.
     """
 
     lookahead_min_m: float = 5.0
@@ -87,7 +89,7 @@ class ExpertConfig:
     drag_per_mass_per_m: float = 2.64e-4
     stop_speed_mps: float = 0.1
     hold_brake: float = 0.9
-    speed_horizon_s: float = 2.0
+    speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
 
     def __post_init__(self) -> None:
         positive = ("lookahead_min_m", "wheelbase_m", "max_steer_angle_deg", "stop_speed_mps", "speed_horizon_s")

@@ -2,7 +2,7 @@
 
 Branch I sees the head camera (CamH) and regresses (throttle, brake), or, with
 ``ModelConfig.longitudinal = "target_speed"``, the speed to drive at
-(data/expert.py: the expert's speed 2 s ahead), which a controller turns into pedals.
+(data/expert.py: the expert's speed 1 s ahead), which a controller turns into pedals.
 Branch II sees the front, left and right cameras stacked into 9 channels and
 classifies the steer into the 7 classes of ``labels.STEER_CLASS_VALUES``.
 Both branches share one topology (a PilotNet-like conv stack, adaptive average

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S
 
 MIN_IMAGE_HEIGHT = 48
 
@@ -83,7 +84,7 @@ class ModelConfig:
         and brake, the paper's; the only choice of arch "paper"). Unset, it is
         the architecture's default (docs/model.md measures both).
     speed_horizon_s: how far ahead the target speed looks (the data set's
-        expert.speed_horizon_s, 2 s by default); the controller reaches a
+        expert.speed_horizon_s, 1 s by default); the controller reaches a
         target over the same time. Training refuses data of another horizon.
     """
 
@@ -96,7 +97,7 @@ class ModelConfig:
     command_pedals: bool = False
     speed_input: bool = False
     longitudinal: Literal["pedals", "target_speed"] | None = None
-    speed_horizon_s: float = 2.0
+    speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
 
     def __post_init__(self) -> None:
         if self.longitudinal is None:  # frozen: the architecture's default is filled in once, here

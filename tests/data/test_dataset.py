@@ -324,9 +324,9 @@ def test_version_1_manifest_is_refused_for_reading_and_resuming(tmp_path):
 
 
 def test_a_manifest_refuses_a_model_of_another_target_speed_horizon():
-    manifest = Manifest("paper", 0, 0.25, 48, 64, labels={**label_schema(), "expert": {"speed_horizon_s": 1.0}})
-    assert manifest.speed_horizon_s == 1.0
-    manifest.check_horizon(1.0, "DIR")
-    with pytest.raises(CrchflError, match="set model.speed_horizon_s = 1.0"):
-        manifest.check_horizon(2.0, "DIR")
-    assert Manifest("paper", 0, 0.25, 48, 64).speed_horizon_s == 2.0  # the expert's default
+    manifest = Manifest("paper", 0, 0.25, 48, 64, labels={**label_schema(), "expert": {"speed_horizon_s": 2.0}})
+    assert manifest.speed_horizon_s == 2.0
+    manifest.check_horizon(2.0, "DIR")
+    with pytest.raises(CrchflError, match="set model.speed_horizon_s = 2.0"):
+        manifest.check_horizon(1.0, "DIR")
+    assert Manifest("paper", 0, 0.25, 48, 64).speed_horizon_s == 1.0  # the expert's default

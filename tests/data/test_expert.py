@@ -201,7 +201,7 @@ def test_target_speed_is_the_speed_two_seconds_later_on_the_track():
     # 0.25 s samples: standing 1 s, then +1 m/s per sample (4 m/s^2) up to 6 m/s, then cruising.
     speed = np.array([0.0] * 4 + [1.0, 2.0, 3.0, 4.0, 5.0, 6.0] + [6.0] * 6)
     track = make_track(np.zeros(len(speed)), np.zeros(len(speed)), np.zeros(len(speed)), speed)
-    target = target_speeds(track, CFG)
+    target = target_speeds(track, ExpertConfig(speed_horizon_s=2.0))
     assert target.dtype == np.float32 and len(target) == len(speed)
     assert target[0] == speed[8] == 5.0  # 2 s = 8 samples ahead
     assert target[3] == 6.0 and target[-1] == 6.0  # past the end: the last speed
@@ -211,7 +211,7 @@ def test_target_speed_is_the_speed_two_seconds_later_on_the_track():
 
 def test_pedals_towards_inverts_the_target_speed_of_a_constant_acceleration():
     speed, accel = np.array([0.0, 4.0, 10.0, 10.0]), np.array([2.0, 1.0, 0.0, -3.0])
-    target = speed + CFG.speed_horizon_s * accel  # what a track holding these accelerations has 2 s later
+    target = speed + CFG.speed_horizon_s * accel  # what a track holding these accelerations has at the horizon
     limits = np.full(4, 2.6), np.full(4, 4.5)
     assert [target_speed_from_accel(v, a) for v, a in zip(speed, accel)] == pytest.approx(target)
     towards = pedals_towards(speed, target, *limits, CFG)

@@ -176,9 +176,10 @@ def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
     assert np.all(np.sign(labels.actions[~standing, 1]) == -np.sign(alpha[~standing]))
     assert np.array_equal(labels.steer_class, digitize_steer(labels.actions[:, 1]))
     assert labels.speed_mps.dtype == np.float32 and labels.speed_mps.tolist() == speed[rows].tolist()
-    # Target speed: the speed 2 s (8 steps) later, perturbed or not: 0 for row 0, 5 m/s once the
-    # pull-away at step 10 lies within the 2 s.
-    assert labels.target_speed_mps.tolist() == speed[np.minimum(rows + 8, n - 1)].tolist()
+    # Target speed: the speed 1 s (4 steps) later, perturbed or not: 0 for rows 0 to 4, 5 m/s once the
+    # pull-away at step 10 lies within the 1 s.
+    assert labels.target_speed_mps.tolist() == speed[np.minimum(rows + 4, n - 1)].tolist()
+    assert labels.target_speed_mps[rows == 4] == 0 and labels.target_speed_mps[rows == 6] == 5.0
     # The path runs straight through the square: STRAIGHT from 25 m before x = 100, FOLLOW before.
     assert labels.command[x[rows] < 100.0 - 25.5].tolist() == [FOLLOW] * int(np.sum(x[rows] < 74.5))
     assert set(labels.command[x[rows] > 75.5].tolist()) == {3}

@@ -101,7 +101,7 @@ def test_evaluate_model_by_hand():
 def test_evaluate_target_speed_model_by_hand():
     # sample speeds 0, 1.5, 3, 4.5 m/s, true target speeds 0, 2, 4, 6; predicted 0, 5, 1, 10 (scaled by 1/10)
     actions = [[0.5, 0.0, 0.0], [0.0, 0.125, 1.0], [0.2, -0.275, 0.0], [1.0, 0.0, 0.0]]
-    model = FixedModel([[0.0], [0.5], [0.1], [1.0]], [0, 1, 5, 0], ModelConfig(longitudinal="target_speed"))
+    model = FixedModel([[0.0], [0.5], [0.1], [1.0]], [0, 1, 5, 0], ModelConfig(longitudinal="target_speed", speed_horizon_s=2.0))
     result = evaluate_model(model, _samples(actions, [0, 1, 5, 0]))
     assert result.target_speed_error == pytest.approx((0 + 3 + 3 + 4) / 4)
     assert result.loss_throttle_brake == pytest.approx((0 + 0.09 + 0.09 + 0.16) / 4)

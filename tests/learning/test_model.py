@@ -6,6 +6,7 @@ import torch
 
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.learning.model import (
     DrivingModel,
@@ -63,7 +64,7 @@ def test_a_target_speed_model_has_one_unbounded_branch_i_output():
 
 
 def test_predict_actions_of_a_target_speed_model_drives_towards_it():
-    config = ModelConfig("compact", 48, 64, longitudinal="target_speed")
+    config = ModelConfig("compact", 48, 64, longitudinal="target_speed", speed_horizon_s=2.0)
     model = build_model(config, seed=0)
     head = model.branch_throttle_brake.heads[0][-1]
     with torch.no_grad():
@@ -292,11 +293,12 @@ def test_grid_pool_equals_adaptive_average_pooling(height, width):
 
 def test_the_controller_reaches_the_target_over_the_models_horizon():
     config = ModelConfig("compact", 48, 64, speed_horizon_s=1.0)
+    assert ModelConfig().speed_horizon_s == ExpertConfig().speed_horizon_s == 1.0  # the defaults agree
     model = build_model(config, seed=0)
     head = model.branch_throttle_brake.heads[0][-1]
     with torch.no_grad():
         head.weight.zero_()
         head.bias.fill_(0.6)  # 6 m/s
-    # at 5 m/s: +1 m/s over 1 s (not 0.5 m/s^2 over the default 2 s), plus rolling resistance and drag
+    # at 5 m/s: +1 m/s over 1 s (not 0.5 m/s^2 as over 2 s), plus rolling resistance and drag
     throttle = predict_actions(model, _images(1)[0], 0, 5.0)[0]
     assert throttle == pytest.approx((1.0 + 0.015 * 9.81 + 2.64e-4 * 25) / 2.6, rel=1e-5)
