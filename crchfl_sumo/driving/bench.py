@@ -109,22 +109,22 @@ class ModelDriver:
     steer_decoding: str = DEFAULT_STEER_DECODING
     renders: bool = True
     _model: Any = field(default=None, repr=False, compare=False)
+    _extra: dict = field(default_factory=dict, repr=False, compare=False)  # the checkpoint's, read with the model
 
     def __getstate__(self) -> dict:  # workers load the model themselves: only the path travels
-        return {**self.__dict__, "_model": None}
+        return {**self.__dict__, "_model": None, "_extra": {}}
 
     def model(self):
         if self._model is None:
-            from crchfl_sumo.learning.checkpoint import load_model
+            from crchfl_sumo.learning.checkpoint import checkpoint_model, load_checkpoint
 
-            self._model = load_model(self.path)
+            checkpoint = load_checkpoint(self.path)
+            self._model, self._extra = checkpoint_model(checkpoint, self.path), checkpoint.extra
         return self._model
 
     def renderer(self, net_path: str):
         """The cameras as the model's training data drew them (drive_command.model_renderer)."""
-        from crchfl_sumo.learning.checkpoint import load_checkpoint
-
-        return model_renderer(net_path, self.model().config, load_checkpoint(self.path).extra, self.path)
+        return model_renderer(net_path, self.model().config, self._extra, self.path)
 
     def policy(self, route: RouteGeometry, net) -> Policy:
         # The commands as the training data was labelled: at the junctions of the net with a choice.

@@ -52,11 +52,12 @@ def drive_command(
         renderer = Renderer(build_world(loaded.net_path))
         label = "route policy"
     else:
-        from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
+        from crchfl_sumo.learning.checkpoint import checkpoint_model, load_checkpoint
 
-        model = load_model(model_path)
+        checkpoint = load_checkpoint(model_path)
+        model = checkpoint_model(checkpoint, model_path)
         policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding)
-        renderer = model_renderer(loaded.net_path, model.config, load_checkpoint(model_path).extra, str(model_path))
+        renderer = model_renderer(loaded.net_path, model.config, checkpoint.extra, str(model_path))
         label = Path(model_path).stem
     with single_torch_thread(model_path is not None):
         result = drive(

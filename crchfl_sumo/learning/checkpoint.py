@@ -78,7 +78,11 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 
 def load_model(path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
     """The model stored in a checkpoint, in eval mode, on ``device``."""
-    checkpoint = load_checkpoint(path)
+    return checkpoint_model(load_checkpoint(path), path, device)
+
+
+def checkpoint_model(checkpoint: Checkpoint, path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
+    """The model of a checkpoint already read from ``path``, in eval mode, on ``device``."""
     try:
         model = model_from_state(checkpoint.model_config, checkpoint.state_dict, device)
     except RuntimeError as exc:
