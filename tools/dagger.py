@@ -80,8 +80,7 @@ def main() -> None:
     train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
     checkpoint = args.checkpoint
     start = load_checkpoint(checkpoint)
-    if start.model_config.longitudinal == "target_speed":
-        read_manifest(Path(args.dataset)).check_horizon(start.model_config.speed_horizon_s, args.dataset)
+    read_manifest(Path(args.dataset)).check_model(start.model_config, args.dataset)
     lines = []
     if not args.no_start_bench:
         lines.append(bench_line("start", run_benchmark(checkpoint, args.out / "bench-0", episodes=args.bench_episodes,

@@ -165,6 +165,11 @@ class Manifest:
         """The horizon of the samples' target speeds (labels.expert.speed_horizon_s)."""
         return float(self.labels.get("expert", {}).get("speed_horizon_s", ExpertConfig().speed_horizon_s))
 
+    def check_model(self, model_config, where: str) -> None:
+        """Refuse a model (a learning.settings.ModelConfig) these labels cannot train: another target-speed horizon."""
+        if model_config.longitudinal == "target_speed":
+            self.check_horizon(model_config.speed_horizon_s, where)
+
     def check_horizon(self, model_speed_horizon_s: float, where: str) -> None:
         """Refuse a target-speed model of another horizon than these labels'."""
         if abs(model_speed_horizon_s - self.speed_horizon_s) > 1e-9:

@@ -10,7 +10,6 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
-from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
@@ -21,8 +20,8 @@ from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.camera import CameraConfig
-from crchfl_sumo.vision.raster import RasterConfig, Renderer
-from crchfl_sumo.vision.world import WorldConfig, build_world
+from crchfl_sumo.vision.raster import RasterConfig, Renderer, camera_settings
+from crchfl_sumo.vision.world import build_world
 
 
 def drive_command(
@@ -87,8 +86,7 @@ def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], wh
         size = CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width)
         raster = RasterConfig(camera=size)
         return Renderer(build_world(net_path), raster)
-    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}: extra.camera.raster")
-    world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}: extra.camera.world")
+    raster, world = camera_settings(camera, f"{where}: extra.camera")
     return Renderer(build_world(net_path, world), raster)
 
 

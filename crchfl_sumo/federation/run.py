@@ -40,7 +40,6 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.federation.logs import Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
@@ -153,8 +152,7 @@ def _run_with_trainer(
     fed = config.federation
     first = trainer.initial_state()
     baseline = always_straight(inputs.test)  # what the accuracies are read against
-    # Kept in the model files, so that a drive renders what the data showed (no folder: samples given in memory).
-    camera = None if inputs.root is None else read_manifest(inputs.root).camera
+    camera = inputs.camera  # kept in the model files, so that a drive renders what the data showed
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)

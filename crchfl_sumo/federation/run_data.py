@@ -27,6 +27,7 @@ class RunData:
     home_site: Mapping[str, int]
     measured_sample_bytes: int | None
     root: Path | None = None  # the data set folder (the online mode reads its camera settings)
+    camera: dict | None = None  # the manifest's raster and world settings, kept in the model files
 
 
 def read_inputs(config: RunConfig) -> RunData:
@@ -42,8 +43,7 @@ def read_inputs(config: RunConfig) -> RunData:
             f"match the data set's {manifest.image_height} x {manifest.image_width} ({root}); "
             "set them to the data's size"
         )
-    if config.model.longitudinal == "target_speed":
-        manifest.check_horizon(config.model.speed_horizon_s, str(root))
+    manifest.check_model(config.model, str(root))
     samples = load_vehicle_samples(root, "train")
     if not samples:
         raise CrchflError(f"{root}: the data set has no train shards; generate it with `crchfl-sumo dataset`")
@@ -79,7 +79,7 @@ def read_inputs(config: RunConfig) -> RunData:
             )
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
-    return RunData(vehicles, samples, test, edges, home, measured, root)
+    return RunData(vehicles, samples, test, edges, home, measured, root, manifest.camera)
 
 
 def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:
@@ -129,13 +129,11 @@ def online_collector(config: RunConfig, inputs: RunData, scenario):
     from crchfl_sumo.data.expert import ExpertConfig
     from crchfl_sumo.data.online import OnlineCollector
     from crchfl_sumo.data.shards import read_manifest, read_shard
-    from crchfl_sumo.vision.raster import RasterConfig
-    from crchfl_sumo.vision.world import WorldConfig
+    from crchfl_sumo.vision.raster import camera_settings
 
     manifest = read_manifest(inputs.root)
     where = f"{inputs.root}/manifest.json"
-    raster = from_mapping(RasterConfig, manifest.camera.get("raster", {}), f"{where}: camera.raster")
-    world = from_mapping(WorldConfig, manifest.camera.get("world", {}), f"{where}: camera.world")
+    raster, world = camera_settings(manifest.camera, f"{where}: camera")
     expert = from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
     command = from_mapping(CommandConfig, manifest.labels.get("command", {}), f"{where}: labels.command")
     if (raster.camera.height_px, raster.camera.width_px) != (manifest.image_height, manifest.image_width):

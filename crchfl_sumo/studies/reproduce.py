@@ -262,8 +262,7 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     train = load_samples(out_dir / "data", "train")
     test = load_samples(out_dir / "data", "test")
     manifest = read_manifest(out_dir / "data")
-    if run.model.longitudinal == "target_speed":
-        manifest.check_horizon(run.model.speed_horizon_s, str(out_dir / "data"))
+    manifest.check_model(run.model, str(out_dir / "data"))
     records = train_centralized(
         train, test, config.centralized_epochs, folder, run.model, run.train, seed, camera=manifest.camera
     )

@@ -31,6 +31,7 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.vision.camera import (
@@ -58,7 +59,7 @@ from crchfl_sumo.vision.objects import (
     lit_lamps,
     vehicle_rgb,
 )
-from crchfl_sumo.vision.world import SKY_RGB, World
+from crchfl_sumo.vision.world import SKY_RGB, World, WorldConfig
 
 _SHIFT = 4  # fixed-point bits for cv2 polygon filling
 _FAR_AWAY_M = 1.0e7
@@ -455,3 +456,11 @@ def _texture_from_vehicle(raster_from_world: np.ndarray, frame: Frame, rows: np.
 def render_frame(world: World, config: RasterConfig, frame: Frame, vehicle_ids: Sequence[str]) -> np.ndarray:
     """One-off convenience: build a Renderer and render (reuse a Renderer for many frames)."""
     return Renderer(world, config).render(frame, vehicle_ids)
+
+
+def camera_settings(camera: dict, where: str) -> tuple[RasterConfig, WorldConfig]:
+    """(RasterConfig, WorldConfig) of a data set's camera block (Manifest.camera, or a checkpoint's copy of it)."""
+    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
+    world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
+    return raster, world
+
