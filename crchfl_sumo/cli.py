@@ -293,15 +293,19 @@ def _add_drive(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-s", type=float, default=150.0, help="simulated seconds at most (default 150)")
     p.add_argument("--warmup-s", type=float, default=20.0, help="traffic runs this long before the ego starts (default 20)")
     p.add_argument("--no-video", action="store_true", help="skip drive.mp4")
-    _steer_decoding_argument(p)
+    _decoding_arguments(p)
 
 
-def _steer_decoding_argument(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
+def _decoding_arguments(p: argparse.ArgumentParser) -> None:
+    """How a model's outputs become actions: --steer-decoding and --brake-gain."""
+    from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING, STEER_DECODINGS
 
     p.add_argument("--steer-decoding", choices=STEER_DECODINGS, default=DEFAULT_STEER_DECODING,
                    help="a model's steer: 'argmax' (the paper's DAC: the likeliest class's value) or 'expected' "
                         f"(the class values weighted by probability); default {DEFAULT_STEER_DECODING}")
+    p.add_argument("--brake-gain", type=float, default=DEFAULT_BRAKE_GAIN,
+                   help="a target-speed model reaches a lower target in its speed horizon / this "
+                        f"(1 = as the labels were made; default {DEFAULT_BRAKE_GAIN:g})")
 
 
 def _run_drive(args) -> int:
@@ -311,7 +315,7 @@ def _run_drive(args) -> int:
     m = drive_command(
         None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
         args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
-        steer_decoding=args.steer_decoding,
+        steer_decoding=args.steer_decoding, brake_gain=args.brake_gain,
     )
     print(
         f"{m['route']}: {m['end_reason']}, completion {100 * m['completion']:.0f}%, collisions {m['collisions']}, "
@@ -346,7 +350,7 @@ def _add_drive_bench(p: argparse.ArgumentParser) -> None:
                    help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
     p.add_argument("--tasks", default=",".join(TASK_NAMES),
                    help=f"tasks separated by commas (default {','.join(TASK_NAMES)})")
-    _steer_decoding_argument(p)
+    _decoding_arguments(p)
 
 
 def _run_drive_bench(args) -> int:
@@ -357,7 +361,7 @@ def _run_drive_bench(args) -> int:
     with ProgressBars("episode") as bars:
         summary = run_benchmark(
             args.model, args.out, args.episodes, args.jobs, args.seed, towns,
-            BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding), bars,
+            BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain), bars,
         )
     print(results_table(summary))
     print(f"{summary['wall_s']:.0f} s wall -> {args.out}")

@@ -43,7 +43,7 @@ from crchfl_sumo.driving.bench_tasks import (
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import model_renderer, single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
-from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
+from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING, STEER_DECODINGS
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -67,6 +67,8 @@ class BenchConfig:
     group_episodes  episodes a worker drives one after the other (one process start, one renderer each)
     steer_decoding  how a model's steer scores become a steer (learning.settings.STEER_DECODINGS;
                     the reference driver has none)
+    brake_gain      a target-speed model reaches lower targets in its speed horizon / brake_gain
+                    (policies.ModelPolicy)
     """
 
     tasks: tuple[str, ...] = TASK_NAMES
@@ -74,6 +76,7 @@ class BenchConfig:
     drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
     group_episodes: int = 4
     steer_decoding: str = DEFAULT_STEER_DECODING
+    brake_gain: float = DEFAULT_BRAKE_GAIN
 
     def __post_init__(self) -> None:
         if not self.tasks:
@@ -84,6 +87,8 @@ class BenchConfig:
             raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
         if self.steer_decoding not in STEER_DECODINGS:
             raise CrchflError(f"--steer-decoding: use one of {', '.join(STEER_DECODINGS)}, got {self.steer_decoding!r}")
+        if not self.brake_gain > 0:
+            raise CrchflError(f"--brake-gain must be > 0 (1 = the label horizon), got {self.brake_gain}")
 
 
 # --- drivers: what makes the policy of an episode --------------------------------------------------------
@@ -107,6 +112,7 @@ class ModelDriver:
     path: str
     label: str = ""
     steer_decoding: str = DEFAULT_STEER_DECODING
+    brake_gain: float = DEFAULT_BRAKE_GAIN
     renders: bool = True
     _model: Any = field(default=None, repr=False, compare=False)
     _extra: dict = field(default_factory=dict, repr=False, compare=False)  # the checkpoint's, read with the model
@@ -129,12 +135,13 @@ class ModelDriver:
     def policy(self, route: RouteGeometry, net) -> Policy:
         # The commands as the training data was labelled: at the junctions of the net with a choice.
         return ModelPolicy(
-            self.model(), RouteCommands(route, choice_junctions(net)), steer_decoding=self.steer_decoding
+            self.model(), RouteCommands(route, choice_junctions(net)),
+            steer_decoding=self.steer_decoding, brake_gain=self.brake_gain,
         )
 
 
 def driver_for(
-    model: str | Path | None, steer_decoding: str = DEFAULT_STEER_DECODING
+    model: str | Path | None, steer_decoding: str = DEFAULT_STEER_DECODING, brake_gain: float = DEFAULT_BRAKE_GAIN
 ) -> ReferenceDriver | ModelDriver:
     """The driver of MODEL|reference; a model path must name a checkpoint file."""
     if model is None or str(model) == REFERENCE:
@@ -142,7 +149,7 @@ def driver_for(
     path = Path(model)
     if not path.is_file():
         raise CrchflError(f"MODEL: no checkpoint at {path}; give a checkpoint.pt written by crchfl-sumo, or 'reference'")
-    driver = ModelDriver(str(path), label=path.stem, steer_decoding=steer_decoding)
+    driver = ModelDriver(str(path), label=path.stem, steer_decoding=steer_decoding, brake_gain=brake_gain)
     driver.model()  # a file that is not a checkpoint fails here, before any episode runs
     return driver
 
@@ -225,7 +232,7 @@ def run_benchmark(
         raise CrchflError(f"--seed must be >= 0, got {seed}")
     if not towns:
         raise CrchflError(f"--towns: name at least one town ({', '.join(DEFAULT_TOWNS)} or a .sumocfg)")
-    driver = driver or driver_for(model, config.steer_decoding)
+    driver = driver or driver_for(model, config.steer_decoding, config.brake_gain)
     started = time.perf_counter()
     tasks = [task_by_name(t) for t in config.tasks]
     scenarios: dict[str, Scenario] = {}

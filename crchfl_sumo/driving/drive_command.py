@@ -15,7 +15,7 @@ from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
-from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING
+from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -34,6 +34,7 @@ def drive_command(
     config: DriveConfig = DriveConfig(),
     video: bool = True,
     steer_decoding: str = DEFAULT_STEER_DECODING,
+    brake_gain: float = DEFAULT_BRAKE_GAIN,
 ) -> dict[str, Any]:
     """The `crchfl-sumo drive` body: drive a route, write metrics, trajectory, pictures; return the metrics.
 
@@ -55,7 +56,9 @@ def drive_command(
 
         checkpoint = load_checkpoint(model_path)
         model = checkpoint_model(checkpoint, model_path)
-        policy = ModelPolicy(model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding)
+        policy = ModelPolicy(
+            model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding, brake_gain=brake_gain
+        )
         renderer = model_renderer(loaded.net_path, model.config, checkpoint.extra, str(model_path))
         label = Path(model_path).stem
     with single_torch_thread(model_path is not None):

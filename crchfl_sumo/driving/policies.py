@@ -14,7 +14,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
-from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, STEER_DECODINGS
+from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING, STEER_DECODINGS
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -216,6 +216,8 @@ class ModelPolicy:
     expert does; False passes both through to the dynamics.
     ``steer_decoding``: how the steer head's scores become a steer
     (learning.settings.STEER_DECODINGS).
+    ``brake_gain``: a target-speed model's lower targets are reached in its
+    speed horizon / brake_gain (expert.pedals_towards; 1 = as labelled).
     """
 
     def __init__(
@@ -224,6 +226,7 @@ class ModelPolicy:
         commands: PathCommands | None = None,
         one_pedal: bool = True,
         steer_decoding: str = DEFAULT_STEER_DECODING,
+        brake_gain: float = DEFAULT_BRAKE_GAIN,
     ) -> None:
         if commands is None and model.config.arch != "paper":
             raise CrchflError(
@@ -236,6 +239,9 @@ class ModelPolicy:
         if steer_decoding not in STEER_DECODINGS:
             raise CrchflError(f"steer decoding must be one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
         self.steer_decoding = steer_decoding
+        if not brake_gain > 0:
+            raise CrchflError(f"--brake-gain must be > 0 (1 = the label horizon), got {brake_gain}")
+        self.brake_gain = brake_gain
 
     def command(self, observation: Observation) -> int:
         """The route command (labels.COMMAND_NAMES code) at the ego's position; FOLLOW without commands."""
@@ -254,7 +260,7 @@ class ModelPolicy:
         frame, row = observation.frame, observation.ego_row
         actions = predict_actions(
             self.model, images, self.command(observation), float(frame.speed_mps[row]), self.steer_decoding,
-            float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row]),
+            float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row]), self.brake_gain,
         )
         throttle, steer, brake = (float(v) for v in actions)
         if self.one_pedal:

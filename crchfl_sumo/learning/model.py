@@ -250,17 +250,21 @@ def longitudinal_pedals(
     speed_mps: np.ndarray,
     max_accel_mps2: np.ndarray | float = PASSENGER_MAX_ACCEL_MPS2,
     max_decel_mps2: np.ndarray | float = PASSENGER_MAX_DECEL_MPS2,
+    brake_gain: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Branch I's output [B, width] -> (throttle [B], brake [B]); a target speed through expert.pedals_towards.
 
     The vehicle's acceleration limits scale a target speed's pedals (SUMO's
-    passenger car unless given); predicted pedals pass through.
+    passenger car unless given); predicted pedals pass through. ``brake_gain``
+    (pedals_towards) is 1 for evaluation against the labels; a drive brakes harder.
     """
     longitudinal = np.asarray(longitudinal, dtype=np.float64)
     if config.longitudinal == "pedals":
         return longitudinal[:, 0], longitudinal[:, 1]
     target = np.maximum(longitudinal[:, 0] * SPEED_SCALE_MPS, 0.0)
-    return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2, ExpertConfig(speed_horizon_s=config.speed_horizon_s))
+    return pedals_towards(
+        speed_mps, target, max_accel_mps2, max_decel_mps2, ExpertConfig(speed_horizon_s=config.speed_horizon_s), brake_gain
+    )
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -303,12 +307,14 @@ def predict_actions(
     steer_decoding: str = DEFAULT_STEER_DECODING,
     max_accel_mps2: float = PASSENGER_MAX_ACCEL_MPS2,
     max_decel_mps2: float = PASSENGER_MAX_DECEL_MPS2,
+    brake_gain: float = 1.0,
 ) -> np.ndarray:
     """uint8 images [B, 4, H, W, 3] with command [B] and speed_mps [B] -> float32 [B, 3];
     one sample ([4, H, W, 3], an int command, a float speed) -> float32 [3].
 
     Columns are (throttle, steer, brake); a target-speed model's pedals are
-    longitudinal_pedals' for a vehicle of the given acceleration limits. ``steer_decoding`` (STEER_DECODINGS):
+    longitudinal_pedals' for a vehicle of the given acceleration limits (and
+    ``brake_gain``). ``steer_decoding`` (STEER_DECODINGS):
     "argmax" is the paper's DAC, the value of the most likely class; "expected"
     is the classes' values weighted by their softmax probabilities, a steer
     between the classes (0.125 steps are a 33 m radius each: argmax can only
@@ -332,7 +338,7 @@ def predict_actions(
     finally:
         model.train(was_training)
     throttle, brake = longitudinal_pedals(
-        model.config, longitudinal.cpu().numpy(), speed_mps.cpu().numpy(), max_accel_mps2, max_decel_mps2
+        model.config, longitudinal.cpu().numpy(), speed_mps.cpu().numpy(), max_accel_mps2, max_decel_mps2, brake_gain
     )
     if steer_decoding == "expected":
         probabilities = torch.softmax(steer_logits.float(), dim=1).cpu().numpy()

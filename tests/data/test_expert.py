@@ -223,6 +223,19 @@ def test_pedals_towards_inverts_the_target_speed_of_a_constant_acceleration():
     assert target_speed_from_accel(1.0, -4.5) == 0.0  # never below standing
 
 
+def test_brake_gain_reaches_a_lower_target_sooner_and_leaves_a_higher_one_alone():
+    speed, accel = np.array([4.0, 10.0, 10.0]), np.array([1.0, -1.0, -2.0])
+    target = speed + CFG.speed_horizon_s * accel
+    limits = np.full(3, 2.6), np.full(3, 4.5)
+    geared = pedals_towards(speed, target, *limits, CFG, brake_gain=2.0)
+    # speeding up: as labelled; slowing down: twice the deceleration
+    direct = pedals(speed, accel * np.array([1.0, 2.0, 2.0]), *limits, CFG)
+    assert geared[0] == pytest.approx(direct[0]) and geared[1] == pytest.approx(direct[1])
+    assert geared[1][2] > pedals_towards(speed, target, *limits, CFG)[1][2]
+    with pytest.raises(CrchflError, match="brake gain"):
+        pedals_towards(speed, target, *limits, CFG, brake_gain=0.0)
+
+
 def test_config_rejects_bad_values():
     with pytest.raises(CrchflError, match="speed_horizon_s"):
         ExpertConfig(speed_horizon_s=0)

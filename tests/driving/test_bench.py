@@ -314,6 +314,8 @@ def test_bad_arguments_name_the_option(ladder, tmp_path):
         BenchConfig(tasks=("loops",))
     with pytest.raises(CrchflError, match="--steer-decoding: use one of argmax, expected"):
         BenchConfig(steer_decoding="mean")
+    with pytest.raises(CrchflError, match="--brake-gain must be > 0"):
+        BenchConfig(brake_gain=float("nan"))
 
 
 def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tmp_path, capsys):

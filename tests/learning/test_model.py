@@ -80,6 +80,13 @@ def test_predict_actions_of_a_target_speed_model_drives_towards_it():
         head.bias.fill_(0.09)  # 0.9 m/s: below STAND_TARGET_MPS, a stop
     standing = predict_actions(model, _images(1)[0], 0, 0.0)
     assert standing[0] == 0 and standing[2] == pytest.approx(0.9)  # holds the brake, does not creep
+    with torch.no_grad():
+        head.bias.fill_(0.5)
+    geared = predict_actions(model, _images(3), torch.tensor([0, 0, 0]), speed, max_accel_mps2=2.0,
+                             max_decel_mps2=4.0, brake_gain=2.0)
+    assert geared[:2] == pytest.approx(actions[:2])  # at or below the target: as labelled
+    # above it: (5 - 9) / 2 s x 2 = -4 m/s^2
+    assert geared[2, 2] == pytest.approx((4.0 - 0.015 * 9.81 - 2.64e-4 * 81) / 4.0, rel=1e-5)
 
 
 def test_parameter_count_does_not_depend_on_image_size():
