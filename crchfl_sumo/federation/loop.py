@@ -59,6 +59,7 @@ from crchfl_sumo.accounting.schedules import (
     stage_one_schedule,
 )
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation import selection
 from crchfl_sumo.federation.settings import SFL_LINK
 from crchfl_sumo.federation.state import FederationState, LoopInputs, Trainer
 from crchfl_sumo.learning.aggregate import fedavg
@@ -81,12 +82,14 @@ SCALAR_METRICS = ("loss", "accuracy", "balanced_accuracy", "steer_error", "throt
 
 @dataclass(frozen=True)
 class TransferEvent:
-    """A simulated transfer: who, when, how much arrived."""
+    """A simulated transfer: who, when, how much arrived; ``wasted``: its payload was not used
+    (the transfer failed, or arrived after the deadline)."""
 
     start_s: float
     end_s: float
     ok: bool
     sent_bytes: float
+    wasted: bool = False
 
 
 def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> TransferEvent:
@@ -94,7 +97,7 @@ def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> TransferE
 
 
 def _wireless(outcome: WirelessOutcome) -> TransferEvent:
-    return TransferEvent(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes)
+    return TransferEvent(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes, wasted=not outcome.ok)
 
 
 @dataclass(frozen=True)
@@ -114,12 +117,13 @@ def _charge(
     events: Mapping[tuple[str, str, str], TransferEvent],
     rule: str,
     cloud_round: int,
-    counts: dict[str, int],
+    state: FederationState,
     relays: Sequence[RelayedTransfer] = (),
     edges: Sequence[str] = (),
 ) -> bool:
     """Charge the schedule's transfers that happened, with their times, then the relays;
-    False when one does not fit. Counts the relayed transfers in ``counts``.
+    False when one does not fit. Counts the relayed transfers in ``state.transfers``, and the
+    bytes charged to wasted transfers in ``state.wasted_bytes``.
 
     ``paper`` charges the schedule's size of every transfer that started,
     ``physical`` the bytes that crossed (fewer than the size for a failed
@@ -137,6 +141,8 @@ def _charge(
             return False
         charged = dataclasses.replace(planned, size_bytes=size)
         ledger.charge(charged, cloud_round=cloud_round, start_s=event.start_s, end_s=event.end_s)
+        state.wasted_bytes += size if event.wasted else 0
+    counts = state.transfers
     for relayed in relays:
         counts["relayed_transfers"] = counts.get("relayed_transfers", 0) + 1
         for relay in relayed.relays:
@@ -277,13 +283,40 @@ class Federation:
         relays.append(RelayedTransfer(stage, "uplink", payload, (Relay(out.site, home, out.end_s, arrival_s, size),)))
         return arrival_s
 
-    def _train(self, state: FederationState, epochs: int) -> tuple[dict[str, State], dict[str, int]]:
-        """Every vehicle's model after ``epochs`` on its data, and the sample counts |T_nk| behind them."""
-        vehicles = self.setup.vehicles
-        samples = [self.data(v, state.ready_s[v]) for v in vehicles]
+    def _data(self, state: FederationState) -> dict[str, Samples]:
+        """Every vehicle's samples for the training it would start now (when it holds its model)."""
+        return {v: self.data(v, state.ready_s[v]) for v in self.setup.vehicles}
+
+    def _train(
+        self, state: FederationState, epochs: int, samples: Mapping[str, Samples]
+    ) -> tuple[dict[str, State], dict[str, int]]:
+        """The models of the vehicles in ``samples`` after ``epochs`` on them, and the counts |T_nk| behind them."""
+        vehicles = list(samples)
         seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
-        new = self.trainer.train([state.vehicle_models[v] for v in vehicles], samples, epochs, seed)
-        return dict(zip(vehicles, new)), {v: len(x) for v, x in zip(vehicles, samples)}
+        new = self.trainer.train([state.vehicle_models[v] for v in vehicles], [samples[v] for v in vehicles], epochs,
+                                 seed)
+        return dict(zip(vehicles, new)), {v: len(samples[v]) for v in vehicles}
+
+    def _select(self, state: FederationState, samples: Mapping[str, Samples]) -> tuple[str, ...]:
+        """The vehicles that train in this edge aggregation (``federation.selection``; federation/selection.py)."""
+        cfg, setup = self.config, self.setup
+        if cfg.selection == "all":
+            return tuple(samples)
+        epochs = setup.hyper.edge_interval
+        own = cfg.handover_policy in ("wait", "miss")  # their uploads run only over the vehicle's own edge
+        needed, residence = {}, {}
+        for v in samples:
+            t_s = state.ready_s[v]
+            rate_bps = selection.recent_rate_bps(self.clock, v, t_s)
+            needed[v] = selection.needed_s(self._compute_s(len(samples[v]), epochs), setup.sizes.model_bytes, rate_bps)
+            site = setup.edges.index(state.member[v]) if own else None
+            residence[v] = selection.residence_on_clock(self.clock, v, t_s, setup.coverage, site)
+        picked = selection.chosen(needed, residence)
+        for v in samples:
+            if v not in picked:
+                log.info("step %d: %s skipped: %.1f s left in its cell, %.1f s needed", state.steps, v,
+                         residence[v], needed[v])
+        return picked
 
     def _line(
         self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics: Mapping | None = None, **extra
@@ -334,6 +367,7 @@ class Federation:
             _count(state, "uploads", out.ok)
             arrival_s[v] = self._forward(out, member[v], shares[v] * sizes.sample_bytes, "samples", "I", relays)
             if out.ok and arrival_s[v] > window_end + _EPS_S:
+                events[(v, member[v], "uplink")] = dataclasses.replace(events[(v, member[v], "uplink")], wasted=True)
                 self._straggler(state, v, "I", "deadline", window_end)
             elif out.ok:
                 # the fixed uploaded subset: a seeded choice of the vehicle's samples
@@ -366,7 +400,7 @@ class Federation:
             self._send_down(state, e, vehicles, ev.end_s, model, "I", events, models, ready, relays)
         received = {v: shares[v] for v in setup.vehicles}
         schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, 0, state.transfers, relays, setup.edges):
+        if not _charge(ledger, schedule, events, setup.rule, 0, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.stage_one_done = True
@@ -386,7 +420,11 @@ class Federation:
         """Stage II: one edge aggregation; when it is the ``cloud_interval``-th, stage III follows."""
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
-        trained, counts = self._train(state, setup.hyper.edge_interval)
+        samples = self._data(state)
+        picked = self._select(state, samples)
+        trained, counts = self._train(state, setup.hyper.edge_interval, {v: samples[v] for v in picked})
+        skipped = [v for v in setup.vehicles if v not in picked]
+        trained = {**state.vehicle_models, **trained}  # a skipped vehicle keeps its model
         events: dict[tuple[str, str, str], TransferEvent] = {}
         relays: list[RelayedTransfer] = []
         uploads, member = self._vehicle_uploads(state, counts)
@@ -416,16 +454,18 @@ class Federation:
         schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
         if followed:
             schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, next_round, state.transfers, relays, setup.edges):
+        if not _charge(ledger, schedule, events, setup.rule, next_round, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
         state.edge_models, state.edge_weights = edge_models, edge_weights
         state.edge_aggregations += 1
         state.tau += 1
+        state.skipped += len(skipped)
         received = {e: len(vs) for e, vs in received_by.items()}
-        t_s, samples = max(agg_s.values()), sum(counts.values())
-        self._line(state, ledger, "II", t_s, edge_metrics, received=received, samples=samples)
+        extra = {} if cfg.selection == "all" else {"skipped": skipped}
+        t_s = max(agg_s.values())
+        self._line(state, ledger, "II", t_s, edge_metrics, received=received, samples=sum(counts.values()), **extra)
         if followed:
             state.cloud_model = cloud_model
             state.cloud_rounds = next_round
@@ -435,11 +475,12 @@ class Federation:
     def _vehicle_uploads(
         self, state: FederationState, counts: Mapping[str, int]
     ) -> tuple[dict[str, WirelessOutcome | None], dict[str, str]]:
-        """Each vehicle's upload after its training, and the membership after them (``new_edge`` moves vehicles)."""
+        """The upload of each vehicle in ``counts`` (those that trained) after its training, and the
+        membership after them (``new_edge`` moves vehicles)."""
         setup, cfg = self.setup, self.config
         member = dict(state.member)
         uploads: dict[str, WirelessOutcome | None] = {}
-        for v in setup.vehicles:
+        for v in counts:
             edge = state.member[v]
             start_s = state.ready_s[v] + self._compute_s(counts[v], setup.hyper.edge_interval)
             out = self._upload(v, edge, start_s, setup.sizes.model_bytes, state.open_s[edge] + cfg.deadline_s)
@@ -460,14 +501,14 @@ class Federation:
         for e, vehicles in topology.active():
             ends, received = self._gather_uploads(
                 state,
-                {v: uploads[v] for v in vehicles},
+                {v: uploads[v] for v in vehicles if v in uploads},
                 e,
                 "II",
                 lambda v: state.open_s[state.member[v]] + self.config.deadline_s,
                 events,
                 relays,
             )
-            agg_s[e] = max(ends)
+            agg_s[e] = max(ends, default=state.open_s[e])  # no member trained: nothing to wait for
             received_by[e] = received
             if received:
                 edge_models[e] = fedavg([(trained[v], counts[v]) for v in received])
@@ -531,6 +572,7 @@ class Federation:
             _count(state, "uploads", out.ok)
             arrival_s = self._forward(out, receiver, self.setup.sizes.model_bytes, "model", stage, relays)
             if out.ok and arrival_s > missed_at(v) + _EPS_S:  # forwarded past the deadline
+                events[(v, receiver, "uplink")] = dataclasses.replace(events[(v, receiver, "uplink")], wasted=True)
                 ends.append(missed_at(v))
                 self._straggler(state, v, stage, "deadline", ends[-1])
             elif out.ok:
@@ -559,7 +601,7 @@ class Federation:
     def _sfl_round(self, state: FederationState, ledger: Ledger) -> None:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         epochs = setup.hyper.edge_interval
-        trained, counts = self._train(state, epochs)
+        trained, counts = self._train(state, epochs, self._data(state))
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
         relays: list[RelayedTransfer] = []
@@ -577,7 +619,7 @@ class Federation:
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, next_round, state.transfers):
+        if not _charge(ledger, schedule, events, setup.rule, next_round, state):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s = models, ready

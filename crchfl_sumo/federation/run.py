@@ -13,7 +13,8 @@ DIR receives (every file written atomically):
   best_model.pt    the best cloud model so far (checkpoint.save_checkpoint format)
   final_model.pt   the last cloud model
   summary.json     scheme, cloud_rounds, edge_aggregations, consumed_bytes, budget_bytes,
-                   best/final accuracy and loss, sim_time_s, stop_reason, ...
+                   best/final accuracy and loss, sim_time_s, stop_reason, stragglers,
+                   selection, skipped_by_selection, wasted_bytes, ...
 
 A run killed at any moment and resumed with --resume continues from the
 latest checkpoint and ends with the same files as an uninterrupted run with
@@ -57,6 +58,7 @@ from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
+from crchfl_sumo.links.residence import Coverage, sites_coverage
 from crchfl_sumo.planning.plan_command import calibrated
 from crchfl_sumo.planning.problem import make_plan
 from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
@@ -176,6 +178,7 @@ def _run_with_trainer(
             rule=config.ledger.rule,
             wireline=config.wireline,
             transfer=config.transfer,
+            coverage=_coverage(config, inputs),
         )
         state = None
         if resume and checkpoint_path.exists():
@@ -206,6 +209,13 @@ def _run_with_trainer(
 
         state = federation.run(state, on_step)
         return summarize(config, setup, state, _handovers(clock, state), baseline)
+
+
+def _coverage(config: RunConfig, inputs: RunData) -> Coverage | None:
+    """Where the edge sites stand and how far they reach (None without sites: the constant clock)."""
+    if not inputs.sites:
+        return None
+    return sites_coverage(inputs.sites, config.mobility.coverage_radius_m, config.mobility.time_to_trigger_s)
 
 
 def _handovers(clock, state: FederationState) -> int | None:
@@ -277,6 +287,9 @@ def summarize(
         "final_loss": None if final is None else final["loss"],
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
+        "selection": config.federation.selection,
+        "skipped_by_selection": state.skipped,
+        "wasted_bytes": state.wasted_bytes,
         "handovers": handovers,
         "stop_reason": state.stop_reason,
         "baselines": {"always_straight": dict(baseline)} if baseline is not None else {},

@@ -14,6 +14,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.links.clock import Clock, ScriptedClock
+from crchfl_sumo.sumo.sites import EdgeSite
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,7 @@ class RunData:
     measured_sample_bytes: int | None
     root: Path | None = None  # the data set folder (the online mode reads its camera settings)
     camera: dict | None = None  # the manifest's raster and world settings, kept in the model files
+    sites: tuple[EdgeSite, ...] = ()  # the edge sites on the SUMO clock; none on the constant clock
 
 
 def read_inputs(config: RunConfig) -> RunData:
@@ -57,6 +59,7 @@ def read_inputs(config: RunConfig) -> RunData:
 
         scenario = configured_scenario(config.scenario, config.sumo, config.mobility.coverage_radius_m)
         edges = tuple(site.name for site in scenario.edge_sites)
+        sites = tuple(scenario.edge_sites)
         named = {v for town in scenario.towns for v in town.data_vehicles}
         unknown = sorted(set(vehicles) - named)
         if named and unknown:
@@ -66,6 +69,7 @@ def read_inputs(config: RunConfig) -> RunData:
             )
     else:
         edges = tuple(dict.fromkeys(s.edge for s in shards.values()))
+        sites = ()
     home = {}
     if config.clock.kind == "sumo" and config.sumo.replaces_sites:
         home = nearest_sites(root, manifest, scenario.edge_sites)
@@ -79,7 +83,7 @@ def read_inputs(config: RunConfig) -> RunData:
             )
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
-    return RunData(vehicles, samples, test, edges, home, measured, root, manifest.camera)
+    return RunData(vehicles, samples, test, edges, home, measured, root, manifest.camera, sites)
 
 
 def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:

@@ -15,6 +15,11 @@ from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
 HandoverPolicy = Literal["new_edge", "forward", "wait", "miss"]
 
+# Which vehicles train in an edge aggregation (federation/selection.py): every member of an edge, or
+# all but those predicted to leave the cell their upload needs before their training and upload end.
+ClientSelection = Literal["all", "skip_leaving"]
+CLIENT_SELECTIONS: tuple[str, ...] = get_args(ClientSelection)
+
 
 SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
 
@@ -52,6 +57,11 @@ class FederationConfig:
         new edge, which sends it on; charged as link "relay"), "restart" (the
         whole model is relayed and sent again), "drop" (it runs only while
         the sending edge serves the vehicle).
+    selection: which vehicles train in an edge aggregation: "all" (every
+        member, the paper) or "skip_leaving" (not those whose predicted time
+        left in the cell their upload needs is shorter than their local
+        training plus upload; they sit the aggregation out and still receive
+        the model; federation/selection.py). Hierarchical schemes only.
     deadline_s: per aggregation: how long after its window opened an edge
         (or, in SFL, the cloud) waits for uploads [s]; inf = for all of them.
     compute_s_per_sample: simulated time of one sample of one local epoch on a
@@ -69,6 +79,7 @@ class FederationConfig:
     evaluate_every_edge: bool = False
     handover_policy: HandoverPolicy = "new_edge"
     download_handover: DownloadHandover = "relay"
+    selection: ClientSelection = "all"
     deadline_s: float = math.inf
     compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
     seed: int = 0
@@ -83,6 +94,16 @@ class FederationConfig:
         if self.download_handover not in DOWNLOAD_HANDOVERS:
             raise CrchflError(
                 f"federation.download_handover: {self.download_handover!r} is not one of 'relay', 'restart', 'drop'"
+            )
+        if self.selection not in CLIENT_SELECTIONS:
+            raise CrchflError(
+                f"federation.selection: {self.selection!r} is not one of "
+                f"{', '.join(repr(name) for name in CLIENT_SELECTIONS)}"
+            )
+        if self.selection != "all" and self.scheme == "sfl":
+            raise CrchflError(
+                f"federation.selection = {self.selection!r} predicts the time left in an edge cell; SFL has no "
+                "edge tier: set selection = \"all\" or use crchfl/hfl"
             )
         if self.use_plan and self.scheme != "crchfl":
             raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")

@@ -18,6 +18,7 @@ from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperPar
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.mobility import NO_SITE
+from crchfl_sumo.links.residence import Coverage
 from crchfl_sumo.links.transfer import TransferConfig
 
 
@@ -42,7 +43,9 @@ class LoopInputs:
 
     vehicles: the federated vehicles in a fixed order (their training seeds
     follow it); home_site: each vehicle's edge site index at the start;
-    edges: edge site names (index = site index).
+    edges: edge site names (index = site index); coverage: where those sites
+    stand and how far they reach (client selection predicts from it; None:
+    no geometry, as on the constant clock, so no vehicle is predicted to leave).
     """
 
     config: FederationConfig
@@ -55,6 +58,7 @@ class LoopInputs:
     rule: Literal["paper", "physical"]
     wireline: WirelineConfig = WirelineConfig()
     transfer: TransferConfig = TransferConfig()
+    coverage: Coverage | None = None
 
     def __post_init__(self) -> None:
         names = list(self.vehicles) + list(self.edges)
@@ -67,6 +71,12 @@ class LoopInputs:
                 raise CrchflError(
                     f"vehicle '{v}' has no home edge among {list(self.edges)}; check the data set's edges"
                 )
+
+        if self.coverage is not None and len(self.coverage.sites_xy_m) != len(self.edges):
+            raise CrchflError(
+                f"coverage: {len(self.coverage.sites_xy_m)} site positions for {len(self.edges)} edges "
+                f"{list(self.edges)}; give one per edge"
+            )
 
     def count(self, vehicle: str) -> int:
         return len(self.samples[vehicle])
@@ -104,6 +114,8 @@ class FederationState:
     transfers_end_s: float = 0.0  # the latest end of a charged transfer
     # wireless transfers that started: downloads, uploads, each *_failed; relayed_transfers: downloads relayed
     transfers: dict[str, int] = field(default_factory=dict)
+    skipped: int = 0  # vehicle-aggregations that client selection left out (federation/selection.py)
+    wasted_bytes: int = 0  # charged to wireless transfers whose payload was not used (failed, or arrived too late)
     records: list[Record] = field(default_factory=list)
     metrics: list[dict] = field(default_factory=list)
     stragglers: list[dict] = field(default_factory=list)

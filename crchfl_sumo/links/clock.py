@@ -36,6 +36,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig, macro_link_model
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.links.residence import Pose
 from crchfl_sumo.links.transfer import TransferConfig, TransferResult, transfer, wireline_transfer_time_s
 from crchfl_sumo.sumo.scenario import Scenario
 
@@ -73,6 +74,11 @@ class Clock(Protocol):
         on the run's link (edge; SFL: macro) up to ``until_s``."""
         ...
 
+    def pose(self, vehicle: str, t_s: float) -> Pose | None:
+        """``vehicle``'s position, speed and heading at its latest sample at or before ``t_s``;
+        None where the clock has none (no mobility, or the vehicle is not driving then)."""
+        ...
+
 
 # ------------------------------------------------------------------ scripted
 
@@ -91,7 +97,10 @@ class ScriptedClock:
 
     ``tracks[vehicle]`` are the edge-link segments (sorted by time, the first
     at 0); ``macro_tracks`` those of the macro link (default: the edge
-    tracks). A vehicle without a track has no coverage.
+    tracks). A vehicle without a track has no coverage. ``motion[vehicle]``
+    is its pose at time 0, from which it drives straight on at that speed
+    (the segments are the test's to make agree with it); without one,
+    ``pose`` is None.
     """
 
     def __init__(
@@ -100,12 +109,14 @@ class ScriptedClock:
         step_s: float = 1.0,
         macro_tracks: Mapping[str, Sequence[Segment]] | None = None,
         start_s: float = 0.0,
+        motion: Mapping[str, Pose] | None = None,
     ) -> None:
         if not step_s > 0:
             raise ValueError(f"ScriptedClock: step_s must be > 0, got {step_s}")
         self.step_s = float(step_s)
         self.start_s = float(start_s)
         self._tracks = {"edge": dict(tracks), "macro": dict(tracks if macro_tracks is None else macro_tracks)}
+        self._motion = dict(motion or {})
         for kind in self._tracks.values():
             for vehicle, segments in kind.items():
                 times = [s.t_s for s in segments]
@@ -132,6 +143,15 @@ class ScriptedClock:
         rate = np.array([seg.rate_bps for seg in segments], dtype=np.float64)[index]
         site = np.array([seg.site for seg in segments], dtype=np.int64)[index]
         return LinkSeries(t, np.where(site >= 0, rate, 0.0), site)
+
+    def pose(self, vehicle: str, t_s: float) -> Pose | None:
+        start = self._motion.get(vehicle)
+        if start is None:
+            return None
+        t_s = math.floor(t_s / self.step_s + _EPS_S) * self.step_s  # the sample at or before t_s
+        travelled_m = start.speed_mps * t_s
+        return Pose(start.x_m + travelled_m * math.cos(start.heading_rad),
+                    start.y_m + travelled_m * math.sin(start.heading_rad), start.speed_mps, start.heading_rad)
 
     def handovers(self, until_s: float) -> int:
         count = 0
@@ -191,6 +211,8 @@ class SumoClock:
         self._rate = {k: np.zeros((64, len(self.vehicles))) for k in self._links}
         self._site = {k: np.full((64, len(self.vehicles)), NO_SITE, dtype=np.int64) for k in self._links}
         self._handover_t: dict[str, list[float]] = {k: [] for k in self._links}  # site-to-site changes
+        # x, y, speed, heading per step and vehicle (NaN: not driving then); float32 keeps 200 clients small
+        self._pose = np.full((64, len(self.vehicles), 4), np.nan, dtype=np.float32)
         self.start_s = 0.0
 
     def __enter__(self) -> "SumoClock":
@@ -218,6 +240,7 @@ class SumoClock:
         row = self._steps
         self._t[row] = float(frame.t_s)
         columns = [self._column[str(v)] for v in mine.ids]  # absent vehicles keep 0 bit/s and no site
+        self._pose[row, columns] = np.stack([mine.x_m, mine.y_m, mine.speed_mps, mine.heading_rad], axis=1)
         for kind, links in self._links.items():
             snapshot = links.step(mine)
             self._handover_t[kind].extend(
@@ -230,6 +253,7 @@ class SumoClock:
     def _grow(self) -> None:
         rows = len(self._t)
         self._t = np.concatenate([self._t, np.zeros(rows)])
+        self._pose = np.concatenate([self._pose, np.full_like(self._pose, np.nan)])
         for kind in self._links:
             self._rate[kind] = np.concatenate([self._rate[kind], np.zeros_like(self._rate[kind])])
             self._site[kind] = np.concatenate([self._site[kind], np.full_like(self._site[kind], NO_SITE)])
@@ -239,6 +263,16 @@ class SumoClock:
             self._advance()
         kind = "edge" if "edge" in self._links else "macro"
         return sum(1 for t in self._handover_t[kind] if t <= until_s + _EPS_S)
+
+    def pose(self, vehicle: str, t_s: float) -> Pose | None:
+        column = self._column.get(vehicle)
+        if column is None:
+            raise CrchflError(f"vehicle '{vehicle}' is not one of the clock's vehicles {list(self.vehicles)}")
+        while self.t_s < t_s - _EPS_S:
+            self._advance()
+        row = max(int(np.searchsorted(self._t[: self._steps], t_s + _EPS_S, side="right")) - 1, 0)
+        x_m, y_m, speed_mps, heading_rad = (float(value) for value in self._pose[row, column])
+        return None if math.isnan(x_m) else Pose(x_m, y_m, speed_mps, heading_rad)
 
     def collected(self, vehicle: str, t_s: float):
         """The online collector's labelled samples of ``vehicle`` at ``t_s`` (None if none)."""
