@@ -1,9 +1,13 @@
-"""The federation's clock: a link series always covers the time it is asked from."""
+"""The federation's clock: a link series always covers the time it is asked from; poses follow the track."""
 
+import math
+
+import numpy as np
 import pytest
 
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import Relay, ScriptedClock, Segment, SumoClock, edge_download, wireless_transfer
+from crchfl_sumo.links.residence import Pose
 from crchfl_sumo.links.transfer import TransferConfig
 from crchfl_sumo.sumo.scenario import load_scenario
 
@@ -31,6 +35,26 @@ def test_sumo_series_starts_at_or_before_the_start():
         assert link.t_s[0] <= START_S < link.t_s[1]
         outcome = wireless_transfer(clock, "t02_data_0", "edge", START_S, 1e5, TransferConfig())
         assert outcome.end_s > START_S
+
+
+def test_scripted_pose_drives_straight_on_from_its_start_sample_by_sample():
+    clock = ScriptedClock({"v": [Segment(0.0, 0, 8e6)]}, step_s=0.5, motion={"v": Pose(10.0, 0.0, 4.0, math.pi / 2)})
+    pose = clock.pose("v", 1.7)  # the sample at 1.5 s
+    assert (pose.x_m, pose.y_m, pose.speed_mps) == (pytest.approx(10.0), pytest.approx(6.0), 4.0)
+    assert ScriptedClock.constant({"v": 0}, rate_bps=8e6).pose("v", 3.0) is None  # no mobility, no pose
+
+
+def test_sumo_pose_moves_along_its_heading_at_its_speed():
+    scenario = load_scenario("town02")
+    with SumoClock(scenario, ["t02_data_0"], seed=0) as clock:
+        t_s = 10.0  # on a straight road at 15 m/s (it stands at a light at 30 s)
+        before, after = clock.pose("t02_data_0", t_s), clock.pose("t02_data_0", t_s + clock.step_s)
+        assert after.speed_mps > 1.0  # driving
+        moved = np.array([after.x_m - before.x_m, after.y_m - before.y_m])
+        # SUMO moves a vehicle by its new speed over the step
+        assert np.linalg.norm(moved) == pytest.approx(after.speed_mps * clock.step_s, abs=0.05)
+        along = np.dot(moved, [math.cos(after.heading_rad), math.sin(after.heading_rad)])
+        assert along == pytest.approx(np.linalg.norm(moved), rel=0.05)
 
 
 # A vehicle served by site 0 at 1 MB/s until t = 4 s, then by site 1 at 0.5 MB/s.
