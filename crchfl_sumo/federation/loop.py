@@ -7,7 +7,9 @@ The loop (docs/federation.md maps it line by line):
   cloud, the cloud pretrains and releases the model to every edge and
   vehicle;
 * stage II: every vehicle trains ``edge_interval`` local epochs and uploads
-  its model; each edge averages what it received (FedAvg, weights |T_nk|)
+  its model (with ``selection = "skip_leaving"``: every vehicle but those
+  predicted to leave their cell before that ends, federation/selection.py);
+  each edge averages what it received (FedAvg, weights |T_nk|)
   and, unless a cloud aggregation follows, sends the result down;
 * stage III: after ``cloud_interval`` edge aggregations the edges send their
   models to the cloud, which averages them (weights: the samples behind each
