@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -14,11 +15,15 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation import selection
 from crchfl_sumo.federation.loop import Federation
+from crchfl_sumo.federation.run import run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
+from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.federation.settings import FederationConfig, HyperParameters
 from crchfl_sumo.federation.state import LoopInputs, initial_state
 from crchfl_sumo.links.clock import ScriptedClock, Segment
 from crchfl_sumo.links.residence import Coverage, Pose
+
+from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
 
 SMALL = LedgerConfig(nominal_model_mb=1.0, nominal_sample_kb=512.0, budget_gb=1.0)
 # Sites e0 at x = 0 and e1 at x = 400 m, 300 m range: their border is x = 200 m.
@@ -149,3 +154,33 @@ def test_selection_is_validated_and_read_from_toml_keys():
     config = from_mapping(RunConfig, {"federation": {"scheme": "hfl", "selection": "skip_leaving"}}, where="test")
     assert config.federation.selection == "skip_leaving"
     assert FederationConfig().selection == "all"
+
+
+# ------------------------------------------------------------------ a run on the SUMO clock
+
+
+@pytest.mark.slow
+def test_a_sumo_run_skips_moving_vehicles_counts_them_and_resumes_exactly(tmp_path):
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    # 30 s a sample: 60 to 90 s of training, more than a moving vehicle's straight line stays in 300 m
+    mapping = run_config(dataset, cloud_rounds=3, compute_s_per_sample=30.0, selection="skip_leaving")
+    mapping["clock"] = {"kind": "sumo"}
+    config = from_mapping(RunConfig, mapping)
+    inputs = read_inputs(config)
+
+    class CountTrainer(ValueTrainer):
+        def evaluate(self, state):
+            return {"loss": 0.5, "accuracy": 0.5}
+
+    summary = run_federation_dir(config, inputs, tmp_path / "whole", trainer=CountTrainer())
+    assert summary["selection"] == "skip_leaving" and summary["cloud_rounds"] == 3
+    # at the start every vehicle stands (infinite time left): all train; later some drive and are skipped
+    assert 0 < summary["skipped_by_selection"] < 3 * len(PAPER_VEHICLES)
+    lines = [json.loads(x) for x in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
+    edge_lines = [m for m in lines if m["stage"] == "II"]
+    assert edge_lines[0]["skipped"] == []
+    assert sum(len(m["skipped"]) for m in edge_lines) == summary["skipped_by_selection"]
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=CountTrainer(), after_checkpoint=kill_after(1))
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=CountTrainer(), resume=True)
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
