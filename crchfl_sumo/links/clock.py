@@ -4,6 +4,8 @@ A clock answers one question: over ``[from_s, to_s]``, what rate [bit/s]
 does a vehicle get and which site serves it, step by step? Two kinds of
 link are asked for: ``edge`` (the road-side units, the hierarchical schemes)
 and ``macro`` (SFL's direct vehicle <-> cloud link over public macro cells).
+It also tells where a vehicle is and how it moves (``pose``), from which
+client selection predicts how long it stays in its cell (links/residence.py).
 
 * ``SumoClock`` steps SUMO and the LinkModel(s) lazily, only as far as the
   latest question needs, and keeps every step's rate and serving site of the
