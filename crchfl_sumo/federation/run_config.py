@@ -117,6 +117,8 @@ def resolved_config(config: RunConfig) -> dict:
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
+    if config.federation.selection == "all":
+        del mapping["federation"]["selection"]  # nor do those made before federation.selection
     return mapping
 
 

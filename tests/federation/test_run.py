@@ -365,3 +365,15 @@ def test_a_run_that_relays_killed_anywhere_resumes_exactly(tmp_path, dataset):
         else:
             assert summary["relayed_transfers"] == 0 and summary["relay_bytes"] == 0
             assert summary["downloads_failed"] >= 1
+
+
+def test_the_resolved_settings_of_a_default_run_match_those_written_before_newer_options():
+    # A run folder written before [sumo] and federation.selection existed holds neither key;
+    # at their defaults they stay out of the resolved settings, so such a folder still resumes.
+    from crchfl_sumo.federation.run_config import resolved_config
+
+    config = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}}, "test")
+    resolved = resolved_config(config)
+    assert "sumo" not in resolved and "selection" not in resolved["federation"]
+    skipping = from_mapping(RunConfig, {"federation": {"scheme": "hfl", "selection": "skip_leaving"}}, "test")
+    assert resolved_config(skipping)["federation"]["selection"] == "skip_leaving"
