@@ -213,7 +213,7 @@ class DrivingModel(nn.Module):
             3, longitudinal_width(config), shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
         )
         self.branch_steer = ConditionedBranch(
-            9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input
+            9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input and config.steer_speed_input
         )
         _initialise(self)
 

@@ -76,8 +76,11 @@ class ModelConfig:
     command_pedals: the command conditions the throttle/brake branch too, in the
         same way (command_input) as the steer branch: whether to slow before a
         junction depends on the turn to come, which CamH cannot show.
-    speed_input: the current speed (speed_mps / 10) is an input of both MLPs
-        (default off: it did not help the pedals in docs/model.md's measurements).
+    speed_input: the current speed (speed_mps / 10) is an input of branch I's
+        MLP and, with steer_speed_input (default true), of the steer branch's
+        (default off: docs/model.md's measurements).
+    steer_speed_input: with speed_input, the steer branch sees the speed too;
+        false keeps it to branch I (the steer branch then trains as without).
     longitudinal: what branch I predicts: "target_speed" (the default of arch
         "cil": the expert's speed ExpertConfig.speed_horizon_s ahead, scaled by
         1/10; expert.pedals_towards turns it into pedals) or "pedals" (throttle
@@ -96,6 +99,7 @@ class ModelConfig:
     command_input: Literal["branched", "concat", "none"] = "branched"
     command_pedals: bool = False
     speed_input: bool = False
+    steer_speed_input: bool = True
     longitudinal: Literal["pedals", "target_speed"] | None = None
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
 
@@ -112,7 +116,7 @@ class ModelConfig:
                 )
         if not (isinstance(self.speed_horizon_s, (int, float)) and 0 < self.speed_horizon_s <= 5):
             raise CrchflError(f"model.speed_horizon_s must lie in (0, 5] s, got {self.speed_horizon_s!r}")
-        for key in ("command_pedals", "speed_input"):
+        for key in ("command_pedals", "speed_input", "steer_speed_input"):
             if not isinstance(getattr(self, key), bool):
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         if self.arch == "paper":

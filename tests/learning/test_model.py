@@ -160,6 +160,21 @@ def test_command_and_speed_reach_the_outputs_as_configured(options, command_matt
     assert (not torch.equal(base[1], other_speed[1])) == speed_matters
 
 
+def test_the_speed_can_be_kept_to_branch_i():
+    both = build_model(ModelConfig("compact", 48, 64, speed_input=True), seed=0).eval()
+    pedals_only = build_model(ModelConfig("compact", 48, 64, speed_input=True, steer_speed_input=False), seed=0).eval()
+    images, commands = _images(4), torch.tensor([0, 0, 0, 0])
+    slow, fast = (_run(pedals_only, images, commands, torch.full((4,), v)) for v in (2.0, 9.0))
+    assert not torch.equal(slow[0], fast[0]) and torch.equal(slow[1], fast[1])
+    # the steer branch is the one of a model without speed input: one input fewer
+    blind = build_model(ModelConfig("compact", 48, 64), seed=0)
+    assert count_parameters(pedals_only.branch_steer) == count_parameters(blind.branch_steer)
+    heads = len(both.branch_steer.heads)  # one input more: a weight per unit of each head's first layer
+    assert count_parameters(both.branch_steer) == count_parameters(blind.branch_steer) + heads * both.config.shape.hidden[1]
+    with pytest.raises(CrchflError, match="model.steer_speed_input"):
+        ModelConfig(steer_speed_input="no")
+
+
 def test_same_seed_same_weights_and_other_seed_differs():
     a, b, c = (build_model(SMALL, seed=s).state_dict() for s in (3, 3, 4))
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -252,6 +267,7 @@ def test_config_validation_and_round_trip():
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
+        "steer_speed_input": True,
         "longitudinal": "target_speed", "speed_horizon_s": 1.5,
     }
     for bad in (0.0, 7.0, float("nan")):
