@@ -43,7 +43,12 @@ from crchfl_sumo.driving.bench_tasks import (
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import model_renderer, single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
-from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING, STEER_DECODINGS
+from crchfl_sumo.learning.settings import (
+    DEFAULT_BRAKE_GAIN,
+    DEFAULT_STEER_DECODING,
+    STEER_DECODINGS,
+    check_brake_gain,
+)
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -87,8 +92,7 @@ class BenchConfig:
             raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
         if self.steer_decoding not in STEER_DECODINGS:
             raise CrchflError(f"--steer-decoding: use one of {', '.join(STEER_DECODINGS)}, got {self.steer_decoding!r}")
-        if not self.brake_gain > 0:
-            raise CrchflError(f"--brake-gain must be > 0 (1 = the label horizon), got {self.brake_gain}")
+        check_brake_gain(self.brake_gain)
 
 
 # --- drivers: what makes the policy of an episode --------------------------------------------------------

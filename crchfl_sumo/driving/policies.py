@@ -14,7 +14,12 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
-from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING, STEER_DECODINGS
+from crchfl_sumo.learning.settings import (
+    DEFAULT_BRAKE_GAIN,
+    DEFAULT_STEER_DECODING,
+    STEER_DECODINGS,
+    check_brake_gain,
+)
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -239,9 +244,7 @@ class ModelPolicy:
         if steer_decoding not in STEER_DECODINGS:
             raise CrchflError(f"steer decoding must be one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
         self.steer_decoding = steer_decoding
-        if not brake_gain > 0:
-            raise CrchflError(f"--brake-gain must be > 0 (1 = the label horizon), got {brake_gain}")
-        self.brake_gain = brake_gain
+        self.brake_gain = check_brake_gain(brake_gain)
 
     def command(self, observation: Observation) -> int:
         """The route command (labels.COMMAND_NAMES code) at the ego's position; FOLLOW without commands."""

@@ -262,9 +262,8 @@ def longitudinal_pedals(
     if config.longitudinal == "pedals":
         return longitudinal[:, 0], longitudinal[:, 1]
     target = np.maximum(longitudinal[:, 0] * SPEED_SCALE_MPS, 0.0)
-    return pedals_towards(
-        speed_mps, target, max_accel_mps2, max_decel_mps2, ExpertConfig(speed_horizon_s=config.speed_horizon_s), brake_gain
-    )
+    horizon = ExpertConfig(speed_horizon_s=config.speed_horizon_s)
+    return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2, horizon, brake_gain)
 
 
 def count_parameters(model: nn.Module) -> int:

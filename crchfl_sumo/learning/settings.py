@@ -150,6 +150,13 @@ DEFAULT_STEER_DECODING = "argmax"
 # regression between stopping and going does. Town02 traffic suite 0/6 -> 4/6
 # (docs/model.md); evaluation against the labels keeps 1.
 DEFAULT_BRAKE_GAIN = 2.0
+
+
+def check_brake_gain(brake_gain: float) -> float:
+    """``brake_gain`` if it is > 0 (a CrchflError naming --brake-gain otherwise)."""
+    if not brake_gain > 0:
+        raise CrchflError(f"--brake-gain must be > 0 (1 = the label horizon), got {brake_gain}")
+    return brake_gain
 SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 
