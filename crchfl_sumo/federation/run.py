@@ -47,6 +47,7 @@ from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,
     resolve_config_path,
+    resolved_as_today,
     resolved_config,
     with_backend,
 )
@@ -317,7 +318,10 @@ def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Mar
             f"{path}: not a crchfl-sumo federation checkpoint of this version ({CHECKPOINT_FORMAT}); "
             "rerun into another --out"
         )
-    if payload["resolved"] != resolved:
+    stored = payload.get("resolved")
+    if not isinstance(stored, dict) or {
+        **stored, "config": resolved_as_today(stored.get("config", {}), f"{path}: config")
+    } != resolved:
         raise CrchflError(
             f"{path}: written by a run with other settings or data; resume with the original config "
             "(see config.json there) or choose another --out"

@@ -8,9 +8,10 @@ module also finds the built-in run configs and lays the command line's
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal, Mapping
 
 from crchfl_sumo.accounting.ledger import LedgerConfig
 from crchfl_sumo.core.backend import BackendConfig
@@ -117,9 +118,18 @@ def resolved_config(config: RunConfig) -> dict:
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
-    if config.federation.selection == "all":
-        del mapping["federation"]["selection"]  # nor do those made before federation.selection
     return mapping
+
+
+def resolved_as_today(stored: Mapping[str, Any], where: str) -> dict:
+    """A stored run's resolved settings read back with today's defaults: a key added since the
+    run was written takes its default, so the folder resumes when nothing else differs. Settings
+    today's config cannot read come back unchanged (they then differ, and resuming is refused)."""
+    try:
+        config = from_mapping(RunConfig, stored, where)
+    except CrchflError:
+        return dict(stored)
+    return json.loads(json.dumps(resolved_config(config)))  # inf and tuples as JSON reads them back
 
 
 def resolve_config_path(config_path: str | Path) -> Path:

@@ -367,13 +367,16 @@ def test_a_run_that_relays_killed_anywhere_resumes_exactly(tmp_path, dataset):
             assert summary["downloads_failed"] >= 1
 
 
-def test_the_resolved_settings_of_a_default_run_match_those_written_before_newer_options():
-    # A run folder written before [sumo] and federation.selection existed holds neither key;
-    # at their defaults they stay out of the resolved settings, so such a folder still resumes.
-    from crchfl_sumo.federation.run_config import resolved_config
+def test_settings_stored_before_newer_options_read_back_as_today():
+    # A folder written before federation.selection and model.steer_speed_input existed holds
+    # neither key; read with today's defaults its settings equal a new default run's, so it resumes.
+    from crchfl_sumo.federation.run_config import resolved_as_today, resolved_config
 
     config = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}}, "test")
-    resolved = resolved_config(config)
-    assert "sumo" not in resolved and "selection" not in resolved["federation"]
-    skipping = from_mapping(RunConfig, {"federation": {"scheme": "hfl", "selection": "skip_leaving"}}, "test")
-    assert resolved_config(skipping)["federation"]["selection"] == "skip_leaving"
+    today = json.loads(json.dumps(resolved_config(config)))
+    stored = json.loads(json.dumps(today))
+    del stored["federation"]["selection"], stored["model"]["steer_speed_input"]
+    assert resolved_as_today(stored, "test") == today
+    stored["federation"]["deadline_s"] = 60.0  # a setting that does differ still differs
+    assert resolved_as_today(stored, "test") != today
+    assert resolved_as_today({"federation": {"no_such_key": 1}}, "test") == {"federation": {"no_such_key": 1}}
