@@ -58,7 +58,10 @@ def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list
         writer.writerow(["" if row.get(c) is None else row[c] for c in COLUMNS])
     atomic_write_text(out_dir / "results.csv", buffer.getvalue())
     atomic_write_text(out_dir / "results.md", markdown_table(rows))
-    return [plot_factor(factor, [r for r in rows if r["factor"] == factor.name], out_dir / "plots") for factor in factors]
+    base = next((r for r in rows if r["point"] == "base"), None)  # any factor's row of the baseline run
+    return [
+        plot_factor(factor, [r for r in rows if r["factor"] == factor.name], base, out_dir / "plots") for factor in factors
+    ]
 
 
 def markdown_table(rows: Sequence[dict]) -> str:
@@ -85,8 +88,11 @@ def markdown_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n\n* the baseline run\n"
 
 
-def plot_factor(factor, rows: Sequence[dict], out_dir: Path) -> Path:
-    """The metrics against one factor's values; the baseline's value of each metric as a dashed line."""
+def plot_factor(factor, rows: Sequence[dict], base: dict | None, out_dir: Path) -> Path:
+    """The metrics against one factor's values; the baseline's value of each metric (``base``) as a dashed line.
+
+    The line is drawn for a factor whose values miss the baseline too (edge-site count: the baseline has the
+    scenario's sites)."""
     plt = pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     xs = positions(factor.param.values)
@@ -95,7 +101,6 @@ def plot_factor(factor, rows: Sequence[dict], out_dir: Path) -> Path:
         points = [(x, _scaled(r[key], divisor)) for x, r in zip(xs, rows) if _is_number(r.get(key))]
         if points:
             ax.plot(*zip(*points), marker="o")
-        base = next((r for r in rows if r["point"] == "base"), None)
         if base is not None and _is_number(base.get(key)):
             ax.axhline(_scaled(base[key], divisor), color="grey", linestyle="--", linewidth=1, label="baseline")
         ax.set_title(title)
