@@ -23,7 +23,6 @@ Rerunning the command resumes: finished runs are read, not rerun.
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,8 +34,6 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 from crchfl_sumo.studies.sweep import Param, Point, absolute_paths, check_values, point_name, run_points, value_label
-
-log = logging.getLogger(__name__)
 
 BASELINE = "base"
 DATA_DIR = "data"
