@@ -59,6 +59,8 @@ def _commands():
          _add_run, _run_run),
         ("sweep", "a grid of runs over config settings (mobility studies): a table and plots against each parameter",
          _add_sweep, _run_sweep),
+        ("mobility-study", "the built-in mobility study: speed, density, edge sites, handover policy one at a time; "
+         "a table and a figure per factor", _add_mobility_study, _run_mobility_study),
         ("calibrate", "fit alpha, gamma, d of problem P from short pilot runs (docs/calibration.md)",
          _add_calibrate, _run_calibrate),
         ("plan", "solve the resource allocation (problem P) for a communication budget",
@@ -411,6 +413,26 @@ def _run_sweep(args) -> int:
     rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
+    return 0
+
+
+# --- mobility-study -----------------------------------------------------------------------------
+
+
+def _add_mobility_study(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="the quick preset: within 15 minutes on 2 cores (docs/sweep.md)")
+    p.add_argument("--config", type=Path, default=None, help="a study preset TOML instead of the built-in one")
+    p.add_argument("--out", type=Path, required=True, help="study folder (rerun the same command to resume)")
+    p.add_argument("--jobs", type=int, default=0, help="runs at a time, each in its own process (default 0: all CPUs)")
+    _backend_arguments(p)
+
+
+def _run_mobility_study(args) -> int:
+    from crchfl_sumo.studies.mobility import mobility_study_command
+
+    rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
+    print((args.out / "results.md").read_text(encoding="utf-8"), end="")
+    print(f"{len({r['point'] for r in rows})} runs -> {args.out}")
     return 0
 
 

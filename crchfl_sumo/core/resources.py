@@ -24,7 +24,7 @@ def drive_routes_path() -> Path:
 
 
 def experiments_dir() -> Path:
-    """The run presets: crchfl, hfl, sfl (run configs) and reproduce_quick, reproduce_full."""
+    """The run presets: crchfl, hfl, sfl (run configs), reproduce_quick, reproduce_full, mobility_quick, mobility_full."""
     return scenarios_dir() / "experiments"
 
 

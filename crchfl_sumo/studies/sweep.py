@@ -160,14 +160,7 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
     if len(set(paths)) != len(paths):
         raise CrchflError(f"--param: a path is swept twice ({', '.join(paths)}); give each once")
     for param in params:
-        label = f"--param {param.path}"
-        for value in param.values:
-            where_value = f"{label}={value_label(value)}"
-            try:
-                from_mapping(RunConfig, set_path(base, param.keys, value, label), where=f"{where_value}: config")
-            except CrchflError as exc:  # a settings class's own check does not know the --param: name it
-                message = str(exc)
-                raise CrchflError(message if message.startswith(where_value) else f"{where_value}: {message}") from None
+        check_values(base, param, f"--param {param.path}")
     points = []
     for combination in itertools.product(*(p.values for p in params)):
         mapping = base
@@ -178,6 +171,17 @@ def expand_grid(base: dict, params: list[Param], where: str = "config") -> list[
         from_mapping(RunConfig, mapping, where=f"{where} with {name}")
         points.append(Point(name, values, mapping))
     return points
+
+
+def check_values(base: dict, param: Param, label: str) -> None:
+    """Each of ``param``'s values set on ``base`` on its own must make a valid run config; errors name ``label``."""
+    for value in param.values:
+        where_value = f"{label}={value_label(value)}"
+        try:
+            from_mapping(RunConfig, set_path(base, param.keys, value, label), where=f"{where_value}: config")
+        except CrchflError as exc:  # a settings class's own check does not know the --param: name it
+            message = str(exc)
+            raise CrchflError(message if message.startswith(where_value) else f"{where_value}: {message}") from None
 
 
 def point_name(values: dict[str, Any]) -> str:
@@ -254,7 +258,7 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
     out_dir = Path(out_dir)
     base = {k: v for k, v in base.items() if k != "backend"}
     points = [
-        dataclasses.replace(p, mapping=_absolute_paths(p.mapping)) for p in expand_grid(base, params, where)
+        dataclasses.replace(p, mapping=absolute_paths(p.mapping)) for p in expand_grid(base, params, where)
     ]
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
@@ -270,19 +274,25 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
         )
         + "\n",
     )
-    summaries = {p.name: finished_summary(out_dir / RUNS_DIR / p.name, p.mapping) for p in points}
-    todo = [p for p in points if summaries[p.name] is None]
-    log.info("sweep: %d points, %d finished, %d to run", len(points), len(points) - len(todo), len(todo))
-    with Executor(backend) as executor:
-        results = executor.map(run_point, [(p.mapping, str(out_dir / RUNS_DIR / p.name)) for p in todo], isolate=True)
-    summaries.update({p.name: s for p, s in zip(todo, results)})
+    summaries = run_points(points, out_dir, backend)
     rows = [table_row(p, summaries[p.name]) for p in points]
     write_table(out_dir, rows, [p.path for p in params])
     plot_sweep(rows, params, out_dir / "plots")
     return rows
 
 
-def _absolute_paths(base: dict) -> dict:
+def run_points(points: list[Point], out_dir: Path, backend: BackendConfig) -> dict[str, dict]:
+    """Each point's run in ``out_dir/runs/NAME`` (finished ones are read, not rerun): name -> summary."""
+    summaries = {p.name: finished_summary(out_dir / RUNS_DIR / p.name, p.mapping) for p in points}
+    todo = [p for p in points if summaries[p.name] is None]
+    log.info("sweep: %d points, %d finished, %d to run", len(points), len(points) - len(todo), len(todo))
+    with Executor(backend) as executor:
+        results = executor.map(run_point, [(p.mapping, str(out_dir / RUNS_DIR / p.name)) for p in todo], isolate=True)
+    summaries.update({p.name: s for p, s in zip(todo, results)})
+    return summaries
+
+
+def absolute_paths(base: dict) -> dict:
     """Data set and scenario file paths made absolute: the runs may work in another directory."""
     out = dict(base)
 

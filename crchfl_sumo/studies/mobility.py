@@ -1,0 +1,230 @@
+"""`crchfl-sumo mobility-study [--quick] --out DIR`: what mobility does to aggregation, one factor at a time.
+
+A study preset (scenarios/experiments/mobility_quick.toml, mobility_full.toml)
+holds a small data set to generate ([data]), a baseline run config ([run])
+and the factors ([[factor]]: a name, a dotted run-config key as in
+``sweep --param``, its values, optional labels). The study runs the baseline
+once and, for each factor, one run per value with only that key changed
+(one factor at a time around the baseline, not the grid). A value that
+gives the baseline's own settings reuses the baseline run.
+
+The runs are the sweep's (studies/sweep.py: the same run folders, backend
+tasks and resume); DIR receives:
+
+  study.json          the preset, the points and which point is each factor value
+  data/               the generated data set (kept: a rerun reuses it)
+  runs/NAME/          one run folder per point (``base`` is the baseline)
+  results.csv, .md    one row per factor value (mobility_report.py)
+  plots/FACTOR.png    the metrics against each factor's values
+
+Rerunning the command resumes: finished runs are read, not rerun.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.backend import BackendConfig
+from crchfl_sumo.core.config import from_mapping, read_toml, set_path
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.federation.run_config import RunConfig, resolved_config
+from crchfl_sumo.studies.sweep import Param, Point, absolute_paths, check_values, point_name, run_points, value_label
+
+BASELINE = "base"
+DATA_DIR = "data"
+PRESET_KEYS = {"name", "data", "run", "factor"}
+DATA_KEYS = {"scenario", "train_samples", "test_samples", "seed"}
+FACTOR_KEYS = {"name", "key", "values", "labels"}
+
+
+@dataclass(frozen=True)
+class Factor:
+    """One factor of the study: its name, its key and values (a sweep Param), a label per value."""
+
+    name: str
+    param: Param
+    labels: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class StudyData:
+    """The study's data set: ``train_samples`` per data vehicle, ``test_samples`` per test vehicle of ``scenario``."""
+
+    scenario: str
+    train_samples: int
+    test_samples: int
+    seed: int
+
+
+@dataclass(frozen=True)
+class Study:
+    name: str
+    data: StudyData
+    base: dict
+    factors: tuple[Factor, ...]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The points to run (the baseline first) and, per factor, the point of each of its values."""
+
+    points: tuple[Point, ...]
+    factor_points: dict[str, tuple[str, ...]]
+
+
+# ------------------------------------------------------------------ the preset
+
+
+def preset_path(quick: bool) -> Path:
+    return experiments_dir() / ("mobility_quick.toml" if quick else "mobility_full.toml")
+
+
+def parse_study(raw: dict, where: str) -> Study:
+    """A study preset's mapping -> Study; every key is checked, a bad one is named with the fix."""
+    _known(raw, PRESET_KEYS, where)
+    data = raw.get("data", {})
+    _known(data, DATA_KEYS, f"{where} [data]")
+    try:
+        study_data = StudyData(str(data["scenario"]), int(data["train_samples"]), int(data["test_samples"]),
+                               int(data.get("seed", 0)))
+    except KeyError as exc:
+        raise CrchflError(f"{where} [data]: {exc.args[0]!r} is missing (scenario, train_samples, test_samples)") from None
+    if study_data.train_samples < 1 or study_data.test_samples < 1:
+        raise CrchflError(f"{where} [data]: train_samples and test_samples must be >= 1")
+    base = raw.get("run")
+    if not isinstance(base, dict):
+        raise CrchflError(f"{where}: a [run] table (the baseline run config) is missing")
+    if "backend" in base or "dataset" in base:
+        raise CrchflError(f"{where} [run]: leave out 'backend' (use --backend) and 'dataset' (the study makes DIR/data)")
+    factors = []
+    for i, table in enumerate(raw.get("factor", [])):
+        label = f"{where} [[factor]] {i + 1}"
+        _known(table, FACTOR_KEYS, label)
+        if "key" not in table or not table.get("values"):
+            raise CrchflError(f"{label}: give key = \"section.name\" and a non-empty list of values")
+        key, values = str(table["key"]), tuple(table["values"])
+        labels = tuple(str(v) for v in table.get("labels", [value_label(v) for v in values]))
+        if len(labels) != len(values):
+            raise CrchflError(f"{label} ({key}): {len(labels)} labels for {len(values)} values; give one label per value")
+        factors.append(Factor(str(table.get("name", key)), Param(key, values), labels))
+    if not factors:
+        raise CrchflError(f"{where}: no [[factor]] tables; give at least one factor (key, values)")
+    names = [f.name for f in factors]
+    if len(set(names)) != len(names):
+        raise CrchflError(f"{where}: factor names must be distinct, got {names}")
+    return Study(str(raw.get("name", Path(where).stem)), study_data, base, tuple(factors))
+
+
+def _known(table: Any, keys: set[str], where: str) -> None:
+    if not isinstance(table, dict):
+        raise CrchflError(f"{where}: expected a table")
+    unknown = sorted(set(table) - keys)
+    if unknown:
+        raise CrchflError(f"{where}: unknown key {unknown[0]!r}; the keys are {', '.join(sorted(keys))}")
+
+
+# ------------------------------------------------------------------ the plan
+
+
+def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") -> Plan:
+    """The baseline and one point per factor value (that key alone changed); equal settings share a point.
+
+    Every value is checked like a sweep --param first, so a bad key or value names its factor.
+    """
+    for factor in factors:
+        check_values(base, factor.param, f"{where}: factor {factor.name!r}: {factor.param.path}")
+    points: list[Point] = []
+    by_settings: dict[str, str] = {}
+
+    def add(name: str, values: dict, mapping: dict) -> str:
+        settings = json.dumps(resolved_config(from_mapping(RunConfig, mapping, where=f"{where}: {name}")), sort_keys=True,
+                              default=str)
+        if settings not in by_settings:
+            by_settings[settings] = name
+            points.append(Point(name, values, mapping))
+        return by_settings[settings]
+
+    add(BASELINE, {}, base)
+    factor_points = {}
+    for factor in factors:
+        names = []
+        for value in factor.param.values:
+            values = {factor.param.path: value}
+            mapping = set_path(base, factor.param.keys, value, f"factor {factor.name!r}")
+            names.append(add(point_name(values), values, mapping))
+        factor_points[factor.name] = tuple(names)
+    return Plan(tuple(points), factor_points)
+
+
+# ------------------------------------------------------------------ running
+
+
+def make_data(data: StudyData, out_dir: Path) -> Path:
+    """The study's data set in ``out_dir`` (generated once; a finished one is reused)."""
+    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    if not (out_dir / "manifest.json").is_file():
+        scenario = load_scenario(data.scenario)
+        sizes = DatasetConfig(
+            towns=tuple(
+                TownSplit(t.name, (data.train_samples,) * len(t.data_vehicles), (data.test_samples,) * len(t.test_vehicles))
+                for t in scenario.towns
+            )
+        )
+        generate_dataset(scenario, out_dir, seed=data.seed, sizes=sizes)
+    return out_dir
+
+
+def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: str = "study") -> list[dict]:
+    """Generate the data, run every point not finished yet, write the table and figures; returns the rows."""
+    from crchfl_sumo.studies.mobility_report import study_rows, write_report
+
+    out_dir = Path(out_dir)
+    base = {**study.base, "dataset": str((out_dir / DATA_DIR).resolve())}
+    plan = study_plan(base, study.factors, where)  # checked before anything is generated or run
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(
+        out_dir / "study.json",
+        json.dumps(
+            {
+                "name": study.name,
+                "data": study.data.__dict__,
+                "base": base,
+                "factors": [{"name": f.name, "key": f.param.path, "values": list(f.param.values),
+                             "labels": list(f.labels), "points": list(plan.factor_points[f.name])}
+                            for f in study.factors],
+                "points": [p.name for p in plan.points],
+            },
+            indent=2,
+            default=str,
+        )
+        + "\n",
+    )
+    make_data(study.data, out_dir / DATA_DIR)
+    points = [Point(p.name, p.values, absolute_paths(p.mapping)) for p in plan.points]
+    summaries = run_points(points, out_dir, backend)
+    rows = study_rows(study.factors, plan, summaries)
+    write_report(out_dir, study.factors, rows)
+    return rows
+
+
+def mobility_study_command(quick: bool, out_dir: str | Path, config: str | Path | None = None, jobs: int = 0,
+                           backend: str | None = None, address: str | None = None) -> list[dict]:
+    """What `crchfl-sumo mobility-study [--quick] [--config TOML] --out DIR [--jobs N] [--backend B]` does."""
+    path = Path(config) if config is not None else preset_path(quick)
+    if not path.is_file():
+        raise CrchflError(f"--config {path}: no such file")
+    if jobs < 0:
+        raise CrchflError(f"--jobs must be >= 0 (0 = all CPUs), got {jobs}")
+    if address is not None and backend != "ray":
+        raise CrchflError("--address joins a Ray cluster: give it with --backend ray")
+    study = parse_study(read_toml(path), str(path))
+    return run_study(study, out_dir, BackendConfig(kind=backend or "local", address=address or "", num_cpus=jobs),
+                     where=str(path))
