@@ -14,6 +14,7 @@ import os
 import sys
 from pathlib import Path
 
+from crchfl_sumo.core.cpus import choose_wait_policy
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.learning.settings import ARCHS
 
@@ -483,6 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    choose_wait_policy()  # before any command imports torch: OpenMP reads it once
     try:
         return int(args.run(args) or 0)
     except CrchflError as exc:

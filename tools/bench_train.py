@@ -11,12 +11,23 @@ the paper's data set, FACTS.md), measures one epoch of training throughput of
 and prints samples/s, the ratios a/c and a/b for each method, and the achieved
 GFLOP/s against a large float32 matmul measured in the same run.
 
-Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 5]
+Then, in fresh processes, one centralized training at a time (``--busy-s``
+seconds each, best epoch kept): one thread on the otherwise idle machine
+(solo1); the product's defaults beside one busy process, which leaves one of
+the two cores free (busy: the threads the affinity mask gives, and the wait
+policy ``crchfl_sumo.core.cpus.choose_wait_policy`` picks as every command
+starts); and the same beside the busy process with OpenMP's spinning wait
+(before). It prints ``busy/solo1 = X.XX`` and ``before/solo1 = X.XX``.
+
+Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 5] [--busy-s 25] [--busy-only]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -74,6 +85,59 @@ def timed(function) -> float:
     return time.perf_counter() - start
 
 
+# One centralized training in a fresh process: the wait policy is chosen as a command would, before torch loads.
+EPOCH_RATE_CHILD = """
+import sys, time
+from crchfl_sumo.core.cpus import choose_wait_policy
+if sys.argv[1] == "product":
+    choose_wait_policy()
+import numpy as np, torch
+sys.path.insert(0, {tools!r})
+from bench_train import synthetic_samples
+from crchfl_sumo.learning.model import build_model
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import Learner
+config = ModelConfig("compact", {height}, {width})
+samples = synthetic_samples(320, {height}, {width}, np.random.default_rng(0))
+learner = Learner(build_model(config, seed=0), TrainConfig())
+learner.train_epoch(samples, torch.Generator().manual_seed(0))
+best_s, end = float("inf"), time.perf_counter() + {seconds}
+while time.perf_counter() < end:
+    start = time.perf_counter()
+    learner.train_epoch(samples, torch.Generator().manual_seed(1))
+    best_s = min(best_s, time.perf_counter() - start)
+print(len(samples) / best_s, torch.get_num_threads())
+"""
+
+
+def epoch_rate(mode: str, environ: dict[str, str], args) -> tuple[float, int]:
+    """(samples/s, torch threads) of a fresh process's centralized training; mode "product" picks the policy."""
+    code = EPOCH_RATE_CHILD.format(tools=os.path.dirname(os.path.abspath(__file__)), height=args.height,
+                                   width=args.width, seconds=args.busy_s)
+    out = subprocess.run([sys.executable, "-c", code, mode], env=environ, check=True, capture_output=True, text=True)
+    rate, threads = out.stdout.split()
+    return float(rate), int(threads)
+
+
+def busy_against_solo(args) -> None:
+    """The busy/solo1 lines: training beside one busy process against one thread alone."""
+    plain = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY")}
+    solo1, _ = epoch_rate("plain", {**plain, "OMP_NUM_THREADS": "1"}, args)
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(1.0)  # the spinner is on its core before the product looks at the load
+        busy, threads = epoch_rate("product", plain, args)
+        before, _ = epoch_rate("plain", plain, args)
+    finally:
+        spinner.kill()
+        spinner.wait()
+    print(f"centralized training, {args.busy_s:g} s each, best epoch of 320 samples; one busy process beside:")
+    print(f"solo1 {solo1:.1f} samples/s (1 thread, idle machine); busy {busy:.1f} ({threads} threads, "
+          f"product defaults); before {before:.1f} ({threads} threads, spinning wait)")
+    print(f"busy/solo1 = {busy / solo1:.2f}")
+    print(f"before/solo1 = {before / solo1:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=0.05, help="fraction of the paper's per-vehicle sample counts")
@@ -82,7 +146,12 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of each method (best is kept)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     parser.add_argument("--arch", default=ModelConfig.arch, choices=("cil", "paper"))
+    parser.add_argument("--busy-s", type=float, default=25.0, help="seconds of each busy/solo1 training (0: skip)")
+    parser.add_argument("--busy-only", action="store_true", help="measure only busy/solo1")
     args = parser.parse_args()
+    if args.busy_only:
+        busy_against_solo(args)
+        return
 
     rng = np.random.default_rng(0)
     counts = [max(1, round(n * args.scale)) for n in PAPER_VEHICLE_SAMPLES]
@@ -141,6 +210,8 @@ def main() -> None:
         a = rate[f"a {method}"]
         print(f"a={method:10s}  a/c = {a / c:.3f}   a/b = {a / b:.3f}")
     print(f"b/c = {b / c:.3f}; train_vehicles default method: {TrainConfig().multi_vehicle}")
+    if args.busy_s > 0:
+        busy_against_solo(args)
 
 
 if __name__ == "__main__":

@@ -25,11 +25,11 @@ import concurrent.futures as cf
 import logging
 import math
 import multiprocessing
-import os
 import sys
 from dataclasses import dataclass
 from typing import Any, Callable, Literal, Sequence
 
+from crchfl_sumo.core.cpus import available_cpus
 from crchfl_sumo.core.errors import CrchflError
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class BackendConfig:
     @property
     def workers(self) -> int:
         """Parallel processes of a local isolated map."""
-        return self.num_cpus or os.cpu_count() or 1
+        return self.num_cpus or available_cpus()
 
 
 def import_ray():

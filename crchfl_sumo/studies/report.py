@@ -318,8 +318,9 @@ def _environment(summary: Mapping[str, Any], results: Mapping[str, Any], figures
     env = results["reproduce"].get("environment") or {}
     lines = [
         "", "## Environment and running time", "",
-        f"Python {env.get('python', '-')}, {env.get('platform', '-')}, {env.get('cpu_count', '-')} CPUs, "
-        f"{env.get('torch_threads', '-')} torch threads, CUDA {_fmt(env.get('cuda'))}.",
+        f"Python {env.get('python', '-')}, {env.get('platform', '-')}, {env.get('cpu_count', '-')} CPUs "
+        f"({env.get('available_cpus', '-')} available), {env.get('torch_threads', '-')} torch threads "
+        f"(OMP_WAIT_POLICY {env.get('omp_wait_policy', '-')}), CUDA {_fmt(env.get('cuda'))}.",
         "",
     ]
     lines += _table(["package", "version"], [[k, _fmt(v)] for k, v in (env.get("versions") or {}).items()])

@@ -30,6 +30,7 @@ from typing import Any, Mapping
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import to_mapping, toml_text
+from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.studies.reproduce_plan import (
@@ -73,7 +74,7 @@ def reproduce(
     """Run (or finish) every part of ``config`` into ``out_dir``, then write the report; returns summary.json.
 
     ``jobs`` > 1 runs that many parts at a time, each in its own process
-    (libsumo holds one simulation per process) with ``cpu_count // jobs``
+    (libsumo holds one simulation per process) with ``available CPUs // jobs``
     torch threads: first the data set, then the centralized, experiment B
     and experiment D parts, then the drives. The results are those of
     ``jobs`` = 1 (each part is seeded on its own), except that training
@@ -185,7 +186,9 @@ def environment() -> dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
+        "available_cpus": available_cpus(),
         "torch_threads": torch.get_num_threads(),
+        "omp_wait_policy": os.environ.get(WAIT_POLICY, "default"),
         "cuda": torch.cuda.is_available(),
         "versions": versions,
     }
@@ -207,11 +210,9 @@ def _finished(part: ReproductionPart, out_dir: Path) -> bool:
 def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, jobs: int) -> dict[str, float]:
     """Run one part (in this process, or as a worker process of ``jobs`` > 1); its wall and CPU seconds."""
     if jobs > 1:
-        import os
-
         import torch
 
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // jobs))  # the parts share the cores
+        torch.set_num_threads(threads_per_part(jobs))  # the parts share the cores
     log.info("%s: starting", part.key)
     start_unix, start_s, start_cpu_s = time.time(), time.perf_counter(), time.process_time()
     if part.kind == "dataset":
