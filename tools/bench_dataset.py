@@ -1,9 +1,13 @@
 """Benchmark the data set pipeline: generation speed and the storage codecs, side by side.
 
     python tools/bench_dataset.py [--scenario paper] [--samples 300] [--paper-size] [--out DIR]
+                                  [--repeats 1] [--no-codecs]
 
 1. Generates a data set (the paper's split with ``--paper-size``, else every
-   vehicle ``--samples`` samples) and times simulation vs rendering+writing.
+   vehicle ``--samples`` samples) twice, alternating ``--repeats`` times:
+   rendering each sample in its own call (one by one), and rendering a frame's
+   samples in one call (batched, the default). Times every stage and prints
+   ``batched/one-by-one = X.XX``, the end-to-end speed ratio.
 2. Rewrites the same samples with each HDF5 image filter (none, lzf, gzip)
    and measures bytes per sample, write time, full load (fast path) with and
    without checksum verification, and random per-sample reads (ShardDataset).
@@ -37,20 +41,35 @@ def sizes_for(args: argparse.Namespace) -> DatasetConfig:
     return DatasetConfig(towns=towns)
 
 
-def timed_generation(args: argparse.Namespace, out: Path) -> None:
+def timed_generation(args: argparse.Namespace, out: Path, vehicles_per_call: int | None) -> float:
+    """Generate the data set into ``out`` (a fresh folder); print the stages; the end-to-end seconds."""
+    shutil.rmtree(out, ignore_errors=True)
     scenario = load_scenario(args.scenario)
     stages: dict[str, float] = {}
     start = time.perf_counter()
-    manifest = generate_dataset(scenario, out, seed=args.seed, sizes=sizes_for(args), timings_s=stages)
+    manifest = generate_dataset(
+        scenario, out, seed=args.seed, sizes=sizes_for(args), timings_s=stages, vehicles_per_call=vehicles_per_call
+    )
     total = time.perf_counter() - start
     n = manifest.samples
-    print(f"generation: {n} samples in {total:.1f} s ({n / total:.0f} samples/s end to end)")
+    mode = "one by one" if vehicles_per_call == 1 else "batched (a frame's samples in one call)"
+    print(f"generation, rendering {mode}: {n} samples in {total:.1f} s ({n / total:.0f} samples/s end to end)")
     for stage in ("simulate", "world", "label", "render", "write"):
         seconds = stages.get(stage, 0.0)
         print(f"  {stage:9s} {seconds:6.1f} s  {100 * seconds / total:5.1f} %  ({n / max(seconds, 1e-9):8.0f} samples/s)")
     other = total - sum(stages.values())
     print(f"  {'other':9s} {other:6.1f} s  {100 * other / total:5.1f} %  (scenario load, planning, manifest)")
     print(f"  image size {manifest.image_height}x{manifest.image_width}, 4 cameras")
+    return total
+
+
+def generation_ratio(args: argparse.Namespace, out: Path) -> None:
+    """Batched against one-by-one rendering, end to end, alternating ``--repeats`` times (best of each)."""
+    best = {1: float("inf"), None: float("inf")}
+    for _ in range(args.repeats):
+        for vehicles_per_call in best:
+            best[vehicles_per_call] = min(best[vehicles_per_call], timed_generation(args, out, vehicles_per_call))
+    print(f"batched/one-by-one = {best[1] / best[None]:.2f}  (end-to-end speed, best of {args.repeats} each)")
 
 
 def best_of(repeats: int, work) -> float:
@@ -106,11 +125,14 @@ def main() -> None:
     parser.add_argument("--paper-size", action="store_true", help="the paper's split (14,665 samples)")
     parser.add_argument("--reads", type=int, default=2000, help="random per-sample reads per codec")
     parser.add_argument("--out", type=Path, help="keep the generated data set here (default: a temp folder)")
+    parser.add_argument("--repeats", type=int, default=1, help="alternating generations of each rendering mode")
+    parser.add_argument("--no-codecs", action="store_true", help="skip the storage comparison")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp) / "dataset"
-        timed_generation(args, out)
-        codec_table(out, Path(tmp) / "codecs", args.reads)
+        generation_ratio(args, out)
+        if not args.no_codecs:
+            codec_table(out, Path(tmp) / "codecs", args.reads)
 
 
 if __name__ == "__main__":

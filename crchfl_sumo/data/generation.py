@@ -10,8 +10,11 @@
    step with the expert (expert.py) and its route command (commands.py),
    keep the sampled steps, draw which of them become recovery samples
    (recovery.py; seeded by the data set seed and the shard's place in the
-   plan), render their four camera images (raster.py) from the track's pose
-   or the perturbed one, write the shard (shards.py).
+   plan).
+3. Render the four camera images (raster.py) from the track's pose or the
+   perturbed one, frame by frame: all the samples of a frame in one call, for
+   as many shards at a time as ``RENDER_GROUP_BYTES`` of images hold; then
+   write each shard (shards.py).
 
 Shards already finished by an earlier run with the same settings are
 skipped (their rendering is the expensive part; the simulation is rerun,
@@ -47,7 +50,7 @@ from crchfl_sumo.data.expert import (
     tracks_from_frames,
 )
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.recovery import draw_perturbations, perturbed_frame, recovery_steer
+from crchfl_sumo.data.recovery import camera_pose, draw_perturbations, recovery_steer
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
@@ -62,6 +65,7 @@ log = logging.getLogger(__name__)
 
 FUTURE_S = 10.0  # simulated time kept after the last sample: >= the look-ahead at any town speed
 RECOVERY_STREAM = 15  # the recovery draws' own random stream: SeedSequence([seed, RECOVERY_STREAM, shard])
+RENDER_GROUP_BYTES = 1 << 30  # images of the shards rendered together, held until they are written
 
 
 def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
@@ -189,11 +193,14 @@ def generate_dataset(
     progress: Progress | None = None,
     timings_s: dict[str, float] | None = None,
     command: CommandConfig = CommandConfig(),
+    vehicles_per_call: int | None = None,
 ) -> Manifest:
     """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest.
 
     ``timings_s``, when given, receives the wall seconds spent in each stage:
     simulate, world (static world build), label, render, write.
+    ``vehicles_per_call`` caps the samples of a frame rendered in one call
+    (render_samples; None: all of them, 1: one by one).
     """
     clock = _StageClock(timings_s)
     plan = shard_plan(sizes)
@@ -235,39 +242,104 @@ def generate_dataset(
         renderer = Renderer(build_world(scenario.net_path, world), raster)
     total = sum(needed.values())
     done = 0
-    for shard in pending:
-        vehicle = vehicles[shard.file]
-        track = tracks[vehicle]
-        frame_rows = sampled[vehicle]
-        rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
-        with clock("label"):
-            rng = np.random.default_rng(np.random.SeedSequence([int(seed), RECOVERY_STREAM, plan.index(shard)]))
-            labels = sample_labels(track, rows, junctions, sizes, expert, command, rng)
-        images = np.empty((len(rows), *renderer.shape), np.uint8)
+    for group in render_groups(pending, renderer.shape):
+        labelled = []
+        for shard in group:
+            vehicle = vehicles[shard.file]
+            track = tracks[vehicle]
+            frame_rows = sampled[vehicle]
+            rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
+            with clock("label"):
+                rng = np.random.default_rng(np.random.SeedSequence([int(seed), RECOVERY_STREAM, plan.index(shard)]))
+                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng)
+            labelled.append((shard, vehicle, rows, labels, RenderJob(vehicle, frame_rows, labels.perturbation)))
         with clock("render"):
-            for k, i in enumerate(frame_rows):
-                lateral_m, yaw_deg = labels.perturbation[k]
-                images[k] = renderer.render(perturbed_frame(frames[i], vehicle, lateral_m, yaw_deg), [vehicle])[0]
-                if k % 50 == 0:
-                    report(progress, "render", done + k, total)
-        data = ShardData(
-            images=images,
-            actions=labels.actions,
-            steer_class=labels.steer_class,
-            command=labels.command,
-            speed_mps=labels.speed_mps,
-            target_speed_mps=labels.target_speed_mps,
-            perturbation=labels.perturbation,
-            t_s=track.t_s[rows],
-            x_m=track.x_m[rows],
-            y_m=track.y_m[rows],
-            heading_rad=track.heading_rad[rows],
-        )
-        edge = nearest_site(scenario.edge_sites, data.x_m, data.y_m)
-        with clock("write"):
-            writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
-        done += len(rows)
-        report(progress, "render", done, total)
+            images = render_samples(
+                renderer, frames, [job for *_, job in labelled], vehicles_per_call,
+                lambda rendered: report(progress, "render", done + rendered, total),
+            )
+        for (shard, vehicle, rows, labels, _), shard_images in zip(labelled, images):
+            track = tracks[vehicle]
+            data = ShardData(
+                images=shard_images,
+                actions=labels.actions,
+                steer_class=labels.steer_class,
+                command=labels.command,
+                speed_mps=labels.speed_mps,
+                target_speed_mps=labels.target_speed_mps,
+                perturbation=labels.perturbation,
+                t_s=track.t_s[rows],
+                x_m=track.x_m[rows],
+                y_m=track.y_m[rows],
+                heading_rad=track.heading_rad[rows],
+            )
+            edge = nearest_site(scenario.edge_sites, data.x_m, data.y_m)
+            with clock("write"):
+                writer.add(shard.file, data, vehicle=vehicle, town=shard.town, edge=edge, split=shard.split)
+            done += len(rows)
+            report(progress, "write", done, total)
+    return writer.manifest
+
+
+@dataclass(frozen=True)
+class RenderJob:
+    """One shard's samples to draw: its vehicle, the frame of each sample, each sample's perturbation."""
+
+    vehicle: str
+    frame_rows: Sequence[int]  # index into the run's frames, per sample
+    perturbation: np.ndarray  # float32 [R, 2] (lateral_m, yaw_deg)
+
+
+def render_groups(shards: Sequence[PlannedShard], image_shape: tuple[int, ...], budget_bytes: int = RENDER_GROUP_BYTES):
+    """Consecutive shards whose images fit ``budget_bytes`` together (at least one shard a group)."""
+    sample_bytes = math.prod(image_shape)
+    group: list[PlannedShard] = []
+    for shard in shards:
+        if group and (sum(s.samples for s in group) + shard.samples) * sample_bytes > budget_bytes:
+            yield group
+            group = []
+        group.append(shard)
+    if group:
+        yield group
+
+
+def render_samples(
+    renderer: Renderer,
+    frames: Sequence[Frame],
+    jobs: Sequence[RenderJob],
+    vehicles_per_call: int | None = None,
+    on_rendered=None,
+) -> list[np.ndarray]:
+    """Every job's camera images, uint8 [R, 4, H, W, 3], drawn frame by frame.
+
+    The samples that share a frame are rendered in one call, which shares the
+    frame's set-up among them (``vehicles_per_call`` caps a call; 1 draws them
+    one by one, as the benchmark's baseline). Each sample's cameras stand at
+    its own perturbed pose while the others see the vehicle where it is, so
+    the images are those of rendering each sample alone. ``on_rendered``
+    hears the number of samples drawn so far after every frame.
+    """
+    images = [np.empty((len(job.frame_rows), *renderer.shape), np.uint8) for job in jobs]
+    at_frame: dict[int, list[tuple[int, int]]] = {}  # frame -> [(job, sample)]
+    for j, job in enumerate(jobs):
+        for k, i in enumerate(job.frame_rows):
+            at_frame.setdefault(int(i), []).append((j, k))
+    drawn = 0
+    for i in sorted(at_frame):
+        frame, samples = frames[i], at_frame[i]
+        step = vehicles_per_call or len(samples)
+        for first in range(0, len(samples), step):
+            chunk = samples[first : first + step]
+            ids = [jobs[j].vehicle for j, _ in chunk]
+            poses = np.array([camera_pose(frame, jobs[j].vehicle, *jobs[j].perturbation[k]) for j, k in chunk])
+            for (j, k), sample_images in zip(chunk, renderer.render(frame, ids, poses)):
+                images[j][k] = sample_images
+        drawn += len(samples)
+        if on_rendered is not None:
+            on_rendered(drawn)
+    return images
+
+
     return writer.manifest
 
 

@@ -18,7 +18,6 @@ perturbed: a standing car's steer is 0 by the expert's rule, whatever its pose.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -71,12 +70,12 @@ def perturbed_pose(
     return x_m - lateral * np.sin(heading_rad), y_m + lateral * np.cos(heading_rad), heading_rad + yaw_rad
 
 
-def perturbed_frame(frame: Frame, vehicle: str, lateral_m: float, yaw_deg: float) -> Frame:
-    """``frame`` with ``vehicle``'s pose perturbed (the pose the rasterizer draws its cameras from)."""
-    if lateral_m == 0 and yaw_deg == 0:
-        return frame
+def camera_pose(frame: Frame, vehicle: str, lateral_m: float, yaw_deg: float) -> tuple[float, float, float]:
+    """(x_m, y_m, heading_rad) of ``vehicle`` in ``frame``, perturbed: where a sample's cameras stand."""
     row = frame.index_of(vehicle)
-    x, y, heading = (getattr(frame, c).copy() for c in ("x_m", "y_m", "heading_rad"))
-    px, py, ph = perturbed_pose(x[row : row + 1], y[row : row + 1], heading[row : row + 1], np.array([[lateral_m, yaw_deg]]))
-    x[row], y[row], heading[row] = px[0], py[0], math.remainder(float(ph[0]), 2 * math.pi)
-    return dataclasses.replace(frame, x_m=x, y_m=y, heading_rad=heading)
+    x, y, heading = (getattr(frame, c)[row : row + 1] for c in ("x_m", "y_m", "heading_rad"))
+    if lateral_m == 0 and yaw_deg == 0:
+        return float(x[0]), float(y[0]), float(heading[0])
+    px, py, ph = perturbed_pose(x, y, heading, np.array([[lateral_m, yaw_deg]]))
+    return float(px[0]), float(py[0]), math.remainder(float(ph[0]), 2 * math.pi)
+

@@ -192,6 +192,7 @@ class Renderer:
         self._prepare_ground()
         self._prepare_heads()
         self._reach = CameraReach.of(cam, self.config.max_object_distance_m)
+        self._vehicle_face_rgb: dict[str, list] = {}  # vehicle id -> shaded colour of each face
 
     # -- precomputation -------------------------------------------------------------
     def _prepare_ground(self) -> None:
@@ -256,8 +257,15 @@ class Renderer:
         self._lamp_world = lamps
 
     # -- per frame ------------------------------------------------------------------
-    def render(self, frame: Frame, vehicle_ids: Sequence[str]) -> np.ndarray:
-        """Camera images of each vehicle in ``vehicle_ids``: uint8 RGB [V, 4, H, W, 3]."""
+    def render(self, frame: Frame, vehicle_ids: Sequence[str], poses: np.ndarray | None = None) -> np.ndarray:
+        """Camera images of each vehicle in ``vehicle_ids``: uint8 RGB [V, 4, H, W, 3].
+
+        ``poses`` [V, 3] (x_m, y_m, heading_rad), when given, puts each
+        vehicle's cameras there instead of at its pose in the frame (a recovery
+        sample's perturbed pose); the other vehicles' cameras still see it
+        where the frame has it. Rendering a frame's vehicles in one call shares
+        the frame's set-up among them.
+        """
         row_of = {vid: i for i, vid in enumerate(frame.ids.tolist())}
         missing = [vid for vid in vehicle_ids if vid not in row_of]
         if missing:
@@ -266,11 +274,14 @@ class Renderer:
         out = np.empty((len(ego_rows),) + self.shape, np.uint8)
         if len(ego_rows) == 0:
             return out
-        vehicle_from_world = _vehicle_from_world_2d(frame, ego_rows)  # [E, 2, 3]
-        texture_from_vehicle = _texture_from_vehicle(self.world.raster_from_world, frame, ego_rows)
+        if poses is None:
+            poses = np.stack([frame.x_m[ego_rows], frame.y_m[ego_rows], frame.heading_rad[ego_rows]], 1)
+        poses = np.asarray(poses, dtype=np.float64).reshape(len(ego_rows), 3)
+        vehicle_from_world = _vehicle_from_world_2d(poses)  # [E, 2, 3]
+        texture_from_vehicle = _texture_from_vehicle(self.world.raster_from_world, poses)
         for e in range(len(ego_rows)):
             self._draw_ground(out[e], texture_from_vehicle[e])
-        self._draw_objects(out, frame, ego_rows, vehicle_from_world)
+        self._draw_objects(out, frame, ego_rows, poses[:, :2], vehicle_from_world)
         return out
 
     def _draw_ground(self, images: np.ndarray, texture_from_vehicle: np.ndarray) -> None:
@@ -288,7 +299,7 @@ class Renderer:
                 dst=images[c, row:end], borderMode=cv2.BORDER_CONSTANT, borderValue=SKY_RGB,
             )
 
-    def _draw_objects(self, out, frame, ego_rows, vehicle_from_world) -> None:
+    def _draw_objects(self, out, frame, ego_rows, ego_xy, vehicle_from_world) -> None:
         cfg, cam = self.config, self.config.camera
         n_vehicles = len(frame)
         vehicle_corners = box_corners(
@@ -296,13 +307,11 @@ class Renderer:
         )
         corners = np.concatenate([vehicle_corners, self._static_corners])
         centres = np.concatenate([np.stack([frame.x_m, frame.y_m], 1), self._static_centres])
-        rgb = [vehicle_rgb(v) for v in frame.ids.tolist()]
         head_of_box = np.concatenate([np.full(n_vehicles, -1), self._static_head])
 
         # (ego, box) pairs some camera may see, the ego's own box excluded: a cheap
         # 2-D test first, so that the 3-D projection runs on few pairs.
         radii = np.concatenate([0.5 * np.hypot(frame.length_m, frame.width_m), self._static_radius])
-        ego_xy = np.stack([frame.x_m[ego_rows], frame.y_m[ego_rows]], 1)
         dist = np.hypot(centres[None, :, 0] - ego_xy[:, None, 0], centres[None, :, 1] - ego_xy[:, None, 1])
         near = dist <= cfg.max_object_distance_m + radii
         near[np.arange(len(ego_rows)), ego_rows] = False
@@ -356,7 +365,7 @@ class Renderer:
         p_idx, c_idx, f_idx = p_idx[order], c_idx[order], f_idx[order]
         polygons = uv_fixed[p_idx, c_idx, f_idx]  # [N, 4, 2], contiguous
         box_idx = pair_box[p_idx].tolist()
-        face_rgb = self._face_rgb(frame, rgb)
+        face_rgb = self._face_rgb(frame)
         images = [[out[e, c] for c in range(len(CAMERA_NAMES))] for e in range(len(ego_rows))]
         lamps = lit_lamps(self.world, frame.tls_states) if len(self.world.heads) else []
         head_of = head_of_box.tolist()
@@ -372,12 +381,17 @@ class Renderer:
                 camera_from_world = np.hstack([cfw_rot[e, c], cfw_trans[e, c][:, None]])
                 self._draw_lamps(image, camera_from_world, head_of[b], lamps[head_of[b]])
 
-    def _face_rgb(self, frame: Frame, rgb: list) -> list:
-        """Shaded colour of every face of every box: [box][face] -> (r, g, b)."""
-        vehicle_faces = [
-            [tuple(int(v * shade) for v in colour) for shade in FACE_SHADE] for colour in rgb[: len(frame)]
-        ]
-        return vehicle_faces + self._static_face_rgb
+    def _face_rgb(self, frame: Frame) -> list:
+        """Shaded colour of every face of every box: [box][face] -> (r, g, b).
+
+        A vehicle's colours follow from its id alone, so they are worked out once per id.
+        """
+        known = self._vehicle_face_rgb
+        ids = frame.ids.tolist()
+        for vid in ids:
+            if vid not in known:
+                known[vid] = [tuple(int(v * shade) for v in vehicle_rgb(vid)) for shade in FACE_SHADE]
+        return [known[vid] for vid in ids] + self._static_face_rgb
 
     def _fill_clipped(self, image: np.ndarray, polygon_cam: np.ndarray, rgb) -> None:
         clipped = _clip_near(polygon_cam, self.config.camera.near_m)
@@ -407,11 +421,11 @@ class Renderer:
             )
 
 
-def _vehicle_from_world_2d(frame: Frame, rows: np.ndarray) -> np.ndarray:
-    """[E, 2, 3] affine maps world (x, y) -> vehicle (forward, left) for the given rows."""
-    c, s = np.cos(frame.heading_rad[rows]), np.sin(frame.heading_rad[rows])
-    x, y = frame.x_m[rows], frame.y_m[rows]
-    out = np.empty((len(rows), 2, 3))
+def _vehicle_from_world_2d(poses: np.ndarray) -> np.ndarray:
+    """[E, 2, 3] affine maps world (x, y) -> vehicle (forward, left) for poses [E, 3] (x, y, heading)."""
+    x, y, heading = (np.ascontiguousarray(column) for column in poses.T)
+    c, s = np.cos(heading), np.sin(heading)
+    out = np.empty((len(poses), 2, 3))
     out[:, 0] = np.stack([c, s, -(c * x + s * y)], 1)
     out[:, 1] = np.stack([-s, c, s * x - c * y], 1)
     return out
@@ -443,12 +457,13 @@ def _row_levels(ground: np.ndarray, hits: np.ndarray, config) -> np.ndarray:
     return np.where(covered.any(axis=1), covered.argmax(axis=1), config.levels - 1)
 
 
-def _texture_from_vehicle(raster_from_world: np.ndarray, frame: Frame, rows: np.ndarray) -> np.ndarray:
-    """[E, 2, 3] affine maps vehicle (forward, left) metres -> world texture pixels."""
-    c, s = np.cos(frame.heading_rad[rows]), np.sin(frame.heading_rad[rows])
-    world_from_vehicle = np.empty((len(rows), 3, 3))
-    world_from_vehicle[:, 0] = np.stack([c, -s, frame.x_m[rows]], 1)
-    world_from_vehicle[:, 1] = np.stack([s, c, frame.y_m[rows]], 1)
+def _texture_from_vehicle(raster_from_world: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """[E, 2, 3] affine maps vehicle (forward, left) metres -> world texture pixels, for poses [E, 3]."""
+    x, y, heading = (np.ascontiguousarray(column) for column in poses.T)
+    c, s = np.cos(heading), np.sin(heading)
+    world_from_vehicle = np.empty((len(poses), 3, 3))
+    world_from_vehicle[:, 0] = np.stack([c, -s, x], 1)
+    world_from_vehicle[:, 1] = np.stack([s, c, y], 1)
     world_from_vehicle[:, 2] = (0.0, 0.0, 1.0)
     return raster_from_world @ world_from_vehicle
 

@@ -70,7 +70,7 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     assert full.png_bytes_per_sample > 0
 
     def stop_after_first_shard(update):
-        if update.stage == "render" and update.done >= 4:
+        if update.stage == "write" and update.done >= 4:
             raise Stop
 
     with pytest.raises(Stop):
@@ -186,3 +186,50 @@ def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
     assert LEFT not in labels.command
     again = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1))
     assert np.array_equal(again.perturbation, labels.perturbation)
+
+
+def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
+    """render_samples draws a frame's samples in one call; each image must equal that of the sample alone,
+    drawn from a frame in which only its own vehicle's pose is perturbed."""
+    import dataclasses
+
+    from crchfl_sumo.data.generation import RenderJob, record_run, render_samples
+    from crchfl_sumo.data.recovery import camera_pose
+    from crchfl_sumo.vision.raster import Renderer, neighbourhood_m
+    from crchfl_sumo.vision.world import WorldConfig, build_world
+
+    scenario = load_scenario("town01")
+    raster = RasterConfig(camera=CameraConfig(height_px=32, width_px=64))
+    needed = {"t01_data_0": 12, "t01_data_1": 12, "t01_test_0": 12}
+    frames, sampled = record_run(scenario, 5, needed, 1.0, around_m=neighbourhood_m(raster))
+    rng = np.random.default_rng(0)
+    jobs = []
+    for vehicle, rows in sampled.items():
+        perturbation = rng.uniform([-1.0, -15.0], [1.0, 15.0], (len(rows), 2)).astype(np.float32)
+        perturbation[::3] = 0.0  # every third sample on the track
+        jobs.append(RenderJob(vehicle, rows, perturbation))
+    shared = {int(i) for i in sampled["t01_data_0"]} & {int(i) for i in sampled["t01_data_1"]}
+    assert len(shared) >= 5  # the vehicles are sampled at the same frames: the calls hold several samples
+
+    renderer = Renderer(build_world(scenario.net_path, WorldConfig()), raster)
+    together = render_samples(renderer, frames, jobs)
+    one_by_one = render_samples(renderer, frames, jobs, vehicles_per_call=1)
+    for job, images, alone in zip(jobs, together, one_by_one):
+        np.testing.assert_array_equal(images, alone)
+        for k, i in enumerate(job.frame_rows[:6]):
+            frame = frames[i]
+            row = frame.index_of(job.vehicle)
+            x, y, heading = (getattr(frame, c).copy() for c in ("x_m", "y_m", "heading_rad"))
+            x[row], y[row], heading[row] = camera_pose(frame, job.vehicle, *job.perturbation[k])
+            moved = dataclasses.replace(frame, x_m=x, y_m=y, heading_rad=heading)
+            np.testing.assert_array_equal(images[k], renderer.render(moved, [job.vehicle])[0])
+
+
+def test_render_groups_hold_the_shards_whose_images_fit_the_budget():
+    from crchfl_sumo.data.dataset import PlannedShard
+    from crchfl_sumo.data.generation import render_groups
+
+    shards = [PlannedShard(f"s{i}.h5", "town01", "train", i, n) for i, n in enumerate([3, 4, 2, 9, 1])]
+    # 10 bytes a sample, 60 bytes a group: 3+4 = 7 samples would be 70 bytes.
+    groups = [[s.samples for s in group] for group in render_groups(shards, (2, 5), budget_bytes=60)]
+    assert groups == [[3], [4, 2], [9], [1]]  # a shard over the budget still forms its own group

@@ -7,7 +7,7 @@ from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import DatasetConfig
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_actions
-from crchfl_sumo.data.recovery import draw_perturbations, perturbed_frame, perturbed_pose, recovery_steer
+from crchfl_sumo.data.recovery import camera_pose, draw_perturbations, perturbed_pose, recovery_steer
 from crchfl_sumo.sumo.frame import make_frame
 
 WHEELBASE_M = 2.9
@@ -72,13 +72,18 @@ def test_perturbed_pose_moves_left_of_the_heading_and_turns_ccw():
     assert (x[0], y[0], h[0]) == pytest.approx((9.0, 5.0, math.pi / 2 + math.radians(30)))
 
 
-def test_perturbed_frame_changes_only_the_vehicle():
+def test_camera_pose_is_the_vehicles_pose_perturbed():
     frame = make_frame(ids=["a", "b"], x_m=[0.0, 10.0], y_m=[0.0, 0.0], heading_rad=[0.0, 0.0])
-    moved = perturbed_frame(frame, "b", -0.5, -5.0)
-    assert moved.x_m.tolist() == [0.0, 10.0] and moved.y_m.tolist() == [0.0, -0.5]
-    assert moved.heading_rad[1] == pytest.approx(math.radians(-5.0)) and moved.heading_rad[0] == 0.0
-    assert frame.y_m[1] == 0.0  # the original is untouched
-    assert perturbed_frame(frame, "b", 0.0, 0.0) is frame
+    x, y, heading = camera_pose(frame, "b", -0.5, -5.0)
+    # Heading east: 0.5 m to the right is y = -0.5; turned 5 degrees clockwise.
+    assert (x, y) == (10.0, -0.5) and heading == pytest.approx(math.radians(-5.0))
+    assert camera_pose(frame, "a", 0.0, 0.0) == (0.0, 0.0, 0.0)
+    assert frame.y_m[1] == 0.0  # the frame is untouched
+
+
+def test_camera_pose_keeps_the_heading_within_pi():
+    frame = make_frame(ids=["a"], x_m=[0.0], y_m=[0.0], heading_rad=[math.pi - 0.01])
+    assert camera_pose(frame, "a", 0.0, 10.0)[2] == pytest.approx(math.pi - 0.01 + math.radians(10) - 2 * math.pi)
 
 
 def test_draw_perturbations_picks_the_share_of_eligible_samples_within_bounds():
