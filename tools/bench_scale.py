@@ -3,6 +3,12 @@
     nice -n 10 python tools/bench_scale.py [--samples 8] [--test-samples 50] [--scheme hfl]
                                            [--rounds 3] [--cloud-interval 2] [--out DIR] [--profile N]
                                            [--download-handover relay|restart|drop]
+                                           [--scenario scale200|DIR] [--backend local|ray]
+
+A larger federation: ``python tools/build_nets.py --scale-clients 1000 --out DIR``
+builds DIR/scale1000 (20 copies of Town01, 1,000 data vehicles, 40 edge
+sites); pass ``--scenario DIR/scale1000``. ``--backend ray`` trains the
+clients as tasks of a local Ray runtime (RayTrainer).
 
 1. Data: generates a data set for all 200 data vehicles of scale200 (the
    clients): --samples training samples each, --test-samples per test
@@ -20,7 +26,10 @@
 3. Prints per-client figures (time per client per round, bytes per client),
    rounds reached, handovers, stragglers, the wall time of every step (a
    cost that grows with the round shows there) and peak memory
-   (ru_maxrss of each process).
+   (ru_maxrss of each process), and the machine's memory in use above its
+   level at the start, sampled every 0.5 s (MemTotal - MemAvailable: every
+   process, Ray's workers and object store included; other work on the
+   machine moves it too).
 
 --profile N also prints the N functions with the most own time in the
 federation (cProfile; it slows the run down).
@@ -39,12 +48,46 @@ import multiprocessing
 import pstats
 import resource
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import torch
 
-SCENARIO = "scale200"
+SCENARIO = "scale200"  # the default; --scenario names another
+
+
+class MachineMemory:
+    """Peak memory in use on the machine (MemTotal - MemAvailable) above the level at the start, sampled."""
+
+    def __init__(self, period_s: float = 0.5) -> None:
+        self.period_s = period_s
+        self.start_mib = self.peak_mib = self.used_mib()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    @staticmethod
+    def used_mib() -> float:
+        fields = dict(line.split(":", 1) for line in Path("/proc/meminfo").read_text().splitlines())
+        kib = lambda name: float(fields[name].split()[0])  # noqa: E731
+        return (kib("MemTotal") - kib("MemAvailable")) / 1024
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.peak_mib = max(self.peak_mib, self.used_mib())
+
+    def __enter__(self) -> "MachineMemory":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak_mib = max(self.peak_mib, self.used_mib())
+
+    @property
+    def above_start_mib(self) -> float:
+        return self.peak_mib - self.start_mib
 
 
 def peak_rss_mib() -> float:
@@ -55,11 +98,11 @@ def peak_rss_mib() -> float:
 # ------------------------------------------------------------------ data (child process)
 
 
-def dataset_sizes(samples: int, test_samples: int):
+def dataset_sizes(scenario: str, samples: int, test_samples: int):
     from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
     from crchfl_sumo.sumo.scenario import load_scenario
 
-    towns = load_scenario(SCENARIO).towns
+    towns = load_scenario(scenario).towns
     return DatasetConfig(
         towns=tuple(
             TownSplit(t.name, (samples,) * len(t.data_vehicles), (test_samples,) * len(t.test_vehicles)) for t in towns
@@ -67,7 +110,7 @@ def dataset_sizes(samples: int, test_samples: int):
     )
 
 
-def generate(data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
+def generate(scenario: str, data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
     """Child process: generate the data set; its wall time per stage and peak memory."""
     torch.set_num_threads(1)
     from crchfl_sumo.data.generation import generate_dataset
@@ -76,7 +119,8 @@ def generate(data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
     stages: dict[str, float] = {}
     start = time.perf_counter()
     manifest = generate_dataset(
-        load_scenario(SCENARIO), data_dir, seed=seed, sizes=dataset_sizes(samples, test_samples), timings_s=stages
+        load_scenario(scenario), data_dir, seed=seed, sizes=dataset_sizes(scenario, samples, test_samples),
+        timings_s=stages,
     )
     return {
         "total_s": time.perf_counter() - start,
@@ -168,7 +212,7 @@ def run_config(args: argparse.Namespace, data_dir: Path):
     if args.scheme == "crchfl":  # fixed hyper-parameters: the optimizer would spend the whole 1 TB budget
         federation["pretrain_batch"] = args.pretrain_batch
     mapping = {
-        "scenario": SCENARIO,
+        "scenario": args.scenario,
         "dataset": str(data_dir),
         "federation": federation,
         "ledger": {"rule": "physical", "model_size": "real", "sample_size": "measured", "budget_gb": 1024.0},
@@ -191,9 +235,16 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     with watch.part("load data set"):
         inputs = run_data.read_inputs(config)
     rss_inputs = peak_rss_mib()
-    trainer = TimedTrainer(
-        TorchTrainer(config.model, config.train, inputs.test, config.federation.seed), watch
-    )
+    stack = contextlib.ExitStack()
+    if args.backend == "ray":
+        from crchfl_sumo.core.backend import BackendConfig, Executor
+        from crchfl_sumo.learning.trainers import RayTrainer
+
+        executor = stack.enter_context(Executor(BackendConfig(kind="ray")))
+        inner = RayTrainer(config.model, config.train, inputs.test, config.federation.seed, executor)
+    else:
+        inner = TorchTrainer(config.model, config.train, inputs.test, config.federation.seed)
+    trainer = TimedTrainer(inner, watch)
     clocks = []
 
     def clock_factory():
@@ -210,7 +261,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         step_rss.append(peak_rss_mib())
 
     profiler = cProfile.Profile() if args.profile else None
-    with contextlib.ExitStack() as stack:
+    with stack:
         stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
         stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
         stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
@@ -288,7 +339,7 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     config, inputs, summary, watch = fed["config"], fed["inputs"], fed["summary"], fed["watch"]
     clients = len(inputs.vehicles)
     train_samples = sum(len(inputs.samples[v]) for v in inputs.vehicles)
-    print(f"scenario {SCENARIO}: {clients} clients over {len(inputs.edges)} edge sites; torch threads "
+    print(f"scenario {args.scenario}, backend {args.backend}: {clients} clients over {len(inputs.edges)} edge sites; torch threads "
           f"{torch.get_num_threads()}")
 
     print(f"\n1. data set: {data['samples']} samples ({data['train_shards']} train shards x {args.samples}, "
@@ -308,14 +359,14 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
           f"{len(inputs.test)} test samples")
     print(f"   reached {rounds} cloud rounds, {aggregations} edge aggregations, {len(fed['step_s'])} steps "
           f"(stop: {summary['stop_reason']}), {summary['sim_time_s']:.1f} simulated s "
-          f"({fed['clock_steps']} SUMO steps of 244 vehicles)")
+          f"({fed['clock_steps']} SUMO steps)")
     print(f"   wall {total:.1f} s (data set load {watch.seconds['load data set']:.1f} s before it):")
     s = watch.seconds
     clock_rest = s["clock (all)"] - s["clock: SUMO step"] - s["clock: link models"]
     parts = [
         ("SUMO start", s["SUMO start"], "libsumo load of the network and routes"),
         ("clock: SUMO step", s["clock: SUMO step"], f"{watch.calls['clock: SUMO step']} steps -> Frames"),
-        ("clock: link models", s["clock: link models"], "association, handover, rates of 200 clients"),
+        ("clock: link models", s["clock: link models"], f"association, handover, rates of {clients} clients"),
         ("clock: series", clock_rest, f"{watch.calls['clock (all)']} link-series requests, per-vehicle appends"),
         ("local training", s["local training"], f"{watch.calls['local training']} calls x {clients} clients"
          + (" (and stage I's pretraining)" if hyper["pretrain_batch"] else "")),
@@ -370,6 +421,9 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     print("\n4. memory")
     print(f"   peak of the federation process: {peak_rss_mib():.0f} MiB (after loading the data set: "
           f"{fed['rss_inputs_mib']:.0f} MiB); data generation (child): {data['peak_rss_mib']:.0f} MiB")
+    print(f"   the machine during the federation: peak {fed['machine'].above_start_mib:.0f} MiB in use above the "
+          f"{fed['machine'].start_mib:.0f} MiB at its start (every process; {clients} clients: "
+          f"{fed['machine'].above_start_mib / clients:.1f} MiB a client)")
     images = sum(x.images.nelement() * x.images.element_size() for x in inputs.samples.values())
     print(f"   training images in memory {images / mib:.1f} MiB; checkpoint.pt {checkpoint.stat().st_size / mib:.1f} "
           f"MiB; ledger.jsonl {(out_dir / 'ledger.jsonl').stat().st_size / 1024:.0f} KiB")
@@ -393,14 +447,18 @@ def main() -> None:
                         help="what a download does when its vehicle changes edge (default relay)")
     parser.add_argument("--out", type=Path, help="keep the data set and the run here (default: a temp folder)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
+    parser.add_argument("--scenario", default=SCENARIO, help="a built-in name or a scenario folder (default scale200)")
+    parser.add_argument("--backend", choices=("local", "ray"), default="local", help="where the clients train")
     args = parser.parse_args()
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
         data_dir, out_dir = root / "data", root / "run"
         with multiprocessing.get_context("spawn").Pool(1) as pool:
-            data = pool.apply(generate, (str(data_dir), args.samples, args.test_samples, args.seed))
-        fed = federate(args, data_dir, out_dir)
+            data = pool.apply(generate, (args.scenario, str(data_dir), args.samples, args.test_samples, args.seed))
+        with MachineMemory() as machine:
+            fed = federate(args, data_dir, out_dir)
+        fed["machine"] = machine
         report(args, data, fed, out_dir)
 
 

@@ -2,6 +2,7 @@
 
     python tools/build_nets.py            # rewrites scenarios/*
     python tools/build_nets.py --out DIR  # writes DIR/<scenario>/ instead
+    python tools/build_nets.py --scale-clients 1000 --out DIR  # only DIR/scale1000/ (20 copies of Town01)
 
 Reads scenarios/town01/town01.{nod,edg}.xml,
 town02/town02.{nod,edg}.xml and street.typ.xml, and writes, for each of the
@@ -510,11 +511,10 @@ def scenario_toml(description: str, name: str, net: sumolib.net.Net, entries: li
 # copies of Town01 (2 x 2, 205.6 m apart as paper's towns, no
 # roads between them), each with 50 data vehicles, its test vehicle and 10
 # background vehicles: about 83 m of lane per vehicle.
-SCALE_NAME = "scale200"
-# (town name, id prefix, x offset, y offset [m])
-SCALE_COPIES = (("town01a", "t1a", 0.0, 0.0), ("town01b", "t1b", 600.0, 0.0),
-                ("town01c", "t1c", 0.0, 534.2), ("town01d", "t1d", 600.0, 534.2))
+SCALE_CLIENTS = 200  # the built-in scale scenario; --scale-clients builds a larger one elsewhere
+SCALE_DESCRIPTION = "Four copies of Town01, 200 data vehicles (federated clients), eight edge sites"
 SCALE_DATA_PER_TOWN = 50
+SCALE_PITCH_M = (600.0, 534.2)  # between neighbouring copies, x and y
 SCALE_BACKGROUND_PER_TOWN = 10  # the first 10 of Town01's background trips
 # Two edge sites per town, at the centres of its west and east halves ((name
 # suffix, x, y) as fractions of the town's box): the clients spread over 8
@@ -525,12 +525,25 @@ START_MIN_POS_M = 6.0  # and at least one car length from the edge's start
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0  # start offsets i * GOLDEN (mod 1) spread evenly along a loop
 
 
-def scale_towns() -> list[Town]:
-    """The four Town01 copies of scale200, each with its data and test vehicles."""
+def scale_copies(clients: int) -> tuple[tuple[str, str, float, float], ...]:
+    """(town name, id prefix, x offset, y offset [m]) of the Town01 copies that hold ``clients`` data
+    vehicles, SCALE_DATA_PER_TOWN each, row by row on a near-square grid (scale200: 2 x 2)."""
+    copies = math.ceil(clients / SCALE_DATA_PER_TOWN)
+    if not 1 <= copies <= 26 or clients % SCALE_DATA_PER_TOWN:
+        raise CrchflError(f"build_nets: --scale-clients {clients}: give a multiple of {SCALE_DATA_PER_TOWN} "
+                          f"from {SCALE_DATA_PER_TOWN} to {26 * SCALE_DATA_PER_TOWN} (one to 26 copies of Town01)")
+    columns = math.ceil(math.sqrt(copies))
+    letters = "abcdefghijklmnopqrstuvwxyz"
+    return tuple((f"town01{letters[i]}", f"t1{letters[i]}", SCALE_PITCH_M[0] * (i % columns),
+                  SCALE_PITCH_M[1] * (i // columns)) for i in range(copies))
+
+
+def scale_towns(copies: tuple[tuple[str, str, float, float], ...]) -> list[Town]:
+    """The Town01 copies of a scale scenario, each with its data and test vehicles."""
     return [dataclasses.replace(TOWN01, name=name, prefix=prefix, loops={},
                                 data_vehicles=[f"{prefix}_data_{i:02d}" for i in range(SCALE_DATA_PER_TOWN)],
                                 test_vehicles=[f"{prefix}_test_0"])
-            for name, prefix, _, _ in SCALE_COPIES]
+            for name, prefix, _, _ in copies]
 
 
 def simple_cycles(plain: Plain) -> list[list[str]]:
@@ -665,7 +678,8 @@ SIGNAL_OFFSETS_S = {
 def signal_offset_s(tls_id: str) -> int:
     """Offset of a built network's signal: by its town (from the id prefix) and its junction id there."""
     prefix, sep, node = tls_id.partition("_")
-    towns = {TOWN01.prefix: TOWN01, TOWN02.prefix: TOWN02, **{p: TOWN01 for _, p, _, _ in SCALE_COPIES}}
+    copies = scale_copies(26 * SCALE_DATA_PER_TOWN)  # every prefix a scale scenario may use
+    towns = {TOWN01.prefix: TOWN01, TOWN02.prefix: TOWN02, **{p: TOWN01 for _, p, _, _ in copies}}
     if sep and prefix in towns:
         town = towns[prefix]
         offsets = {**SIGNAL_OFFSETS_S[town.name], town.link_node[0]: 0}
@@ -777,23 +791,47 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
             build_scenario(name, description, plain, lambda net, loops=loops: ego_routes_xml(net, loops), all_trips,
                            entries, prefixed=True, work=work, out_root=out_root)
 
-        towns01 = scale_towns()
-        copies = [placed(plains["town01"], t.prefix, dx, dy) for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
-        background = trips["town01"][:SCALE_BACKGROUND_PER_TOWN]
-        copy_trips = [trip for t in towns01 for trip in copied_trips(background, t.prefix)]
-        entries = [TownEntry(t, dx, dy, t.data_vehicles, t.test_vehicles)
-                   for t, (_, _, dx, dy) in zip(towns01, SCALE_COPIES)]
-        build_scenario(SCALE_NAME, "Four copies of Town01, 200 data vehicles (federated clients), eight edge sites",
-                       merged(*copies), lambda net: scale_routes_xml(net, plains["town01"], towns01), copy_trips,
-                       entries, prefixed=True, work=work, out_root=out_root,
-                       site_fractions={t.name: SCALE_SITES for t in towns01})
+        build_scale(SCALE_CLIENTS, plains["town01"], trips["town01"], work, out_root)
+
+
+def build_scale(clients: int, town01: Plain, town01_trips: list[ET.Element], work: Path, out_root: Path) -> None:
+    """The scale scenario of ``clients`` data vehicles, scale<clients>, into out_root."""
+    layout = scale_copies(clients)
+    towns01 = scale_towns(layout)
+    copies = [placed(town01, t.prefix, dx, dy) for t, (_, _, dx, dy) in zip(towns01, layout)]
+    background = town01_trips[:SCALE_BACKGROUND_PER_TOWN]
+    copy_trips = [trip for t in towns01 for trip in copied_trips(background, t.prefix)]
+    entries = [TownEntry(t, dx, dy, t.data_vehicles, t.test_vehicles) for t, (_, _, dx, dy) in zip(towns01, layout)]
+    description = SCALE_DESCRIPTION if clients == SCALE_CLIENTS else (
+        f"{len(layout)} copies of Town01, {clients} data vehicles (federated clients), {2 * len(layout)} edge sites")
+    build_scenario(f"scale{clients}", description, merged(*copies),
+                   lambda net: scale_routes_xml(net, town01, towns01), copy_trips,
+                   entries, prefixed=True, work=work, out_root=out_root,
+                   site_fractions={t.name: SCALE_SITES for t in towns01})
+
+
+def build_scale_only(clients: int, out_root: Path) -> None:
+    """Only the scale scenario of ``clients`` data vehicles (a benchmark's larger federation)."""
+    with tempfile.TemporaryDirectory(prefix="build_nets_") as tmp:
+        work = Path(tmp)
+        (work / "vtypes.add.xml").write_text(VTYPES_XML, encoding="utf-8")
+        plain = read_town(TOWN01)
+        net_file = work / "town01.plain.net.xml"
+        netconvert(*write_plain(with_corner_shapes(plain, lane_width_m()), work, "town01.plain"), net_file)
+        build_scale(clients, plain, town_trips(TOWN01, net_file, work / "vtypes.add.xml", work), work, out_root)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=SCENARIOS_DIR,
                         help="folder to write the scenario folders into (default: the repository's scenarios/)")
-    build_all(parser.parse_args(argv).out)
+    parser.add_argument("--scale-clients", type=int, metavar="N",
+                        help=f"build only scale<N>: N data vehicles in N/{SCALE_DATA_PER_TOWN} copies of Town01")
+    args = parser.parse_args(argv)
+    if args.scale_clients is not None:
+        build_scale_only(args.scale_clients, args.out)
+    else:
+        build_all(args.out)
 
 
 if __name__ == "__main__":

@@ -166,26 +166,35 @@ def load_scenario(
     edge_sites: tuple[EdgeSite, ...] | None = None,
     coverage_radius_m: float = 250.0,
 ) -> Scenario:
-    """Resolve a built-in name or a .sumocfg path into a runnable Scenario.
+    """Resolve a built-in name, a folder laid out as a built-in one, or a .sumocfg path into a runnable Scenario.
+
+    Such a folder holds a scenario.toml (its towns, named vehicles and edge
+    sites, as scenarios/*/scenario.toml) beside the SUMO files it names; its
+    name is the folder's.
 
     ``edge_sites`` (from an experiment config) override the scenario's own; a
     user's .sumocfg without sites gets them placed automatically so that every
     road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites).
     """
     text = str(name_or_path)
-    builtin = scenarios_dir() / text / "scenario.toml"
-    if builtin.is_file():
-        spec = from_mapping(ScenarioFile, read_toml(builtin), where=str(builtin))
-        cfg_path = (builtin.parent / spec.sumocfg).resolve()
-        name, description, towns = text, spec.description, spec.towns
-        sites = spec.edge_sites
+    builtin, own = scenarios_dir() / text / "scenario.toml", Path(text) / "scenario.toml"
+    if Path(text).name == text and builtin.is_file():  # a built-in name
+        described, name = builtin, text
+    elif own.is_file():  # a folder laid out as a built-in one brings its towns and sites
+        described, name = own, own.parent.resolve().name
+    else:
+        described = None
+    if described is not None:
+        spec = from_mapping(ScenarioFile, read_toml(described), where=str(described))
+        cfg_path = (described.parent / spec.sumocfg).resolve()
+        description, towns, sites = spec.description, spec.towns, spec.edge_sites
     elif text.endswith(".sumocfg") or Path(text).is_file():
         cfg_path = Path(text).resolve()
         name, description, towns, sites = cfg_path.stem.removesuffix(".sumo"), "", (), ()
     else:
         raise CrchflError(
-            f"{text}: not a built-in scenario ({', '.join(builtin_names())}) nor a .sumocfg file; "
-            "pass one of those names or a path to a SUMO configuration"
+            f"{text}: not a built-in scenario ({', '.join(builtin_names())}), a .sumocfg file nor a folder "
+            "with a scenario.toml; pass one of those names or a path to a SUMO configuration"
         )
     options, dropped = sumo_options_from_config(cfg_path)
     net_path = Path(_option_value(options, "net-file") or "")

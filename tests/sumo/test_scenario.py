@@ -114,3 +114,16 @@ def test_each_builtin_runs_and_its_data_vehicles_drive_in_their_town(name):
         if not vehicle.startswith("link_"):  # link vehicles drive between the towns
             assert town.contains(last.x_m[row], last.y_m[row])
     assert all(scenario.bounds.contains(s.x_m, s.y_m) for s in scenario.edge_sites)
+
+
+def test_a_folder_laid_out_as_a_builtin_scenario_loads_with_its_towns_and_sites(tmp_path):
+    import shutil
+
+    from crchfl_sumo.core.resources import scenarios_dir
+
+    folder = tmp_path / "my_town"
+    shutil.copytree(scenarios_dir() / "town01", folder)
+    mine, builtin = load_scenario(folder), load_scenario("town01")
+    assert mine.name == "my_town"
+    assert mine.towns == builtin.towns and mine.edge_sites == builtin.edge_sites
+    assert mine.net_path.parent == folder.resolve() and mine.net_path.name == builtin.net_path.name

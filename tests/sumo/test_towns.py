@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import re
 import sys
 import xml.etree.ElementTree as ET
 from functools import lru_cache
@@ -14,6 +15,10 @@ import pytest
 import sumolib
 
 from helpers import half_hour_statistics
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
 
 try:
     import tomllib
@@ -294,3 +299,42 @@ def test_half_an_hour_without_teleports_or_collisions(name, tmp_path):
     assert int(root.find("teleports").get("total")) == 0
     assert int(root.find("safety").get("collisions")) == 0
     assert int(vehicles["inserted"]) == int(vehicles["loaded"]) == int(vehicles["running"]) == len(routes(name))
+
+
+def _build_nets_module(monkeypatch):
+    spec = importlib.util.spec_from_file_location("build_nets", REPO / "tools" / "build_nets.py")
+    build_nets = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "build_nets", build_nets)  # dataclasses look their module up
+    spec.loader.exec_module(build_nets)
+    return build_nets
+
+
+def test_scale_copies_keep_scale200s_layout_and_refuse_counts_they_cannot_hold(monkeypatch):
+    build_nets = _build_nets_module(monkeypatch)
+    assert build_nets.scale_copies(200) == (("town01a", "t1a", 0.0, 0.0), ("town01b", "t1b", 600.0, 0.0),
+                                            ("town01c", "t1c", 0.0, 534.2), ("town01d", "t1d", 600.0, 534.2))
+    layout = build_nets.scale_copies(1000)  # 20 copies, 5 to a row
+    assert len(layout) == 20 and layout[-1] == ("town01t", "t1t", 2400.0, 3 * 534.2)
+    for bad in (0, 75, 1350):
+        with pytest.raises(CrchflError, match="--scale-clients"):
+            build_nets.scale_copies(bad)
+
+
+def test_a_larger_scale_scenario_builds_and_loads_as_a_scenario_folder(tmp_path, monkeypatch):
+    build_nets = _build_nets_module(monkeypatch)
+    build_nets.build_scale_only(300, tmp_path)
+    scenario = load_scenario(tmp_path / "scale300")
+    assert scenario.name == "scale300" and len(scenario.towns) == 6 and len(scenario.edge_sites) == 12
+    data = [v for town in scenario.towns for v in town.data_vehicles]
+    assert len(data) == len(set(data)) == 300
+    boxes = [(t.xmin_m, t.ymin_m, t.xmax_m, t.ymax_m) for t in scenario.towns]
+    for i, a in enumerate(boxes):  # the copies lie apart
+        for b in boxes[i + 1:]:
+            assert a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]
+    # Every copy's signals keep Town01's offsets.
+    net = (tmp_path / "scale300" / "scale300.net.xml").read_text()
+    offsets = dict(re.findall(r'<tlLogic id="t1[a-f]_([^"]+)" type="static" programID="0" offset="(\d+)"', net))
+    assert offsets and all(int(v) == build_nets.SIGNAL_OFFSETS_S["town01"][k] for k, v in offsets.items())
+    with Simulation(scenario, seed=1) as sim:
+        frames = [sim.step() for _ in range(8)]
+    assert set(data) <= set(frames[-1].ids.tolist())  # the named vehicles all start at once
