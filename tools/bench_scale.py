@@ -110,17 +110,18 @@ def dataset_sizes(scenario: str, samples: int, test_samples: int):
     )
 
 
-def generate(scenario: str, data_dir: str, samples: int, test_samples: int, seed: int) -> dict:
+def generate(scenario: str, data_dir: str, samples: int, test_samples: int, seed: int, metres_per_pixel: float) -> dict:
     """Child process: generate the data set; its wall time per stage and peak memory."""
     torch.set_num_threads(1)
     from crchfl_sumo.data.generation import generate_dataset
     from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.vision.world import WorldConfig
 
     stages: dict[str, float] = {}
     start = time.perf_counter()
     manifest = generate_dataset(
         load_scenario(scenario), data_dir, seed=seed, sizes=dataset_sizes(scenario, samples, test_samples),
-        timings_s=stages,
+        timings_s=stages, world=WorldConfig(metres_per_pixel=metres_per_pixel),
     )
     return {
         "total_s": time.perf_counter() - start,
@@ -449,13 +450,16 @@ def main() -> None:
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N costliest functions")
     parser.add_argument("--scenario", default=SCENARIO, help="a built-in name or a scenario folder (default scale200)")
     parser.add_argument("--backend", choices=("local", "ray"), default="local", help="where the clients train")
+    parser.add_argument("--metres-per-pixel", type=float, default=0.1,
+                        help="the ground texture's resolution (default 0.1; scale1000's 20 towns need 0.15)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
         data_dir, out_dir = root / "data", root / "run"
         with multiprocessing.get_context("spawn").Pool(1) as pool:
-            data = pool.apply(generate, (args.scenario, str(data_dir), args.samples, args.test_samples, args.seed))
+            data = pool.apply(generate, (args.scenario, str(data_dir), args.samples, args.test_samples, args.seed,
+                                            args.metres_per_pixel))
         with MachineMemory() as machine:
             fed = federate(args, data_dir, out_dir)
         fed["machine"] = machine
