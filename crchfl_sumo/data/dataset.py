@@ -216,14 +216,18 @@ class ShardDataset(torch.utils.data.Dataset):
         shard = int(np.searchsorted(self._ends, index, side="right"))
         row = index - (int(self._ends[shard - 1]) if shard else 0)
         f = self._file(shard)
-        return (
-            torch.from_numpy(f["images"][row]),
-            torch.from_numpy(f["actions"][row]),
-            torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
-            torch.tensor(int(f["command"][row]), dtype=torch.int64),
-            torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
-            torch.tensor(float(f["target_speed_mps"][row]), dtype=torch.float32),
-        )
+        try:
+            return (
+                torch.from_numpy(f["images"][row]),
+                torch.from_numpy(f["actions"][row]),
+                torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
+                torch.tensor(int(f["command"][row]), dtype=torch.int64),
+                torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
+                torch.tensor(float(f["target_speed_mps"][row]), dtype=torch.float32),
+            )
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:  # a damaged chunk (checks off, or changed since)
+            path = self.root / self.shards[shard].file
+            raise CrchflError(f"{path}: unreadable sample {row} ({' '.join(str(exc).split())}); regenerate the data set") from None
 
     def _file(self, shard: int) -> h5py.File:
         if self._pid != os.getpid():  # forked into a worker: handles are not shareable

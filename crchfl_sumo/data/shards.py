@@ -239,6 +239,8 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
             f"{where}: image size {manifest.image_height} x {manifest.image_width} lies outside 8 x 8 .. "
             f"{MAX_HEIGHT_PX} x {MAX_WIDTH_PX} pixels; {fix}"
         )
+    if not 0 < manifest.sample_period_s < float("inf"):
+        raise CrchflError(f"{where}: sample_period_s is {manifest.sample_period_s}, not a time > 0; {fix}")
     for key in ("camera", "labels"):
         if not isinstance(getattr(manifest, key), dict):
             raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
@@ -252,9 +254,13 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
             )
         if entry.split not in SPLITS:
             raise CrchflError(f"{where}: shard {entry.file} has split {entry.split!r}, not one of {', '.join(SPLITS)}")
-        if entry.samples < 0 or entry.size_bytes < 0 or not SHA256_HEX.fullmatch(entry.sha256):
+        if (
+            entry.samples < 0 or entry.size_bytes < 0 or not SHA256_HEX.fullmatch(entry.sha256)
+            or not 0 <= entry.png_bytes_per_sample < float("inf")
+        ):
             raise CrchflError(
-                f"{where}: shard {entry.file} needs samples >= 0, size_bytes >= 0 and a sha256 of 64 hex digits; {fix}"
+                f"{where}: shard {entry.file} needs samples >= 0, size_bytes >= 0, png_bytes_per_sample >= 0 "
+                f"and a sha256 of 64 hex digits; {fix}"
             )
 
 

@@ -175,6 +175,8 @@ def test_an_unreadable_manifest_is_refused(tmp_path, text, message):
         ({"camera": [1, 2]}, "camera must be a table"),
         ({"shards": "a.h5"}, "shards: expected a list"),
         ({"shards": [{"file": "a.h5"}]}, "shards"),
+        ({"sample_period_s": float("nan")}, "sample_period_s is nan, not a time > 0"),
+        ({"sample_period_s": 0}, "sample_period_s is 0.0, not a time > 0"),
     ],
 )
 def test_manifest_values_are_checked(data, change, message):
@@ -190,6 +192,7 @@ def test_manifest_values_are_checked(data, change, message):
     [
         ({"samples": -1}, "needs samples >= 0"),
         ({"sha256": "abc"}, "64 hex digits"),
+        ({"png_bytes_per_sample": float("nan")}, "png_bytes_per_sample >= 0"),
         ({"split": "val"}, "split 'val'"),
         ({"file": "a/b.h5"}, "not a plain"),
         ({"file": ".hidden.h5"}, "not a plain"),
@@ -217,3 +220,23 @@ def test_read_shard_without_a_manifest_takes_any_image_size_within_bounds(data):
     assert read_shard(data, entry).images.shape == (3, 4, H, W, 3)
     with pytest.raises(CrchflError, match=r"images is uint8 \[3, 4, 48, 64, 3\], the format has uint8 \[3, 4, 12, 16, 3\]"):
         read_shard(data, entry, image_hw=(12, 16))
+
+
+def test_a_damaged_image_chunk_read_by_the_torch_dataset_is_refused(tmp_path):
+    rng = np.random.default_rng(0)
+    header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=H, image_width=W, compression="lzf")
+    data = dataclasses.replace(shard_data(3), images=rng.integers(0, 4, (3, 4, H, W, 3), dtype=np.uint8) * 60)
+    DatasetWriter(tmp_path, header).add("a.h5", data, vehicle="v0", town="town01", edge="e0", split="train")
+    with h5py.File(tmp_path / "a.h5", "r") as f:  # where sample 1's compressed chunk lies in the file
+        offset, size = f["images"].id.get_chunk_info(1).byte_offset, f["images"].id.get_chunk_info(1).size
+    raw = bytearray((tmp_path / "a.h5").read_bytes())
+    raw[offset : offset + size] = b"\xff" * size
+    (tmp_path / "a.h5").write_bytes(bytes(raw))
+    reseal(tmp_path)  # the labels are intact: the dataset opens
+    dataset = ShardDataset(tmp_path)
+    assert dataset[0][0].shape == (4, H, W, 3)
+    with pytest.raises(CrchflError, match=r"a\.h5: unreadable sample 1 .*regenerate the data set"):
+        dataset[1]
+    dataset.close()
+    with pytest.raises(CrchflError, match=r"a\.h5: unreadable shard"):
+        load_samples(tmp_path)
