@@ -530,7 +530,7 @@ class DatasetWriter:
 
     A folder that already holds a manifest with the same header (scenario,
     seed, cameras, labels, image size, compression) is resumed: shards whose
-    file still matches its checksum count as done and are kept; the rest are
+    file still matches its checksum and the shard schema count as done and are kept; the rest are
     dropped from the manifest and written again. A different header is an
     error, so two data sets never mix in one folder.
     """
@@ -551,7 +551,7 @@ class DatasetWriter:
                 )
             for entry in old.shards:
                 try:
-                    verify_shard(self.root, entry)
+                    read_shard(self.root, entry, images=False, image_hw=(header.image_height, header.image_width))
                     kept.append(entry)
                 except CrchflError as exc:
                     log.warning("will regenerate: %s", exc)

@@ -70,7 +70,7 @@ def test_a_run_killed_anywhere_and_resumed_ends_with_the_uninterrupted_files(tmp
         if kills < 4:
             time.sleep(rng.uniform(0.0, window_s))
             process.send_signal(signal.SIGKILL)
-        code = process.wait()
+        code = process.wait(timeout=300)  # a hang fails the test instead of stalling it
         stderr = process.stderr.read()
         process.stdout.close()
         process.stderr.close()
