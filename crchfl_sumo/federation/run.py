@@ -331,16 +331,20 @@ def _read_checkpoint(path: Path) -> dict:
             f"{path}: not a crchfl-sumo federation checkpoint of this version ({CHECKPOINT_FORMAT}); "
             "rerun into another --out"
         )
-    marks = payload.get("logs")
     resolved = payload.get("resolved")
-    if not isinstance(resolved, dict) or not isinstance(resolved.get("config", {}), dict) or not isinstance(marks, dict) or set(marks) != set(LOGS) or not all(
-        isinstance(m, dict) and set(m) == {"offset", "lines"}
-        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in m.values())
-        for m in marks.values()
-    ):
+    if not isinstance(resolved, dict) or not isinstance(resolved.get("config", {}), dict) or not _is_marks(payload.get("logs")):
         raise CrchflError(f"{path}: malformed federation checkpoint (resolved settings or log marks); delete the folder")
     check_payload(payload.get("state"), str(path))
     return payload
+
+
+def _is_marks(marks: Any) -> bool:
+    """Marks of the three logs: each a byte offset and a line count >= 0."""
+    return isinstance(marks, dict) and set(marks) == set(LOGS) and all(
+        isinstance(m, dict) and set(m) == {"offset", "lines"}
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in m.values())
+        for m in marks.values()
+    )
 
 
 def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Marks]:
