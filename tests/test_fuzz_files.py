@@ -260,7 +260,14 @@ def manifest_mutation(root: Path, rng: np.random.Generator, outside: Path) -> st
     path = root / MANIFEST_NAME
     text = path.read_text()
     raw = json.loads(text)
-    kind = int(rng.integers(0, 9))
+    kind = int(rng.integers(0, 10))
+    if kind == 9:  # a value nested in the header's tables
+        table = ["camera", "labels"][int(rng.integers(0, 2))]
+        key = ["expert", "raster", "world", "height_px", "steer_class_values"][int(rng.integers(0, 5))]
+        value = ODD_VALUES[int(rng.integers(0, len(ODD_VALUES)))]
+        raw[table][key] = {"speed_horizon_s": value, "stop_speed_mps": value} if rng.random() < 0.5 else value
+        path.write_text(json.dumps(raw))
+        return f"{table}.{key} = {raw[table][key]!r}"
     if kind == 0:
         data = bytearray(text.encode())
         at = int(rng.integers(0, len(data)))

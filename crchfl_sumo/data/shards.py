@@ -244,6 +244,10 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
     for key in ("camera", "labels"):
         if not isinstance(getattr(manifest, key), dict):
             raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
+    try:  # the expert's settings the labels were made with (target-speed horizon, stop speed)
+        from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    except CrchflError as exc:
+        raise CrchflError(f"{exc}; {fix}" if where in str(exc) else f"{where}: labels.{exc}; {fix}") from None
     files = [entry.file for entry in manifest.shards]
     if len(set(files)) != len(files):
         raise CrchflError(f"{where}: a shard file is listed twice; {fix}")

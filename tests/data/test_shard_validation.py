@@ -177,6 +177,9 @@ def test_an_unreadable_manifest_is_refused(tmp_path, text, message):
         ({"shards": [{"file": "a.h5"}]}, "shards"),
         ({"sample_period_s": float("nan")}, "sample_period_s is nan, not a time > 0"),
         ({"sample_period_s": 0}, "sample_period_s is 0.0, not a time > 0"),
+        ({"labels": {"expert": 5}}, r"labels\.expert: expected a table"),
+        ({"labels": {"expert": {"speed_horizon_s": "1"}}}, r"labels\.expert\.speed_horizon_s: expected a number"),
+        ({"labels": {"expert": {"stop_speed_mps": -1}}}, r"manifest\.json: labels\.expert\.stop_speed_mps must be > 0"),
     ],
 )
 def test_manifest_values_are_checked(data, change, message):
