@@ -346,9 +346,14 @@ class RunsCode:
 
 
 def model_payload_mutation(payload: dict, rng: np.random.Generator, marker: Path) -> str:
-    kind = int(rng.integers(0, 8))
+    kind = int(rng.integers(0, 9))
     weights = payload["state_dict"]
     name = sorted(weights)[int(rng.integers(0, len(weights)))]
+    if kind == 8:  # the data set's camera block a drive renders with
+        value = ODD_VALUES[int(rng.integers(0, len(ODD_VALUES)))]
+        payload["extra"]["camera"] = [value, {"raster": value}, {"raster": {"camera": {"height_px": value}}},
+                                      {"world": {"x": value}}][int(rng.integers(0, 4))]
+        return f"extra.camera = {payload['extra']['camera']!r}"
     if kind == 0:
         key = ["format", "model_config", "state_dict", "extra"][int(rng.integers(0, 4))]
         if rng.random() < 0.5:

@@ -40,6 +40,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 from crchfl_sumo.vision.camera import CAMERA_NAMES, MAX_HEIGHT_PX, MAX_WIDTH_PX
+from crchfl_sumo.vision.raster import camera_settings
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +245,8 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
     for key in ("camera", "labels"):
         if not isinstance(getattr(manifest, key), dict):
             raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
+    if manifest.camera:  # the raster and world settings the images were drawn with (a run and a drive read them)
+        camera_settings(manifest.camera, f"{where}: camera")
     try:  # the expert's settings the labels were made with (target-speed horizon, stop speed)
         from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
     except CrchflError as exc:

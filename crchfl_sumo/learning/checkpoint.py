@@ -30,6 +30,7 @@ from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.learning.model import DrivingModel, model_from_state
 from crchfl_sumo.learning.settings import ModelConfig
+from crchfl_sumo.vision.raster import camera_settings
 
 CHECKPOINT_FORMAT = "crchfl-sumo-model/2"
 LEGACY_FORMAT = "crchfl-sumo-model/1"  # before ModelConfig.arch: the paper architecture
@@ -90,6 +91,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     except CrchflError as exc:  # ModelConfig's own checks name the key, not the file
         raise CrchflError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
+    if payload["extra"].get("camera"):  # the data set's cameras, which a drive renders with
+        camera_settings(payload["extra"]["camera"], f"{path}: extra.camera")
     state_dict = payload["state_dict"]
     if not all(isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in state_dict.items()):
         raise CrchflError(f"{path}: checkpoint's state_dict holds something other than named tensors; retrain the model")

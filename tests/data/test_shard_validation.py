@@ -173,6 +173,8 @@ def test_an_unreadable_manifest_is_refused(tmp_path, text, message):
         ({"image_height": "48"}, "image_height: expected an integer"),
         ({"seed": None}, "seed: expected an integer"),
         ({"camera": [1, 2]}, "camera must be a table"),
+        ({"camera": {"raster": {"camera": {"height_px": 4096, "width_px": 8192}}}}, "4096x8192 is too large"),
+        ({"camera": {"raster": 3}}, r"manifest\.json: camera\.raster: expected a table"),
         ({"shards": "a.h5"}, "shards: expected a list"),
         ({"shards": [{"file": "a.h5"}]}, "shards"),
         ({"sample_period_s": float("nan")}, "sample_period_s is nan, not a time > 0"),

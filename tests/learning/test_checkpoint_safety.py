@@ -80,6 +80,8 @@ def test_an_empty_or_truncated_checkpoint_is_refused(tmp_path, weights, cut):
         ({"model_config": {"size": 3}}, "model_config.size: 3 is not one of 'compact', 'paper'"),
         ({"model_config": {"image_height": "48"}}, "image_height: expected an integer"),
         ({"format": "other"}, "not a crchfl-sumo checkpoint"),
+        ({"extra": {"camera": [1]}}, "extra.camera: expected a table of raster and world settings, got list"),
+        ({"extra": {"camera": {"raster": {"camera": {"height_px": 4096, "width_px": 8192}}}}}, "4096x8192 is too large"),
     ],
 )
 def test_a_payload_with_missing_or_wrong_parts_is_refused_naming_the_file(tmp_path, weights, changes, message):
