@@ -157,7 +157,13 @@ def load_samples(
         read_shard(root, entry, verify, images=False, image_hw=image_hw)
     n = sum(s.samples for s in shards)
     # Read straight into one preallocated array: no second copy of the images.
-    images = np.empty((n, len(CAMERA_NAMES), *image_hw, 3), np.uint8)
+    try:
+        images = np.empty((n, len(CAMERA_NAMES), *image_hw, 3), np.uint8)
+    except MemoryError:
+        raise CrchflError(
+            f"{root}: the selected shards' images take {n * len(CAMERA_NAMES) * image_hw[0] * image_hw[1] * 3 / 2**30:.1f} "
+            "GiB, more memory than this machine can give; select fewer vehicles or a smaller data set"
+        ) from None
     columns = {name: np.empty((n, *LABEL_SHAPES.get(name, ())), LABEL_DATASETS[name]) for name in SAMPLE_LABELS}
     start = 0
     for entry in shards:

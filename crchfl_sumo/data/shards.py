@@ -428,6 +428,8 @@ def open_shard(
             yield f, labels
     except CrchflError:
         raise
+    except MemoryError:
+        raise CrchflError(f"{path}: the shard's arrays need more memory than this machine can give; {fix}") from None
     except (OSError, KeyError, ValueError, TypeError, RuntimeError, AttributeError) as exc:
         raise CrchflError(f"{path}: unreadable shard ({_one_line(exc)}); {fix}") from None
 

@@ -245,3 +245,16 @@ def test_a_damaged_image_chunk_read_by_the_torch_dataset_is_refused(tmp_path):
     dataset.close()
     with pytest.raises(CrchflError, match=r"a\.h5: unreadable shard"):
         load_samples(tmp_path)
+
+
+def test_images_that_do_not_fit_in_memory_are_an_error_not_a_traceback(data, monkeypatch):
+    real_empty = np.empty
+
+    def no_memory(shape, dtype=float):
+        if len(shape) == 5:  # the images' array; what 10**6 gzip'd shards of zeros could declare
+            raise MemoryError
+        return real_empty(shape, dtype)
+
+    monkeypatch.setattr(np, "empty", no_memory)
+    with pytest.raises(CrchflError, match=r"data: the selected shards' images take 0\.0 GiB, more memory"):
+        load_samples(data)
