@@ -379,7 +379,11 @@ def verify_shard(root: Path, entry: ShardEntry) -> Path:
         raise CrchflError(
             f"{path}: shard is truncated or altered ({size} bytes, manifest says {entry.size_bytes}); {fix}"
         )
-    if sha256_file(path) != entry.sha256:
+    try:
+        digest = sha256_file(path)
+    except OSError as exc:
+        raise CrchflError(f"{path}: shard cannot be read ({exc.strerror}); check its permissions") from None
+    if digest != entry.sha256:
         raise CrchflError(f"{path}: shard is corrupt (sha256 differs from {MANIFEST_NAME}); {fix}")
     return path
 

@@ -258,3 +258,14 @@ def test_images_that_do_not_fit_in_memory_are_an_error_not_a_traceback(data, mon
     monkeypatch.setattr(np, "empty", no_memory)
     with pytest.raises(CrchflError, match=r"data: the selected shards' images take 0\.0 GiB, more memory"):
         load_samples(data)
+
+
+def test_an_unreadable_shard_file_is_an_error_naming_it(data, monkeypatch):
+    from crchfl_sumo.data import shards
+
+    def denied(path, block_bytes=0):  # what a file without read permission gives (these tests run as root)
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(shards, "sha256_file", denied)
+    with pytest.raises(CrchflError, match=r"a\.h5: shard cannot be read \(Permission denied\); check its permissions"):
+        load_samples(data)
