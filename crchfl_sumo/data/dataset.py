@@ -19,12 +19,19 @@ import numpy as np
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.samples import FIELDS, NUM_ACTIONS, Samples
-from crchfl_sumo.data.shards import LABEL_DATASETS, Manifest, ShardEntry, read_manifest, read_shard, verify_shard
+from crchfl_sumo.data.samples import FIELDS, Samples
+from crchfl_sumo.data.shards import (
+    LABEL_DATASETS,
+    LABEL_SHAPES,
+    Manifest,
+    ShardEntry,
+    open_shard,
+    read_manifest,
+    read_shard,
+)
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 SAMPLE_LABELS = FIELDS[1:]  # what a Samples holds besides the images, each a shard dataset of that name
-LABEL_SHAPES = {"actions": (NUM_ACTIONS,)}  # per-sample shape where not a scalar
 
 
 @dataclass(frozen=True)
@@ -145,23 +152,26 @@ def load_samples(
     """Fast path: the selected shards' samples, concatenated in manifest order, in memory."""
     root = Path(root)
     manifest, shards = _selected(root, split, vehicles)
+    image_hw = (manifest.image_height, manifest.image_width)
+    for entry in shards:  # every shard checked (sha256, schema, values) before the images' memory is taken
+        read_shard(root, entry, verify, images=False, image_hw=image_hw)
     n = sum(s.samples for s in shards)
     # Read straight into one preallocated array: no second copy of the images.
-    images = np.empty((n, len(CAMERA_NAMES), manifest.image_height, manifest.image_width, 3), np.uint8)
+    try:
+        images = np.empty((n, len(CAMERA_NAMES), *image_hw, 3), np.uint8)
+    except MemoryError:
+        raise CrchflError(
+            f"{root}: the selected shards' images take {n * len(CAMERA_NAMES) * image_hw[0] * image_hw[1] * 3 / 2**30:.1f} "
+            "GiB, more memory than this machine can give; select fewer vehicles or a smaller data set"
+        ) from None
     columns = {name: np.empty((n, *LABEL_SHAPES.get(name, ())), LABEL_DATASETS[name]) for name in SAMPLE_LABELS}
     start = 0
     for entry in shards:
-        labels = read_shard(root, entry, verify, images=False)
         end = start + entry.samples
-        for name, column in columns.items():
-            column[start:end] = getattr(labels, name)
-        if entry.samples:
-            with h5py.File(root / entry.file, "r") as f:
-                if f["images"].shape != images[start:end].shape:
-                    raise CrchflError(
-                        f"{root / entry.file}: images are {f['images'].shape[2:4]}, the manifest says "
-                        f"{images.shape[2:4]}; regenerate the data set"
-                    )
+        with open_shard(root, entry, verify=False, image_hw=image_hw) as (f, labels):
+            for name, column in columns.items():
+                column[start:end] = labels[name]
+            if entry.samples:
                 f["images"].read_direct(images, dest_sel=np.s_[start:end])
         start = end
     return Samples.from_numpy(images, **columns)
@@ -170,8 +180,9 @@ def load_samples(
 def load_vehicle_samples(root: str | Path, split: str = "train", verify: bool = True) -> dict[str, Samples]:
     """Fast path per vehicle: vehicle id -> its in-memory Samples (one vehicle, one client)."""
     root = Path(root)
-    _, shards = _selected(root, split, None)
-    return {s.vehicle: _to_samples(read_shard(root, s, verify)) for s in shards}
+    manifest, shards = _selected(root, split, None)
+    image_hw = (manifest.image_height, manifest.image_width)
+    return {s.vehicle: _to_samples(read_shard(root, s, verify, image_hw=image_hw)) for s in shards}
 
 
 def _to_samples(data) -> Samples:
@@ -182,8 +193,9 @@ class ShardDataset(torch.utils.data.Dataset):
     """Per-sample reads from the shards: item i -> (images uint8 [4,H,W,3], actions f32 [3], steer_class i64,
     command i64, speed_mps f32, target_speed_mps f32).
 
-    Checksums are verified once, when the dataset is built. Files are opened
-    lazily in each process (safe with DataLoader workers).
+    Checksums and the shard schema (shards.open_shard) are checked once, when
+    the dataset is built. Files are opened lazily in each process (safe with
+    DataLoader workers).
     """
 
     def __init__(
@@ -192,8 +204,9 @@ class ShardDataset(torch.utils.data.Dataset):
         self.root = Path(root)
         self.manifest, self.shards = _selected(self.root, split, vehicles)
         if verify:
+            image_hw = (self.manifest.image_height, self.manifest.image_width)
             for entry in self.shards:
-                verify_shard(self.root, entry)
+                read_shard(self.root, entry, images=False, image_hw=image_hw)
         self._ends = np.cumsum([s.samples for s in self.shards], dtype=np.int64)
         self._files: dict[int, h5py.File] = {}
         self._pid = os.getpid()
@@ -209,14 +222,18 @@ class ShardDataset(torch.utils.data.Dataset):
         shard = int(np.searchsorted(self._ends, index, side="right"))
         row = index - (int(self._ends[shard - 1]) if shard else 0)
         f = self._file(shard)
-        return (
-            torch.from_numpy(f["images"][row]),
-            torch.from_numpy(f["actions"][row]),
-            torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
-            torch.tensor(int(f["command"][row]), dtype=torch.int64),
-            torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
-            torch.tensor(float(f["target_speed_mps"][row]), dtype=torch.float32),
-        )
+        try:
+            return (
+                torch.from_numpy(f["images"][row]),
+                torch.from_numpy(f["actions"][row]),
+                torch.tensor(int(f["steer_class"][row]), dtype=torch.int64),
+                torch.tensor(int(f["command"][row]), dtype=torch.int64),
+                torch.tensor(float(f["speed_mps"][row]), dtype=torch.float32),
+                torch.tensor(float(f["target_speed_mps"][row]), dtype=torch.float32),
+            )
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:  # a damaged chunk (checks off, or changed since)
+            path = self.root / self.shards[shard].file
+            raise CrchflError(f"{path}: unreadable sample {row} ({' '.join(str(exc).split())}); regenerate the data set") from None
 
     def _file(self, shard: int) -> h5py.File:
         if self._pid != os.getpid():  # forked into a worker: handles are not shareable

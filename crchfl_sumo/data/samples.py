@@ -48,6 +48,8 @@ class Samples:
             raise ValueError(f"images must be [N, {NUM_CAMERAS}, H, W, 3], got {tuple(self.images.shape)}")
         if self.actions.dtype != torch.float32 or tuple(self.actions.shape) != (n, NUM_ACTIONS):
             raise ValueError(f"actions must be float32 [{n}, 3], got {self.actions.dtype} {tuple(self.actions.shape)}")
+        if n and not bool(torch.isfinite(self.actions).all()):
+            raise ValueError("actions values must be finite")
         if self.steer_class.dtype != torch.int64 or tuple(self.steer_class.shape) != (n,):
             raise ValueError(
                 f"steer_class must be int64 [{n}], got {self.steer_class.dtype} {tuple(self.steer_class.shape)}"

@@ -20,23 +20,27 @@ interrupted generation knows which shards are finished and a rerun skips them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Iterator, Literal
 
 import cv2
 import h5py
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, STEER_CLASS_VALUES
-from crchfl_sumo.vision.camera import CAMERA_NAMES
+from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.vision.camera import CAMERA_NAMES, MAX_HEIGHT_PX, MAX_WIDTH_PX
+from crchfl_sumo.vision.raster import camera_settings
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +63,11 @@ LABEL_DATASETS = {
     "y_m": np.float64,
     "heading_rad": np.float64,
 }
+LABEL_SHAPES = {"actions": (len(ACTION_NAMES),), "perturbation": (len(PERTURBATION_NAMES),)}  # per sample; others []
+# Deflate cannot shrink data by more than about 1032:1 (LZF by less): a shard file of n bytes holds at most
+# this many times n bytes of a compressed dataset. A larger declared shape is refused before any allocation.
+MAX_COMPRESSION_RATIO = 1100
+MAX_MANIFEST_BYTES = 64 * 1024 * 1024
 
 Compression = Literal["lzf", "gzip", "none"]
 
@@ -194,22 +203,80 @@ class Manifest:
 
     @staticmethod
     def from_json(text: str, where: str) -> Manifest:
+        """The manifest in ``text`` (read from ``where``), checked: types, image size, plain shard names."""
+        fix = "delete the folder and generate it again"
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise CrchflError(f"{where}: not valid JSON ({exc}); delete the folder and generate it again") from None
+            raise CrchflError(f"{where}: not valid JSON ({exc}); {fix}") from None
+        except RecursionError:
+            raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}") from None
         if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
             raise CrchflError(f"{where}: not a crchfl-sumo data set manifest")
         if data.get("version") != FORMAT_VERSION:
             raise CrchflError(
                 f"{where}: format version {data.get('version')}, this code reads {FORMAT_VERSION}; regenerate the data set"
             )
+        known = {f.name for f in dataclasses.fields(Manifest)}
         try:
-            shards = tuple(ShardEntry(**s) for s in data["shards"])
-            header = {f.name: data[f.name] for f in dataclasses.fields(Manifest) if f.name != "shards"}
-        except (KeyError, TypeError) as exc:
-            raise CrchflError(f"{where}: malformed manifest ({exc}); regenerate the data set") from None
-        return Manifest(**header, shards=shards)
+            missing = sorted(known - set(data))
+            if missing:
+                raise CrchflError(f"{where}: malformed manifest (no {', '.join(missing)}); regenerate the data set")
+            manifest = from_mapping(Manifest, {k: v for k, v in data.items() if k in known}, f"{where}: manifest")
+        except RecursionError:
+            raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}") from None
+        _check_manifest(manifest, where)
+        return manifest
+
+
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")
+
+
+def _check_manifest(manifest: Manifest, where: str) -> None:
+    """Refuse what from_mapping's types let through: a bad image size, a shard outside the folder, bad counts."""
+    fix = "regenerate the data set"
+    if not (8 <= manifest.image_height <= MAX_HEIGHT_PX and 8 <= manifest.image_width <= MAX_WIDTH_PX):
+        raise CrchflError(
+            f"{where}: image size {manifest.image_height} x {manifest.image_width} lies outside 8 x 8 .. "
+            f"{MAX_HEIGHT_PX} x {MAX_WIDTH_PX} pixels; {fix}"
+        )
+    if not 0 < manifest.sample_period_s < float("inf"):
+        raise CrchflError(f"{where}: sample_period_s is {manifest.sample_period_s}, not a time > 0; {fix}")
+    for key in ("camera", "labels"):
+        if not isinstance(getattr(manifest, key), dict):
+            raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
+    if manifest.camera:  # the raster and world settings the images were drawn with (a run and a drive read them)
+        camera_settings(manifest.camera, f"{where}: camera")
+    try:  # the expert's settings the labels were made with (target-speed horizon, stop speed)
+        from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    except CrchflError as exc:
+        raise CrchflError(f"{exc}; {fix}" if where in str(exc) else f"{where}: labels.{exc}; {fix}") from None
+    files = [entry.file for entry in manifest.shards]
+    if len(set(files)) != len(files):
+        raise CrchflError(f"{where}: a shard file is listed twice; {fix}")
+    for entry in manifest.shards:
+        if not is_plain_shard_name(entry.file):
+            raise CrchflError(
+                f"{where}: shard file {entry.file!r} is not a plain '<name>.h5' inside the data set folder; {fix}"
+            )
+        if entry.split not in SPLITS:
+            raise CrchflError(f"{where}: shard {entry.file} has split {entry.split!r}, not one of {', '.join(SPLITS)}")
+        if (
+            entry.samples < 0 or entry.size_bytes < 0 or not SHA256_HEX.fullmatch(entry.sha256)
+            or not 0 <= entry.png_bytes_per_sample < float("inf")
+        ):
+            raise CrchflError(
+                f"{where}: shard {entry.file} needs samples >= 0, size_bytes >= 0, png_bytes_per_sample >= 0 "
+                f"and a sha256 of 64 hex digits; {fix}"
+            )
+
+
+def is_plain_shard_name(file: str) -> bool:
+    """True for a file name that stays in its data set folder: '<name>.h5', no folder part, not hidden."""
+    return (
+        file.endswith(".h5") and len(file) > 3 and not file.startswith(".")
+        and "/" not in file and "\\" not in file and "\0" not in file
+    )
 
 
 def _jsonable(value: Any) -> Any:
@@ -303,11 +370,8 @@ def _compression_options(compression: str) -> dict[str, Any]:
 
 def verify_shard(root: Path, entry: ShardEntry) -> Path:
     """Path of ``entry``'s file after checking its size and sha256; CrchflError if it is bad."""
-    path = Path(root) / entry.file
-    fix = (
-        f"delete {path} and rerun the same `crchfl-sumo dataset` command with --out {root}: "
-        "it regenerates only missing or damaged shards"
-    )
+    path = shard_path(root, entry)
+    fix = regenerate_fix(root, path)
     if not path.is_file():
         raise CrchflError(f"{path}: shard listed in {MANIFEST_NAME} is missing; {fix}")
     size = path.stat().st_size
@@ -315,47 +379,159 @@ def verify_shard(root: Path, entry: ShardEntry) -> Path:
         raise CrchflError(
             f"{path}: shard is truncated or altered ({size} bytes, manifest says {entry.size_bytes}); {fix}"
         )
-    if sha256_file(path) != entry.sha256:
+    try:
+        digest = sha256_file(path)
+    except OSError as exc:
+        raise CrchflError(f"{path}: shard cannot be read ({exc.strerror}); check its permissions") from None
+    if digest != entry.sha256:
         raise CrchflError(f"{path}: shard is corrupt (sha256 differs from {MANIFEST_NAME}); {fix}")
     return path
 
 
-def read_shard(root: Path, entry: ShardEntry, verify: bool = True, images: bool = True) -> ShardData:
-    """Read one shard (checked against the manifest first unless ``verify`` is False).
+def regenerate_fix(root: Path, path: Path) -> str:
+    return (
+        f"delete {path} and rerun the same `crchfl-sumo dataset` command with --out {root}: "
+        "it regenerates only missing or damaged shards"
+    )
+
+
+def shard_path(root: Path, entry: ShardEntry) -> Path:
+    """Where ``entry``'s file lies: inside ``root``, or a CrchflError (a manifest naming ../x.h5, a link out)."""
+    root = Path(root)
+    path = root / entry.file
+    if not is_plain_shard_name(entry.file) or (path.exists() and path.resolve().parent != root.resolve()):
+        raise CrchflError(
+            f"{root / MANIFEST_NAME}: shard {entry.file!r} lies outside the data set folder {root}; "
+            "a shard must be a plain file in it: regenerate the data set"
+        )
+    return path
+
+
+@contextlib.contextmanager
+def open_shard(
+    root: Path, entry: ShardEntry, verify: bool = True, image_hw: tuple[int, int] | None = None
+) -> Iterator[tuple[h5py.File, dict[str, np.ndarray]]]:
+    """The one way a shard is opened: (the open file, its label arrays), checked against the schema.
+
+    Checked, in this order, before any image is read: size and sha256
+    (``verify``), that every dataset of the format is there as a plain dataset
+    of this file, its dtype and shape ([N, 4, H, W, 3] uint8 images of the
+    manifest's ``image_hw``, N = the manifest's sample count; labels as
+    LABEL_DATASETS and LABEL_SHAPES), that the file can hold what the shapes
+    declare, then the labels' values (finite; pedals in [0, 1], steer in
+    [-1, 1], steer classes 0..6, commands 0..3, speeds >= 0). Whatever h5py
+    raises on a damaged file, here or in the caller's block, becomes a CrchflError.
+    """
+    path = verify_shard(root, entry) if verify else shard_path(root, entry)
+    fix = regenerate_fix(root, path)
+    try:
+        with h5py.File(path, "r") as f:
+            _check_layout(f, path, entry, image_hw, fix)
+            labels = {name: f[name][()] for name in LABEL_DATASETS}
+            check_label_values(labels, str(path), fix)
+            yield f, labels
+    except CrchflError:
+        raise
+    except MemoryError:
+        raise CrchflError(f"{path}: the shard's arrays need more memory than this machine can give; {fix}") from None
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError, AttributeError) as exc:
+        raise CrchflError(f"{path}: unreadable shard ({_one_line(exc)}); {fix}") from None
+
+
+def _one_line(exc: Exception) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _check_layout(f: h5py.File, path: Path, entry: ShardEntry, image_hw: tuple[int, int] | None, fix: str) -> None:
+    """Names, dtypes and shapes of the shard's datasets, and what the file can hold; reads no data."""
+    missing = [name for name in ("images", *LABEL_DATASETS) if name not in f]
+    if missing:
+        raise CrchflError(
+            f"{path}: shard has no {', '.join(missing)} (written by an older version of crchfl-sumo or damaged); "
+            "regenerate the data set into a new folder with `crchfl-sumo dataset`"
+        )
+    n = entry.samples
+    expected = {name: (np.dtype(dtype), (n, *LABEL_SHAPES.get(name, ()))) for name, dtype in LABEL_DATASETS.items()}
+    for name in ("images", *LABEL_DATASETS):
+        link = f.get(name, getlink=True)
+        ds = f.get(name)
+        if not isinstance(link, h5py.HardLink) or not isinstance(ds, h5py.Dataset) or ds.is_virtual or ds.external:
+            raise CrchflError(f"{path}: {name} is not a plain dataset stored in this file; {fix}")
+        if name == "images":
+            ok = ds.dtype == np.uint8 and ds.ndim == 5 and ds.shape[0] == n and ds.shape[1] == len(CAMERA_NAMES)
+            ok = ok and ds.shape[4] == 3 and (image_hw is None or tuple(ds.shape[2:4]) == tuple(image_hw))
+            ok = ok and ds.shape[2] <= MAX_HEIGHT_PX and ds.shape[3] <= MAX_WIDTH_PX
+            want = f"uint8 [{n}, {len(CAMERA_NAMES)}, {'H, W' if image_hw is None else ', '.join(map(str, image_hw))}, 3]"
+        else:
+            dtype, shape = expected[name]
+            ok = ds.dtype == dtype and ds.shape == shape
+            want = f"{dtype} {list(shape)}"
+        if not ok:
+            raise CrchflError(f"{path}: {name} is {ds.dtype} {list(ds.shape or ())}, the format has {want}; {fix}")
+        declared = int(np.prod(ds.shape, dtype=np.float64) * ds.dtype.itemsize)
+        stored = path.stat().st_size * (MAX_COMPRESSION_RATIO if ds.compression else 1)
+        if declared > stored:
+            raise CrchflError(
+                f"{path}: {name} declares {declared} bytes, more than a {path.stat().st_size}-byte file can hold; {fix}"
+            )
+
+
+def check_label_values(labels: dict[str, np.ndarray], where: str, fix: str) -> None:
+    """Refuse label values a sample cannot have: NaN or inf anywhere, pedals outside [0, 1], steer outside
+    [-1, 1], steer classes outside 0..6, commands outside 0..3, negative speeds."""
+    for name, values in labels.items():
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise CrchflError(f"{where}: {name} holds {values[~np.isfinite(values)][0]}; labels must be finite; {fix}")
+    ranges = (
+        ("throttle", labels["actions"][:, 0], 0.0, 1.0, "throttle lies in [0, 1]"),
+        ("steer", labels["actions"][:, 1], -1.0, 1.0, "steer lies in [-1, 1]"),
+        ("brake", labels["actions"][:, 2], 0.0, 1.0, "brake lies in [0, 1]"),
+        ("steer_class", labels["steer_class"], 0, NUM_STEER_CLASSES - 1, f"steer classes are 0..{NUM_STEER_CLASSES - 1}"),
+        ("command", labels["command"], 0, NUM_COMMANDS - 1, f"commands are 0..{NUM_COMMANDS - 1}"),
+        ("speed_mps", labels["speed_mps"], 0.0, np.inf, "speeds are >= 0"),
+        ("target_speed_mps", labels["target_speed_mps"], 0.0, np.inf, "speeds are >= 0"),
+    )
+    for name, values, low, high, rule in ranges:
+        bad = values[(values < low) | (values > high)]
+        if len(bad):
+            raise CrchflError(f"{where}: {name} holds {bad[0]}; {rule}; {fix}")
+
+
+def read_shard(
+    root: Path, entry: ShardEntry, verify: bool = True, images: bool = True, image_hw: tuple[int, int] | None = None
+) -> ShardData:
+    """Read one shard through ``open_shard`` (checked against the manifest first unless ``verify`` is False).
 
     ``images=False`` skips the image array (returned with zero samples' worth
     of pixels: shape [N, 4, 0, 0, 3]) for statistics that need only labels.
+    ``image_hw``: the manifest's image size, which the images must have.
     """
-    path = verify_shard(root, entry) if verify else Path(root) / entry.file
-    try:
-        with h5py.File(path, "r") as f:
-            missing = [name for name in LABEL_DATASETS if name not in f]
-            if missing:
-                raise CrchflError(
-                    f"{path}: shard has no {', '.join(missing)} (written by an older version of crchfl-sumo); "
-                    "regenerate the data set into a new folder with `crchfl-sumo dataset`"
-                )
-            if images:
-                pixels = f["images"][()]
-            else:
-                pixels = np.zeros((entry.samples, len(CAMERA_NAMES), 0, 0, 3), np.uint8)
-            data = ShardData(images=pixels, **{name: f[name][()] for name in LABEL_DATASETS})
-    except (OSError, KeyError, ValueError) as exc:
-        raise CrchflError(f"{path}: unreadable shard ({exc}); delete it and rerun `crchfl-sumo dataset`") from None
-    if len(data) != entry.samples:
-        raise CrchflError(f"{path}: {len(data)} samples, manifest says {entry.samples}; delete it and regenerate")
-    return data
+    with open_shard(root, entry, verify, image_hw) as (f, labels):
+        if images:
+            pixels = f["images"][()]
+        else:
+            pixels = np.zeros((entry.samples, len(CAMERA_NAMES), 0, 0, 3), np.uint8)
+    return ShardData(images=pixels, **labels)
 
 
 # ---------------------------------------------------------------- manifest
 
 
 def read_manifest(root: Path) -> Manifest:
-    """The manifest of the data set in ``root``; CrchflError if there is none."""
+    """The manifest of the data set in ``root``; CrchflError if there is none or it is not one."""
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():
         raise CrchflError(f"{path}: no data set manifest; generate one with `crchfl-sumo dataset SCENARIO --out {root}`")
-    return Manifest.from_json(path.read_text(encoding="utf-8"), str(path))
+    fix = "delete the folder and generate it again"
+    try:
+        if path.stat().st_size > MAX_MANIFEST_BYTES:
+            raise CrchflError(f"{path}: over {MAX_MANIFEST_BYTES // 2**20} MiB, too big to be a data set manifest; {fix}")
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise CrchflError(f"{path}: not UTF-8 text (byte {exc.start}); {fix}") from None
+    except OSError as exc:
+        raise CrchflError(f"{path}: cannot be read ({exc.strerror}); check its permissions") from None
+    return Manifest.from_json(text, str(path))
 
 
 def write_manifest(root: Path, manifest: Manifest) -> None:
@@ -367,7 +543,7 @@ class DatasetWriter:
 
     A folder that already holds a manifest with the same header (scenario,
     seed, cameras, labels, image size, compression) is resumed: shards whose
-    file still matches its checksum count as done and are kept; the rest are
+    file still matches its checksum and the shard schema count as done and are kept; the rest are
     dropped from the manifest and written again. A different header is an
     error, so two data sets never mix in one folder.
     """
@@ -388,7 +564,7 @@ class DatasetWriter:
                 )
             for entry in old.shards:
                 try:
-                    verify_shard(self.root, entry)
+                    read_shard(self.root, entry, images=False, image_hw=(header.image_height, header.image_width))
                     kept.append(entry)
                 except CrchflError as exc:
                     log.warning("will regenerate: %s", exc)
@@ -401,7 +577,7 @@ class DatasetWriter:
 
     def add(self, file: str, data: ShardData, *, vehicle: str, town: str, edge: str, split: str) -> ShardEntry:
         """Write shard ``file`` and record it in the manifest (both atomically)."""
-        if not file.endswith(".h5") or "/" in file or file.startswith("."):
+        if not is_plain_shard_name(file):
             raise ValueError(f"shard file name must be a plain '<name>.h5', got {file!r}")
         if data.images.shape[2:4] != (self.manifest.image_height, self.manifest.image_width) and len(data):
             raise ValueError(

@@ -12,14 +12,14 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import h5py
 import numpy as np
 
-from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.atomic import atomic_write_bytes, atomic_write_text
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
-from crchfl_sumo.data.shards import read_manifest, read_shard, verify_shard
+from crchfl_sumo.data.shards import open_shard, read_manifest, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
@@ -44,8 +44,9 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
     stop_speed_mps = float(manifest.labels.get("expert", {}).get("stop_speed_mps", ExpertConfig().stop_speed_mps))
     columns = ("actions", "steer_class", "command", "speed_mps", "perturbation")
     parts: dict[str, dict[str, list[np.ndarray]]] = {split: {c: [] for c in columns} for split in ("train", "test")}
+    image_hw = (manifest.image_height, manifest.image_width)
     for entry in manifest.shards:
-        data = read_shard(root, entry, verify=verify, images=False)
+        data = read_shard(root, entry, verify=verify, images=False, image_hw=image_hw)
         for c in columns:
             parts[entry.split][c].append(getattr(data, c))
     stats: dict[str, Any] = {
@@ -147,7 +148,7 @@ def pick_examples(root: str | Path, split: str = "train") -> list[tuple[str, int
     manifest = read_manifest(root)
     found: dict[int, tuple[str, int]] = {}
     for entry in manifest.select(split):
-        data = read_shard(root, entry, verify=False, images=False)
+        data = read_shard(root, entry, verify=False, images=False, image_hw=(manifest.image_height, manifest.image_width))
         for k in range(NUM_STEER_CLASSES):
             rows = np.flatnonzero(data.steer_class == k)
             if k not in found and len(rows):
@@ -161,17 +162,16 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
     manifest = read_manifest(root)
     examples = pick_examples(root, split)
     if not examples:
-        raise ValueError(f"{root}: no {split} samples to show")
+        raise CrchflError(f"{root}: no {split} samples to show in a mosaic; generate a data set with {split} shards")
     scale = max(1, int(np.ceil(min_width_px / manifest.image_width)))
     rows = []
     for file, row in examples:
-        verify_shard(root, manifest.entry(file))
-        with h5py.File(root / file, "r") as f:
+        with open_shard(root, manifest.entry(file), image_hw=(manifest.image_height, manifest.image_width)) as (f, labels):
             images = f["images"][row]
-            throttle, steer, brake = f["actions"][row]
-            steer_class = int(f["steer_class"][row])
-            command = COMMAND_NAMES[int(f["command"][row])]
-            lateral_m, yaw_deg = f["perturbation"][row]
+        throttle, steer, brake = labels["actions"][row]
+        steer_class = int(labels["steer_class"][row])
+        command = COMMAND_NAMES[int(labels["command"][row])]
+        lateral_m, yaw_deg = labels["perturbation"][row]
         tiles = [cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for img in images]
         strip = np.concatenate(tiles, axis=1)
         caption = np.full((22, strip.shape[1], 3), 255, np.uint8)
@@ -188,9 +188,7 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(mosaic, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("OpenCV failed to encode the mosaic")
-    tmp = out_png.with_name(f".{out_png.name}.tmp")
-    tmp.write_bytes(encoded.tobytes())
-    tmp.replace(out_png)
+    atomic_write_bytes(out_png, encoded.tobytes())
     return out_png
 
 

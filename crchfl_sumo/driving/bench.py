@@ -140,7 +140,7 @@ class ModelDriver:
         # The commands as the training data was labelled: at the junctions of the net with a choice.
         return ModelPolicy(
             self.model(), RouteCommands(route, choice_junctions(net)),
-            steer_decoding=self.steer_decoding, brake_gain=self.brake_gain,
+            steer_decoding=self.steer_decoding, brake_gain=self.brake_gain, source=self.path,
         )
 
 

@@ -57,7 +57,8 @@ def drive_command(
         checkpoint = load_checkpoint(model_path)
         model = checkpoint_model(checkpoint, model_path)
         policy = ModelPolicy(
-            model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding, brake_gain=brake_gain
+            model, RouteCommands(geometry, choice_junctions(net)), steer_decoding=steer_decoding, brake_gain=brake_gain,
+            source=str(model_path),
         )
         renderer = model_renderer(loaded.net_path, model.config, checkpoint.extra, str(model_path))
         label = Path(model_path).stem

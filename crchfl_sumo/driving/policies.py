@@ -223,6 +223,8 @@ class ModelPolicy:
     (learning.settings.STEER_DECODINGS).
     ``brake_gain``: a target-speed model's lower targets are reached in its
     speed horizon / brake_gain (expert.pedals_towards; 1 = as labelled).
+    ``source``: the model file, named when its output is not finite (a CrchflError
+    then, before the dynamics see it).
     """
 
     def __init__(
@@ -232,6 +234,7 @@ class ModelPolicy:
         one_pedal: bool = True,
         steer_decoding: str = DEFAULT_STEER_DECODING,
         brake_gain: float = DEFAULT_BRAKE_GAIN,
+        source: str = "the model",
     ) -> None:
         if commands is None and model.config.arch != "paper":
             raise CrchflError(
@@ -245,6 +248,7 @@ class ModelPolicy:
             raise CrchflError(f"steer decoding must be one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
         self.steer_decoding = steer_decoding
         self.brake_gain = check_brake_gain(brake_gain)
+        self.source = source
 
     def command(self, observation: Observation) -> int:
         """The route command (labels.COMMAND_NAMES code) at the ego's position; FOLLOW without commands."""
@@ -265,6 +269,11 @@ class ModelPolicy:
             self.model, images, self.command(observation), float(frame.speed_mps[row]), self.steer_decoding,
             float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row]), self.brake_gain,
         )
+        if not np.isfinite(actions).all():
+            raise CrchflError(
+                f"{self.source}: the model's output at t = {frame.t_s:.2f} s is not finite (throttle, steer, brake = "
+                f"{', '.join(f'{v:g}' for v in actions)}); its weights are damaged or diverged: retrain it"
+            )
         throttle, steer, brake = (float(v) for v in actions)
         if self.one_pedal:
             throttle, brake = one_pedal(throttle, brake)

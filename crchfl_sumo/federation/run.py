@@ -6,6 +6,7 @@ DIR receives (every file written atomically):
   config.json      the resolved run: settings, the four hyper-parameters used, byte sizes
   checkpoint.pt    the FederationState after the latest step less its history, and the logs' marks
                    (what --resume reads)
+  checkpoint.prev.pt  the one of the step before (what --resume reads if checkpoint.pt is damaged)
   metrics.jsonl    one line per aggregation (stage I, each edge aggregation, each cloud aggregation)
   ledger.jsonl     every charged transfer (first line: the sizes)
   stragglers.jsonl every vehicle that missed an aggregation or a download, and why
@@ -22,6 +23,10 @@ the same seed: every step's randomness derives from the seed and the step
 number, the clock re-runs SUMO deterministically from the start, and the
 logs are cut back to the checkpoint's marks. A step writes its log lines,
 then the checkpoint, then the files derived from the state (models, summary).
+The checkpoint it replaces becomes checkpoint.prev.pt, so one empty, truncated
+or damaged checkpoint.pt costs a step, not the run: a resume refuses it with
+a message and continues from the previous one. A run or resume first removes
+the temporaries a killed atomic write left (core/atomic.py).
 """
 
 from __future__ import annotations
@@ -29,19 +34,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import torch
 
 from crchfl_sumo.accounting.ledger import GIB, Ledger, resolve_sizes
-from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.logs import Marks, append_logs, restore_logs, start_logs
+from crchfl_sumo.federation.logs import LOGS, Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
     RunConfig,
@@ -53,8 +59,8 @@ from crchfl_sumo.federation.run_config import (
 )
 from crchfl_sumo.federation.run_data import RunData, make_clock, read_inputs
 from crchfl_sumo.federation.settings import HyperParameters
-from crchfl_sumo.federation.state import FederationState, LoopInputs, initial_state, sim_time_s
-from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.federation.state import FederationState, LoopInputs, check_payload, initial_state, sim_time_s
+from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
@@ -68,6 +74,8 @@ log = logging.getLogger(__name__)
 
 TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
+CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the checkpoint of the step before, kept for a damaged checkpoint.pt
 
 
 def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
@@ -127,8 +135,7 @@ def run_federation_dir(
     before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
-    checkpoint_path = out_dir / "checkpoint.pt"
-    if checkpoint_path.exists() and not resume:
+    if ((out_dir / CHECKPOINT).exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     run = dict(resume=resume, config_text=config_text, clock_factory=clock_factory, progress=progress,
                after_checkpoint=after_checkpoint)
@@ -150,8 +157,10 @@ def _run_with_trainer(
     progress: Progress | None,
     after_checkpoint: Callable[[FederationState], None] | None,
 ) -> dict:
-    checkpoint_path = out_dir / "checkpoint.pt"
+    checkpoint_path = out_dir / CHECKPOINT
     out_dir.mkdir(parents=True, exist_ok=True)
+    for path in remove_stale_temporaries(out_dir):
+        log.info("removed %s left by an interrupted run", path)
     fed = config.federation
     first = trainer.initial_state()
     baseline = always_straight(inputs.test)  # what the accuracies are read against
@@ -182,7 +191,7 @@ def _run_with_trainer(
             coverage=_coverage(config, inputs),
         )
         state = None
-        if resume and checkpoint_path.exists():
+        if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
             state, marks = _load_state(checkpoint_path, resolved, sizes)
             if state.done:  # finished before: only the derived files may be missing
                 _write_outputs(out_dir, config, setup, state, camera, _handovers(clock, state), baseline)
@@ -301,27 +310,66 @@ def summarize(
 
 
 def _save_state(path: Path, resolved: dict, state: FederationState, marks: Marks) -> None:
+    """Write checkpoint.pt atomically; the one it replaces becomes checkpoint.prev.pt.
+
+    Killed between the two renames, the folder holds checkpoint.prev.pt only:
+    a resume continues from it.
+    """
     with atomic_path(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload(), "logs": marks}, tmp)
+        if path.exists():
+            os.replace(path, path.with_name(PREVIOUS_CHECKPOINT))
 
 
-def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Marks]:
-    """The checkpointed state, its history read back from the logs (cut back to their marks), and the marks."""
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt files
-        raise CrchflError(
-            f"{path}: not a readable federation checkpoint ({exc}); delete the folder to start afresh"
-        ) from None
+def _read_checkpoint(path: Path) -> dict:
+    """A federation checkpoint's payload, its parts checked; CrchflError if the file is missing, unreadable or malformed."""
+    if not path.is_file():
+        raise CrchflError(f"{path}: missing")
+    payload = load_weights_only(path, "federation checkpoint", "delete the folder to start afresh")
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CrchflError(
             f"{path}: not a crchfl-sumo federation checkpoint of this version ({CHECKPOINT_FORMAT}); "
             "rerun into another --out"
         )
-    stored = payload.get("resolved")
-    if not isinstance(stored, dict) or {
-        **stored, "config": resolved_as_today(stored.get("config", {}), f"{path}: config")
-    } != resolved:
+    resolved = payload.get("resolved")
+    if not isinstance(resolved, dict) or not isinstance(resolved.get("config", {}), dict) or not _is_marks(payload.get("logs")):
+        raise CrchflError(f"{path}: malformed federation checkpoint (resolved settings or log marks); delete the folder")
+    check_payload(payload.get("state"), str(path))
+    return payload
+
+
+def _is_marks(marks: Any) -> bool:
+    """Marks of the three logs: each a byte offset and a line count >= 0."""
+    return isinstance(marks, dict) and set(marks) == set(LOGS) and all(
+        isinstance(m, dict) and set(m) == {"offset", "lines"}
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in m.values())
+        for m in marks.values()
+    )
+
+
+def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Marks]:
+    """The checkpointed state, its history read back from the logs (cut back to their marks), and the marks.
+
+    A checkpoint.pt that is missing, empty, truncated or malformed is refused
+    with a warning and the previous step's checkpoint.prev.pt is read instead;
+    with neither readable the resume stops with both reasons.
+    """
+    previous = path.with_name(PREVIOUS_CHECKPOINT)
+    try:
+        payload = _read_checkpoint(path)
+    except CrchflError as latest:
+        if not previous.is_file():
+            raise
+        try:
+            payload = _read_checkpoint(previous)
+        except CrchflError as before:
+            raise CrchflError(
+                f"{latest}; the previous checkpoint is no better ({before}); delete the folder to start afresh"
+            ) from None
+        log.warning("%s; resuming from %s (the step before it)", latest, previous)
+        path = previous
+    stored = payload["resolved"]
+    if {**stored, "config": resolved_as_today(stored.get("config", {}), f"{path}: config")} != resolved:
         raise CrchflError(
             f"{path}: written by a run with other settings or data; resume with the original config "
             "(see config.json there) or choose another --out"

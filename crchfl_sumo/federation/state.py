@@ -4,8 +4,12 @@
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, Mapping, Protocol, Sequence
+
+import torch
 
 from crchfl_sumo.accounting.ledger import Record
 from crchfl_sumo.accounting.schedules import (
@@ -139,6 +143,59 @@ class FederationState:
 
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
+MODELS = ("vehicle_models", "edge_models")  # name -> State; cloud_model and best_model are one State (or None)
+
+
+def check_payload(payload: Any, where: str) -> None:
+    """Refuse a checkpointed state (``to_payload``) that ``from_payload`` could not use: a key missing or
+    unknown, a value of the wrong type, a model that is not a table of dense tensors."""
+    fix = "delete the folder to start afresh"
+    if not isinstance(payload, Mapping):
+        raise CrchflError(f"{where}: malformed federation checkpoint (its state is not a table); {fix}")
+    expected = [f.name for f in dataclasses.fields(FederationState) if f.name not in HISTORY]
+    missing, unknown = sorted(set(expected) - set(payload)), sorted(set(payload) - set(expected))
+    if missing or unknown:
+        raise CrchflError(
+            f"{where}: malformed federation checkpoint (state {'lacks ' + ', '.join(missing) if missing else ''}"
+            f"{' and ' if missing and unknown else ''}{'has unknown ' + ', '.join(unknown) if unknown else ''}); {fix}"
+        )
+    hints = typing.get_type_hints(FederationState)
+    for name in expected:
+        value = payload[name]
+        if name in MODELS:
+            ok = isinstance(value, dict) and all(isinstance(k, str) and _is_state(m) for k, m in value.items())
+        elif name in ("cloud_model", "best_model"):
+            ok = _is_state(value) or (name == "best_model" and value is None)
+        else:
+            ok = _is_plain(hints[name], value)
+        if not ok:
+            raise CrchflError(f"{where}: malformed federation checkpoint (state.{name} has the wrong type); {fix}")
+
+
+def _is_state(value: Any) -> bool:
+    """A model's weights: a table of named dense tensors."""
+    return isinstance(value, dict) and all(
+        isinstance(k, str) and isinstance(t, torch.Tensor) and t.layout == torch.strided for k, t in value.items()
+    )
+
+
+def _is_plain(hint: Any, value: Any) -> bool:
+    """``value`` fits the field type ``hint`` (a table's keys and values too, where the hint names them)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_is_plain(a, value) for a in args)
+    if origin is dict and args:
+        return isinstance(value, dict) and all(_is_plain(args[0], k) and _is_plain(args[1], v) for k, v in value.items())
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is Any:
+        return True
+    kind = origin or hint
+    return isinstance(value, kind) if isinstance(kind, type) else True
 
 
 def initial_state(setup: LoopInputs, trainer: Trainer, start_s: float) -> FederationState:

@@ -11,6 +11,7 @@ from typing import Literal
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S
+from crchfl_sumo.vision.camera import MAX_HEIGHT_PX, MAX_WIDTH_PX
 
 MIN_IMAGE_HEIGHT = 48
 
@@ -63,7 +64,7 @@ class ModelConfig:
 
     size: "compact" (default, ~0.5 M parameters) or "paper" (~39.4 M, ~150 MiB).
     image_height, image_width: camera image size in pixels (default 64 x 128,
-        the default of camera.CameraConfig); at least 48 x 64.
+        the default of camera.CameraConfig); at least 48 x 64, at most 1080 x 1920.
     arch: "cil" (default; normalised, conditioned on command and speed) or
         "paper" (the paper's network exactly; no command, no speed).
     The next three apply to arch "cil" only (arch "paper" needs their defaults):
@@ -133,6 +134,11 @@ class ModelConfig:
             raise CrchflError(
                 f"model.image_height/image_width: {self.image_height} x {self.image_width} is too small; "
                 f"use at least {MIN_IMAGE_HEIGHT} x {MIN_IMAGE_WIDTH} pixels"
+            )
+        if self.image_height > MAX_HEIGHT_PX or self.image_width > MAX_WIDTH_PX:
+            raise CrchflError(
+                f"model.image_height/image_width: {self.image_height} x {self.image_width} is too large; "
+                f"use at most {MAX_HEIGHT_PX} x {MAX_WIDTH_PX} pixels"
             )
 
     @property

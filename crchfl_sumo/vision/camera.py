@@ -51,6 +51,12 @@ DEFAULT_POSES = (
 )
 
 
+# The largest image a camera, a model or a data set may have (full HD): ground_rays and the renderer
+# hold several float64 arrays of this size per camera, a few hundred MB; 4096 x 8192 would need tens of GB.
+MAX_HEIGHT_PX = 1080
+MAX_WIDTH_PX = 1920
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """The four cameras' image size, field of view and poses (order: labels.CAMERA_NAMES).
@@ -71,6 +77,11 @@ class CameraConfig:
         if self.height_px < 8 or self.width_px < 8:
             raise CrchflError(
                 f"camera.height_px/width_px: {self.height_px}x{self.width_px} is too small; use at least 8x8"
+            )
+        if self.height_px > MAX_HEIGHT_PX or self.width_px > MAX_WIDTH_PX:
+            raise CrchflError(
+                f"camera.height_px/width_px: {self.height_px}x{self.width_px} is too large; "
+                f"use at most {MAX_HEIGHT_PX}x{MAX_WIDTH_PX}"
             )
         if not 1.0 <= self.fov_deg <= 170.0:
             raise CrchflError(f"camera.fov_deg: {self.fov_deg} is outside 1..170; a pinhole needs a finite FOV")

@@ -475,7 +475,12 @@ def render_frame(world: World, config: RasterConfig, frame: Frame, vehicle_ids: 
 
 def camera_settings(camera: dict, where: str) -> tuple[RasterConfig, WorldConfig]:
     """(RasterConfig, WorldConfig) of a data set's camera block (Manifest.camera, or a checkpoint's copy of it)."""
-    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
-    world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
+    if not isinstance(camera, dict):
+        raise CrchflError(f"{where}: expected a table of raster and world settings, got {type(camera).__name__}")
+    try:
+        raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
+        world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
+    except CrchflError as exc:  # a dataclass's own check names the key, not the file
+        raise CrchflError(str(exc) if where in str(exc) else f"{where}: {exc}") from None
     return raster, world
 

@@ -412,6 +412,16 @@ def test_untrained_model_drives_through_the_loop(roads):
         ModelPolicy(model, commands, steer_decoding="mean")
 
 
+def test_a_model_output_that_is_not_finite_is_an_error_naming_the_model(roads):
+    scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
+    model = build_model(ModelConfig(), seed=0)
+    with torch.no_grad():  # what a diverged model gives: a NaN target speed
+        model.branch_throttle_brake.heads[0][-1].bias.fill_(float("nan"))
+    policy = ModelPolicy(model, commands, source="runs/x/final_model.pt")
+    with pytest.raises(CrchflError, match=r"^runs/x/final_model\.pt: the model's output at t = .* is not finite"):
+        drive(scenario, geometry, policy, seed=1, max_s=1.0, config=NO_WARMUP, renderer=renderer)
+
+
 class _Commands:
     """Route commands by hand: LEFT before 5 m of progress, RIGHT after."""
 

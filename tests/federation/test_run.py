@@ -19,26 +19,12 @@ from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.links.clock import ScriptedClock, Segment
 
-from helpers import PAPER_VEHICLES, Killed, kill_after, result_files, run_config, write_dataset
+from helpers import PAPER_VEHICLES, Killed, SumTrainer, kill_after, result_files, run_config, write_dataset
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("data"), PAPER_VEHICLES)
-
-
-class SumTrainer:
-    """Cheap stand-in for TorchTrainer: the loop and its files do not depend on what learning does."""
-
-    def initial_state(self):
-        return {"w": torch.zeros(3, dtype=torch.float64)}
-
-    def train(self, states, samples, epochs, seed):
-        return [{"w": s["w"] + epochs * len(x) + (seed % 7)} for s, x in zip(states, samples)]
-
-    def evaluate(self, state):
-        total = float(state["w"].sum())
-        return {"loss": 100.0 / (1.0 + total), "accuracy": total / (1.0 + total)}
 
 
 def test_run_command_writes_the_results_folder(tmp_path, dataset):

@@ -99,3 +99,7 @@ def test_config_from_mapping_and_validation():
         CameraConfig(poses=CameraConfig().poses[:3])
     with pytest.raises(CrchflError, match="fov_deg"):
         CameraConfig(fov_deg=180.0)
+    # ground_rays holds several float64 [H, W] arrays per camera: 4096 x 8192 would take gigabytes
+    with pytest.raises(CrchflError, match="4096x8192 is too large; use at most 1080x1920"):
+        CameraConfig(height_px=4096, width_px=8192)
+    assert CameraConfig(height_px=1080, width_px=1920).width_px == 1920  # full HD is the largest accepted
