@@ -92,7 +92,7 @@ def test_missing_config_and_negative_duration_exit_2(tmp_path, capsys):
     assert main(["simulate", "town01", "--out", str(tmp_path / "o"), "--config", str(tmp_path / "none.toml")]) == 2
     assert "config file not found" in capsys.readouterr().err
     assert main(["simulate", "town01", "--duration-s", "-1", "--out", str(tmp_path / "o")]) == 2
-    assert "--duration-s must be >= 0" in capsys.readouterr().err
+    assert "simulate --duration-s: -1 is out of range; give simulated seconds in (0, 86400]" in capsys.readouterr().err
 
 
 def test_plan_json_has_the_four_hyper_parameters(capsys):
