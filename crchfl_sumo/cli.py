@@ -131,7 +131,7 @@ def _overwrite_argument(p: argparse.ArgumentParser) -> None:
 
 
 def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=()):
-    """``with`` this around a command's work: core.outputs.output_dir checks ``--out`` (or ``out``) with its settings."""
+    """``with`` this around a command's work: core.outputs.output_dir checks --out (or ``out``) with its settings."""
     from crchfl_sumo.core.outputs import fingerprint, output_dir
 
     settings = {k: v for k, v in sorted(vars(args).items()) if k not in _NOT_SETTINGS}
@@ -187,7 +187,8 @@ def _run_report(args) -> int:
 
 def _add_simulate(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
-    p.add_argument("--duration-s", type=number_arg(0, MAX_SIMULATED_S, "simulated seconds", lo_open=True), default=300.0,
+    p.add_argument("--duration-s", type=number_arg(0, MAX_SIMULATED_S, "simulated seconds", lo_open=True),
+                   default=300.0,
                    help="simulated seconds (default 300)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _overwrite_argument(p)
@@ -529,11 +530,15 @@ def _run_calibrate(args) -> int:
 
 
 def _add_plan(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--budget-gb", type=number_arg(0, 1e9, "a budget in GB", lo_open=True), default=None,
+    from crchfl_sumo.accounting.ledger import MAX_SIZE
+    from crchfl_sumo.planning.problem import MAX_INTERVAL
+
+    p.add_argument("--budget-gb", type=number_arg(0, MAX_SIZE, "a budget in GB", lo_open=True), default=None,
                    help="communication budget [GB, 1 GB = 1024**3 B]; overrides [ledger] budget_gb (default 20)")
     p.add_argument("--config", type=Path, default=None, help="TOML file; its [ledger] and [allocation] tables are read")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
-    p.add_argument("--fix-edge-interval", type=integer_arg(2, 1000, "an edge interval"), default=None, metavar="N",
+    p.add_argument("--fix-edge-interval", type=integer_arg(2, MAX_INTERVAL, "an edge interval"), default=None,
+                   metavar="N",
                    help="fix edge_interval (the paper's ablation: 2, 3, 4)")
     p.add_argument("--scenario", default=None,
                    help="measure the wireless rate on this scenario's mobility (its data vehicles' edge links) "

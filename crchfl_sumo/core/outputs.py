@@ -114,7 +114,7 @@ def prepare_output_dir(
 
 @contextlib.contextmanager
 def output_dir(path: str | Path, command: str, settings_fingerprint: str = "", **options) -> Iterator[Path]:
-    """``prepare_output_dir`` before the work in the ``with`` block; undone when the block fails having written nothing."""
+    """``prepare_output_dir`` before the ``with`` block's work; undone when the block fails having written nothing."""
     path = Path(path)
     created = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
     marker = marker_path(path, command)

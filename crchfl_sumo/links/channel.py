@@ -86,6 +86,8 @@ SCENARIOS: dict[str, ScenarioParams] = {
 }
 
 
+MAX_FADING_BLOCKS = 1024  # fading gains kept per vehicle and step
+
 @dataclass(frozen=True)
 class ChannelConfig:
     """Radio settings of one kind of wireless link (TOML ``[channel]``).
@@ -140,9 +142,10 @@ class ChannelConfig:
             )
         if not 0 < self.efficiency <= 1:
             raise CrchflError(f"channel.efficiency must be in (0, 1], got {self.efficiency}")
-        if self.fading_max_blocks_per_step < 1:
+        if not 1 <= self.fading_max_blocks_per_step <= MAX_FADING_BLOCKS:
             raise CrchflError(
-                f"channel.fading_max_blocks_per_step must be >= 1, got {self.fading_max_blocks_per_step}"
+                f"channel.fading_max_blocks_per_step must be in 1 .. {MAX_FADING_BLOCKS} (each vehicle keeps this "
+                f"many fading gains), got {self.fading_max_blocks_per_step}"
             )
         if self.vehicle_antenna_height_m <= ENVIRONMENT_HEIGHT_M:
             raise CrchflError(
