@@ -496,8 +496,7 @@ def _add_mobility_study(p: argparse.ArgumentParser) -> None:
 def _run_mobility_study(args) -> int:
     from crchfl_sumo.studies.mobility import mobility_study_command
 
-    with _output_folder(args, "mobility-study", resumable=True):
-        rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
+    rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len({r['point'] for r in rows})} runs -> {args.out}")
     return 0
