@@ -185,6 +185,18 @@ def _config_cases(tmp: Path) -> list[Case]:
             path = folder / f"{len(cases):04d}-deep.toml"
             path.write_text(tomli_w.dumps(data) + "\ndeep = " + "[" * depth + "]" * depth + "\n", encoding="utf-8")
             cases.append(Case(argv(path), ("nest deeper",)))
+    # the configs of simulate and dataset, key by key from their schemas; the scenario 'nowhere' is the sentinel
+    from crchfl_sumo.data.generation import GenerateConfig
+    from crchfl_sumo.studies.simulate import SimulateConfig
+
+    for command, cls in (("simulate", SimulateConfig), ("dataset", GenerateConfig)):
+        for path, default in _schema_leaves(cls):
+            for label in ["nan", *rng.sample([v for v in VALUES if v != "nan"], 2)]:
+                mutated = {}
+                _set(mutated, path, VALUES[label])
+                may_pass = label in MAYBE or (label == "inf" and default == math.inf)
+                argv = [command, "nowhere", "--out", str(tmp / f"{command}-out"), "--config", str(write(mutated, label))]
+                cases.append(Case(argv, (path[-1],), ("not a built-in scenario",) if may_pass else ()))
     return cases
 
 
@@ -325,4 +337,5 @@ def test_fuzz_bad_inputs_exit_2_with_a_message_naming_them(tmp_path, capsys, mon
     cases = _config_cases(tmp_path) + _number_cases(tmp_path) + _folder_cases(tmp_path)
     assert len(cases) >= 600
     _check(cases, capsys)
-    assert not (tmp_path / "run-out").exists()  # refused configs leave no output folder behind
+    for name in ("run-out", "simulate-out", "dataset-out"):  # refused inputs leave no output folder behind
+        assert not (tmp_path / name).exists()

@@ -88,6 +88,7 @@ SCENARIOS: dict[str, ScenarioParams] = {
 
 MAX_FADING_BLOCKS = 1024  # fading gains kept per vehicle and step
 
+
 @dataclass(frozen=True)
 class ChannelConfig:
     """Radio settings of one kind of wireless link (TOML ``[channel]``).

@@ -65,6 +65,7 @@ MAX_VEHICLES_PER_EDGE = 10_000
 MAX_LOCAL_SAMPLES = 10**9
 MAX_INTERVAL = 100
 
+
 @dataclass(frozen=True)
 class AllocationConfig:
     """Settings of the resource optimizer (TOML table ``[allocation]``).

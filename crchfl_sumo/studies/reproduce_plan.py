@@ -92,8 +92,10 @@ class ReproduceConfig:
             raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be >= 0")
         if self.centralized_epochs < 0:
             raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
-        if self.bench_episodes < 0:
-            raise CrchflError(f"reproduce.bench_episodes: {self.bench_episodes} must be >= 0 (0 = no benchmark)")
+        if not 0 <= self.bench_episodes <= 10_000:
+            raise CrchflError(
+                f"reproduce.bench_episodes: {self.bench_episodes} must be in 0 .. 10000 (0 = no benchmark)"
+            )
         if self.bench_episodes and (not self.bench_towns or not self.bench_tasks):
             raise CrchflError("reproduce.bench_towns / bench_tasks: name at least one of each, or set bench_episodes = 0")
         for task in self.bench_tasks:
