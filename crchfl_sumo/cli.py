@@ -192,7 +192,7 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                    help="simulated seconds (default 300)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _overwrite_argument(p)
-    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**32 - 1)")
+    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML with seed, [[edge_sites]], [channel], [mobility] (docs/links.md)")
 
@@ -254,7 +254,7 @@ def _run_render(args) -> int:
 def _add_dataset(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
     p.add_argument("--out", type=Path, required=True, help="data set folder (rerun the same command to resume)")
-    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**32 - 1)")
+    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML: seed, [dataset], [raster], [world], [expert] (docs/dataset.md)")
 

@@ -6,8 +6,8 @@ Two kinds of entry use these: the command line (``number_arg``, ``integer_arg``,
 files (``check_seed``, ``check_range``; core.config refuses non-finite floats
 for every field by itself).
 
-A seed is an integer in 0 .. 2**32 - 1: what numpy's and torch's generators
-and SUMO's --seed all accept.
+A seed is an integer in 0 .. 2**31 - 1: what numpy's and torch's generators
+and SUMO's --seed (a C int: 2**31 is "not a valid integer") all accept.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Callable
 
 from crchfl_sumo.core.errors import CrchflError
 
-SEED_MAX = 2**32 - 1
-SEED_RANGE = f"an integer in 0 .. {SEED_MAX} (2**32 - 1)"
+SEED_MAX = 2**31 - 1
+SEED_RANGE = f"an integer in 0 .. {SEED_MAX} (2**31 - 1)"
 MAX_SIMULATED_S = 86400.0  # a command simulates at most one day (its trace fills memory step by step)
 
 
@@ -33,7 +33,7 @@ def in_range(value: float, lo: float, hi: float, lo_open: bool = False) -> bool:
 
 
 def check_seed(value: object, where: str) -> int:
-    """``value`` if it is a seed (0 .. 2**32 - 1); a CrchflError naming ``where`` otherwise."""
+    """``value`` if it is a seed (0 .. 2**31 - 1); a CrchflError naming ``where`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise CrchflError(f"{where}: {value!r} is not a seed; give {SEED_RANGE}")
     if not 0 <= value <= SEED_MAX:
@@ -93,7 +93,7 @@ def integer_arg(lo: int, hi: int, what: str) -> Callable[[str], int]:
 
 
 def seed_arg(text: str) -> int:
-    """argparse type: a seed, 0 .. 2**32 - 1."""
+    """argparse type: a seed, 0 .. 2**31 - 1."""
     try:
         value = int(text)
     except ValueError:

@@ -54,10 +54,10 @@ def test_integer_arg_takes_integers_in_range():
 
 
 def test_a_seed_is_0_to_2_pow_32_minus_1():
-    assert SEED_MAX == 4294967295
-    assert seed_arg("0") == 0 and seed_arg("4294967295") == 4294967295
-    for text in ("-1", "4294967296", str(2**64)):
-        with pytest.raises(argparse.ArgumentTypeError, match="outside the seed range; give an integer in 0 .. 4294967295"):
+    assert SEED_MAX == 2147483647
+    assert seed_arg("0") == 0 and seed_arg("2147483647") == 2147483647
+    for text in ("-1", "2147483648", str(2**64)):
+        with pytest.raises(argparse.ArgumentTypeError, match="outside the seed range; give an integer in 0 .. 2147483647"):
             seed_arg(text)
     assert check_seed(7, "federation.seed") == 7
     with pytest.raises(CrchflError, match="federation.seed: 18446744073709551616 is outside the seed range"):
@@ -66,16 +66,24 @@ def test_a_seed_is_0_to_2_pow_32_minus_1():
         check_seed(True, "federation.seed")
 
 
-def test_the_seed_range_is_what_numpy_and_torch_take():
+def test_the_seed_range_is_what_numpy_torch_and_sumo_take():
     import numpy as np
     import torch
 
+    from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.sumo.simulation import Simulation
+
     for seed in (0, SEED_MAX):
         np.random.default_rng(seed)
-        np.random.RandomState(seed)  # the legacy generator stops at 2**32 - 1
+        np.random.RandomState(seed)
         torch.Generator().manual_seed(seed)
     with pytest.raises(ValueError):
-        np.random.RandomState(SEED_MAX + 1)
+        np.random.default_rng(-1)
+    with Simulation(load_scenario("town01"), seed=SEED_MAX) as sim:  # SUMO's --seed is a C int
+        assert len(list(sim.run(0.5))) >= 1
+    with pytest.raises(CrchflError, match="could not load"):
+        with Simulation(load_scenario("town01"), seed=SEED_MAX + 1) as sim:
+            list(sim.run(0.5))
 
 
 def test_check_range_names_the_key_and_the_range():
