@@ -91,7 +91,7 @@ def parse_study(raw: dict, where: str) -> Study:
     _known(raw, PRESET_KEYS, where)
     data = raw.get("data", {})
     _known(data, DATA_KEYS, f"{where} [data]")
-    missing = sorted({"scenario", "train_samples", "test_samples"} - set(data))
+    missing = [key for key in ("scenario", "train_samples", "test_samples") if key not in data]
     if missing:
         raise CrchflError(f"{where} [data]: {missing[0]!r} is missing (scenario, train_samples, test_samples)")
     study_data = from_mapping(StudyData, data, f"{where} [data]")
