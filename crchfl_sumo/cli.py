@@ -176,8 +176,10 @@ def _add_report(p: argparse.ArgumentParser) -> None:
 
 
 def _run_report(args) -> int:
+    from crchfl_sumo.core.outputs import check_writable
     from crchfl_sumo.studies.report import format_summary, report_command
 
+    check_writable(args.dir, f"report {args.dir}")  # the figures and report.md are rewritten there
     print(format_summary(report_command(args.dir), args.dir))
     return 0
 

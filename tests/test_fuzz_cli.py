@@ -322,6 +322,8 @@ def _folder_cases(tmp: Path) -> list[Case]:
             own["unmarked-files"] = stray
         for path in own.values():
             cases.append(Case([*argv, "--out", str(path)], ("--out",)))
+    for path in (a_file, tmp / "missing", *([states["read-only"]] if "read-only" in states else [])):
+        cases.append(Case(["report", str(path)], (f"report {path}",)))  # it rewrites figures in its folder
     for command, argv in FILE_COMMANDS.items():
         argv = [subs.get(a, a) for a in argv]
         for path in (tmp, a_file / "x.png", *([states["inside-read-only"]] if "read-only" in states else [])):

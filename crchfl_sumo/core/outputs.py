@@ -148,6 +148,14 @@ def prepare_output_file(path: str | Path, flag: str = "--out") -> Path:
     return path
 
 
+def check_writable(folder: str | Path, where: str) -> None:
+    """A CrchflError naming ``where`` unless ``folder`` is a folder this process can write in."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CrchflError(f"{where}: {'is a file, not a folder' if folder.exists() else 'no such folder'}; check the path")
+    _probe_writable(folder, where)
+
+
 def _probe_writable(folder: Path, where: str) -> None:
     try:
         fd, probe = tempfile.mkstemp(prefix=f".write-probe{TMP_MARK}", dir=folder)

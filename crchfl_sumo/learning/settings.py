@@ -194,8 +194,8 @@ class TrainConfig:
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
 
     def __post_init__(self) -> None:
-        if not self.learning_rate > 0:
-            raise CrchflError(f"train.learning_rate: {self.learning_rate} must be > 0 (paper: 1e-4)")
+        if not 0 < self.learning_rate <= 10:
+            raise CrchflError(f"train.learning_rate: {self.learning_rate} must lie in (0, 10] (paper: 1e-4)")
         for key in ("beta1", "beta2"):
             if not 0 <= getattr(self, key) < 1:
                 raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")

@@ -92,6 +92,15 @@ def test_output_dir_takes_back_what_it_made_when_the_work_fails_before_writing(t
     assert (out / "trace.csv").exists() and markers(out)["simulate"]["fingerprint"] == "f"  # rerun with it
 
 
+def test_check_writable(tmp_path):
+    from crchfl_sumo.core.outputs import check_writable
+
+    check_writable(tmp_path, "report x")
+    with pytest.raises(CrchflError, match="report x: no such folder"):
+        check_writable(tmp_path / "none", "report x")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_prepare_output_file(tmp_path):
     assert prepare_output_file(tmp_path / "sub" / "fig.png") == tmp_path / "sub" / "fig.png"
     assert (tmp_path / "sub").is_dir()
