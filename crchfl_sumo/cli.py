@@ -476,8 +476,7 @@ def _add_sweep(p: argparse.ArgumentParser) -> None:
 def _run_sweep(args) -> int:
     from crchfl_sumo.studies.sweep import sweep_command
 
-    with _output_folder(args, "sweep", resumable=True):
-        rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)
+    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)  # checks --out after --param
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
     return 0

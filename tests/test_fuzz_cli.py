@@ -256,9 +256,29 @@ def _templates(tmp: Path) -> dict[str, tuple[list[str], tuple[str, ...]]]:
     }
 
 
+SWEEP_KEYS = ("federation.seed", "ledger.budget_gb", "sumo.scale", "channel.tx_power_dbm", "train.batch_size",
+              "allocation.max_edge_interval", "mobility.coverage_radius_m", "federation.deadline_s", "federation.bogus")
+SWEEP_VALUES = {  # TOML value text: refused for sure (True) or perhaps valid for some key (False)
+    "nan": True, "-inf": True, "inf": False, "1e308": False, "-1": False, "0": False, str(2**63 - 1): False,
+    '"text"': True, "true": True, "[1.0]": True, "{x = 1}": True, "[" * 40 + "]" * 40: True,
+    "[" * 3000 + "]" * 3000: True,
+}
+
+
+def _sweep_cases(tmp: Path) -> list[Case]:
+    """sweep --param values (TOML values on the command line); an --out that is a file is the sentinel."""
+    out_file = tmp / "sweep-out-is-a-file"
+    out_file.write_text("x")
+    return [
+        Case(["sweep", "crchfl", "--param", f"{key}={value}", "--out", str(out_file)], (key,),
+             () if refused or key.endswith("bogus") else ("is a file",))
+        for key in SWEEP_KEYS for value, refused in SWEEP_VALUES.items()
+    ]
+
+
 def _number_cases(tmp: Path) -> list[Case]:
     templates = _templates(tmp)
-    cases = []
+    cases = _sweep_cases(tmp)
     for command, option, _ in _numeric_actions():
         argv, sentinels = templates[command]
         for text, refused in NUMBER_VALUES.items():
@@ -278,7 +298,7 @@ FOLDER_COMMANDS = {
     "drive": (["drive", "reference", "--route", "nowhere"], False),
     "drive-bench": (["drive-bench", "reference", "--towns", "nowhere"], False),
     "run": (["run", "{missing}"], True),
-    "sweep": (["sweep", "{missing}"], True),
+    "sweep": (["sweep", "crchfl", "--param", "federation.seed=1"], True),
     "mobility-study": (["mobility-study", "--quick"], True),
     "reproduce": (["reproduce", "--quick"], True),
 }

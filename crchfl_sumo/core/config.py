@@ -32,7 +32,7 @@ T = TypeVar("T")
 
 
 MAX_DEPTH = 32  # tables and lists nested deeper than this are no config of ours
-_TOO_DEEP = f"tables or lists nest deeper than {MAX_DEPTH} levels; no setting needs that, flatten the file"
+_TOO_DEEP = f"tables or lists nest deeper than {MAX_DEPTH} levels; no setting needs that, flatten it"
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
@@ -51,13 +51,19 @@ def read_toml(path: str | Path) -> dict[str, Any]:
             f"{path}: not UTF-8 text (byte {exc.start} is {data[exc.start:exc.start + 1]!r}); save the config as UTF-8"
         ) from None
     try:
-        table = tomllib.loads(text)
+        return loads_toml(text, str(path))
     except tomllib.TOMLDecodeError as exc:
         raise CrchflError(f"{path}: malformed TOML ({exc}); fix the syntax at that line") from None
+
+
+def loads_toml(text: str, where: str) -> dict[str, Any]:
+    """``tomllib.loads`` with nesting past ``MAX_DEPTH`` a CrchflError naming ``where`` (a TOMLDecodeError passes)."""
+    try:
+        table = tomllib.loads(text)
     except RecursionError:
-        raise CrchflError(f"{path}: {_TOO_DEEP}") from None
+        raise CrchflError(f"{where}: {_TOO_DEEP}") from None
     if nesting_depth(table) > MAX_DEPTH:
-        raise CrchflError(f"{path}: {_TOO_DEEP}")
+        raise CrchflError(f"{where}: {_TOO_DEEP}")
     return table
 
 

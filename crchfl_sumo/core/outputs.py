@@ -53,7 +53,7 @@ def markers(folder: str | Path) -> dict[str, dict]:
         command = path.name[len(MARKER_PREFIX):-len(MARKER_SUFFIX)]
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             data = {}
         found[command] = data if isinstance(data, dict) else {}
     return found
