@@ -195,7 +195,8 @@ def _config_cases(tmp: Path) -> list[Case]:
                 mutated = {}
                 _set(mutated, path, VALUES[label])
                 may_pass = label in MAYBE or (label == "inf" and default == math.inf)
-                argv = [command, "nowhere", "--out", str(tmp / f"{command}-out"), "--config", str(write(mutated, label))]
+                config = str(write(mutated, label))
+                argv = [command, "nowhere", "--out", str(tmp / f"{command}-out"), "--config", config]
                 cases.append(Case(argv, (path[-1],), ("not a built-in scenario",) if may_pass else ()))
     return cases
 

@@ -152,7 +152,8 @@ def check_writable(folder: str | Path, where: str) -> None:
     """A CrchflError naming ``where`` unless ``folder`` is a folder this process can write in."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise CrchflError(f"{where}: {'is a file, not a folder' if folder.exists() else 'no such folder'}; check the path")
+        what = "is a file, not a folder" if folder.exists() else "no such folder"
+        raise CrchflError(f"{where}: {what}; check the path")
     _probe_writable(folder, where)
 
 

@@ -76,7 +76,9 @@ class MobilityConfig:
                 f"mobility.min_rx_power_dbm must be a received power in -200 .. 0 dBm, got {self.min_rx_power_dbm}"
             )
         if self.coverage_radius_m > 100e3:
-            raise CrchflError(f"mobility.coverage_radius_m must be at most 100 km (100000), got {self.coverage_radius_m}")
+            raise CrchflError(
+                f"mobility.coverage_radius_m must be at most 100 km (100000), got {self.coverage_radius_m}"
+            )
         if self.handover_margin_db > 60.0:
             raise CrchflError(f"mobility.handover_margin_db must be at most 60 dB, got {self.handover_margin_db}")
         for key in ("time_to_trigger_s", "l3_filter_s", "radio_link_failure_s"):

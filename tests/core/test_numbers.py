@@ -53,11 +53,14 @@ def test_integer_arg_takes_integers_in_range():
         factor("9" * 400)
 
 
-def test_a_seed_is_0_to_2_pow_32_minus_1():
+SEED_MESSAGE = r"outside the seed range; give an integer in 0 \.\. 2147483647"
+
+
+def test_a_seed_is_0_to_2_pow_31_minus_1():
     assert SEED_MAX == 2147483647
     assert seed_arg("0") == 0 and seed_arg("2147483647") == 2147483647
     for text in ("-1", "2147483648", str(2**64)):
-        with pytest.raises(argparse.ArgumentTypeError, match="outside the seed range; give an integer in 0 .. 2147483647"):
+        with pytest.raises(argparse.ArgumentTypeError, match=SEED_MESSAGE):
             seed_arg(text)
     assert check_seed(7, "federation.seed") == 7
     with pytest.raises(CrchflError, match="federation.seed: 18446744073709551616 is outside the seed range"):
