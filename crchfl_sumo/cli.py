@@ -12,15 +12,32 @@ import json
 import logging
 import os
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 
 from crchfl_sumo.core.cpus import choose_wait_policy
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_SIMULATED_S, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import ARCHS
+
+MAX_DRIVE_S = 3600.0  # one drive or rendered run
+MAX_JOBS = 1024  # processes at a time
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument error as a CrchflError: one line naming the subcommand and argument, exit 2 (see main)."""
+
+    def error(self, message: str):
+        command = self.prog.removeprefix("crchfl-sumo").strip()
+        if "; give " not in message:  # argparse's own messages (a missing or unknown argument) do not say the fix
+            message += f"; see `{self.prog} --help`"
+        if message.startswith("argument "):  # "argument --duration-s: ..." -> "simulate --duration-s: ..."
+            raise CrchflError(f"{command} {message.removeprefix('argument ')}".strip())
+        raise CrchflError(f"{command}: {message}" if command else message)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="crchfl-sumo",
         description="Hierarchical federated learning for end-to-end driving on SUMO.",
     )
@@ -105,6 +122,28 @@ class ProgressBars:
         self.close()
 
 
+# Arguments that change where or how fast a command runs, not what its results are.
+_NOT_SETTINGS = {"run", "command", "verbose", "out", "overwrite", "resume", "jobs", "backend", "address", "no_video"}
+
+
+def _overwrite_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into --out even if it holds earlier results (files of the same names are replaced)")
+
+
+def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=()):
+    """``with`` this around a command's work: core.outputs.output_dir checks --out (or ``out``) with its settings."""
+    from crchfl_sumo.core.outputs import fingerprint, output_dir
+
+    settings = {k: v for k, v in sorted(vars(args).items()) if k not in _NOT_SETTINGS}
+    config = getattr(args, "config", None)
+    files = [config] if config is not None and Path(config).is_file() else []
+    return output_dir(
+        args.out if out is None else out, command, fingerprint(settings, files), flag=f"{args.command} --out",
+        replace=getattr(args, "overwrite", False), resumable=resumable, beside=beside,
+    )
+
+
 def _scenario_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="built-in scenario name (town01, town02, paper, paper_linked) or a .sumocfg path")
 
@@ -115,10 +154,11 @@ def _scenario_argument(parser: argparse.ArgumentParser) -> None:
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="reduced size, about 5 minutes on 2 cores (docs/reproduce.md)")
     p.add_argument("--out", type=Path, default=None, help="results folder (default results/quick or results/full)")
-    p.add_argument("--seeds", type=int, default=None, help="seeds per scheme (default: quick 1, full 3)")
+    p.add_argument("--seeds", type=integer_arg(1, 100, "a number of seeds per scheme"), default=None,
+                   help="seeds per scheme (default: quick 1, full 3)")
     p.add_argument("--resume", action="store_true", help="finish the reproduction in --out; finished parts are kept")
     p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
-    p.add_argument("--jobs", type=int, default=1,
+    p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="parts run at a time, each in its own process (default 1; the number of cores is fastest)")
 
 
@@ -137,8 +177,10 @@ def _add_report(p: argparse.ArgumentParser) -> None:
 
 
 def _run_report(args) -> int:
+    from crchfl_sumo.core.outputs import check_writable
     from crchfl_sumo.studies.report import format_summary, report_command
 
+    check_writable(args.dir, f"report {args.dir}")  # the figures and report.md are rewritten there
     print(format_summary(report_command(args.dir), args.dir))
     return 0
 
@@ -148,9 +190,12 @@ def _run_report(args) -> int:
 
 def _add_simulate(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
-    p.add_argument("--duration-s", type=float, default=300.0, help="simulated seconds (default 300)")
+    p.add_argument("--duration-s", type=number_arg(0, MAX_SIMULATED_S, "simulated seconds", lo_open=True),
+                   default=300.0,
+                   help="simulated seconds (default 300)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=None, help="seed (overrides the config's)")
+    _overwrite_argument(p)
+    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML with seed, [[edge_sites]], [channel], [mobility] (docs/links.md)")
 
@@ -158,8 +203,9 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
 def _run_simulate(args) -> int:
     from crchfl_sumo.studies.simulate import run_simulate_command
 
-    with ProgressBars("step") as bars:
-        summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars)
+    with _output_folder(args, "simulate"):
+        with ProgressBars("step") as bars:
+            summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars)
     print(
         f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
         f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "
@@ -175,30 +221,32 @@ def _run_simulate(args) -> int:
 def _add_render(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
     p.add_argument("--vehicle", required=True, help="id of the vehicle whose cameras are drawn")
-    p.add_argument("--duration-s", type=float, default=60.0, help="simulated seconds (default 60)")
+    p.add_argument("--duration-s", type=number_arg(0, MAX_DRIVE_S, "simulated seconds", lo_open=True), default=60.0,
+                   help="simulated seconds (default 60)")
     p.add_argument("--out", type=Path, required=True, help="output folder (step_*.png, run.mp4)")
-    p.add_argument("--every-n", type=int, default=1, help="draw every n-th step (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
-    p.add_argument("--scale", type=int, default=3, help="camera tiles enlarged this many times (default 3)")
+    _overwrite_argument(p)
+    p.add_argument("--every-n", type=integer_arg(1, 100_000, "a whole number of steps"), default=1,
+                   help="draw every n-th step (default 1)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="simulation seed (default 0)")
+    p.add_argument("--scale", type=integer_arg(1, 8, "a whole factor"), default=3,
+                   help="camera tiles enlarged this many times (1 .. 8, default 3)")
 
 
 def _run_render(args) -> int:
-    from crchfl_sumo.core.errors import CrchflError
     from crchfl_sumo.sumo.scenario import load_scenario
     from crchfl_sumo.sumo.simulation import Simulation
     from crchfl_sumo.vision.mosaic import render_run
     from crchfl_sumo.vision.raster import Renderer
     from crchfl_sumo.vision.world import build_world
 
-    if args.every_n < 1:
-        raise CrchflError(f"--every-n must be >= 1, got {args.every_n}")
-    scenario = load_scenario(args.scenario)
-    renderer = Renderer(build_world(scenario.net_path))
-    with Simulation(scenario, seed=args.seed, watch=[args.vehicle]) as sim:
-        result = render_run(
-            sim.run(args.duration_s), renderer, args.vehicle, args.out, every_n=args.every_n,
-            fps=1.0 / (scenario.step_length_s * args.every_n), scale=args.scale,
-        )
+    with _output_folder(args, "render"):
+        scenario = load_scenario(args.scenario)
+        renderer = Renderer(build_world(scenario.net_path))
+        with Simulation(scenario, seed=args.seed, watch=[args.vehicle]) as sim:
+            result = render_run(
+                sim.run(args.duration_s), renderer, args.vehicle, args.out, every_n=args.every_n,
+                fps=1.0 / (scenario.step_length_s * args.every_n), scale=args.scale,
+            )
     print(f"{len(result.png_paths)} mosaics of {args.vehicle} over {result.frames_seen} steps -> {args.out}")
     return 0
 
@@ -209,7 +257,7 @@ def _run_render(args) -> int:
 def _add_dataset(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
     p.add_argument("--out", type=Path, required=True, help="data set folder (rerun the same command to resume)")
-    p.add_argument("--seed", type=int, default=None, help="seed (overrides the config's)")
+    p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML: seed, [dataset], [raster], [world], [expert] (docs/dataset.md)")
 
@@ -217,8 +265,9 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
 def _run_dataset(args) -> int:
     from crchfl_sumo.data.generation import run_dataset_command
 
-    with ProgressBars("sample") as bars:
-        manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, bars)
+    with _output_folder(args, "dataset", resumable=True):
+        with ProgressBars("sample") as bars:
+            manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, bars)
     print(
         f"{manifest.scenario}: {len(manifest.shards)} shards, {manifest.samples} samples, "
         f"{manifest.png_bytes_per_sample:.0f} PNG bytes/sample -> {args.out}"
@@ -229,13 +278,19 @@ def _run_dataset(args) -> int:
 def _add_dataset_stats(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="data set folder (with manifest.json)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
+    _overwrite_argument(p)
 
 
 def _run_dataset_stats(args) -> int:
     from crchfl_sumo.data.stats import write_dataset_stats
 
-    stats = write_dataset_stats(args.dir, args.out)
-    files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
+    if not args.dir.is_dir():
+        raise CrchflError(f"{args.dir}: no data set folder there; give the folder `crchfl-sumo dataset` wrote")
+    beside = args.out is None or args.out.resolve() == args.dir.resolve()
+    with _output_folder(args, "dataset-stats", out=args.dir if args.out is None else args.out,
+                       beside=("dataset",) if beside else ()):
+        stats = write_dataset_stats(args.dir, args.out)
+        files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
     print(f"{stats['samples']} samples; steer classes (train) {stats['train']['steer_class_counts']}; {files}")
     return 0
 
@@ -246,35 +301,35 @@ def _run_dataset_stats(args) -> int:
 def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
     p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt")
-    p.add_argument("--epochs", type=int, default=10, help="epochs over all training shards (default 10)")
+    _overwrite_argument(p)
+    p.add_argument("--epochs", type=integer_arg(1, 100_000, "a number of epochs"), default=10,
+                   help="epochs over all training shards (default 10)")
     p.add_argument("--size", choices=("compact", "paper"), default="compact", help="model size (default compact)")
     p.add_argument("--arch", choices=ARCHS, default="cil",
                    help="cil (default: normalised, one steer head per route command) or paper (the paper's network)")
-    p.add_argument("--seed", type=int, default=0, help="seed of initialisation and shuffling (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed of initialisation and shuffling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
 
 
 def _run_train(args) -> int:
-    from crchfl_sumo.core.errors import CrchflError
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.data.shards import read_manifest
     from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
     from crchfl_sumo.learning.training import train_centralized
 
-    if args.epochs < 1:
-        raise CrchflError(f"--epochs must be >= 1, got {args.epochs}")
-    train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
-    manifest = read_manifest(args.dataset)
-    model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
-    config = TrainConfig(device=args.device, deterministic=args.deterministic)
-    with ProgressBars("sample") as bars:
-        records = train_centralized(
-            train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-            camera=manifest.camera,
-        )
-    last = records[-1]
-    straight = last["always_straight"]
+    with _output_folder(args, "train"):
+        train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+        manifest = read_manifest(args.dataset)
+        model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
+        config = TrainConfig(device=args.device, deterministic=args.deterministic)
+        with ProgressBars("sample") as bars:
+            records = train_centralized(
+                train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
+                camera=manifest.camera,
+            )
+        last = records[-1]
+        straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "
         f"(always straight {straight['accuracy']:.3f}), balanced accuracy {last['balanced_accuracy']:.3f} "
@@ -292,9 +347,12 @@ def _add_drive(p: argparse.ArgumentParser) -> None:
                    help="named route (scenarios/drive_routes.toml) or edge ids separated by commas")
     p.add_argument("--scenario", default=None, help="built-in scenario or .sumocfg (named routes bring their own)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
-    p.add_argument("--max-s", type=float, default=150.0, help="simulated seconds at most (default 150)")
-    p.add_argument("--warmup-s", type=float, default=20.0, help="traffic runs this long before the ego starts (default 20)")
+    _overwrite_argument(p)
+    p.add_argument("--seed", type=seed_arg, default=0, help="simulation seed (default 0)")
+    p.add_argument("--max-s", type=number_arg(0, MAX_DRIVE_S, "simulated seconds", lo_open=True), default=150.0,
+                   help="simulated seconds at most (default 150)")
+    p.add_argument("--warmup-s", type=number_arg(0, MAX_DRIVE_S, "simulated seconds"), default=20.0,
+                   help="traffic runs this long before the ego starts (default 20)")
     p.add_argument("--no-video", action="store_true", help="skip drive.mp4")
     _decoding_arguments(p)
 
@@ -306,7 +364,7 @@ def _decoding_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steer-decoding", choices=STEER_DECODINGS, default=DEFAULT_STEER_DECODING,
                    help="a model's steer: 'argmax' (the paper's DAC: the likeliest class's value) or 'expected' "
                         f"(the class values weighted by probability); default {DEFAULT_STEER_DECODING}")
-    p.add_argument("--brake-gain", type=float, default=DEFAULT_BRAKE_GAIN,
+    p.add_argument("--brake-gain", type=number_arg(0, 100, "a gain", lo_open=True), default=DEFAULT_BRAKE_GAIN,
                    help="a target-speed model reaches a lower target in its speed horizon / this "
                         f"(1 = as the labels were made; default {DEFAULT_BRAKE_GAIN:g})")
 
@@ -315,11 +373,12 @@ def _run_drive(args) -> int:
     from crchfl_sumo.driving.drive import DriveConfig
     from crchfl_sumo.driving.drive_command import drive_command
 
-    m = drive_command(
-        None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
-        args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
-        steer_decoding=args.steer_decoding, brake_gain=args.brake_gain,
-    )
+    with _output_folder(args, "drive"):
+        m = drive_command(
+            None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
+            args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
+            steer_decoding=args.steer_decoding, brake_gain=args.brake_gain,
+        )
     print(
         f"{m['route']}: {m['end_reason']}, completion {100 * m['completion']:.0f}%, collisions {m['collisions']}, "
         f"lane departures {m['lane_departures']}, off-road {m['off_road_events']}, "
@@ -335,8 +394,10 @@ def _add_drive_compare(p: argparse.ArgumentParser) -> None:
 
 
 def _run_drive_compare(args) -> int:
+    from crchfl_sumo.core.outputs import prepare_output_file
     from crchfl_sumo.driving.plots import compare_runs
 
+    prepare_output_file(args.out, f"{args.command} --out")
     print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
     return 0
 
@@ -346,9 +407,12 @@ def _add_drive_bench(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("model", help="checkpoint.pt of a trained model, or 'reference' for the scripted route driver")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--episodes", type=int, default=5, help="episodes per task and town (default 5)")
-    p.add_argument("--jobs", type=int, default=1, help="episode groups run at a time, each in its own process (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="draws the routes, SUMO seeds and warm-ups (default 0)")
+    _overwrite_argument(p)
+    p.add_argument("--episodes", type=integer_arg(1, 10_000, "a number of episodes"), default=5,
+                   help="episodes per task and town (default 5)")
+    p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
+                   help="episode groups run at a time, each in its own process (default 1)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="draws the routes, SUMO seeds and warm-ups (default 0)")
     p.add_argument("--towns", default="town01,town02",
                    help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
     p.add_argument("--tasks", default=",".join(TASK_NAMES),
@@ -359,13 +423,14 @@ def _add_drive_bench(p: argparse.ArgumentParser) -> None:
 def _run_drive_bench(args) -> int:
     from crchfl_sumo.driving.bench import BenchConfig, results_table, run_benchmark
 
-    towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
-    tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
-    with ProgressBars("episode") as bars:
-        summary = run_benchmark(
-            args.model, args.out, args.episodes, args.jobs, args.seed, towns,
-            BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain), bars,
-        )
+    with _output_folder(args, "drive-bench"):
+        towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
+        tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+        with ProgressBars("episode") as bars:
+            summary = run_benchmark(
+                args.model, args.out, args.episodes, args.jobs, args.seed, towns,
+                BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain), bars,
+            )
     print(results_table(summary))
     print(f"{summary['wall_s']:.0f} s wall -> {args.out}")
     return 0
@@ -391,8 +456,9 @@ def _backend_arguments(p: argparse.ArgumentParser) -> None:
 def _run_run(args) -> int:
     from crchfl_sumo.federation.run import run_command
 
-    with ProgressBars("step") as bars:  # the postfix: round, GB used / budget, loss, accuracy
-        summary = run_command(args.config, args.out, args.resume, bars, args.backend, args.address)
+    with _output_folder(args, "run", resumable=True):
+        with ProgressBars("step") as bars:  # the postfix: round, GB used / budget, loss, accuracy
+            summary = run_command(args.config, args.out, args.resume, bars, args.backend, args.address)
     print(json.dumps(summary, indent=2))
     return 0
 
@@ -411,7 +477,7 @@ def _add_sweep(p: argparse.ArgumentParser) -> None:
 def _run_sweep(args) -> int:
     from crchfl_sumo.studies.sweep import sweep_command
 
-    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)
+    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)  # checks --out after --param
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
     return 0
@@ -424,7 +490,8 @@ def _add_mobility_study(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="the quick preset: within 15 minutes on 2 cores (docs/sweep.md)")
     p.add_argument("--config", type=Path, default=None, help="a study preset TOML instead of the built-in one")
     p.add_argument("--out", type=Path, required=True, help="study folder (rerun the same command to resume)")
-    p.add_argument("--jobs", type=int, default=0, help="runs at a time, each in its own process (default 0: all CPUs)")
+    p.add_argument("--jobs", type=integer_arg(0, MAX_JOBS, "a number of processes (0: all CPUs)"), default=0,
+                   help="runs at a time, each in its own process (default 0: all CPUs)")
     _backend_arguments(p)
 
 
@@ -443,15 +510,19 @@ def _run_mobility_study(args) -> int:
 def _add_calibrate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("calibration.toml"),
                    help="calibration file to write; it is a valid `plan --config` (default calibration.toml)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the pilot data, models and shuffling (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed of the pilot data, models and shuffling (default 0)")
     p.add_argument("--scenario", default="paper", help="scenario the pilot data set is generated in (default paper)")
     p.add_argument("--dataset", type=Path, default=None, help="use this data set instead of generating OUT.data/")
 
 
 def _run_calibrate(args) -> int:
+    from crchfl_sumo.core.outputs import prepare_output_file
     from crchfl_sumo.planning.calibration import calibrate_command
 
-    fit = calibrate_command(args.out, args.seed, args.scenario, args.dataset)
+    prepare_output_file(args.out, f"{args.command} --out")
+    pilot_data = args.out.with_name(args.out.name + ".data")  # generated (and reused) beside the file
+    with _output_folder(args, "dataset", out=pilot_data, resumable=True) if args.dataset is None else nullcontext():
+        fit = calibrate_command(args.out, args.seed, args.scenario, args.dataset)
     print(f"alpha {fit.alpha:.3f}  gamma {fit.gamma:.3f}  d {fit.d:.2f} -> {args.out}")
     return 0
 
@@ -460,16 +531,20 @@ def _run_calibrate(args) -> int:
 
 
 def _add_plan(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--budget-gb", type=float, default=None,
+    from crchfl_sumo.accounting.ledger import MAX_SIZE
+    from crchfl_sumo.planning.problem import MAX_INTERVAL
+
+    p.add_argument("--budget-gb", type=number_arg(0, MAX_SIZE, "a budget in GB", lo_open=True), default=None,
                    help="communication budget [GB, 1 GB = 1024**3 B]; overrides [ledger] budget_gb (default 20)")
     p.add_argument("--config", type=Path, default=None, help="TOML file; its [ledger] and [allocation] tables are read")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
-    p.add_argument("--fix-edge-interval", type=int, default=None, metavar="N",
+    p.add_argument("--fix-edge-interval", type=integer_arg(2, MAX_INTERVAL, "an edge interval"), default=None,
+                   metavar="N",
                    help="fix edge_interval (the paper's ablation: 2, 3, 4)")
     p.add_argument("--scenario", default=None,
                    help="measure the wireless rate on this scenario's mobility (its data vehicles' edge links) "
                         "instead of taking [allocation] wireless_rate_bps")
-    p.add_argument("--seed", type=int, default=0, help="SUMO and channel seed of --scenario (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="SUMO and channel seed of --scenario (default 0)")
 
 
 def _run_plan(args) -> int:
@@ -482,10 +557,10 @@ def _run_plan(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
-    choose_wait_policy()  # before any command imports torch: OpenMP reads it once
     try:
+        args = parser.parse_args(argv)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+        choose_wait_policy()  # before any command imports torch: OpenMP reads it once
         return int(args.run(args) or 0)
     except CrchflError as exc:
         print(f"crchfl-sumo: error: {exc}", file=sys.stderr)

@@ -35,6 +35,19 @@ def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):
     assert "manifest" in capsys.readouterr().err
 
 
+def test_dataset_stats_writes_beside_its_data_set_and_refuses_another_commands_folder(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    assert main(["dataset-stats", str(data)]) == 0  # the default --out: the data set folder itself
+    assert main(["dataset-stats", str(data)]) == 0  # again, the same settings
+    capsys.readouterr()
+    trained = tmp_path / "t"
+    trained.mkdir()
+    (trained / ".crchfl-sumo-train.json").write_text('{"command": "train", "fingerprint": ""}')
+    assert main(["dataset-stats", str(data), "--out", str(trained)]) == 2
+    assert "dataset-stats --out" in capsys.readouterr().err and sorted(p.name for p in trained.iterdir()) == [
+        ".crchfl-sumo-train.json"]
+
+
 def test_run_with_an_unknown_key_exits_2_naming_it(tmp_path, capsys):
     config = tmp_path / "bad.toml"
     config.write_text('scenario = "paper"\ndataset = "d"\n[federation]\nschem = "hfl"\n')
@@ -58,4 +71,4 @@ def test_console_script_exits_2_on_user_error(tmp_path):
 @pytest.mark.parametrize("argv", [["train", "x", "--out", "y", "--epochs", "0"]])
 def test_bad_numbers_exit_2(argv, capsys):
     assert main(argv) == 2
-    assert "--epochs must be >= 1" in capsys.readouterr().err
+    assert "train --epochs: 0 is out of range; give a number of epochs in 1 .. 100000" in capsys.readouterr().err

@@ -30,6 +30,7 @@ from crchfl_sumo.core.errors import CrchflError
 KIB = 1024
 MIB = 1024 * KIB
 GIB = 1024 * MIB
+MAX_SIZE = 1e9  # of nominal_model_mb, nominal_sample_kb and budget_gb: beyond it byte counts stop being exact
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,8 @@ class LedgerConfig:
             raise CrchflError(f"ledger.sample_size: {self.sample_size!r} is not one of 'nominal', 'measured'")
         for key in ("nominal_model_mb", "nominal_sample_kb", "budget_gb"):
             value = getattr(self, key)
-            if not math.isfinite(value) or value <= 0:
-                raise CrchflError(f"ledger.{key} must be a positive number, got {value!r}")
+            if not math.isfinite(value) or value <= 0 or value > MAX_SIZE:
+                raise CrchflError(f"ledger.{key} must be a number in (0, {MAX_SIZE:g}], got {value!r}")
 
 
 def resolve_sizes(

@@ -10,6 +10,7 @@ mapping back as TOML (the configs a run, a sweep or a calibration writes).
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import types
 import typing
@@ -25,20 +26,56 @@ import numpy as np
 import tomli_w
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_seed
 
 T = TypeVar("T")
 
 
+MAX_DEPTH = 32  # tables and lists nested deeper than this are no config of ours
+_TOO_DEEP = f"tables or lists nest deeper than {MAX_DEPTH} levels; no setting needs that, flatten it"
+
+
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file, turning a missing or malformed file into a CrchflError."""
+    """Read a TOML file; a missing, unreadable, non-UTF-8, malformed or absurdly nested file is a CrchflError."""
     path = Path(path)
     if not path.is_file():
         raise CrchflError(f"{path}: config file not found; check the path")
     try:
-        with path.open("rb") as handle:
-            return tomllib.load(handle)
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CrchflError(f"{path}: cannot read the config file ({exc.strerror}); check its permissions") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CrchflError(
+            f"{path}: not UTF-8 text (byte {exc.start} is {data[exc.start:exc.start + 1]!r}); save the config as UTF-8"
+        ) from None
+    try:
+        return loads_toml(text, str(path))
     except tomllib.TOMLDecodeError as exc:
         raise CrchflError(f"{path}: malformed TOML ({exc}); fix the syntax at that line") from None
+
+
+def loads_toml(text: str, where: str) -> dict[str, Any]:
+    """``tomllib.loads`` with nesting past ``MAX_DEPTH`` a CrchflError naming ``where`` (a TOMLDecodeError passes)."""
+    try:
+        table = tomllib.loads(text)
+    except RecursionError:
+        raise CrchflError(f"{where}: {_TOO_DEEP}") from None
+    if nesting_depth(table) > MAX_DEPTH:
+        raise CrchflError(f"{where}: {_TOO_DEEP}")
+    return table
+
+
+def nesting_depth(value: Any) -> int:
+    """How deep tables and lists nest in ``value`` (a scalar: 0, ``{"a": 1}``: 1); without recursion."""
+    depth, level = 0, [value]
+    while True:
+        containers = [item for item in level if isinstance(item, (Mapping, list, tuple))]
+        if not containers:
+            return depth
+        depth += 1
+        level = [v for c in containers for v in (c.values() if isinstance(c, Mapping) else c)]
 
 
 def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
@@ -46,7 +83,10 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
 
     Missing keys take the dataclass defaults. Nested dataclasses, tuples of
     dataclasses, ``Optional`` and plain scalars are supported; ints are accepted
-    where floats are expected.
+    where floats are expected. Checks every field gets, whatever its class:
+    a float is finite (``inf`` only where the default is ``inf``, i.e. "no
+    limit"; NaN never), and a field named ``seed`` or ``*_seed`` is a seed
+    (core.numbers). Physical ranges are each dataclass's own ``__post_init__``.
     """
     if not isinstance(data, Mapping):
         raise CrchflError(f"{where}: expected a table, got {type(data).__name__}")
@@ -58,13 +98,29 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
         raise CrchflError(
             f"{where}: unknown key(s) {', '.join(repr(k) for k in unknown)}; known keys are: {known}"
         )
-    values = {name: _convert(hints[name], data[name], f"{where}.{name}") for name in data}
+    values = {}
+    for name in data:
+        value = _convert(hints[name], data[name], f"{where}.{name}")
+        _check_finite(value, f"{where}.{name}", allow_inf=fields[name].default == math.inf)
+        if (name == "seed" or name.endswith("_seed")) and value is not None:
+            check_seed(value, f"{where}.{name}")
+        values[name] = value
     try:
         return cls(**values)
     except CrchflError:
         raise
     except (TypeError, ValueError) as exc:
         raise CrchflError(f"{where}: {exc}") from None
+
+
+def _check_finite(value: Any, where: str, allow_inf: bool) -> None:
+    """A CrchflError for a NaN or infinite float in ``value`` (a scalar or a list of them)."""
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_finite(item, f"{where}[{i}]", allow_inf)
+    elif isinstance(value, float) and not math.isfinite(value) and not (allow_inf and value == math.inf):
+        fix = "give a finite number or inf (no limit)" if allow_inf else "give a finite number"
+        raise CrchflError(f"{where}: {value} is not allowed; {fix}")
 
 
 def to_mapping(obj: Any) -> Any:

@@ -34,6 +34,9 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 SAMPLE_LABELS = FIELDS[1:]  # what a Samples holds besides the images, each a shard dataset of that name
 
 
+MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk
+
+
 @dataclass(frozen=True)
 class TownSplit:
     """Sample counts of one town: one entry per training vehicle and per test vehicle."""
@@ -47,8 +50,11 @@ class TownSplit:
             raise CrchflError("dataset.towns: every town needs a non-empty 'town'")
         for name in ("train_samples", "test_samples"):
             counts = getattr(self, name)
-            if any(n < 1 for n in counts):
-                raise CrchflError(f"dataset.towns.{self.town}.{name}: every count must be >= 1, got {list(counts)}")
+            if any(not 1 <= n <= MAX_SAMPLES_PER_VEHICLE for n in counts):
+                raise CrchflError(
+                    f"dataset.towns.{self.town}.{name}: every count must be in 1 .. {MAX_SAMPLES_PER_VEHICLE}, "
+                    f"got {list(counts)}"
+                )
         if not self.train_samples:
             raise CrchflError(f"dataset.towns.{self.town}.train_samples: give at least one training vehicle")
 

@@ -169,6 +169,9 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
 
 
+MAX_BATCH_SIZE = 65_536  # samples a batch: four camera images each
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Settings of local training (the paper's Table II, except the measured learning rate and balancing).
@@ -197,8 +200,8 @@ class TrainConfig:
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
 
     def __post_init__(self) -> None:
-        if not self.learning_rate > 0:
-            raise CrchflError(f"train.learning_rate: {self.learning_rate} must be > 0 (paper: 1e-4)")
+        if not 0 < self.learning_rate <= 10:
+            raise CrchflError(f"train.learning_rate: {self.learning_rate} must lie in (0, 10] (paper: 1e-4)")
         for key in ("beta1", "beta2"):
             if not 0 <= getattr(self, key) < 1:
                 raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")
@@ -206,8 +209,11 @@ class TrainConfig:
             raise CrchflError(f"train.weight_decay: {self.weight_decay} must be >= 0 (paper: 3e-3)")
         if not self.adam_eps > 0:
             raise CrchflError(f"train.adam_eps: {self.adam_eps} must be > 0")
-        if self.batch_size < 1 or self.eval_batch_size < 1:
-            raise CrchflError("train.batch_size and train.eval_batch_size must be >= 1 (paper: 32)")
+        if not (1 <= self.batch_size <= MAX_BATCH_SIZE and 1 <= self.eval_batch_size <= MAX_BATCH_SIZE):
+            raise CrchflError(
+                f"train.batch_size and train.eval_batch_size must be in 1 .. {MAX_BATCH_SIZE} (paper: 32), "
+                f"got {self.batch_size} and {self.eval_batch_size}"
+            )
         if self.device not in ("auto", "cpu", "cuda"):
             raise CrchflError(f"train.device: {self.device!r} is unknown; use 'auto', 'cpu' or 'cuda'")
         if self.multi_vehicle not in ("sequential", "vmap"):

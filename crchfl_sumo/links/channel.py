@@ -86,6 +86,21 @@ SCENARIOS: dict[str, ScenarioParams] = {
 }
 
 
+MAX_FADING_BLOCKS = 1024  # fading gains kept per vehicle and step
+# Channel settings' physical ranges (generous: any real radio lies well inside them).
+PHYSICAL_RANGES = {
+    "bandwidth_hz": (1e3, 10e9, "Hz"),
+    "tx_power_dbm": (-50.0, 60.0, "dBm"),
+    "vehicle_antenna_gain_dbi": (-30.0, 40.0, "dBi"),
+    "site_antenna_gain_dbi": (-30.0, 40.0, "dBi"),
+    "vehicle_antenna_height_m": (0.0, 100.0, "m"),
+    "noise_figure_db": (0.0, 30.0, "dB"),
+    "fading_min_speed_mps": (0.0, 200.0, "m/s"),
+    "max_bps_per_hz": (0.0, 100.0, "bit/s/Hz"),
+    "min_snr_db": (-50.0, 50.0, "dB"),
+}
+
+
 @dataclass(frozen=True)
 class ChannelConfig:
     """Radio settings of one kind of wireless link (TOML ``[channel]``).
@@ -140,10 +155,15 @@ class ChannelConfig:
             )
         if not 0 < self.efficiency <= 1:
             raise CrchflError(f"channel.efficiency must be in (0, 1], got {self.efficiency}")
-        if self.fading_max_blocks_per_step < 1:
+        if not 1 <= self.fading_max_blocks_per_step <= MAX_FADING_BLOCKS:
             raise CrchflError(
-                f"channel.fading_max_blocks_per_step must be >= 1, got {self.fading_max_blocks_per_step}"
+                f"channel.fading_max_blocks_per_step must be in 1 .. {MAX_FADING_BLOCKS} (each vehicle keeps this "
+                f"many fading gains), got {self.fading_max_blocks_per_step}"
             )
+        for key, (lo, hi, unit) in PHYSICAL_RANGES.items():  # beyond these the link budget is no radio's
+            value = getattr(self, key)
+            if not lo <= value <= hi:
+                raise CrchflError(f"channel.{key} = {value:g} is outside {lo:g} .. {hi:g} {unit}; give a radio's value")
         if self.vehicle_antenna_height_m <= ENVIRONMENT_HEIGHT_M:
             raise CrchflError(
                 f"channel.vehicle_antenna_height_m must exceed {ENVIRONMENT_HEIGHT_M} m "

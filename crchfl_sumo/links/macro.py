@@ -44,6 +44,16 @@ class MacroLinkConfig:
         for key in ("carrier_hz", "bandwidth_hz", "site_height_m", "inter_site_distance_m", "coverage_radius_m"):
             if not getattr(self, key) > 0:
                 raise CrchflError(f"sfl_link.{key} must be > 0, got {getattr(self, key)}")
+        if not 100.0 <= self.inter_site_distance_m <= 100e3:  # a grid finer than that has sites by the thousand
+            raise CrchflError(
+                f"sfl_link.inter_site_distance_m must be in 100 .. 100000 m (TR 38.901 UMa: 500), "
+                f"got {self.inter_site_distance_m}"
+            )
+        try:  # the macro side's values within the channel's and the association's ranges, checked now
+            self.channel_config(ChannelConfig())
+            self.mobility_config(MobilityConfig())
+        except CrchflError as exc:
+            raise CrchflError(f"sfl_link: {exc}") from None
 
     def channel_config(self, base: ChannelConfig) -> ChannelConfig:
         """``base`` (the vehicle side) with the macro side of this config."""

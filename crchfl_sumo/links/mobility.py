@@ -71,8 +71,19 @@ class MobilityConfig:
                 f"mobility.radio_link_failure_s must be a time >= 0 (0 = leave a weak site at once), "
                 f"got {self.radio_link_failure_s}"
             )
-        if not math.isfinite(self.min_rx_power_dbm):
-            raise CrchflError(f"mobility.min_rx_power_dbm must be a finite number, got {self.min_rx_power_dbm}")
+        if not -200.0 <= self.min_rx_power_dbm <= 0.0:
+            raise CrchflError(
+                f"mobility.min_rx_power_dbm must be a received power in -200 .. 0 dBm, got {self.min_rx_power_dbm}"
+            )
+        if self.coverage_radius_m > 100e3:
+            raise CrchflError(
+                f"mobility.coverage_radius_m must be at most 100 km (100000), got {self.coverage_radius_m}"
+            )
+        if self.handover_margin_db > 60.0:
+            raise CrchflError(f"mobility.handover_margin_db must be at most 60 dB, got {self.handover_margin_db}")
+        for key in ("time_to_trigger_s", "l3_filter_s", "radio_link_failure_s"):
+            if getattr(self, key) > 3600.0:
+                raise CrchflError(f"mobility.{key} must be at most 3600 s, got {getattr(self, key)}")
 
 
 @dataclass(frozen=True)

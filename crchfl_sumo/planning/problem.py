@@ -59,6 +59,13 @@ SCHEME = "crchfl"
 PAPER_LOCAL_SAMPLES = 2 * 2928 + 2586 + 2587 + 1555  # FACTS.md: the paper's five training sets
 
 
+# Bounds of the planning settings that size the search (a larger value only eats memory and time).
+MAX_EDGES = 1000
+MAX_VEHICLES_PER_EDGE = 10_000
+MAX_LOCAL_SAMPLES = 10**9
+MAX_INTERVAL = 100
+
+
 @dataclass(frozen=True)
 class AllocationConfig:
     """Settings of the resource optimizer (TOML table ``[allocation]``).
@@ -108,13 +115,21 @@ class AllocationConfig:
                 raise CrchflError(f"allocation.{key} must lie in [0, 1] (paper, Section IV), got {value}")
         if not math.isfinite(self.d) or self.d < 0:
             raise CrchflError(f"allocation.d must be a number >= 0, got {self.d}")
-        if not self.vehicles_per_edge or any(n < 0 for n in self.vehicles_per_edge) or sum(self.vehicles_per_edge) == 0:
+        if (not self.vehicles_per_edge or any(n < 0 for n in self.vehicles_per_edge) or sum(self.vehicles_per_edge) == 0
+                or len(self.vehicles_per_edge) > MAX_EDGES or max(self.vehicles_per_edge) > MAX_VEHICLES_PER_EDGE):
             raise CrchflError(
-                f"allocation.vehicles_per_edge must list non-negative counts with at least one vehicle, "
-                f"got {self.vehicles_per_edge}"
+                f"allocation.vehicles_per_edge must list up to {MAX_EDGES} counts in 0 .. {MAX_VEHICLES_PER_EDGE} "
+                f"with at least one vehicle, got {self.vehicles_per_edge}"
             )
-        if self.local_samples < 0:
-            raise CrchflError(f"allocation.local_samples must be >= 0, got {self.local_samples}")
+        if not 0 <= self.local_samples <= MAX_LOCAL_SAMPLES:
+            raise CrchflError(f"allocation.local_samples must be in 0 .. {MAX_LOCAL_SAMPLES}, got {self.local_samples}")
+        for key in ("max_edge_interval", "max_cloud_interval", "fix_edge_interval"):
+            value = getattr(self, key)
+            if value is not None and value > MAX_INTERVAL:
+                raise CrchflError(
+                    f"allocation.{key} must be at most {MAX_INTERVAL} (the search tries every interval up to it), "
+                    f"got {value}"
+                )
         if self.max_edge_interval < 2:
             raise CrchflError(
                 f"allocation.max_edge_interval must be >= 2 (the paper requires 0 < cloud_interval < edge_interval), "

@@ -31,6 +31,7 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, set_path
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 from crchfl_sumo.studies.sweep import Param, Point, absolute_paths, check_values, point_name, run_points, value_label
@@ -40,6 +41,7 @@ DATA_DIR = "data"
 PRESET_KEYS = {"name", "data", "run", "factor"}
 DATA_KEYS = {"scenario", "train_samples", "test_samples", "seed"}
 FACTOR_KEYS = {"name", "key", "values", "labels"}
+MAX_SAMPLES = 100_000  # per vehicle of the study's data set
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,7 @@ class StudyData:
     scenario: str
     train_samples: int
     test_samples: int
-    seed: int
+    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -89,13 +91,12 @@ def parse_study(raw: dict, where: str) -> Study:
     _known(raw, PRESET_KEYS, where)
     data = raw.get("data", {})
     _known(data, DATA_KEYS, f"{where} [data]")
-    try:
-        study_data = StudyData(str(data["scenario"]), int(data["train_samples"]), int(data["test_samples"]),
-                               int(data.get("seed", 0)))
-    except KeyError as exc:
-        raise CrchflError(f"{where} [data]: {exc.args[0]!r} is missing (scenario, train_samples, test_samples)") from None
-    if study_data.train_samples < 1 or study_data.test_samples < 1:
-        raise CrchflError(f"{where} [data]: train_samples and test_samples must be >= 1")
+    missing = [key for key in ("scenario", "train_samples", "test_samples") if key not in data]
+    if missing:
+        raise CrchflError(f"{where} [data]: {missing[0]!r} is missing (scenario, train_samples, test_samples)")
+    study_data = from_mapping(StudyData, data, f"{where} [data]")
+    if not (1 <= study_data.train_samples <= MAX_SAMPLES and 1 <= study_data.test_samples <= MAX_SAMPLES):
+        raise CrchflError(f"{where} [data]: train_samples and test_samples must be in 1 .. {MAX_SAMPLES}")
     base = raw.get("run")
     if not isinstance(base, dict):
         raise CrchflError(f"{where}: a [run] table (the baseline run config) is missing")
@@ -189,7 +190,7 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
     out_dir = Path(out_dir)
     base = {**study.base, "dataset": str((out_dir / DATA_DIR).resolve())}
     plan = study_plan(base, study.factors, where)  # checked before anything is generated or run
-    out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_output_dir(out_dir, "mobility-study", flag="mobility-study --out", resumable=True)
     atomic_write_text(
         out_dir / "study.json",
         json.dumps(

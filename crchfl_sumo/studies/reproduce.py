@@ -32,6 +32,7 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.studies.reproduce_plan import (
     CENTRALIZED,
@@ -136,6 +137,7 @@ def reproduce_command(
     preset = "quick" if quick else "full"
     config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
     out_dir = Path(out_dir) if out_dir is not None else Path("results") / config.name
+    prepare_output_dir(out_dir, "reproduce", flag="reproduce --out", resumable=True)
     return out_dir, reproduce(config, out_dir, resume, progress, jobs)
 
 

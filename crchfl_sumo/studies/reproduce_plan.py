@@ -11,6 +11,7 @@ from typing import Any, Mapping
 
 from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import SEED_MAX
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
@@ -74,10 +75,16 @@ class ReproduceConfig:
     run: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.seeds < 1:
-            raise CrchflError(f"reproduce.seeds: {self.seeds} must be >= 1")
-        if self.first_seed < 0:
-            raise CrchflError(f"reproduce.first_seed: {self.first_seed} must be >= 0")
+        if not 1 <= self.seeds <= 100:
+            raise CrchflError(f"reproduce.seeds: {self.seeds} must be in 1 .. 100 (runs per scheme)")
+        if not 0 <= self.ablation_seeds <= 100:
+            raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be in 0 .. 100")
+        last = self.first_seed + max(self.seeds, self.ablation_seeds) - 1
+        if self.first_seed < 0 or last > SEED_MAX:
+            raise CrchflError(
+                f"reproduce.first_seed: {self.first_seed} makes seeds {self.first_seed} .. {last}; "
+                f"seeds are integers in 0 .. {SEED_MAX} (2**31 - 1)"
+            )
         unknown = sorted(set(self.schemes) - set(SCHEMES))
         if unknown or not self.schemes or len(set(self.schemes)) != len(self.schemes):
             raise CrchflError(
@@ -88,12 +95,12 @@ class ReproduceConfig:
                 f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be >= 2 "
                 "(the paper requires 0 < cloud_interval < edge_interval)"
             )
-        if self.ablation_seeds < 0:
-            raise CrchflError(f"reproduce.ablation_seeds: {self.ablation_seeds} must be >= 0")
         if self.centralized_epochs < 0:
             raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
-        if self.bench_episodes < 0:
-            raise CrchflError(f"reproduce.bench_episodes: {self.bench_episodes} must be >= 0 (0 = no benchmark)")
+        if not 0 <= self.bench_episodes <= 10_000:
+            raise CrchflError(
+                f"reproduce.bench_episodes: {self.bench_episodes} must be in 0 .. 10000 (0 = no benchmark)"
+            )
         if self.bench_episodes and (not self.bench_towns or not self.bench_tasks):
             raise CrchflError("reproduce.bench_towns / bench_tasks: name at least one of each, or set bench_episodes = 0")
         for task in self.bench_tasks:

@@ -24,8 +24,8 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.numbers import MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
@@ -224,8 +224,7 @@ def run_simulate_command(
     progress: Progress | None = None,
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary."""
-    if duration_s < 0:
-        raise CrchflError(f"--duration-s must be >= 0, got {duration_s}")
+    check_range(duration_s, "simulate --duration-s", 0.0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
     cfg = load_simulate_config(config_path, seed)
     scenario = load_scenario(scenario_name, cfg.edge_sites, cfg.mobility.coverage_radius_m)
     trace = simulate(scenario, duration_s, cfg, progress=progress)

@@ -45,8 +45,9 @@ from typing import Any
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
-from crchfl_sumo.core.config import from_mapping, read_toml, set_path, toml_text
+from crchfl_sumo.core.config import from_mapping, loads_toml, read_toml, set_path, toml_text
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,
@@ -116,7 +117,7 @@ def parse_param(text: str) -> Param:
     parts = split_values(values)
     if not parts:
         raise CrchflError(f"--param {text!r}: no values after '='")
-    parsed = tuple(parse_value(part) for part in parts)
+    parsed = tuple(parse_value(part, f"--param {path}") for part in parts)
     if len({json.dumps(v, sort_keys=True) for v in parsed}) != len(parsed):
         raise CrchflError(f"--param {text!r}: a value is given twice")
     return Param(path, parsed)
@@ -143,9 +144,9 @@ def split_values(text: str) -> list[str]:
     return [p for p in parts if p]
 
 
-def parse_value(text: str) -> Any:
+def parse_value(text: str, where: str = "--param") -> Any:
     try:
-        return tomllib.loads(f"v = {text}")["v"]
+        return loads_toml(f"v = {text}", where)["v"]
     except tomllib.TOMLDecodeError:
         return text  # a bare word: hfl, sumo ...
 
@@ -259,8 +260,8 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
     base = {k: v for k, v in base.items() if k != "backend"}
     points = [
         dataclasses.replace(p, mapping=absolute_paths(p.mapping)) for p in expand_grid(base, params, where)
-    ]
-    out_dir.mkdir(parents=True, exist_ok=True)
+    ]  # every point checked before the folder is touched
+    prepare_output_dir(out_dir, "sweep", flag="sweep --out", resumable=True)
     atomic_write_text(
         out_dir / "sweep.json",
         json.dumps(

@@ -108,6 +108,9 @@ class Scenario:
         return names.astype(str)
 
 
+MAX_DEMAND_SCALE = 100.0  # SUMO inserts this many times the scenario's vehicles at most
+
+
 @dataclass(frozen=True)
 class SumoConfig:
     """How a run's SUMO differs from its scenario's own (TOML ``[sumo]``): the mobility study's knobs.
@@ -131,8 +134,10 @@ class SumoConfig:
     edge_site_count: int = 0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.scale) and self.scale > 0):
-            raise CrchflError(f"sumo.scale: {self.scale} must be a number > 0 (1 = the scenario's traffic)")
+        if not (math.isfinite(self.scale) and 0 < self.scale <= MAX_DEMAND_SCALE):
+            raise CrchflError(
+                f"sumo.scale: {self.scale} must be a number in (0, {MAX_DEMAND_SCALE:g}] (1 = the scenario's traffic)"
+            )
         if not self.speed_limit_mps > 0:
             raise CrchflError(f"sumo.speed_limit_mps: {self.speed_limit_mps} must be > 0 (inf = no cap)")
         if self.edge_site_count < 0:

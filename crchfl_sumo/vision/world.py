@@ -48,6 +48,9 @@ YELLOW_RGB = (230, 190, 40)
 EDGE_LINE_INSET_M = 0.25
 
 
+MAX_TEXTURE_MPX = 4000.0  # a texture of this many million pixels, at several levels, takes tens of GB
+
+
 @dataclass(frozen=True)
 class WorldConfig:
     """How the static world is painted.
@@ -92,6 +95,11 @@ class WorldConfig:
         for name in ("marking_width_m", "stop_line_width_m", "dash_length_m", "dash_gap_m", "max_texture_mpx"):
             if getattr(self, name) <= 0.0:
                 raise CrchflError(f"world.{name}: {getattr(self, name)} must be > 0")
+        if self.max_texture_mpx > MAX_TEXTURE_MPX:
+            raise CrchflError(
+                f"world.max_texture_mpx: {self.max_texture_mpx} is over {MAX_TEXTURE_MPX:g} million pixels, "
+                "more than a machine's memory holds; 400 is the default"
+            )
 
 
 @dataclass(frozen=True)

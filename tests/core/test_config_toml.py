@@ -41,3 +41,49 @@ def test_numpy_scalars_and_tuples_are_written_as_plain_values():
     assert math.isnan(tomllib.loads(toml_text({"x": np.float32("nan")}))["x"])
     with pytest.raises(CrchflError, match="cannot write"):
         toml_text({"x": object()})
+
+
+# --- reading: every bad file a CrchflError naming it (issue 18) ---------------------------------
+
+
+def test_read_toml_refuses_non_utf8_bytes_and_deep_nesting(tmp_path):
+    from crchfl_sumo.core.config import MAX_DEPTH, nesting_depth, read_toml
+
+    path = tmp_path / "c.toml"
+    path.write_bytes(b"seed = 1\n# caf\xe9\n")
+    with pytest.raises(CrchflError, match=r"c.toml: not UTF-8 text \(byte 14 is b'\\xe9'\); save the config as UTF-8"):
+        read_toml(path)
+    for depth in (MAX_DEPTH + 1, 5000):  # over the limit; and deeper than Python's parser recursion
+        path.write_text("a = " + "[" * depth + "]" * depth + "\n")
+        with pytest.raises(CrchflError, match="nest deeper than 32 levels"):
+            read_toml(path)
+    path.write_text("a = " + "[" * (MAX_DEPTH - 1) + "]" * (MAX_DEPTH - 1) + "\n")  # the table and 31 lists: 32
+    assert nesting_depth(read_toml(path)) == MAX_DEPTH
+    assert nesting_depth(1) == 0 and nesting_depth({"a": 1}) == 1 and nesting_depth({"a": [{"b": []}]}) == 4
+
+
+def test_from_mapping_refuses_non_finite_floats_and_bad_seeds_for_every_field():
+    from dataclasses import dataclass
+
+    from crchfl_sumo.core.config import from_mapping
+
+    @dataclass(frozen=True)
+    class Demo:
+        rate_bps: float = 1.0
+        deadline_s: float = math.inf
+        sizes: tuple[float, ...] = (1.0,)
+        seed: int = 0
+        drive_seed: int = 0
+
+    assert from_mapping(Demo, {"deadline_s": math.inf}).deadline_s == math.inf  # inf: the default's "no limit"
+    for data, message in [
+        ({"rate_bps": math.nan}, "demo.rate_bps: nan is not allowed; give a finite number"),
+        ({"rate_bps": math.inf}, "demo.rate_bps: inf is not allowed; give a finite number"),
+        ({"deadline_s": -math.inf}, r"demo.deadline_s: -inf is not allowed; give a finite number or inf \(no limit\)"),
+        ({"deadline_s": math.nan}, "demo.deadline_s: nan is not allowed"),
+        ({"sizes": [1.0, math.nan]}, r"demo.sizes\[1\]: nan is not allowed"),
+        ({"seed": -1}, "demo.seed: -1 is outside the seed range"),
+        ({"drive_seed": 2**64}, "demo.drive_seed: 18446744073709551616 is outside the seed range"),
+    ]:
+        with pytest.raises(CrchflError, match=message):
+            from_mapping(Demo, data, "demo")

@@ -67,6 +67,18 @@ def test_simulate_command_writes_consistent_outputs(tmp_path):
     assert (again / "trace.csv").read_text() == (out / "trace.csv").read_text()
 
 
+def test_simulate_refuses_to_overwrite_other_settings_unless_told(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["simulate", "town02", "--duration-s", "2", "--out", str(out), "--seed", "3"]) == 0
+    first = (out / "trace.csv").read_text()
+    assert main(["simulate", "town02", "--duration-s", "2", "--out", str(out), "--seed", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "simulate --out" in err and "with other settings" in err and "--overwrite" in err
+    assert (out / "trace.csv").read_text() == first  # nothing lost
+    assert main(["simulate", "town02", "--duration-s", "2", "--out", str(out), "--seed", "3"]) == 0  # a rerun
+    assert main(["simulate", "town02", "--duration-s", "2", "--out", str(out), "--seed", "4", "--overwrite"]) == 0
+
+
 @pytest.mark.parametrize(
     "config, message",
     [
@@ -92,7 +104,7 @@ def test_missing_config_and_negative_duration_exit_2(tmp_path, capsys):
     assert main(["simulate", "town01", "--out", str(tmp_path / "o"), "--config", str(tmp_path / "none.toml")]) == 2
     assert "config file not found" in capsys.readouterr().err
     assert main(["simulate", "town01", "--duration-s", "-1", "--out", str(tmp_path / "o")]) == 2
-    assert "--duration-s must be >= 0" in capsys.readouterr().err
+    assert "simulate --duration-s: -1 is out of range; give simulated seconds in (0, 86400]" in capsys.readouterr().err
 
 
 def test_plan_json_has_the_four_hyper_parameters(capsys):

@@ -1,0 +1,103 @@
+"""Numbers a user gives, checked where they enter: finite, within a range, a usable seed.
+
+Two kinds of entry use these: the command line (``number_arg``, ``integer_arg``,
+``seed_arg`` are argparse ``type=`` functions; cli.py prints their message as
+``simulate --duration-s: nan is not a finite number; give ...``) and config
+files (``check_seed``, ``check_range``; core.config refuses non-finite floats
+for every field by itself).
+
+A seed is an integer in 0 .. 2**31 - 1: what numpy's and torch's generators
+and SUMO's --seed (a C int: 2**31 is "not a valid integer") all accept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+from crchfl_sumo.core.errors import CrchflError
+
+SEED_MAX = 2**31 - 1
+SEED_RANGE = f"an integer in 0 .. {SEED_MAX} (2**31 - 1)"
+MAX_SIMULATED_S = 86400.0  # a command simulates at most one day (its trace fills memory step by step)
+
+
+def range_text(lo: float, hi: float, lo_open: bool = False) -> str:
+    """``(0, 86400]``-style text of a range; ``lo_open`` excludes ``lo``."""
+    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+
+
+def in_range(value: float, lo: float, hi: float, lo_open: bool = False) -> bool:
+    return (lo < value if lo_open else lo <= value) and value <= hi
+
+
+def check_seed(value: object, where: str) -> int:
+    """``value`` if it is a seed (0 .. 2**31 - 1); a CrchflError naming ``where`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise CrchflError(f"{where}: {value!r} is not a seed; give {SEED_RANGE}")
+    if not 0 <= value <= SEED_MAX:
+        raise CrchflError(f"{where}: {value} is outside the seed range; give {SEED_RANGE}")
+    return value
+
+
+def check_range(value: float, where: str, lo: float, hi: float, what: str, lo_open: bool = False) -> float:
+    """``value`` if it is finite and in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); a CrchflError otherwise.
+
+    ``what`` names the unit in the message: "give {what} in [lo, hi]".
+    """
+    if not math.isfinite(value):
+        raise CrchflError(f"{where}: {value} is not a finite number; give {what} in {range_text(lo, hi, lo_open)}")
+    if not in_range(value, lo, hi, lo_open):
+        raise CrchflError(f"{where}: {value:g} is out of range; give {what} in {range_text(lo, hi, lo_open)}")
+    return value
+
+
+# --- argparse type= functions ---------------------------------------------------------------------
+
+
+def number_arg(lo: float, hi: float, what: str, lo_open: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite float in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); ``what`` names the unit."""
+    wanted = f"{what} in {range_text(lo, hi, lo_open)}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number; give {wanted}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text} is not a finite number; give {wanted}")
+        if not in_range(value, lo, hi, lo_open):
+            raise argparse.ArgumentTypeError(f"{text} is out of range; give {wanted}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def integer_arg(lo: int, hi: int, what: str) -> Callable[[str], int]:
+    """argparse type: an integer in ``[lo, hi]``; ``what`` as in "give {what} in 1 .. 10"."""
+    wanted = f"{what} in {lo} .. {hi}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give {wanted}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{text} is out of range; give {wanted}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def seed_arg(text: str) -> int:
+    """argparse type: a seed, 0 .. 2**31 - 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed; give {SEED_RANGE}") from None
+    if not 0 <= value <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"{text} is outside the seed range; give {SEED_RANGE}")
+    return value
