@@ -177,7 +177,7 @@ def test_an_unreadable_manifest_is_refused(tmp_path, text, message):
         ({"camera": {"raster": 3}}, r"manifest\.json: camera\.raster: expected a table"),
         ({"shards": "a.h5"}, "shards: expected a list"),
         ({"shards": [{"file": "a.h5"}]}, "shards"),
-        ({"sample_period_s": float("nan")}, "sample_period_s is nan, not a time > 0"),
+        ({"sample_period_s": float("nan")}, r"manifest\.sample_period_s: nan is not allowed; give a finite number"),
         ({"sample_period_s": 0}, "sample_period_s is 0.0, not a time > 0"),
         ({"labels": {"expert": 5}}, r"labels\.expert: expected a table"),
         ({"labels": {"expert": {"speed_horizon_s": "1"}}}, r"labels\.expert\.speed_horizon_s: expected a number"),
@@ -197,7 +197,8 @@ def test_manifest_values_are_checked(data, change, message):
     [
         ({"samples": -1}, "needs samples >= 0"),
         ({"sha256": "abc"}, "64 hex digits"),
-        ({"png_bytes_per_sample": float("nan")}, "png_bytes_per_sample >= 0"),
+        ({"png_bytes_per_sample": float("nan")}, r"shards\[0\]\.png_bytes_per_sample: nan is not allowed"),
+        ({"png_bytes_per_sample": -1.0}, "png_bytes_per_sample >= 0"),
         ({"split": "val"}, "split 'val'"),
         ({"file": "a/b.h5"}, "not a plain"),
         ({"file": ".hidden.h5"}, "not a plain"),

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 import crchfl_sumo
@@ -45,7 +46,12 @@ run_federation_dir(config, inputs, Path(sys.argv[2]), trainer=SumTrainer(), resu
 """
 
 
-def test_a_run_killed_anywhere_and_resumed_ends_with_the_uninterrupted_files(tmp_path):
+# One kill series in the suite; CRCHFL_KILL_SERIES=20 runs twenty, each with its own kill moments (#18's 20/20).
+SERIES = range(18, 18 + int(os.environ.get("CRCHFL_KILL_SERIES", "1")))
+
+
+@pytest.mark.parametrize("series", SERIES)
+def test_a_run_killed_anywhere_and_resumed_ends_with_the_uninterrupted_files(tmp_path, series):
     dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES)
     mapping = run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=6)  # 13 steps
     (tmp_path / "run.toml").write_text(toml_text(mapping))
@@ -58,7 +64,7 @@ def test_a_run_killed_anywhere_and_resumed_ends_with_the_uninterrupted_files(tmp
 
     repo = Path(crchfl_sumo.__file__).parent.parent
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), str(repo / "tests")]), "OMP_NUM_THREADS": "1"}
-    rng = np.random.default_rng(18)
+    rng = np.random.default_rng(series)
     out = tmp_path / "killed"
     kills, finished = 0, False
     for _ in range(12):
