@@ -379,12 +379,12 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     parts.append(("loop (transfers, ledger)", loop, "the rest: transfers over the series, ledger, bookkeeping"))
     for name, seconds, note in parts:
         print(f"   {name:26s} {seconds:7.2f} s  {100 * seconds / total:5.1f} %  {note}")
-    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs  loop  peak MiB")
+    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs [ms]  loop  peak MiB")
     for k, (wall, part, rss) in enumerate(zip(fed["step_s"], fed["step_parts"], fed["step_rss_mib"]), start=1):
         known = ("local training", "clock (all)", "FedAvg", "evaluation", "checkpoint + outputs")
         print(f"                 {k:4d} {wall:6.2f} {part.get('local training', 0):9.2f} "
               f"{part.get('clock (all)', 0):6.2f} "
-              f"{part.get('FedAvg', 0) + part.get('evaluation', 0):12.2f} {part.get('checkpoint + outputs', 0):19.2f} "
+              f"{part.get('FedAvg', 0) + part.get('evaluation', 0):12.2f} {1e3 * part.get('checkpoint + outputs', 0):24.1f} "
               f"{wall - sum(part.get(x, 0) for x in known):5.2f} {rss:9.0f}")
 
     ledger = ledger_figures(out_dir, inputs.vehicles)
