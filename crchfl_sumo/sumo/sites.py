@@ -13,6 +13,10 @@ import numpy as np
 from crchfl_sumo.core.errors import CrchflError
 
 
+MAX_COORDINATE_M = 1e7  # SUMO networks are in local metres; even UTM northings stay below this
+MAX_HEIGHT_M = 1000.0  # above the tallest masts
+
+
 @dataclass(frozen=True)
 class EdgeSite:
     """One edge server's antenna: name, position [m] in the network frame, height [m]."""
@@ -25,8 +29,24 @@ class EdgeSite:
     def __post_init__(self) -> None:
         if not self.name:
             raise CrchflError("edge_sites: every site needs a non-empty 'name'")
-        if self.height_m <= 0:
-            raise CrchflError(f"edge_sites.{self.name}.height_m must be > 0, got {self.height_m}")
+        for key in ("x_m", "y_m"):
+            if not abs(_as_float(getattr(self, key))) <= MAX_COORDINATE_M:  # NaN fails too
+                raise CrchflError(
+                    f"edge_sites.{self.name}.{key}: {getattr(self, key)!r} is not a position in a road network's "
+                    f"frame; give metres within +-{MAX_COORDINATE_M:g} (the network's own coordinates)"
+                )
+        if not 0 < _as_float(self.height_m) <= MAX_HEIGHT_M:
+            raise CrchflError(
+                f"edge_sites.{self.name}.height_m must be > 0 and at most {MAX_HEIGHT_M:g} m, got {self.height_m!r}"
+            )
+
+
+def _as_float(value) -> float:
+    """``value`` as a float; NaN when it is not a number (every range check then fails)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def place_edge_sites(

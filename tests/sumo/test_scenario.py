@@ -127,3 +127,18 @@ def test_a_folder_laid_out_as_a_builtin_scenario_loads_with_its_towns_and_sites(
     assert mine.name == "my_town"
     assert mine.towns == builtin.towns and mine.edge_sites == builtin.edge_sites
     assert mine.net_path.parent == folder.resolve() and mine.net_path.name == builtin.net_path.name
+
+
+@pytest.mark.parametrize(
+    ("site", "message"),
+    [
+        (dict(name="a", x_m=1e308, y_m=0.0), r"edge_sites\.a\.x_m: 1e\+308 is not a position"),
+        (dict(name="a", x_m=0.0, y_m=float("nan")), r"edge_sites\.a\.y_m: nan is not a position"),
+        (dict(name="a", x_m=0.0, y_m=0.0, height_m=1e6), r"height_m must be > 0 and at most 1000 m"),
+        (dict(name="a", x_m=0.0, y_m=0.0, height_m=0.0), r"height_m must be > 0"),
+    ],
+)
+def test_edge_sites_out_of_any_network_are_refused(site, message):
+    with pytest.raises(CrchflError, match=message):
+        EdgeSite(**site)
+    assert EdgeSite("a", -9.9e6, 5e6, 999.0).x_m == -9.9e6  # the edges of the range still pass
