@@ -35,7 +35,7 @@ import h5py
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
-from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.config import MAX_DEPTH, from_mapping, nesting_depth
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
@@ -211,6 +211,8 @@ class Manifest:
             raise CrchflError(f"{where}: not valid JSON ({exc}); {fix}") from None
         except RecursionError:
             raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}") from None
+        if nesting_depth(data) > MAX_DEPTH:  # the limit configs have (core.config), before anything walks it
+            raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}")
         if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
             raise CrchflError(f"{where}: not a crchfl-sumo data set manifest")
         if data.get("version") != FORMAT_VERSION:
@@ -218,13 +220,10 @@ class Manifest:
                 f"{where}: format version {data.get('version')}, this code reads {FORMAT_VERSION}; regenerate the data set"
             )
         known = {f.name for f in dataclasses.fields(Manifest)}
-        try:
-            missing = sorted(known - set(data))
-            if missing:
-                raise CrchflError(f"{where}: malformed manifest (no {', '.join(missing)}); regenerate the data set")
-            manifest = from_mapping(Manifest, {k: v for k, v in data.items() if k in known}, f"{where}: manifest")
-        except RecursionError:
-            raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}") from None
+        missing = sorted(known - set(data))
+        if missing:
+            raise CrchflError(f"{where}: malformed manifest (no {', '.join(missing)}); regenerate the data set")
+        manifest = from_mapping(Manifest, {k: v for k, v in data.items() if k in known}, f"{where}: manifest")
         _check_manifest(manifest, where)
         return manifest
 
