@@ -17,11 +17,8 @@ from pathlib import Path
 
 from crchfl_sumo.core.cpus import choose_wait_policy
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_SIMULATED_S, integer_arg, number_arg, seed_arg
+from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, MAX_JOBS, MAX_SIMULATED_S, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import ARCHS
-
-MAX_DRIVE_S = 3600.0  # one drive or rendered run
-MAX_JOBS = 1024  # processes at a time
 
 
 class _Parser(argparse.ArgumentParser):
@@ -302,7 +299,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
     p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt")
     _overwrite_argument(p)
-    p.add_argument("--epochs", type=integer_arg(1, 100_000, "a number of epochs"), default=10,
+    p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=10,
                    help="epochs over all training shards (default 10)")
     p.add_argument("--size", choices=("compact", "paper"), default="compact", help="model size (default compact)")
     p.add_argument("--arch", choices=ARCHS, default="cil",

@@ -31,11 +31,16 @@ from typing import Any, Callable, Literal, Sequence
 
 from crchfl_sumo.core.cpus import available_cpus
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_JOBS, check_range
 
 log = logging.getLogger(__name__)
 
 OnResult = Callable[[int, Any], None]  # (index of the call, its result)
 INSTALL_HINT = "--backend ray needs Ray: pip install 'crchfl-sumo[ray]'"
+
+
+MAX_RETRIES = 100  # a task whose worker dies this often is broken, not unlucky
+MAX_TASK_S = 7 * 86400.0  # the longest wait for one task [wall-clock s]: a week, longer than any task of ours
 
 
 @dataclass(frozen=True)
@@ -64,12 +69,9 @@ class BackendConfig:
             raise CrchflError(f"backend.kind: {self.kind!r} is not one of 'local', 'ray'")
         if self.address and self.kind != "ray":
             raise CrchflError(f"backend.address: {self.address!r} joins a Ray cluster; set backend.kind = \"ray\"")
-        if self.num_cpus < 0:
-            raise CrchflError(f"backend.num_cpus: {self.num_cpus} must be >= 0 (0 = all CPUs)")
-        if self.max_retries < 0:
-            raise CrchflError(f"backend.max_retries: {self.max_retries} must be >= 0")
-        if not self.task_timeout_s > 0:
-            raise CrchflError(f"backend.task_timeout_s: {self.task_timeout_s} must be > 0 (inf = wait for ever)")
+        check_range(self.num_cpus, "backend.num_cpus", 0, MAX_JOBS, "a number of CPUs (0 = all)")
+        check_range(self.max_retries, "backend.max_retries", 0, MAX_RETRIES, "a number of retries")
+        check_range(self.task_timeout_s, "backend.task_timeout_s", 0, MAX_TASK_S, "seconds", lo_open=True)
 
     @property
     def workers(self) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import sys
 import types
 import typing
@@ -107,10 +108,24 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
         values[name] = value
     try:
         return cls(**values)
-    except CrchflError:
-        raise
-    except (TypeError, ValueError) as exc:
-        raise CrchflError(f"{where}: {exc}") from None
+    except (CrchflError, TypeError, ValueError) as exc:  # the dataclass's own checks (__post_init__)
+        raise CrchflError(_located(str(exc), where)) from None
+
+
+def _located(message: str, where: str) -> str:
+    """``message`` of a dataclass's own check, led by ``where`` (the file and table) unless it names it already.
+
+    A check names its key by the dataclass's table ("federation.deadline_s: ...");
+    where ``where`` ends in that table ("run.toml.federation"), the two are joined
+    ("run.toml.federation.deadline_s: ..."), else ``where`` leads ("run.toml: ...").
+    """
+    if message.startswith(where):
+        return message
+    table = re.match(r"[A-Za-z_]\w*(?=[.:\s])", message)
+    head = where[: len(where) - len(table.group())] if table else ""
+    if table and where.endswith(table.group()) and message[table.end()] in ".:" and not head[-1:].isalnum():
+        return head + message
+    return f"{where}: {message}"
 
 
 def _check_finite(value: Any, where: str, allow_inf: bool) -> None:

@@ -8,12 +8,16 @@ for every field by itself).
 
 A seed is an integer in 0 .. 2**31 - 1: what numpy's and torch's generators
 and SUMO's --seed (a C int: 2**31 is "not a valid integer") all accept.
+
+The ``MAX_*`` bounds below are shared by several modules' settings and
+arguments (each says why); a bound only one module needs stays in that module.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import numbers
 from typing import Callable
 
 from crchfl_sumo.core.errors import CrchflError
@@ -21,6 +25,12 @@ from crchfl_sumo.core.errors import CrchflError
 SEED_MAX = 2**31 - 1
 SEED_RANGE = f"an integer in 0 .. {SEED_MAX} (2**31 - 1)"
 MAX_SIMULATED_S = 86400.0  # a command simulates at most one day (its trace fills memory step by step)
+MAX_DRIVE_S = 3600.0  # one drive or rendered run: an hour of simulated driving
+MAX_SAMPLE_S = 3600.0  # compute time of one sample [s]: an hour (paper: 0.04 s); a shard's epoch would take months
+MAX_EPOCHS = 100_000  # epochs of a training, and a federation's intervals and rounds: more runs for days at any size
+MAX_SAMPLES = 10**9  # samples of a whole data set: a billion 98 KB samples fill 98 TB
+MAX_RATE_BPS = 1e12  # a link's rate [bit/s]: 1 Tbit/s, above any radio or fibre link in service (800 Gbit/s)
+MAX_JOBS = 1024  # processes at a time: more than any machine's cores
 
 
 def range_text(lo: float, hi: float, lo_open: bool = False) -> str:
@@ -41,11 +51,18 @@ def check_seed(value: object, where: str) -> int:
     return value
 
 
-def check_range(value: float, where: str, lo: float, hi: float, what: str, lo_open: bool = False) -> float:
+def check_range(
+    value: float, where: str, lo: float, hi: float, what: str, lo_open: bool = False, inf_ok: bool = False
+) -> float:
     """``value`` if it is finite and in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); a CrchflError otherwise.
 
-    ``what`` names the unit in the message: "give {what} in [lo, hi]".
+    ``what`` names the unit in the message: "give {what} in [lo, hi]". ``inf_ok``:
+    ``inf`` passes too (a setting whose inf means "no limit"; say so in ``what``).
     """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise CrchflError(f"{where}: {value!r} is not a number; give {what} in {range_text(lo, hi, lo_open)}")
+    if inf_ok and value == math.inf:
+        return value
     if not math.isfinite(value):
         raise CrchflError(f"{where}: {value} is not a finite number; give {what} in {range_text(lo, hi, lo_open)}")
     if not in_range(value, lo, hi, lo_open):

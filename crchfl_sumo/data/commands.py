@@ -24,12 +24,14 @@ from typing import Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.labels import FOLLOW, LEFT, RIGHT, STRAIGHT
 from crchfl_sumo.sumo.route import RouteGeometry
 from crchfl_sumo.sumo.turns import Junction, arc_length_m, junction_passages, next_passage
 
 # A pass through a junction ends at most this far beyond its entry (T-junctions: 12-22 m of path).
 MAX_PASSAGE_M = 40.0
+MAX_LOOKAHEAD_M = 1000.0
 
 
 @dataclass(frozen=True)
@@ -48,8 +50,8 @@ class CommandConfig:
     straight_within_deg: float = 45.0
 
     def __post_init__(self) -> None:
-        if not self.lookahead_m >= 0:
-            raise CrchflError(f"command.lookahead_m must be >= 0, got {self.lookahead_m}")
+        # a junction farther ahead than a kilometre is no "next junction" (the paper's 25 m)
+        check_range(self.lookahead_m, "command.lookahead_m", 0, MAX_LOOKAHEAD_M, "metres")
         if not 0 < self.straight_within_deg < 90:
             raise CrchflError(f"command.straight_within_deg must lie in (0, 90), got {self.straight_within_deg}")
 

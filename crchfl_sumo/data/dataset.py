@@ -19,7 +19,9 @@ import numpy as np
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.samples import FIELDS, Samples
+from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, MAX_SAMPLES_PER_VEHICLE
 from crchfl_sumo.data.shards import (
     LABEL_DATASETS,
     LABEL_SHAPES,
@@ -34,7 +36,6 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 SAMPLE_LABELS = FIELDS[1:]  # what a Samples holds besides the images, each a shard dataset of that name
 
 
-MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk
 
 
 @dataclass(frozen=True)
@@ -100,8 +101,8 @@ class DatasetConfig:
             )
         if not 0 <= self.recovery_yaw_deg <= 45:
             raise CrchflError(f"dataset.recovery_yaw_deg must lie in [0, 45], got {self.recovery_yaw_deg}")
-        if not self.sample_period_s > 0:
-            raise CrchflError(f"dataset.sample_period_s must be > 0, got {self.sample_period_s}")
+        check_range(self.sample_period_s, "dataset.sample_period_s", 0, MAX_SAMPLE_PERIOD_S, "simulated seconds",
+                    lo_open=True)
         names = [t.town for t in self.towns]
         if not names:
             raise CrchflError("dataset.towns: list at least one town")

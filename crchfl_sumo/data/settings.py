@@ -1,4 +1,6 @@
 """The data side's settings that a run config holds, apart from the modules that import torch: the online data mode's.
+
+Also the data side's size bounds that torch-free settings share (a vehicle's samples, the sample period).
 """
 
 from __future__ import annotations
@@ -6,6 +8,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
+
+MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk (98 KB each)
+MAX_SAMPLE_PERIOD_S = 60.0  # samples a minute apart are no driving sequence (paper: 0.25 s)
 
 
 @dataclass(frozen=True)
@@ -19,5 +25,4 @@ class OnlineConfig:
     max_samples: int = 2000
 
     def __post_init__(self) -> None:
-        if self.max_samples < 1:
-            raise CrchflError(f"online.max_samples: {self.max_samples} must be >= 1")
+        check_range(self.max_samples, "online.max_samples", 1, MAX_SAMPLES_PER_VEHICLE, "a number of samples a vehicle")

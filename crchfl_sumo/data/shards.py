@@ -39,6 +39,7 @@ from crchfl_sumo.core.config import MAX_DEPTH, from_mapping, nesting_depth
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S
 from crchfl_sumo.vision.camera import CAMERA_NAMES, MAX_HEIGHT_PX, MAX_WIDTH_PX
 from crchfl_sumo.vision.raster import camera_settings
 
@@ -239,8 +240,10 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
             f"{where}: image size {manifest.image_height} x {manifest.image_width} lies outside 8 x 8 .. "
             f"{MAX_HEIGHT_PX} x {MAX_WIDTH_PX} pixels; {fix}"
         )
-    if not 0 < manifest.sample_period_s < float("inf"):
-        raise CrchflError(f"{where}: sample_period_s is {manifest.sample_period_s}, not a time > 0; {fix}")
+    if not 0 < manifest.sample_period_s <= MAX_SAMPLE_PERIOD_S:
+        raise CrchflError(
+            f"{where}: sample_period_s is {manifest.sample_period_s}, not a time in (0, {MAX_SAMPLE_PERIOD_S:g}] s; {fix}"
+        )
     for key in ("camera", "labels"):
         if not isinstance(getattr(manifest, key), dict):
             raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
@@ -249,7 +252,7 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
     try:  # the expert's settings the labels were made with (target-speed horizon, stop speed)
         from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
     except CrchflError as exc:
-        raise CrchflError(f"{exc}; {fix}" if where in str(exc) else f"{where}: labels.{exc}; {fix}") from None
+        raise CrchflError(f"{exc}; {fix}") from None
     files = [entry.file for entry in manifest.shards]
     if len(set(files)) != len(files):
         raise CrchflError(f"{where}: a shard file is listed twice; {fix}")

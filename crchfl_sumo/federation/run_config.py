@@ -17,6 +17,7 @@ from crchfl_sumo.accounting.ledger import LedgerConfig
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_RATE_BPS, MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.settings import OnlineConfig
@@ -49,9 +50,9 @@ class ClockConfig:
     def __post_init__(self) -> None:
         if self.kind not in ("sumo", "constant"):
             raise CrchflError(f"clock.kind: {self.kind!r} is not one of 'sumo', 'constant'")
-        for key in ("constant_rate_bps", "constant_macro_rate_bps", "constant_step_s"):
-            if not getattr(self, key) > 0:
-                raise CrchflError(f"clock.{key} must be > 0, got {getattr(self, key)}")
+        for key in ("constant_rate_bps", "constant_macro_rate_bps"):
+            check_range(getattr(self, key), f"clock.{key}", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
+        check_range(self.constant_step_s, "clock.constant_step_s", 0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
 
 
 @dataclass(frozen=True)

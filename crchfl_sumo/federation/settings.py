@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Literal, get_args
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_SAMPLE_S, MAX_SAMPLES, MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.schemes import SCHEMES, Scheme
 from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
@@ -107,33 +108,28 @@ class FederationConfig:
             )
         if self.use_plan and self.scheme != "crchfl":
             raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
-        if self.pretrain_batch < 0:
-            raise CrchflError(f"federation.pretrain_batch: {self.pretrain_batch} must be >= 0")
+        check_range(self.pretrain_batch, "federation.pretrain_batch", 0, MAX_SAMPLES, "a number of samples (0 = no stage I)")
         if self.pretrain_batch > 0 and self.scheme != "crchfl":
             raise CrchflError(
                 f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"
             )
-        if self.edge_interval < 1:
-            raise CrchflError(f"federation.edge_interval: {self.edge_interval} must be >= 1 (local epochs)")
-        if self.cloud_interval < 1:
-            raise CrchflError(f"federation.cloud_interval: {self.cloud_interval} must be >= 1")
+        check_range(self.edge_interval, "federation.edge_interval", 1, MAX_EPOCHS, "a number of local epochs")
+        check_range(self.cloud_interval, "federation.cloud_interval", 1, MAX_EPOCHS, "a number of edge aggregations")
         if self.scheme == "sfl" and self.cloud_interval != 1:
             raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
-        if self.cloud_rounds < 0:
-            raise CrchflError(
-                f"federation.cloud_rounds: {self.cloud_rounds} must be >= 0 (0 = until the budget is spent)"
-            )
-        if self.pretrain_epochs < 1:
-            raise CrchflError(f"federation.pretrain_epochs: {self.pretrain_epochs} must be >= 1")
-        if not self.deadline_s > 0:
-            raise CrchflError(f"federation.deadline_s: {self.deadline_s} must be > 0 (inf = no deadline)")
+        check_range(self.cloud_rounds, "federation.cloud_rounds", 0, MAX_EPOCHS,
+                    "a number of rounds (0 = until the budget is spent)")
+        check_range(self.pretrain_epochs, "federation.pretrain_epochs", 1, MAX_EPOCHS, "a number of epochs")
+        # an aggregation waits at most a simulated day (the longest a command simulates); inf waits for every upload
+        check_range(self.deadline_s, "federation.deadline_s", 0, MAX_SIMULATED_S,
+                    "simulated seconds (or inf: no deadline)", lo_open=True, inf_ok=True)
         if self.handover_policy == "wait" and not math.isfinite(self.deadline_s):
             raise CrchflError(
                 "federation.handover_policy = 'wait' waits for the vehicle's own edge until the aggregation "
                 "deadline; set a finite federation.deadline_s"
             )
-        if not (math.isfinite(self.compute_s_per_sample) and self.compute_s_per_sample >= 0):
-            raise CrchflError(f"federation.compute_s_per_sample: {self.compute_s_per_sample} must be a number >= 0")
+        check_range(self.compute_s_per_sample, "federation.compute_s_per_sample", 0, MAX_SAMPLE_S,
+                    "simulated seconds a sample")
 
     @property
     def hierarchical(self) -> bool:

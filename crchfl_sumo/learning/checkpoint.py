@@ -87,10 +87,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     # Format-2 files written before command_pedals / longitudinal existed: an unconditioned pedal branch.
     mapping.setdefault("command_pedals", False)
     mapping.setdefault("longitudinal", "pedals")
-    try:
-        model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
-    except CrchflError as exc:  # ModelConfig's own checks name the key, not the file
-        raise CrchflError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
+    model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     if payload["extra"].get("camera"):  # the data set's cameras, which a drive renders with
         camera_settings(payload["extra"]["camera"], f"{path}: extra.camera")
     state_dict = payload["state_dict"]

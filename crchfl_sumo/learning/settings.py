@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S
 from crchfl_sumo.vision.camera import MAX_HEIGHT_PX, MAX_WIDTH_PX
 
@@ -205,10 +206,10 @@ class TrainConfig:
         for key in ("beta1", "beta2"):
             if not 0 <= getattr(self, key) < 1:
                 raise CrchflError(f"train.{key}: {getattr(self, key)} must lie in [0, 1)")
-        if self.weight_decay < 0:
-            raise CrchflError(f"train.weight_decay: {self.weight_decay} must be >= 0 (paper: 3e-3)")
-        if not self.adam_eps > 0:
-            raise CrchflError(f"train.adam_eps: {self.adam_eps} must be > 0")
+        # above 1 the decay shrinks every weight faster than a gradient step moves it (paper: 3e-3)
+        check_range(self.weight_decay, "train.weight_decay", 0, 1, "a decay (paper: 3e-3)")
+        # eps only keeps Adam's division finite; above 1 it swamps the second moment (paper: 1e-8)
+        check_range(self.adam_eps, "train.adam_eps", 0, 1, "an epsilon (paper: 1e-8)", lo_open=True)
         if not (1 <= self.batch_size <= MAX_BATCH_SIZE and 1 <= self.eval_batch_size <= MAX_BATCH_SIZE):
             raise CrchflError(
                 f"train.batch_size and train.eval_batch_size must be in 1 .. {MAX_BATCH_SIZE} (paper: 32), "

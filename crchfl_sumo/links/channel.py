@@ -27,6 +27,7 @@ from typing import Literal
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_RATE_BPS, check_range
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 THERMAL_NOISE_DBM_PER_HZ = -174.0  # kT at 290 K
@@ -87,6 +88,7 @@ SCENARIOS: dict[str, ScenarioParams] = {
 
 
 MAX_FADING_BLOCKS = 1024  # fading gains kept per vehicle and step
+MAX_LATENCY_S = 60.0  # a backhaul's one-way latency: a minute, beyond any network's (geostationary: 0.25 s)
 # Channel settings' physical ranges (generous: any real radio lies well inside them).
 PHYSICAL_RANGES = {
     "bandwidth_hz": (1e3, 10e9, "Hz"),
@@ -186,10 +188,8 @@ class WirelineConfig:
     latency_s: float = 0.010
 
     def __post_init__(self) -> None:
-        if not self.rate_bps > 0:
-            raise CrchflError(f"wireline.rate_bps must be > 0, got {self.rate_bps}")
-        if not self.latency_s >= 0:
-            raise CrchflError(f"wireline.latency_s must be >= 0, got {self.latency_s}")
+        check_range(self.rate_bps, "wireline.rate_bps", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
+        check_range(self.latency_s, "wireline.latency_s", 0, MAX_LATENCY_S, "seconds")
 
 
 # --- unit conversions -------------------------------------------------------

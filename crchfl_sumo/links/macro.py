@@ -10,9 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import LinkModel, MobilityConfig
-from crchfl_sumo.sumo.sites import EdgeSite
+from crchfl_sumo.sumo.sites import MAX_HEIGHT_M, EdgeSite
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class MacroLinkConfig:
         for key in ("carrier_hz", "bandwidth_hz", "site_height_m", "inter_site_distance_m", "coverage_radius_m"):
             if not getattr(self, key) > 0:
                 raise CrchflError(f"sfl_link.{key} must be > 0, got {getattr(self, key)}")
+        check_range(self.site_height_m, "sfl_link.site_height_m", 0, MAX_HEIGHT_M, "metres", lo_open=True)
         if not 100.0 <= self.inter_site_distance_m <= 100e3:  # a grid finer than that has sites by the thousand
             raise CrchflError(
                 f"sfl_link.inter_site_distance_m must be in 100 .. 100000 m (TR 38.901 UMa: 500), "

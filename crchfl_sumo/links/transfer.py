@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_SIMULATED_S, check_range
 from crchfl_sumo.links.channel import WirelineConfig
 
 OutagePolicy = Literal["stall", "fail"]
@@ -34,10 +35,10 @@ class TransferConfig:
     deadline_s: float = math.inf  # longest whole transfer, start to finish
 
     def __post_init__(self) -> None:
-        if not self.max_outage_s >= 0:
-            raise CrchflError(f"transfer.max_outage_s must be >= 0, got {self.max_outage_s}")
-        if not self.deadline_s > 0:
-            raise CrchflError(f"transfer.deadline_s must be > 0, got {self.deadline_s}")
+        # a simulated day at most: the longest a command simulates; inf = no deadline
+        check_range(self.max_outage_s, "transfer.max_outage_s", 0, MAX_SIMULATED_S, "simulated seconds")
+        check_range(self.deadline_s, "transfer.deadline_s", 0, MAX_SIMULATED_S, "simulated seconds (or inf: none)",
+                    lo_open=True, inf_ok=True)
 
 
 @dataclass(frozen=True)

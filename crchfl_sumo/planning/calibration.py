@@ -35,6 +35,7 @@ from scipy.optimize import curve_fit
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import toml_text
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.aggregate import weighted_average
 from crchfl_sumo.learning.model import State, build_model, model_from_state
@@ -72,10 +73,9 @@ class CalibrationConfig:
         for key in ("reference_fractions", "pretrain_fractions"):
             if any(not 0 < f <= 1 for f in getattr(self, key)) or not getattr(self, key):
                 raise CrchflError(f"calibration.{key}: every fraction must lie in (0, 1]")
-        if self.epochs < 1:
-            raise CrchflError(f"calibration.epochs: {self.epochs} must be >= 1")
-        if len(self.hfl_runs) < 2 or any(min(r) < 1 for r in self.hfl_runs):
-            raise CrchflError("calibration.hfl_runs: give at least 2 runs of positive (I_e, I_c, T)")
+        check_range(self.epochs, "calibration.epochs", 1, MAX_EPOCHS, "a number of epochs")
+        if len(self.hfl_runs) < 2 or any(not 1 <= n <= MAX_EPOCHS for r in self.hfl_runs for n in r):
+            raise CrchflError(f"calibration.hfl_runs: give at least 2 runs of (I_e, I_c, T), each in 1 .. {MAX_EPOCHS}")
         if len({ie * ic * t for ie, ic, t in self.hfl_runs}) < 2:
             raise CrchflError("calibration.hfl_runs: the runs need at least 2 different I_e * I_c * T to fit d")
 

@@ -52,6 +52,8 @@ from crchfl_sumo.accounting.schedules import (
     stage_one_schedule,
 )
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_RATE_BPS, MAX_SAMPLE_S, MAX_SAMPLES, MAX_SIMULATED_S, check_range
+from crchfl_sumo.sumo.sites import MAX_SITES
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +62,11 @@ PAPER_LOCAL_SAMPLES = 2 * 2928 + 2586 + 2587 + 1555  # FACTS.md: the paper's fiv
 
 
 # Bounds of the planning settings that size the search (a larger value only eats memory and time).
-MAX_EDGES = 1000
+MAX_EDGES = MAX_SITES
 MAX_VEHICLES_PER_EDGE = 10_000
-MAX_LOCAL_SAMPLES = 10**9
+MAX_LOCAL_SAMPLES = MAX_SAMPLES
 MAX_INTERVAL = 100
+MAX_BUDGET_S = 365 * 86400.0  # the training's time budget W: a year
 
 
 @dataclass(frozen=True)
@@ -113,8 +116,8 @@ class AllocationConfig:
             value = getattr(self, key)
             if not 0.0 <= value <= 1.0:
                 raise CrchflError(f"allocation.{key} must lie in [0, 1] (paper, Section IV), got {value}")
-        if not math.isfinite(self.d) or self.d < 0:
-            raise CrchflError(f"allocation.d must be a number >= 0, got {self.d}")
+        # d is in local epochs (the term d / t, t = I_e I_c T, of S_eff); no plan's t exceeds MAX_EPOCHS
+        check_range(self.d, "allocation.d", 0, MAX_EPOCHS, "a number of epochs")
         if (not self.vehicles_per_edge or any(n < 0 for n in self.vehicles_per_edge) or sum(self.vehicles_per_edge) == 0
                 or len(self.vehicles_per_edge) > MAX_EDGES or max(self.vehicles_per_edge) > MAX_VEHICLES_PER_EDGE):
             raise CrchflError(
@@ -142,14 +145,16 @@ class AllocationConfig:
                 f"allocation.fix_edge_interval must be >= 2 (the paper requires 0 < cloud_interval < edge_interval), "
                 f"got {self.fix_edge_interval}"
             )
-        for key in ("training_time_budget_s", "wireless_rate_bps", "wireline_rate_bps", "rate_window_s"):
-            value = getattr(self, key)
-            if not math.isfinite(value) or value <= 0:
-                raise CrchflError(f"allocation.{key} must be a positive number, got {value}")
-        for key in ("epoch_time_s", "pretrain_time_per_sample_s"):  # zero: training takes no time
-            value = getattr(self, key)
-            if not math.isfinite(value) or value < 0:
-                raise CrchflError(f"allocation.{key} must be a number >= 0, got {value}")
+        check_range(self.epoch_time_s, "allocation.epoch_time_s", 0, MAX_SIMULATED_S,
+                    "seconds (0: training takes no time)")
+        check_range(self.training_time_budget_s, "allocation.training_time_budget_s", 0, MAX_BUDGET_S, "seconds",
+                    lo_open=True)
+        for key in ("wireless_rate_bps", "wireline_rate_bps"):
+            check_range(getattr(self, key), f"allocation.{key}", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
+        check_range(self.pretrain_time_per_sample_s, "allocation.pretrain_time_per_sample_s", 0, MAX_SAMPLE_S,
+                    "seconds a sample")
+        check_range(self.rate_window_s, "allocation.rate_window_s", 0, MAX_SIMULATED_S, "simulated seconds",
+                    lo_open=True)
         if self.solver not in cp.installed_solvers():
             raise CrchflError(
                 f"allocation.solver {self.solver!r} is not installed; installed: {', '.join(cp.installed_solvers())}"

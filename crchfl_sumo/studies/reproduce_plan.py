@@ -11,13 +11,14 @@ from typing import Any, Mapping
 
 from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import SEED_MAX
+from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, SEED_MAX, check_range
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.federation.run_config import RunConfig
+from crchfl_sumo.planning.problem import MAX_INTERVAL
 
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 
@@ -90,13 +91,13 @@ class ReproduceConfig:
             raise CrchflError(
                 f"reproduce.schemes: {list(self.schemes)}; list each of {', '.join(SCHEMES)} at most once"
             )
-        if any(k < 2 for k in self.ablation_edge_intervals):
+        if any(not 2 <= k <= MAX_INTERVAL for k in self.ablation_edge_intervals):
             raise CrchflError(
-                f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be >= 2 "
-                "(the paper requires 0 < cloud_interval < edge_interval)"
+                f"reproduce.ablation_edge_intervals: {list(self.ablation_edge_intervals)}; each must be in "
+                f"2 .. {MAX_INTERVAL} (the paper requires 0 < cloud_interval < edge_interval; each becomes "
+                "allocation.fix_edge_interval)"
             )
-        if self.centralized_epochs < 0:
-            raise CrchflError(f"reproduce.centralized_epochs: {self.centralized_epochs} must be >= 0 (0 = none)")
+        check_range(self.centralized_epochs, "reproduce.centralized_epochs", 0, MAX_EPOCHS, "a number of epochs (0 = none)")
         if not 0 <= self.bench_episodes <= 10_000:
             raise CrchflError(
                 f"reproduce.bench_episodes: {self.bench_episodes} must be in 0 .. 10000 (0 = no benchmark)"
@@ -107,8 +108,7 @@ class ReproduceConfig:
             task_by_name(task)
         if self.bench_seed < 0:
             raise CrchflError(f"reproduce.bench_seed: {self.bench_seed} must be >= 0")
-        if not self.drive_max_s > 0:
-            raise CrchflError(f"reproduce.drive_max_s: {self.drive_max_s} must be > 0")
+        check_range(self.drive_max_s, "reproduce.drive_max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
         for key, instead in (("scenario", "reproduce.scenario"), ("dataset", "reproduce.generate")):
             if key in self.run:
                 raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use {instead})")

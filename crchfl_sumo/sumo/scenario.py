@@ -26,8 +26,9 @@ import numpy as np
 
 from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.resources import scenarios_dir
-from crchfl_sumo.sumo.sites import EdgeSite, place_edge_site_count, place_edge_sites
+from crchfl_sumo.sumo.sites import MAX_COORDINATE_M, MAX_SITES, EdgeSite, place_edge_site_count, place_edge_sites
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,13 @@ class Town:
     ymax_m: float
     data_vehicles: tuple[str, ...] = ()
     test_vehicles: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for key in ("xmin_m", "ymin_m", "xmax_m", "ymax_m"):  # a box in the network's frame, as edge sites are
+            check_range(getattr(self, key), f"towns.{self.name}.{key}", -MAX_COORDINATE_M, MAX_COORDINATE_M,
+                        "metres in the network's frame")
+        if not (self.xmin_m <= self.xmax_m and self.ymin_m <= self.ymax_m):
+            raise CrchflError(f"towns.{self.name}: its box has xmin_m > xmax_m or ymin_m > ymax_m; swap them")
 
     def contains(self, x_m: np.ndarray, y_m: np.ndarray, margin_m: float = TOWN_MARGIN_M) -> np.ndarray:
         """Whether positions lie in the town: its box (junction centres) widened by ``margin_m``."""
@@ -109,6 +117,7 @@ class Scenario:
 
 
 MAX_DEMAND_SCALE = 100.0  # SUMO inserts this many times the scenario's vehicles at most
+MAX_SPEED_MPS = 200.0  # 720 km/h: no road vehicle's; a cap above it caps nothing (inf says so)
 
 
 @dataclass(frozen=True)
@@ -138,10 +147,9 @@ class SumoConfig:
             raise CrchflError(
                 f"sumo.scale: {self.scale} must be a number in (0, {MAX_DEMAND_SCALE:g}] (1 = the scenario's traffic)"
             )
-        if not self.speed_limit_mps > 0:
-            raise CrchflError(f"sumo.speed_limit_mps: {self.speed_limit_mps} must be > 0 (inf = no cap)")
-        if self.edge_site_count < 0:
-            raise CrchflError(f"sumo.edge_site_count: {self.edge_site_count} must be >= 0 (0 = the scenario's sites)")
+        check_range(self.speed_limit_mps, "sumo.speed_limit_mps", 0, MAX_SPEED_MPS, "m/s (or inf: no cap)",
+                    lo_open=True, inf_ok=True)
+        check_range(self.edge_site_count, "sumo.edge_site_count", 0, MAX_SITES, "a number of sites (0 = the scenario's)")
         if self.edge_sites and self.edge_site_count:
             raise CrchflError("sumo: give either edge_sites or edge_site_count, not both")
         names = [site.name for site in self.edge_sites]

@@ -15,6 +15,7 @@ from crchfl_sumo.core.errors import CrchflError
 
 MAX_COORDINATE_M = 1e7  # SUMO networks are in local metres; even UTM northings stay below this
 MAX_HEIGHT_M = 1000.0  # above the tallest masts
+MAX_SITES = 1000  # edge sites of one network: the planner's topology bound; k-means of more takes minutes a run
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 
 # The paper's four cameras, in the order every image array stores them.
 CAMERA_NAMES = ("CamH", "CamF", "CamL", "CamR")
@@ -55,6 +56,7 @@ DEFAULT_POSES = (
 # hold several float64 arrays of this size per camera, a few hundred MB; 4096 x 8192 would need tens of GB.
 MAX_HEIGHT_PX = 1080
 MAX_WIDTH_PX = 1920
+MAX_NEAR_M = 10.0  # a near plane farther out clips away the car ahead (camera offsets are 1-2 m)
 
 
 @dataclass(frozen=True)
@@ -89,8 +91,7 @@ class CameraConfig:
             raise CrchflError(
                 f"camera.poses: got {len(self.poses)} poses, need {len(CAMERA_NAMES)} ({', '.join(CAMERA_NAMES)})"
             )
-        if self.near_m <= 0.0:
-            raise CrchflError(f"camera.near_m: {self.near_m} must be > 0")
+        check_range(self.near_m, "camera.near_m", 0, MAX_NEAR_M, "metres", lo_open=True)
 
     @property
     def focal_px(self) -> float:

@@ -33,9 +33,11 @@ import numpy as np
 
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.vision.camera import (
     CAMERA_NAMES,
+    MAX_WIDTH_PX,
     CameraConfig,
     camera_from_vehicle,
     ground_rays,
@@ -65,6 +67,11 @@ _SHIFT = 4  # fixed-point bits for cv2 polygon filling
 _FAR_AWAY_M = 1.0e7
 
 
+# At 64 x 128 a vehicle 300 m off is under a pixel; a kilometre bounds what any image size shows.
+MAX_DRAW_DISTANCE_M = 1000.0
+MAX_VEHICLE_HEIGHT_M = 10.0  # the tallest road vehicles stand about 4.5 m
+
+
 @dataclass(frozen=True)
 class RasterConfig:
     """Per-frame rendering settings.
@@ -89,11 +96,10 @@ class RasterConfig:
     interpolation: Literal["nearest", "linear"] = "nearest"
 
     def __post_init__(self):
-        for name in ("max_ground_distance_m", "max_object_distance_m", "vehicle_height_m"):
-            if getattr(self, name) <= 0.0:
-                raise CrchflError(f"raster.{name}: {getattr(self, name)} must be > 0")
-        if self.lamp_min_radius_px < 0.0:
-            raise CrchflError(f"raster.lamp_min_radius_px: {self.lamp_min_radius_px} must be >= 0")
+        for name in ("max_ground_distance_m", "max_object_distance_m"):
+            check_range(getattr(self, name), f"raster.{name}", 0, MAX_DRAW_DISTANCE_M, "metres", lo_open=True)
+        check_range(self.vehicle_height_m, "raster.vehicle_height_m", 0, MAX_VEHICLE_HEIGHT_M, "metres", lo_open=True)
+        check_range(self.lamp_min_radius_px, "raster.lamp_min_radius_px", 0, MAX_WIDTH_PX, "pixels")
         if self.interpolation not in ("nearest", "linear"):
             raise CrchflError(f"raster.interpolation: {self.interpolation!r} is not 'nearest' or 'linear'")
 
@@ -477,10 +483,7 @@ def camera_settings(camera: dict, where: str) -> tuple[RasterConfig, WorldConfig
     """(RasterConfig, WorldConfig) of a data set's camera block (Manifest.camera, or a checkpoint's copy of it)."""
     if not isinstance(camera, dict):
         raise CrchflError(f"{where}: expected a table of raster and world settings, got {type(camera).__name__}")
-    try:
-        raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
-        world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
-    except CrchflError as exc:  # a dataclass's own check names the key, not the file
-        raise CrchflError(str(exc) if where in str(exc) else f"{where}: {exc}") from None
+    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
+    world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
     return raster, world
 

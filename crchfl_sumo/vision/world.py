@@ -33,6 +33,7 @@ import numpy as np
 import sumolib
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 
 # RGB colours of the ground texture and the sky.
 SKY_RGB = (135, 185, 235)
@@ -49,6 +50,8 @@ EDGE_LINE_INSET_M = 0.25
 
 
 MAX_TEXTURE_MPX = 4000.0  # a texture of this many million pixels, at several levels, takes tens of GB
+MAX_PAINT_M = 100.0  # no painted band, line or dash of a street is longer or wider
+MAX_MARGIN_M = 1000.0  # off-road ground beyond the farthest a camera draws (raster: at most 1000 m)
 
 
 @dataclass(frozen=True)
@@ -89,12 +92,13 @@ class WorldConfig:
             raise CrchflError(
                 f"world.metres_per_pixel: {self.metres_per_pixel} is outside 0.01..1.0; 0.1 is the default"
             )
-        for name in ("margin_m", "sidewalk_width_m", "kerb_width_m"):
-            if getattr(self, name) < 0.0:
-                raise CrchflError(f"world.{name}: {getattr(self, name)} must be >= 0")
-        for name in ("marking_width_m", "stop_line_width_m", "dash_length_m", "dash_gap_m", "max_texture_mpx"):
-            if getattr(self, name) <= 0.0:
-                raise CrchflError(f"world.{name}: {getattr(self, name)} must be > 0")
+        check_range(self.margin_m, "world.margin_m", 0, MAX_MARGIN_M, "metres")
+        for name in ("sidewalk_width_m", "kerb_width_m"):
+            check_range(getattr(self, name), f"world.{name}", 0, MAX_PAINT_M, "metres")
+        for name in ("marking_width_m", "stop_line_width_m", "dash_length_m", "dash_gap_m"):
+            check_range(getattr(self, name), f"world.{name}", 0, MAX_PAINT_M, "metres", lo_open=True)
+        if self.max_texture_mpx <= 0.0:
+            raise CrchflError(f"world.max_texture_mpx: {self.max_texture_mpx} must be > 0")
         if self.max_texture_mpx > MAX_TEXTURE_MPX:
             raise CrchflError(
                 f"world.max_texture_mpx: {self.max_texture_mpx} is over {MAX_TEXTURE_MPX:g} million pixels, "
