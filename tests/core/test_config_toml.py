@@ -87,3 +87,33 @@ def test_from_mapping_refuses_non_finite_floats_and_bad_seeds_for_every_field():
     ]:
         with pytest.raises(CrchflError, match=message):
             from_mapping(Demo, data, "demo")
+
+
+def test_a_dataclass_s_own_errors_name_the_file_and_the_table(tmp_path):
+    from crchfl_sumo.core.config import from_mapping, load_tables
+    from crchfl_sumo.federation.run_config import RunConfig
+    from crchfl_sumo.planning.problem import AllocationConfig
+
+    def message(data, where):
+        with pytest.raises(CrchflError) as info:
+            from_mapping(RunConfig, {"dataset": "d", **data}, where)
+        return str(info.value)
+
+    where = str(tmp_path / "run.toml")
+    # the table's own key, joined to the file's dotted path
+    assert message({"federation": {"deadline_s": 1e308}}, where) == (
+        f"{where}.federation.deadline_s: 1e+308 is out of range; give simulated seconds (or inf: no deadline) "
+        "in (0, 86400]"
+    )
+    # a cross-key check of the table ("sumo: ...") and one of the whole file (RunConfig's own, no table prefix)
+    assert message({"sumo": {"edge_site_count": 2, "edge_sites": [{"name": "a", "x_m": 0, "y_m": 0}]}}, where) == (
+        f"{where}.sumo: give either edge_sites or edge_site_count, not both"
+    )
+    assert message({"data_mode": "online", "clock": {"kind": "constant"}}, where).startswith(f"{where}: ")
+    # a table read by load_tables ("FILE: allocation"): the key follows the file once
+    config = tmp_path / "plan.toml"
+    config.write_text("[allocation]\nrate_window_s = 1e9\n")
+    with pytest.raises(CrchflError) as info:
+        load_tables(config, {"allocation": AllocationConfig})
+    assert str(info.value).startswith(f"{config}: allocation.rate_window_s: 1e+09 is out of range")
+    assert str(info.value).count(str(config)) == 1

@@ -3,6 +3,7 @@
 import argparse
 import math
 
+import numpy as np
 import pytest
 
 from crchfl_sumo.core.errors import CrchflError
@@ -95,3 +96,42 @@ def test_check_range_names_the_key_and_the_range():
         check_range(11.0, "channel.x", 0, 10, "metres")
     with pytest.raises(CrchflError, match=r"channel.x: nan is not a finite number; give metres in \(0, 10\]"):
         check_range(math.nan, "channel.x", 0, 10, "metres", lo_open=True)
+
+
+def test_check_range_lets_inf_through_only_where_it_means_no_limit():
+    assert check_range(math.inf, "federation.deadline_s", 0, 86400, "seconds", lo_open=True, inf_ok=True) == math.inf
+    assert check_range(86400, "federation.deadline_s", 0, 86400, "seconds", inf_ok=True) == 86400  # the bound itself
+    with pytest.raises(CrchflError, match=r"federation.deadline_s: 86400.5 is out of range; give seconds in \(0, 86400\]"):
+        check_range(86400.5, "federation.deadline_s", 0, 86400, "seconds", lo_open=True, inf_ok=True)
+    with pytest.raises(CrchflError, match="-inf is not a finite number"):
+        check_range(-math.inf, "federation.deadline_s", 0, 86400, "seconds", inf_ok=True)
+    with pytest.raises(CrchflError, match="inf is not a finite number"):
+        check_range(math.inf, "transfer.max_outage_s", 0, 86400, "seconds")
+    with pytest.raises(CrchflError, match="True is not a number"):
+        check_range(True, "x", 0, 1, "a share")
+    assert check_range(np.int64(3), "x", 0, 10, "a count") == 3  # numpy integers are numbers
+
+
+@pytest.mark.parametrize(
+    "cls, key, good, bad",
+    [  # each bound's edge: the largest value taken and the next one refused
+        ("crchfl_sumo.federation.settings:FederationConfig", "deadline_s", 86400.0, 86401.0),
+        ("crchfl_sumo.federation.settings:FederationConfig", "cloud_rounds", 100_000, 100_001),
+        ("crchfl_sumo.links.transfer:TransferConfig", "max_outage_s", 86400.0, 86401.0),
+        ("crchfl_sumo.links.channel:WirelineConfig", "rate_bps", 1e12, 1.1e12),
+        ("crchfl_sumo.sumo.scenario:SumoConfig", "speed_limit_mps", 200.0, 201.0),
+        ("crchfl_sumo.sumo.scenario:SumoConfig", "edge_site_count", 1000, 1001),
+        ("crchfl_sumo.core.backend:BackendConfig", "task_timeout_s", 7 * 86400.0, 7 * 86400.0 + 1),
+        ("crchfl_sumo.learning.settings:TrainConfig", "adam_eps", 1.0, 1.5),
+        ("crchfl_sumo.data.settings:OnlineConfig", "max_samples", 100_000, 100_001),
+        ("crchfl_sumo.vision.world:WorldConfig", "margin_m", 1000.0, 1001.0),
+    ],
+)
+def test_config_bounds_take_their_edge_and_refuse_past_it(cls, key, good, bad):
+    import importlib
+
+    module, name = cls.split(":")
+    config_class = getattr(importlib.import_module(module), name)
+    assert getattr(config_class(**{key: good}), key) == good
+    with pytest.raises(CrchflError, match=rf"\.{key}: .* out of range"):
+        config_class(**{key: bad})
