@@ -123,9 +123,10 @@ class ProgressBars:
 _NOT_SETTINGS = {"run", "command", "verbose", "out", "overwrite", "resume", "jobs", "backend", "address", "no_video"}
 
 
-def _overwrite_argument(p: argparse.ArgumentParser) -> None:
+def _overwrite_argument(p: argparse.ArgumentParser, file: bool = False) -> None:
     p.add_argument("--overwrite", action="store_true",
-                   help="write into --out even if it holds earlier results (files of the same names are replaced)")
+                   help="replace --out if it exists" if file else
+                   "write into --out even if it holds earlier results (files of the same names are replaced)")
 
 
 def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=()):
@@ -388,13 +389,14 @@ def _add_drive_compare(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", type=Path, help="folders written by `crchfl-sumo drive` (same route)")
     p.add_argument("--labels", nargs="+", default=None, help="one label per folder (default: folder names)")
     p.add_argument("--out", type=Path, required=True, help="output PNG")
+    _overwrite_argument(p, file=True)
 
 
 def _run_drive_compare(args) -> int:
     from crchfl_sumo.core.outputs import prepare_output_file
     from crchfl_sumo.driving.plots import compare_runs
 
-    prepare_output_file(args.out, f"{args.command} --out")
+    prepare_output_file(args.out, f"{args.command} --out", replace=args.overwrite)
     print(f"-> {compare_runs(args.runs, args.labels, args.out)}")
     return 0
 
@@ -507,6 +509,7 @@ def _run_mobility_study(args) -> int:
 def _add_calibrate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("calibration.toml"),
                    help="calibration file to write; it is a valid `plan --config` (default calibration.toml)")
+    _overwrite_argument(p, file=True)
     p.add_argument("--seed", type=seed_arg, default=0, help="seed of the pilot data, models and shuffling (default 0)")
     p.add_argument("--scenario", default="paper", help="scenario the pilot data set is generated in (default paper)")
     p.add_argument("--dataset", type=Path, default=None, help="use this data set instead of generating OUT.data/")
@@ -516,7 +519,7 @@ def _run_calibrate(args) -> int:
     from crchfl_sumo.core.outputs import prepare_output_file
     from crchfl_sumo.planning.calibration import calibrate_command
 
-    prepare_output_file(args.out, f"{args.command} --out")
+    prepare_output_file(args.out, f"{args.command} --out", replace=args.overwrite)
     pilot_data = args.out.with_name(args.out.name + ".data")  # generated (and reused) beside the file
     with _output_folder(args, "dataset", out=pilot_data, resumable=True) if args.dataset is None else nullcontext():
         fit = calibrate_command(args.out, args.seed, args.scenario, args.dataset)

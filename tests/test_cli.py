@@ -72,3 +72,19 @@ def test_console_script_exits_2_on_user_error(tmp_path):
 def test_bad_numbers_exit_2(argv, capsys):
     assert main(argv) == 2
     assert "train --epochs: 0 is out of range; give a number of epochs in 1 .. 100000" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["drive-compare", "{missing}"], ["calibrate", "--dataset", "{missing}"]])
+def test_one_file_commands_refuse_an_existing_output_unless_overwrite(tmp_path, capsys, command):
+    argv = [a.replace("{missing}", str(tmp_path / "missing")) for a in command]
+    out = tmp_path / "result.out"
+    out.write_bytes(b"earlier result")
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{command[0]} --out {out}: the file exists" in err and "--overwrite" in err
+    # with --overwrite the check passes and the command fails later, on its missing input, before writing
+    assert main([*argv, "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "the file exists" not in err and "missing" in err
+    assert out.read_bytes() == b"earlier result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.out"]  # no temporary left beside it

@@ -11,7 +11,10 @@ settings, which is how the next call knows whose results the folder holds.
 Commands that resume (dataset, run, sweep, mobility-study, reproduce) pass
 ``resumable``: their own earlier results are theirs to judge (they compare
 the stored config and refuse or continue), so only the other checks apply.
-``prepare_output_file`` does the same for a command whose output is one file.
+``prepare_output_file`` does the same for a command whose output is one file:
+it refuses a file that exists unless ``replace`` (--overwrite); the command
+then writes it atomically (core/atomic.py), so the old file stays whole until
+the new one replaces it.
 ``output_dir`` wraps ``prepare_output_dir`` around a command's work: when the
 work fails before writing anything, it takes back the marker and the folders
 it created, so a refused input leaves nothing behind.
@@ -130,12 +133,15 @@ def output_dir(path: str | Path, command: str, settings_fingerprint: str = "", *
         raise
 
 
-def prepare_output_file(path: str | Path, flag: str = "--out") -> Path:
-    """Check that ``path`` can be written as a file: not a folder, its folder creatable and writable."""
+def prepare_output_file(path: str | Path, flag: str = "--out", replace: bool = False) -> Path:
+    """Check that ``path`` can be written as a file: not a folder, its folder creatable and writable, and
+    new unless ``replace`` (the command's --overwrite)."""
     path = Path(path)
     where = f"{flag} {path}"
     if path.is_dir():
         raise CrchflError(f"{where}: is a folder; give the path of the file to write")
+    if path.exists() and not replace:
+        raise CrchflError(f"{where}: the file exists; choose another path, or pass --overwrite to replace it")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -120,3 +120,12 @@ def test_fingerprint_covers_settings_and_file_bytes(tmp_path):
     with_file = fingerprint({"seed": 1, "x": 2}, [config])
     config.write_text("seed = 2\n")
     assert with_file != fingerprint({"seed": 1, "x": 2}, [config])
+
+
+def test_prepare_output_file_refuses_an_existing_file_unless_replace(tmp_path):
+    path = tmp_path / "fig.png"
+    path.write_bytes(b"old")
+    with pytest.raises(CrchflError, match=r"drive-compare --out .*fig.png: the file exists; .*--overwrite"):
+        prepare_output_file(path, "drive-compare --out")
+    assert prepare_output_file(path, "drive-compare --out", replace=True) == path
+    assert path.read_bytes() == b"old"  # checked, not touched: the command writes it atomically later
