@@ -44,11 +44,11 @@ def in_range(value: float, lo: float, hi: float, lo_open: bool = False) -> bool:
 
 def check_seed(value: object, where: str) -> int:
     """``value`` if it is a seed (0 .. 2**31 - 1); a CrchflError naming ``where`` otherwise."""
-    if isinstance(value, bool) or not isinstance(value, int):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # numpy integers are seeds too
         raise CrchflError(f"{where}: {value!r} is not a seed; give {SEED_RANGE}")
     if not 0 <= value <= SEED_MAX:
         raise CrchflError(f"{where}: {value} is outside the seed range; give {SEED_RANGE}")
-    return value
+    return int(value)
 
 
 def check_range(

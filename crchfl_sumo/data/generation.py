@@ -38,6 +38,7 @@ import numpy as np
 
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.commands import CommandConfig, track_commands
 from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
@@ -202,6 +203,7 @@ def generate_dataset(
     ``vehicles_per_call`` caps the samples of a frame rendered in one call
     (render_samples; None: all of them, 1: one by one).
     """
+    seed = check_seed(seed, "generate_dataset: seed")
     clock = _StageClock(timings_s)
     plan = shard_plan(sizes)
     vehicles = assign_vehicles(scenario, plan)

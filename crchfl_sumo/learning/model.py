@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.data.expert import (
     PASSENGER_MAX_ACCEL_MPS2,
     PASSENGER_MAX_DECEL_MPS2,
@@ -278,6 +279,7 @@ def state_size_bytes(state: dict[str, torch.Tensor]) -> int:
 
 def build_model(config: ModelConfig, seed: int) -> DrivingModel:
     """A freshly initialised model; the same seed gives the same weights."""
+    check_seed(seed, "build_model: seed")
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:

@@ -43,6 +43,7 @@ from torch.nn import functional as F
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
@@ -198,7 +199,11 @@ def train_vehicle(
     config: TrainConfig,
     seed: int,
 ) -> tuple[State, list[Metrics]]:
-    """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch)."""
+    """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch).
+
+    ``seed`` is any integer torch's generator takes: callers derive one per vehicle and step.
+    """
+    check_range(epochs, "train_vehicle: epochs", 0, MAX_EPOCHS, "a number of epochs")
     configure_determinism(config.deterministic)
     device = resolve_device(config.device)
     trainer = Learner(model_from_state(model_config, state, device), config)
@@ -224,8 +229,7 @@ def train_vehicles(
     """
     if len(states) != len(vehicle_samples):
         raise ValueError(f"train_vehicles: {len(states)} states for {len(vehicle_samples)} vehicles")
-    if epochs < 0:
-        raise ValueError("train_vehicles: epochs must be >= 0")
+    check_range(epochs, "train_vehicles: epochs", 0, MAX_EPOCHS, "a number of epochs")  # seed: as train_vehicle's
     configure_determinism(config.deterministic)
     if config.multi_vehicle == "vmap" and model_config.norm == "batch" and model_config.arch == "cil":
         raise CrchflError(
@@ -402,8 +406,8 @@ def train_centralized(
     samples_per_s) and ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
     samples trained so far, epochs x samples). Returns the metric records.
     """
-    if epochs < 1:
-        raise CrchflError(f"epochs: {epochs} must be >= 1")
+    check_range(epochs, "train_centralized: epochs", 1, MAX_EPOCHS, "a number of epochs")
+    check_seed(seed, "train_centralized: seed")
     if len(train) == 0 or len(test) == 0:
         raise CrchflError("train: the training or test set is empty; check the data set folder")
     if train.image_hw != (model_config.image_height, model_config.image_width):

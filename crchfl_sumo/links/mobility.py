@@ -31,6 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.links import channel as ch
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.sumo.frame import Frame
@@ -206,6 +207,8 @@ class LinkModel:
     ) -> None:
         if len(sites) == 0:
             raise CrchflError("edge_sites: a link model needs at least one site; add one to the scenario")
+        if not isinstance(seed, np.random.Generator):
+            check_seed(seed, "LinkModel: seed")
         self.sites = tuple(sites)
         for site in self.sites:
             if site.height_m <= ch.ENVIRONMENT_HEIGHT_M:

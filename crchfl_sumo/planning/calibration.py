@@ -35,7 +35,7 @@ from scipy.optimize import curve_fit
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import toml_text
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.aggregate import weighted_average
 from crchfl_sumo.learning.model import State, build_model, model_from_state
@@ -351,6 +351,7 @@ def calibrate_command(
     """
     from crchfl_sumo.data.dataset import load_samples, load_vehicle_samples
 
+    check_seed(seed, "calibrate_command: seed")
     out = Path(out)
     if dataset is None:
         dataset = out.with_name(out.name + ".data")
