@@ -35,8 +35,9 @@ class TransferConfig:
     deadline_s: float = math.inf  # longest whole transfer, start to finish
 
     def __post_init__(self) -> None:
-        # a simulated day at most: the longest a command simulates; inf = no deadline
-        check_range(self.max_outage_s, "transfer.max_outage_s", 0, MAX_SIMULATED_S, "simulated seconds")
+        # a simulated day at most: the longest a command simulates. inf: no limit (the loop's "wait" policy stalls
+        # until the aggregation deadline; a config file cannot give it, its default being finite: core.config)
+        check_range(self.max_outage_s, "transfer.max_outage_s", 0, MAX_SIMULATED_S, "simulated seconds", inf_ok=True)
         check_range(self.deadline_s, "transfer.deadline_s", 0, MAX_SIMULATED_S, "simulated seconds (or inf: none)",
                     lo_open=True, inf_ok=True)
 

@@ -52,7 +52,7 @@ from crchfl_sumo.accounting.schedules import (
     stage_one_schedule,
 )
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_RATE_BPS, MAX_SAMPLE_S, MAX_SAMPLES, MAX_SIMULATED_S, check_range
+from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_RATE_BPS, MAX_SAMPLES, MAX_SIMULATED_S, check_range
 from crchfl_sumo.sumo.sites import MAX_SITES
 
 log = logging.getLogger(__name__)
@@ -145,13 +145,13 @@ class AllocationConfig:
                 f"allocation.fix_edge_interval must be >= 2 (the paper requires 0 < cloud_interval < edge_interval), "
                 f"got {self.fix_edge_interval}"
             )
-        check_range(self.epoch_time_s, "allocation.epoch_time_s", 0, MAX_SIMULATED_S,
-                    "seconds (0: training takes no time)")
+        # a run derives these two from federation.compute_s_per_sample (planning/timing.py): bounded by W's bound
+        check_range(self.epoch_time_s, "allocation.epoch_time_s", 0, MAX_BUDGET_S, "seconds (0: training takes no time)")
         check_range(self.training_time_budget_s, "allocation.training_time_budget_s", 0, MAX_BUDGET_S, "seconds",
                     lo_open=True)
         for key in ("wireless_rate_bps", "wireline_rate_bps"):
             check_range(getattr(self, key), f"allocation.{key}", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
-        check_range(self.pretrain_time_per_sample_s, "allocation.pretrain_time_per_sample_s", 0, MAX_SAMPLE_S,
+        check_range(self.pretrain_time_per_sample_s, "allocation.pretrain_time_per_sample_s", 0, MAX_BUDGET_S,
                     "seconds a sample")
         check_range(self.rate_window_s, "allocation.rate_window_s", 0, MAX_SIMULATED_S, "simulated seconds",
                     lo_open=True)
