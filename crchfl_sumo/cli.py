@@ -298,7 +298,7 @@ def _run_dataset_stats(args) -> int:
 
 def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
-    p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt")
+    p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt (checkpoint.prev.pt: the epoch before)")
     _overwrite_argument(p)
     p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=10,
                    help="epochs over all training shards (default 10)")
@@ -308,6 +308,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=0, help="seed of initialisation and shuffling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the training in --out after its last checkpointed epoch (the same command line)")
 
 
 def _run_train(args) -> int:
@@ -324,7 +326,7 @@ def _run_train(args) -> int:
         with ProgressBars("sample") as bars:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-                camera=manifest.camera,
+                camera=manifest.camera, resume=args.resume,
             )
         last = records[-1]
         straight = last["always_straight"]

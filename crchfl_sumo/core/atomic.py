@@ -4,16 +4,27 @@ A reader (or a resumed run) sees either the old file or the new one, never a
 half-written one, whatever moment a run is killed at. Temporaries carry
 ``TMP_MARK`` in their names, so a resumed run can sweep up what a killed one
 left (``remove_stale_temporaries``).
+
+A file a resume reads (a checkpoint) is written with ``atomic_path_keeping_previous``:
+the file it replaces becomes ``NAME.prev.SUFFIX`` (``previous_path``), and
+``read_latest`` reads that one when the latest is damaged, so one empty,
+truncated or corrupt file costs one step of work, not the run.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator, TypeVar
 
+from crchfl_sumo.core.errors import CrchflError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 TMP_MARK = ".partial-"
 
 
@@ -34,6 +45,48 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def previous_path(path: str | Path) -> Path:
+    """Where ``atomic_path_keeping_previous`` keeps the file it replaced: checkpoint.pt -> checkpoint.prev.pt."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
+@contextlib.contextmanager
+def atomic_path_keeping_previous(path: str | Path) -> Iterator[Path]:
+    """``atomic_path``, and the file it replaces becomes ``previous_path(path)``.
+
+    The old file is renamed aside right before the new one is renamed in; killed
+    between the two renames, the folder holds the previous copy only, which
+    ``read_latest`` reads.
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        yield tmp
+        if path.exists():
+            os.replace(path, previous_path(path))
+
+
+def read_latest(path: str | Path, read: Callable[[Path], T], what: str, fix: str) -> tuple[T, Path]:
+    """``(read(path), path)``; when ``read`` refuses ``path`` (a CrchflError: missing, empty, truncated,
+    damaged) and the previous copy exists, ``(read(previous), previous)`` with a warning naming both.
+
+    With neither readable, a CrchflError gives both reasons and ``fix``; ``what`` names the file's kind.
+    """
+    path = Path(path)
+    previous = previous_path(path)
+    try:
+        return read(path), path
+    except CrchflError as latest:
+        if not previous.is_file():
+            raise
+        try:
+            value = read(previous)
+        except CrchflError as before:
+            raise CrchflError(f"{latest}; the previous {what} is no better ({before}); {fix}") from None
+        log.warning("%s; resuming from %s (the %s before it)", latest, previous, what)
+        return value, previous
 
 
 def temporary_beside(path: str | Path) -> Path:

@@ -34,14 +34,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import torch
 
 from crchfl_sumo.accounting.ledger import GIB, Ledger, resolve_sizes
-from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
+from crchfl_sumo.core.atomic import (
+    atomic_path_keeping_previous,
+    atomic_write_text,
+    previous_path,
+    read_latest,
+    remove_stale_temporaries,
+)
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
@@ -75,7 +80,7 @@ log = logging.getLogger(__name__)
 TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
 CHECKPOINT = "checkpoint.pt"
-PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the checkpoint of the step before, kept for a damaged checkpoint.pt
+PREVIOUS_CHECKPOINT = previous_path(CHECKPOINT).name  # checkpoint.prev.pt: the step before's, for a damaged one
 
 
 def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
@@ -310,15 +315,9 @@ def summarize(
 
 
 def _save_state(path: Path, resolved: dict, state: FederationState, marks: Marks) -> None:
-    """Write checkpoint.pt atomically; the one it replaces becomes checkpoint.prev.pt.
-
-    Killed between the two renames, the folder holds checkpoint.prev.pt only:
-    a resume continues from it.
-    """
-    with atomic_path(path) as tmp:
+    """Write checkpoint.pt atomically; the one it replaces becomes checkpoint.prev.pt (core.atomic)."""
+    with atomic_path_keeping_previous(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload(), "logs": marks}, tmp)
-        if path.exists():
-            os.replace(path, path.with_name(PREVIOUS_CHECKPOINT))
 
 
 def _read_checkpoint(path: Path) -> dict:
@@ -354,20 +353,7 @@ def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Mar
     with a warning and the previous step's checkpoint.prev.pt is read instead;
     with neither readable the resume stops with both reasons.
     """
-    previous = path.with_name(PREVIOUS_CHECKPOINT)
-    try:
-        payload = _read_checkpoint(path)
-    except CrchflError as latest:
-        if not previous.is_file():
-            raise
-        try:
-            payload = _read_checkpoint(previous)
-        except CrchflError as before:
-            raise CrchflError(
-                f"{latest}; the previous checkpoint is no better ({before}); delete the folder to start afresh"
-            ) from None
-        log.warning("%s; resuming from %s (the step before it)", latest, previous)
-        path = previous
+    payload, path = read_latest(path, _read_checkpoint, "checkpoint", "delete the folder to start afresh")
     stored = payload["resolved"]
     if {**stored, "config": resolved_as_today(stored.get("config", {}), f"{path}: config")} != resolved:
         raise CrchflError(

@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from crchfl_sumo.core.atomic import atomic_path
+from crchfl_sumo.core.atomic import atomic_path, atomic_path_keeping_previous
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.learning.model import DrivingModel, model_from_state
@@ -53,15 +53,20 @@ def save_checkpoint(
     model_config: ModelConfig,
     state_dict: dict[str, torch.Tensor],
     extra: dict[str, Any] | None = None,
+    keep_previous: bool = False,
 ) -> None:
-    """Write a checkpoint to ``path`` atomically (temporary beside it, fsync, os.replace)."""
+    """Write a checkpoint to ``path`` atomically (temporary beside it, fsync, os.replace).
+
+    ``keep_previous``: the file it replaces becomes NAME.prev.pt (core.atomic), what a resume reads
+    when the latest is damaged.
+    """
     payload = {
         "format": CHECKPOINT_FORMAT,
         "model_config": to_mapping(model_config),
         "state_dict": {name: t.detach().cpu().contiguous() for name, t in state_dict.items()},
         "extra": dict(extra or {}),
     }
-    with atomic_path(path) as temp:
+    with (atomic_path_keeping_previous if keep_previous else atomic_path)(path) as temp:
         torch.save(payload, temp)
 
 

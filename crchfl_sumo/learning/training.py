@@ -40,7 +40,7 @@ import torch
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
-from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
@@ -48,7 +48,7 @@ from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.balance import class_weights, epoch_batches
-from crchfl_sumo.learning.checkpoint import save_checkpoint
+from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
 from crchfl_sumo.learning.model import DrivingModel, State, build_model, longitudinal_target, model_from_state
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
@@ -391,6 +391,7 @@ def train_centralized(
     progress: Progress | None = None,
     initial_state: State | None = None,
     camera: dict | None = None,
+    resume: bool = False,
 ) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
 
@@ -405,6 +406,13 @@ def train_centralized(
     prediction on the test set); train_loss, train_accuracy, train_samples;
     samples_per_s) and ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
     samples trained so far, epochs x samples). Returns the metric records.
+
+    The checkpoint also holds what a resume needs (extra "resume": both Adams'
+    state, the shuffling generator's, the records), and the one it replaces
+    becomes checkpoint.prev.pt (core.atomic). ``resume``: continue from the
+    checkpoint in ``out_dir``, or from checkpoint.prev.pt (the epoch before)
+    when checkpoint.pt is damaged; the run then ends with the weights and
+    records of an uninterrupted one (samples_per_s aside, a wall-clock rate).
     """
     check_range(epochs, "train_centralized: epochs", 1, MAX_EPOCHS, "a number of epochs")
     check_seed(seed, "train_centralized: seed")
@@ -422,10 +430,14 @@ def train_centralized(
     model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
     trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
+    checkpoint_path = out_dir / CHECKPOINT_FILE
+    records: list[dict] = []
+    if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
+        records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))
+        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
     train_on_device, test_on_device = train.to(device), test.to(device)
     baseline = always_straight(test)
-    records: list[dict] = []
-    for epoch in range(1, epochs + 1):
+    for epoch in range(len(records) + 1, epochs + 1):
         start_s = time.perf_counter()
         offset = (epoch - 1) * len(train)
         per_epoch = None if progress is None else (
@@ -450,13 +462,74 @@ def train_centralized(
             epoch, record["loss"], record["accuracy"], record["balanced_accuracy"], baseline["balanced_accuracy"],
         )
         atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
+        resume_state = {
+            "optimizers": [optimizer.state_dict() for optimizer in trainer.optimizers],
+            "generator": generator.get_state(),
+            "records": records,
+            "samples": [len(train), len(test)],
+        }
         save_checkpoint(
-            out_dir / CHECKPOINT_FILE,
+            checkpoint_path,
             model_config,
             trainer.model.state_dict(),
             {
                 "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
-                **({} if camera is None else {"camera": camera}),
+                "resume": resume_state, **({} if camera is None else {"camera": camera}),
             },
+            keep_previous=True,
         )
     return records
+
+
+RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
+
+
+def _resume_training(
+    path: Path, trainer: Learner, generator: torch.Generator, seed: int, epochs: int, samples: tuple[int, int]
+) -> list[dict]:
+    """Load the checkpoint at ``path`` (or its previous copy) into ``trainer`` and ``generator``; its records.
+
+    Refused: a checkpoint of other settings (model, training, seed) or data (sample counts), or
+    of more epochs than ``epochs``.
+    """
+    checkpoint, used = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
+    extra, state = checkpoint.extra, checkpoint.extra["resume"]
+    if (checkpoint.model_config != trainer.model.config or extra.get("seed") != seed
+            or extra.get("train_config") != to_mapping(trainer.config) or list(state["samples"]) != list(samples)):
+        raise CrchflError(
+            f"{used}: written by a training with other settings or data; resume with the original command "
+            "(model, seed, data set) or choose another --out"
+        )
+    records = list(state["records"])
+    if len(records) > epochs:
+        raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
+    trainer.model.load_state_dict(checkpoint.state_dict)
+    try:
+        for optimizer, optimizer_state in zip(trainer.optimizers, state["optimizers"]):
+            optimizer.load_state_dict(optimizer_state)
+        generator.set_state(state["generator"])
+    except (KeyError, ValueError, RuntimeError, TypeError) as exc:
+        raise CrchflError(f"{used}: its optimizer or generator state does not fit ({exc}); delete the folder") from None
+    log.info("resuming %s after epoch %d", path.parent, len(records))
+    return records
+
+
+def _resumable_checkpoint(path: Path) -> Checkpoint:
+    """A training checkpoint with its resume state, checked; a CrchflError if missing, damaged or without one."""
+    checkpoint = load_checkpoint(path)
+    check_weights(checkpoint.model_config, checkpoint.state_dict, str(path))
+    state = checkpoint.extra.get("resume")
+    if not (
+        isinstance(state, dict) and set(state) == RESUME_KEYS
+        and isinstance(state["optimizers"], list) and len(state["optimizers"]) == 2
+        and all(isinstance(o, dict) for o in state["optimizers"])
+        and isinstance(state["generator"], torch.Tensor) and state["generator"].dtype == torch.uint8
+        and isinstance(state["records"], list) and all(isinstance(r, dict) for r in state["records"])
+        and len(state["records"]) == checkpoint.extra.get("epoch")
+        and isinstance(state["samples"], list) and len(state["samples"]) == 2
+    ):
+        raise CrchflError(
+            f"{path}: holds no resume state (written before `train --resume` existed, or damaged); "
+            "delete the folder to train afresh"
+        )
+    return checkpoint

@@ -193,7 +193,8 @@ def test_train_centralized_writes_metrics_and_checkpoint(tmp_path):
     assert checkpoint.extra["epoch"] == 2
     reloaded = evaluate(load_model(tmp_path / "checkpoint.pt"), test, CPU)
     assert reloaded.loss == pytest.approx(lines[-1]["loss"], rel=1e-5)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "metrics.jsonl"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.prev.pt", "checkpoint.pt", "metrics.jsonl"]
+    assert load_checkpoint(tmp_path / "checkpoint.prev.pt").extra["epoch"] == 1  # the one epoch 2 replaced
 
 
 def test_train_centralized_rejects_a_size_mismatch(tmp_path):

@@ -1,0 +1,110 @@
+"""`train --resume` (learning.training.train_centralized, resume=True): stopped after an epoch and resumed, the
+training ends with the weights and records of an uninterrupted one; a damaged checkpoint.pt falls back to
+checkpoint.prev.pt, the epoch before (core.atomic.read_latest, as a federated run's resume does)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.cli import main
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.checkpoint import load_checkpoint
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import train_centralized
+
+from helpers import PAPER_VEHICLES, write_dataset
+
+SMALL = ModelConfig("compact", 48, 64)
+CPU = TrainConfig(device="cpu", deterministic=True, sampling="class_balanced")  # balanced: the generator matters
+
+
+def _samples(n, seed):
+    rng = np.random.default_rng(seed)
+    return Samples.from_numpy(
+        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
+        rng.random((n, 3), dtype=np.float32),
+        rng.integers(0, 7, size=n),
+        rng.integers(0, 4, size=n),
+        rng.uniform(0, 14, size=n),
+        rng.uniform(0, 14, size=n),
+    )
+
+
+@pytest.fixture(scope="module")
+def data():
+    return _samples(40, seed=20), _samples(10, seed=21)
+
+
+@pytest.fixture(scope="module")
+def whole(data, tmp_path_factory):
+    """Three epochs without a stop: the records and the final weights."""
+    out = tmp_path_factory.mktemp("whole")
+    records = train_centralized(*data, 3, out, SMALL, CPU, seed=5)
+    return records, load_checkpoint(out / "checkpoint.pt").state_dict
+
+
+def _without_rates(records):
+    return [{k: v for k, v in r.items() if k != "samples_per_s"} for r in records]  # wall-clock rates differ
+
+
+def _assert_same_as_whole(records, out, whole):
+    assert _without_rates(records) == _without_rates(whole[0])
+    state = load_checkpoint(out / "checkpoint.pt").state_dict
+    assert state.keys() == whole[1].keys() and all(torch.equal(state[k], whole[1][k]) for k in state)
+
+
+def test_stopped_after_an_epoch_and_resumed_it_ends_as_the_uninterrupted_training(data, whole, tmp_path):
+    train_centralized(*data, 2, tmp_path, SMALL, CPU, seed=5)  # what a kill after epoch 2's checkpoint leaves
+    records = train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True)
+    _assert_same_as_whole(records, tmp_path, whole)
+    assert load_checkpoint(tmp_path / "checkpoint.prev.pt").extra["epoch"] == 2
+    # resumed again with nothing left to do: the same records, no training
+    assert train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True) == records
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "missing"])
+def test_a_damaged_checkpoint_resumes_from_the_epoch_before(data, whole, tmp_path, damage, caplog):
+    train_centralized(*data, 2, tmp_path, SMALL, CPU, seed=5)
+    path = tmp_path / "checkpoint.pt"
+    if damage == "missing":  # killed between the two renames of core.atomic.atomic_path_keeping_previous
+        path.unlink()
+    else:
+        path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2] if damage == "truncated" else b"")
+    with caplog.at_level(logging.WARNING, logger="crchfl_sumo.core.atomic"):
+        records = train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True)
+    _assert_same_as_whole(records, tmp_path, whole)  # epochs 2 and 3 trained again from epoch 1's state
+    if damage != "missing":
+        assert any("checkpoint.prev.pt" in r.getMessage() and "resuming from" in r.getMessage() for r in caplog.records)
+
+
+def test_a_resume_refuses_what_it_cannot_continue(data, tmp_path):
+    train_centralized(*data, 2, tmp_path, SMALL, CPU, seed=5)
+    with pytest.raises(CrchflError, match="written by a training with other settings or data"):
+        train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=6, resume=True)
+    with pytest.raises(CrchflError, match="other settings or data"):
+        train_centralized(data[0], _samples(9, seed=21), 3, tmp_path, SMALL, CPU, seed=5, resume=True)
+    with pytest.raises(CrchflError, match=r"holds 2 epochs already; ask for --epochs 2 or more"):
+        train_centralized(*data, 1, tmp_path, SMALL, CPU, seed=5, resume=True)
+    for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+        (tmp_path / name).write_bytes(b"\0" * 10)
+    with pytest.raises(CrchflError, match="the previous checkpoint is no better") as caught:
+        train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True)
+    assert "\n" not in str(caught.value)
+
+
+def test_train_resume_on_the_command_line_continues_past_a_truncated_checkpoint(tmp_path, data):
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--epochs", "2", "--seed", "3", "--device", "cpu", "--deterministic"]
+    assert main([*argv, "--out", str(tmp_path / "whole")]) == 0
+    assert main([*argv, "--out", str(tmp_path / "cut")]) == 0
+    path = tmp_path / "cut" / "checkpoint.pt"
+    path.write_bytes(path.read_bytes()[:100])  # a kill left it truncated (a disk fault, not an atomic write)
+    assert main([*argv, "--out", str(tmp_path / "cut"), "--resume"]) == 0  # epoch 2 again, from checkpoint.prev.pt
+    a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt").state_dict
+    b = load_checkpoint(path).state_dict
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
