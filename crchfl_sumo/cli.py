@@ -17,7 +17,15 @@ from pathlib import Path
 
 from crchfl_sumo.core.cpus import choose_wait_policy
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, MAX_JOBS, MAX_SIMULATED_S, integer_arg, number_arg, seed_arg
+from crchfl_sumo.core.numbers import (
+    MAX_DRIVE_S,
+    MAX_EPOCHS,
+    MAX_JOBS,
+    MAX_SIMULATED_S,
+    integer_arg,
+    number_arg,
+    seed_arg,
+)
 from crchfl_sumo.learning.settings import ARCHS
 
 
@@ -298,7 +306,8 @@ def _run_dataset_stats(args) -> int:
 
 def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
-    p.add_argument("--out", type=Path, required=True, help="output folder: metrics.jsonl, checkpoint.pt (checkpoint.prev.pt: the epoch before)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: metrics.jsonl, checkpoint.pt (checkpoint.prev.pt: the epoch before)")
     _overwrite_argument(p)
     p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=10,
                    help="epochs over all training shards (default 10)")

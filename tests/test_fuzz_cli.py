@@ -307,7 +307,8 @@ def _templates(tmp: Path) -> dict[str, tuple[list[str], tuple[str, ...]]]:
 SWEEP_KEYS = ("federation.seed", "ledger.budget_gb", "sumo.scale", "channel.tx_power_dbm", "train.batch_size",
               "allocation.max_edge_interval", "mobility.coverage_radius_m", "federation.deadline_s", "federation.bogus")
 SWEEP_VALUES = {  # TOML value text: refused for sure (True) or perhaps valid for some key (False)
-    "nan": True, "-inf": True, "inf": False, "1e308": True, "-1e308": True, "-1": False, "0": False, str(2**63 - 1): True,
+    "nan": True, "-inf": True, "inf": False, "1e308": True, "-1e308": True, "-1": False, "0": False,
+    str(2**63 - 1): True,
     '"text"': True, "true": True, "[1.0]": True, "{x = 1}": True, "[" * 40 + "]" * 40: True,
     "[" * 3000 + "]" * 3000: True,
 }

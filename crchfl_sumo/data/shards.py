@@ -242,7 +242,8 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
         )
     if not 0 < manifest.sample_period_s <= MAX_SAMPLE_PERIOD_S:
         raise CrchflError(
-            f"{where}: sample_period_s is {manifest.sample_period_s}, not a time in (0, {MAX_SAMPLE_PERIOD_S:g}] s; {fix}"
+            f"{where}: sample_period_s is {manifest.sample_period_s}, not a time in "
+            f"(0, {MAX_SAMPLE_PERIOD_S:g}] s; {fix}"
         )
     for key in ("camera", "labels"):
         if not isinstance(getattr(manifest, key), dict):

@@ -52,7 +52,8 @@ class ClockConfig:
             raise CrchflError(f"clock.kind: {self.kind!r} is not one of 'sumo', 'constant'")
         for key in ("constant_rate_bps", "constant_macro_rate_bps"):
             check_range(getattr(self, key), f"clock.{key}", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
-        check_range(self.constant_step_s, "clock.constant_step_s", 0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
+        check_range(self.constant_step_s, "clock.constant_step_s", 0, MAX_SIMULATED_S, "simulated seconds",
+                    lo_open=True)
 
 
 @dataclass(frozen=True)

@@ -108,7 +108,8 @@ class FederationConfig:
             )
         if self.use_plan and self.scheme != "crchfl":
             raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
-        check_range(self.pretrain_batch, "federation.pretrain_batch", 0, MAX_SAMPLES, "a number of samples (0 = no stage I)")
+        check_range(self.pretrain_batch, "federation.pretrain_batch", 0, MAX_SAMPLES,
+                    "a number of samples (0 = no stage I)")
         if self.pretrain_batch > 0 and self.scheme != "crchfl":
             raise CrchflError(
                 f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"

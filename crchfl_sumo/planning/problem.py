@@ -146,7 +146,8 @@ class AllocationConfig:
                 f"got {self.fix_edge_interval}"
             )
         # a run derives these two from federation.compute_s_per_sample (planning/timing.py): bounded by W's bound
-        check_range(self.epoch_time_s, "allocation.epoch_time_s", 0, MAX_BUDGET_S, "seconds (0: training takes no time)")
+        check_range(self.epoch_time_s, "allocation.epoch_time_s", 0, MAX_BUDGET_S,
+                    "seconds (0: training takes no time)")
         check_range(self.training_time_budget_s, "allocation.training_time_budget_s", 0, MAX_BUDGET_S, "seconds",
                     lo_open=True)
         for key in ("wireless_rate_bps", "wireline_rate_bps"):

@@ -97,7 +97,8 @@ class ReproduceConfig:
                 f"2 .. {MAX_INTERVAL} (the paper requires 0 < cloud_interval < edge_interval; each becomes "
                 "allocation.fix_edge_interval)"
             )
-        check_range(self.centralized_epochs, "reproduce.centralized_epochs", 0, MAX_EPOCHS, "a number of epochs (0 = none)")
+        check_range(self.centralized_epochs, "reproduce.centralized_epochs", 0, MAX_EPOCHS,
+                    "a number of epochs (0 = none)")
         if not 0 <= self.bench_episodes <= 10_000:
             raise CrchflError(
                 f"reproduce.bench_episodes: {self.bench_episodes} must be in 0 .. 10000 (0 = no benchmark)"

@@ -149,7 +149,8 @@ class SumoConfig:
             )
         check_range(self.speed_limit_mps, "sumo.speed_limit_mps", 0, MAX_SPEED_MPS, "m/s (or inf: no cap)",
                     lo_open=True, inf_ok=True)
-        check_range(self.edge_site_count, "sumo.edge_site_count", 0, MAX_SITES, "a number of sites (0 = the scenario's)")
+        check_range(self.edge_site_count, "sumo.edge_site_count", 0, MAX_SITES,
+                    "a number of sites (0 = the scenario's)")
         if self.edge_sites and self.edge_site_count:
             raise CrchflError("sumo: give either edge_sites or edge_site_count, not both")
         names = [site.name for site in self.edge_sites]
