@@ -115,10 +115,12 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
-def remove_stale_temporaries(folder: str | Path) -> list[Path]:
-    """Delete the temporaries an interrupted writer left in ``folder``; return what was removed."""
+def remove_stale_temporaries(folder: str | Path, recursive: bool = False) -> list[Path]:
+    """Delete the temporaries an interrupted writer left in ``folder`` (and its subfolders with ``recursive``);
+    return what was removed."""
     removed = []
-    for path in Path(folder).glob(f".*{TMP_MARK}*"):
+    pattern = f".*{TMP_MARK}*"
+    for path in Path(folder).rglob(pattern) if recursive else Path(folder).glob(pattern):
         path.unlink(missing_ok=True)
         removed.append(path)
     return removed

@@ -40,7 +40,7 @@ import torch
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
-from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest
+from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest, remove_stale_temporaries
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
@@ -426,6 +426,7 @@ def train_centralized(
     configure_determinism(config.deterministic)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out_dir)  # what a killed training's atomic writes left
     device = resolve_device(config.device)
     model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
     trainer = Learner(model.to(device), config)

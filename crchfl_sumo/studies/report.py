@@ -20,7 +20,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
-from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.studies.report_figures import (
     FIGURES,
@@ -339,6 +339,8 @@ def write_report(out_dir: str | Path) -> dict[str, Any]:
     summary = build_summary(results)
     figures_dir = out_dir / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)
+    for folder in (out_dir, figures_dir):  # what a report (or reproduce) killed while writing left
+        remove_stale_temporaries(folder)
     figures: dict[str, str] = {}
     groups = {name: [r["metrics"] for r in runs.values()] for name, runs in results["schemes"].items()}
     if groups:

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
-from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.config import to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
@@ -216,6 +216,8 @@ def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, 
 
         torch.set_num_threads(threads_per_part(jobs))  # the parts share the cores
     log.info("%s: starting", part.key)
+    if (out_dir / part.key).is_dir():  # a part killed earlier starts again (or resumes) without its temporaries
+        remove_stale_temporaries(out_dir / part.key, recursive=True)
     start_unix, start_s, start_cpu_s = time.time(), time.perf_counter(), time.process_time()
     if part.kind == "dataset":
         _make_dataset(config, out_dir / part.key)

@@ -75,9 +75,12 @@ def test_a_damaged_checkpoint_resumes_from_the_epoch_before(data, whole, tmp_pat
         path.unlink()
     else:
         path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2] if damage == "truncated" else b"")
+    stale = tmp_path / ".checkpoint.pt.partial-abc.pt"  # what a kill inside the atomic write left
+    stale.write_bytes(b"half a checkpoint")
     with caplog.at_level(logging.WARNING, logger="crchfl_sumo.core.atomic"):
         records = train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True)
     _assert_same_as_whole(records, tmp_path, whole)  # epochs 2 and 3 trained again from epoch 1's state
+    assert not stale.exists()
     if damage != "missing":
         assert any("checkpoint.prev.pt" in r.getMessage() and "resuming from" in r.getMessage() for r in caplog.records)
 

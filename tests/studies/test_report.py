@@ -233,6 +233,17 @@ def test_report_is_rebuilt_the_same(results):
     assert ((results / "summary.json").read_text(), (results / "report.md").read_text()) == first
 
 
+def test_a_report_sweeps_the_temporaries_a_killed_report_left(results):
+    (results / "figures").mkdir(exist_ok=True)
+    stale = [results / "figures" / ".fig4_bytes.png.partial-x1.png", results / ".summary.json.partial-x2.json"]
+    for path in stale:
+        path.write_bytes(b"half a figure")
+    keep = results / "figures" / "notes.txt"
+    keep.write_text("mine")
+    report_command(results)
+    assert not any(path.exists() for path in stale) and keep.read_text() == "mine"
+
+
 def test_report_of_an_empty_folder_says_what_to_run(tmp_path):
     with pytest.raises(CrchflError, match="reproduce"):
         report_command(tmp_path)

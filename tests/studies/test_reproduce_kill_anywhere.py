@@ -22,7 +22,6 @@ import pytest
 
 import crchfl_sumo
 from crchfl_sumo.core.atomic import TMP_MARK
-from crchfl_sumo.studies.reproduce import reproduce_command
 
 from helpers import result_files
 
@@ -65,7 +64,8 @@ kind = "constant"
 RUNNER = """
 import sys
 
-from crchfl_sumo.cli import main
+import crchfl_sumo.data.generation, crchfl_sumo.federation.run, crchfl_sumo.studies.report  # the imports first:
+from crchfl_sumo.cli import main  # kills should land in the work, not in the 3 s of imports
 
 print("started", flush=True)
 sys.exit(main(["reproduce", "--config", sys.argv[1], "--out", sys.argv[2], "--resume"]))
@@ -96,29 +96,34 @@ def test_a_reproduction_killed_anywhere_and_resumed_ends_with_the_uninterrupted_
     config = tmp_path / "tiny.toml"
     config.write_text(TINY)
     (tmp_path / "runner.py").write_text(RUNNER)
-    start = time.perf_counter()
-    reproduce_command(out_dir=tmp_path / "whole", config_path=config)
-    window_s = time.perf_counter() - start  # kill moments spread over about the whole reproduction
-    whole = _outcome(tmp_path / "whole")
-
     repo = Path(crchfl_sumo.__file__).parent.parent
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), str(repo / "tests")]), "OMP_NUM_THREADS": "1"}
-    rng = np.random.default_rng(series)
-    out = tmp_path / "killed"
-    kills, finished = 0, False
-    for _ in range(3 * KILLS + 2):
+
+    def start(out: Path) -> subprocess.Popen:
         process = subprocess.Popen(
             [sys.executable, str(tmp_path / "runner.py"), str(config), str(out)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
         )
         assert process.stdout.readline().strip() == "started", process.stderr.read()
+        return process
+
+    process = start(tmp_path / "whole")  # uninterrupted, and as the killed ones run: the kill window
+    began = time.perf_counter()
+    _, stderr = process.communicate(timeout=300)  # communicate: a full pipe never stalls the child
+    window_s = time.perf_counter() - began
+    assert process.returncode == 0, stderr
+    whole = _outcome(tmp_path / "whole")
+
+    rng = np.random.default_rng(series)
+    out = tmp_path / "killed"
+    kills, finished = 0, False
+    for _ in range(3 * KILLS + 2):
+        process = start(out)
         if kills < KILLS:
             time.sleep(rng.uniform(0.0, window_s))
             process.send_signal(signal.SIGKILL)
-        code = process.wait(timeout=300)  # a hang fails the test instead of stalling it
-        stderr = process.stderr.read()
-        process.stdout.close()
-        process.stderr.close()
+        _, stderr = process.communicate(timeout=300)  # a hang fails the test instead of stalling it
+        code = process.returncode
         if code == -signal.SIGKILL:
             kills += 1
         elif code == 0 and kills == 0:  # it finished before the first kill: start again from nothing
