@@ -326,7 +326,7 @@ def _run_train(args) -> int:
         with ProgressBars("sample") as bars:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-                camera=manifest.camera,
+                drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"),
             )
         last = records[-1]
         straight = last["always_straight"]

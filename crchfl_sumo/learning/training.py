@@ -386,12 +386,12 @@ def train_centralized(
     seed: int,
     progress: Progress | None = None,
     initial_state: State | None = None,
-    camera: dict | None = None,
+    drive_settings: dict | None = None,
 ) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
 
-    ``camera``: the data set's raster and world settings (``Manifest.camera``),
-    kept in the checkpoint's extra so that a drive renders what the model learned from.
+    ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
+    kept in the checkpoint's extra so that a drive renders and steers as the model learned.
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch and the test metrics of evaluation.py: loss,
@@ -452,7 +452,7 @@ def train_centralized(
             trainer.model.state_dict(),
             {
                 "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
-                **({} if camera is None else {"camera": camera}),
+                **(drive_settings or {}),
             },
         )
     return records
