@@ -233,8 +233,9 @@ def run_benchmark(
 
     ``model``: a checkpoint path, or None / 'reference' for the scripted
     driver. ``driver`` (instead of ``model``) is any object with ``label``,
-    ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it
-    renders, ``renderer(net_path)``; with ``jobs`` > 1 it must pickle. Returns the
+    ``renders``, ``policy(route, net)`` (net: the sumolib network), ``expert()``
+    (the ExpertConfig whose steering rack the dynamics use) and, if it renders,
+    ``renderer(net_path)``; with ``jobs`` > 1 it must pickle. Returns the
     summary: ``results[TOWN][TASK]`` holds episodes, success_rate,
     route_completion, driving_score and infractions_per_km.
     """
