@@ -29,6 +29,7 @@ from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import expert_from_labels
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.learning.model import DrivingModel, model_from_state
 from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.vision.raster import camera_settings
@@ -88,6 +89,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     # Format-2 files written before command_pedals / longitudinal existed: an unconditioned pedal branch.
     mapping.setdefault("command_pedals", False)
     mapping.setdefault("longitudinal", "pedals")
+    mapping.setdefault("steer_bins", NUM_STEER_CLASSES)  # written before finer steer heads: the paper's 7
     try:
         model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     except CrchflError as exc:  # ModelConfig's own checks name the key, not the file

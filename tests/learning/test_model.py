@@ -261,15 +261,20 @@ def test_config_validation_and_round_trip():
         ModelConfig("huge")
     config = ModelConfig(
         "paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True,
-        longitudinal="target_speed", speed_horizon_s=1.5,
+        longitudinal="target_speed", speed_horizon_s=1.5, steer_bins=21,
     )
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
         "steer_speed_input": True,
-        "longitudinal": "target_speed", "speed_horizon_s": 1.5,
+        "longitudinal": "target_speed", "speed_horizon_s": 1.5, "steer_bins": 21,
     }
+    for bad in (6, 8, 5, 203, 7.0, True):
+        with pytest.raises(CrchflError, match="model.steer_bins"):
+            ModelConfig(steer_bins=bad)
+    with pytest.raises(CrchflError, match="model.steer_bins: 21 applies to arch 'cil' only"):
+        ModelConfig(arch="paper", steer_bins=21)
     for bad in (0.0, 7.0, float("nan")):
         with pytest.raises(CrchflError, match="model.speed_horizon_s must lie in"):
             ModelConfig(speed_horizon_s=bad)
