@@ -72,6 +72,7 @@ def _max_difference(a, b):
         (SMALL, dict(sampling="uniform", class_weighting="sqrt_inverse"), 1),  # the defaults
         (ModelConfig("compact", 48, 64, speed_input=True, longitudinal="pedals"), dict(sampling="class_balanced"), 1),
         (ModelConfig("compact", 48, 64, arch="paper"), dict(sampling="command_balanced", learning_rate=1e-4), 2),
+        (ModelConfig("compact", 48, 64, steer_bins=21), dict(class_weighting="inverse"), 1),  # finer steer bins
     ],
 )
 def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles(model_config, balance, epochs):
