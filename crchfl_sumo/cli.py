@@ -335,7 +335,7 @@ def _run_train(args) -> int:
         with ProgressBars("sample") as bars:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-                camera=manifest.camera, resume=args.resume,
+                drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"), resume=args.resume,
             )
         last = records[-1]
         straight = last["always_straight"]

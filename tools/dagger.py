@@ -27,7 +27,7 @@ from bench_closed_loop import task_columns  # tools/ is on the path when this sc
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.shards import read_manifest
+from crchfl_sumo.data.shards import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.dagger import DaggerConfig, collect
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
@@ -99,7 +99,7 @@ def main() -> None:
             records = train_centralized(
                 Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
                 args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
-                camera=start.extra.get("camera"),
+                drive_settings={k: start.extra[k] for k in DRIVE_SETTINGS if k in start.extra},
             )
             summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.bench_episodes,
                                     jobs=args.jobs, towns=bench_towns, config=bench)

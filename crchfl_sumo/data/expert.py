@@ -11,7 +11,8 @@ steer (pure pursuit over the FUTURE track, so the label leads the motion)
     alpha  = bearing of P seen from the vehicle, minus its heading (CCW +)
     kappa  = 2 sin(alpha) / |P - position|    curvature of the arc through P
     delta  = atan(wheelbase_m * kappa)        bicycle-model wheel angle
-    steer  = clip(-delta / max_steer_angle, -1, 1)
+    steer  = clip(-delta / max_steer_angle, -1, 1)     below steer_knee; above it a progressive
+             rack turns sharp_steer_gain times faster (steer_from_wheel_angle)
     Headings are CCW (frame.py), so a left turn has kappa > 0 and steer < 0:
     the paper's convention, positive = right.
     A standing vehicle (below) holds its wheels straight, steer 0: waiting at
@@ -68,9 +69,13 @@ class ExpertConfig:
 
     lookahead_min_m, lookahead_time_s: L = max(lookahead_min_m, lookahead_time_s * speed).
     wheelbase_m: bicycle-model wheelbase (a mid-size saloon, 2.9 m).
-    max_steer_angle_deg: wheel angle that maps to |steer| = 1. 40 deg is a real
-        car's lock and puts Town01's left turns (radius ~15 m) on the paper's
-        -0.275 class.
+    max_steer_angle_deg: wheel angle per unit of steer up to steer_knee (with
+        the knee at 1, the lock). 40 deg puts Town01's left turns (radius ~15 m)
+        on the paper's -0.275 class.
+    steer_knee, sharp_steer_gain: above |steer| = steer_knee the wheel turns
+        sharp_steer_gain times faster per unit of steer (a progressive rack, as
+        variable-ratio steering has), so the paper's sharpest class reaches a
+        tighter turn while the classes below keep their angles. Knee 1: linear.
     rolling_resistance: rolling-resistance coefficient (tyres on asphalt).
     drag_per_mass_per_m: 0.5 * rho_air * Cd * A / mass [1/m] (1.2*0.3*2.2/2/1500).
     stop_speed_mps: below this speed a vehicle counts as standing.
@@ -85,6 +90,8 @@ class ExpertConfig:
     lookahead_time_s: float = 0.8
     wheelbase_m: float = 2.9
     max_steer_angle_deg: float = 40.0
+    steer_knee: float = 1.0
+    sharp_steer_gain: float = 1.0
     rolling_resistance: float = 0.015
     drag_per_mass_per_m: float = 2.64e-4
     stop_speed_mps: float = 0.1
@@ -103,8 +110,34 @@ class ExpertConfig:
             raise CrchflError(f"expert.hold_brake must lie in [0, 1], got {self.hold_brake}")
         if self.speed_horizon_s > 5.0:  # further ahead, the target no longer says what to do now
             raise CrchflError(f"expert.speed_horizon_s must be at most 5 s, got {self.speed_horizon_s}")
-        if self.max_steer_angle_deg >= 90:
-            raise CrchflError(f"expert.max_steer_angle_deg must be < 90, got {self.max_steer_angle_deg}")
+        if not 0 < self.steer_knee <= 1:
+            raise CrchflError(f"expert.steer_knee must lie in (0, 1], got {self.steer_knee}")
+        if not 0 < self.sharp_steer_gain <= 10:
+            raise CrchflError(f"expert.sharp_steer_gain must lie in (0, 10], got {self.sharp_steer_gain}")
+        if self.lock_angle_deg >= 90:
+            raise CrchflError(
+                f"expert.max_steer_angle_deg, steer_knee and sharp_steer_gain give a {self.lock_angle_deg:g} deg "
+                "lock at |steer| = 1; it must be < 90 deg"
+            )
+
+    @property
+    def lock_angle_deg(self) -> float:
+        """The wheel angle at |steer| = 1."""
+        return self.max_steer_angle_deg * (self.steer_knee + self.sharp_steer_gain * (1.0 - self.steer_knee))
+
+
+# A stored expert block written before the progressive rack existed steered linearly.
+LINEAR_RACK = {"steer_knee": 1.0, "sharp_steer_gain": 1.0}
+
+
+def expert_from_labels(mapping, where: str) -> ExpertConfig:
+    """The ExpertConfig of a stored block (a manifest's labels.expert, a checkpoint's extra.expert), checked;
+    keys it lacks take today's defaults, except the rack, which is linear as it was before it had keys."""
+    from crchfl_sumo.core.config import from_mapping
+
+    if not isinstance(mapping, dict):
+        raise CrchflError(f"{where}: expected a table of expert settings, got {type(mapping).__name__}")
+    return from_mapping(ExpertConfig, {**LINEAR_RACK, **mapping}, where)
 
 
 @dataclass(frozen=True)
@@ -208,9 +241,24 @@ def curvature_towards(
 
 def steer_from_curvature(curvature_per_m: np.ndarray, config: ExpertConfig) -> np.ndarray:
     """Bicycle model: curvature (CCW +) -> steer in [-1, 1] (positive = RIGHT)."""
-    delta_rad = np.arctan(config.wheelbase_m * np.asarray(curvature_per_m, dtype=np.float64))
+    return steer_from_wheel_angle(np.arctan(config.wheelbase_m * np.asarray(curvature_per_m, dtype=np.float64)), config)
+
+
+def steer_from_wheel_angle(delta_rad: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """Wheel angle (CCW +) -> steer in [-1, 1] (positive = RIGHT), through the rack's two slopes."""
+    units = np.abs(np.asarray(delta_rad, dtype=np.float64)) / math.radians(config.max_steer_angle_deg)
+    knee = config.steer_knee
+    magnitude = np.where(units <= knee, units, knee + (units - knee) / config.sharp_steer_gain)
     # (+ 0.0 turns the -0.0 of a straight road into 0.0)
-    return np.clip(-delta_rad / math.radians(config.max_steer_angle_deg), -1.0, 1.0) + 0.0
+    return np.clip(-np.sign(delta_rad) * magnitude, -1.0, 1.0) + 0.0
+
+
+def wheel_angle_from_steer(steer: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """Steer (clipped to [-1, 1], positive = RIGHT) -> wheel angle [rad], CCW +: steer_from_wheel_angle's inverse."""
+    steer = np.clip(np.asarray(steer, dtype=np.float64), -1.0, 1.0)
+    magnitude, knee = np.abs(steer), config.steer_knee
+    units = np.where(magnitude <= knee, magnitude, knee + (magnitude - knee) * config.sharp_steer_gain)
+    return -np.sign(steer) * units * math.radians(config.max_steer_angle_deg)
 
 
 def resistance_mps2(speed_mps: np.ndarray, config: ExpertConfig) -> np.ndarray:

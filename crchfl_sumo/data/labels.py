@@ -27,8 +27,21 @@ NUM_COMMANDS = len(COMMAND_NAMES)
 
 def digitize_steer(steer: np.ndarray | float) -> np.ndarray:
     """Analogue steer -> class index of the nearest STEER_CLASS_VALUES (ties: lower index)."""
+    return nearest_bin(steer, STEER_CLASS_VALUES)
+
+
+def steer_bin_values(bins: int) -> np.ndarray:
+    """The steer values of a steer head's ``bins`` classes: the paper's 7 (STEER_CLASS_VALUES, in its
+    order) for 7, else ``bins`` evenly spaced over [-1, 1] (odd counts, so one of them is 0)."""
+    if bins == NUM_STEER_CLASSES:
+        return STEER_CLASS_VALUES
+    return np.linspace(-1.0, 1.0, bins, dtype=np.float32)
+
+
+def nearest_bin(steer: np.ndarray | float, values: np.ndarray) -> np.ndarray:
+    """Analogue steer -> index of the nearest of ``values`` (ties: lower index)."""
     steer = np.asarray(steer, dtype=np.float32)
-    return np.abs(steer[..., None] - STEER_CLASS_VALUES).argmin(axis=-1).astype(np.int64)
+    return np.abs(steer[..., None] - values).argmin(axis=-1).astype(np.int64)
 
 
 def steer_from_class(steer_class: np.ndarray | int) -> np.ndarray:

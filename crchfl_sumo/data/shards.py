@@ -35,9 +35,9 @@ import h5py
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
-from crchfl_sumo.core.config import MAX_DEPTH, from_mapping, nesting_depth
+from crchfl_sumo.core.config import MAX_DEPTH, from_mapping, nesting_depth, to_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.data.expert import ExpertConfig, expert_from_labels
 from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S
 from crchfl_sumo.vision.camera import CAMERA_NAMES, MAX_HEIGHT_PX, MAX_WIDTH_PX
@@ -175,6 +175,15 @@ class Manifest:
         """The horizon of the samples' target speeds (labels.expert.speed_horizon_s)."""
         return float(self.labels.get("expert", {}).get("speed_horizon_s", ExpertConfig().speed_horizon_s))
 
+    def expert(self, where: str) -> ExpertConfig:
+        """The expert settings the labels were made with (labels.expert; read from ``where``)."""
+        return expert_from_labels(self.labels.get("expert", {}), f"{where}: labels.expert")
+
+    def drive_settings(self, where: str) -> dict[str, Any]:
+        """What a model file keeps of its data set, so that a drive renders and steers as the data did:
+        the raster and world settings ("camera") and the expert's ("expert", with its steering rack)."""
+        return dict(zip(DRIVE_SETTINGS, (self.camera, to_mapping(self.expert(where)))))
+
     def check_model(self, model_config, where: str) -> None:
         """Refuse a model (a learning.settings.ModelConfig) these labels cannot train: another target-speed horizon."""
         if model_config.longitudinal == "target_speed":
@@ -229,6 +238,9 @@ class Manifest:
         return manifest
 
 
+# The keys of Manifest.drive_settings, as a model file's extra holds them.
+DRIVE_SETTINGS = ("camera", "expert")
+
 SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 
@@ -250,8 +262,8 @@ def _check_manifest(manifest: Manifest, where: str) -> None:
             raise CrchflError(f"{where}: {key} must be a table, got {type(getattr(manifest, key)).__name__}; {fix}")
     if manifest.camera:  # the raster and world settings the images were drawn with (a run and a drive read them)
         camera_settings(manifest.camera, f"{where}: camera")
-    try:  # the expert's settings the labels were made with (target-speed horizon, stop speed)
-        from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    try:  # the expert's settings the labels were made with (target-speed horizon, stop speed, rack)
+        manifest.expert(where)
     except CrchflError as exc:
         raise CrchflError(f"{exc}; {fix}") from None
     files = [entry.file for entry in manifest.shards]

@@ -28,6 +28,7 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.commands import RouteCommands
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
@@ -41,7 +42,7 @@ from crchfl_sumo.driving.bench_tasks import (
     without_traffic,
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive
-from crchfl_sumo.driving.drive_command import model_renderer, single_torch_thread
+from crchfl_sumo.driving.drive_command import model_expert, model_renderer, single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import (
     DEFAULT_BRAKE_GAIN,
@@ -108,6 +109,9 @@ class ReferenceDriver:
     def policy(self, route: RouteGeometry, net) -> Policy:
         return RoutePolicy(route)
 
+    def expert(self) -> ExpertConfig:
+        return ExpertConfig()
+
 
 @dataclass
 class ModelDriver:
@@ -135,6 +139,11 @@ class ModelDriver:
     def renderer(self, net_path: str):
         """The cameras as the model's training data drew them (drive_command.model_renderer)."""
         return model_renderer(net_path, self.model().config, self._extra, self.path)
+
+    def expert(self) -> ExpertConfig:
+        """The steering rack and pedal mapping the model's data were labelled with (drive_command.model_expert)."""
+        self.model()
+        return model_expert(self._extra, self.path)
 
     def policy(self, route: RouteGeometry, net) -> Policy:
         # The commands as the training data was labelled: at the junctions of the net with a choice.
@@ -180,6 +189,7 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
                 max_s=episode.time_limit_s,
                 config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s),
                 renderer=renderer,
+                expert=driver.expert(),
                 keep_frames=False,
             )
             records.append(episode_record(episode, result, config.drive.finish_before_end_m, scenario.step_length_s))
@@ -223,8 +233,9 @@ def run_benchmark(
 
     ``model``: a checkpoint path, or None / 'reference' for the scripted
     driver. ``driver`` (instead of ``model``) is any object with ``label``,
-    ``renders``, ``policy(route, net)`` (net: the sumolib network) and, if it
-    renders, ``renderer(net_path)``; with ``jobs`` > 1 it must pickle. Returns the
+    ``renders``, ``policy(route, net)`` (net: the sumolib network), ``expert()``
+    (the ExpertConfig whose steering rack the dynamics use) and, if it renders,
+    ``renderer(net_path)``; with ``jobs`` > 1 it must pickle. Returns the
     summary: ``results[TOWN][TASK]`` holds episodes, success_rate,
     route_completion, driving_score and infractions_per_km.
     """

@@ -119,12 +119,13 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
     with single_torch_thread(True):
         for episode in episodes:
             route = route_geometry(net, episode.edges)
-            policy = ExpertLabelled(driver.policy(route, net), RoutePolicy(route), config.every)
+            # the route expert labels through the rack the learner's data were labelled with
+            policy = ExpertLabelled(driver.policy(route, net), RoutePolicy(route, expert=driver.expert()), config.every)
             drive(
                 scenario if traffic[episode.task] else without_traffic(scenario), route, policy,
                 seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),
                 config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s), renderer=renderer,
-                keep_frames=False,
+                expert=driver.expert(), keep_frames=False,
             )
             parts.append(policy.arrays())
     return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from crchfl_sumo.data.commands import RouteCommands
+from crchfl_sumo.data.expert import ExpertConfig, expert_from_labels
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
@@ -51,6 +52,7 @@ def drive_command(
         policy: Policy = RoutePolicy(geometry)
         renderer = Renderer(build_world(loaded.net_path))
         label = "route policy"
+        expert = ExpertConfig()
     else:
         from crchfl_sumo.learning.checkpoint import checkpoint_model, load_checkpoint
 
@@ -61,11 +63,12 @@ def drive_command(
             source=str(model_path),
         )
         renderer = model_renderer(loaded.net_path, model.config, checkpoint.extra, str(model_path))
+        expert = model_expert(checkpoint.extra, str(model_path))
         label = Path(model_path).stem
     with single_torch_thread(model_path is not None):
         result = drive(
             loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
-            renderer=renderer if model_path is not None else None,
+            renderer=renderer if model_path is not None else None, expert=expert,
         )
     metrics = {
         "route": route,
@@ -92,6 +95,13 @@ def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], wh
         return Renderer(build_world(net_path), raster)
     raster, world = camera_settings(camera, f"{where}: extra.camera")
     return Renderer(build_world(net_path, world), raster)
+
+
+def model_expert(extra: dict[str, Any], where: str) -> ExpertConfig:
+    """The expert settings a model's data set was labelled with (a checkpoint's extra "expert", copied from
+    the manifest): the drive's dynamics steer through the same rack. A checkpoint written without them
+    was labelled with the linear rack of the time (data.expert.LINEAR_RACK)."""
+    return expert_from_labels(extra.get("expert", {}), f"{where}: extra.expert")
 
 
 @contextlib.contextmanager

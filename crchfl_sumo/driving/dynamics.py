@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crchfl_sumo.data.expert import ExpertConfig, resistance_mps2
+from crchfl_sumo.data.expert import ExpertConfig, resistance_mps2, wheel_angle_from_steer
 
 # --- vehicle motion: the inverse of the expert's mappings ----------------------------------
 
@@ -26,7 +26,7 @@ class VehicleState:
 
 def wheel_angle_rad(steer: float, config: ExpertConfig = ExpertConfig()) -> float:
     """Steer in [-1, 1] (positive RIGHT) -> wheel angle [rad], CCW positive: the inverse of the expert's."""
-    return -float(np.clip(steer, -1.0, 1.0)) * math.radians(config.max_steer_angle_deg)
+    return float(wheel_angle_from_steer(steer, config))
 
 
 def curvature_from_steer(steer: float, config: ExpertConfig = ExpertConfig()) -> float:

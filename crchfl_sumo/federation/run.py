@@ -169,7 +169,7 @@ def _run_with_trainer(
     fed = config.federation
     first = trainer.initial_state()
     baseline = always_straight(inputs.test)  # what the accuracies are read against
-    camera = inputs.camera  # kept in the model files, so that a drive renders what the data showed
+    settings = inputs.drive_settings  # kept in the model files, so that a drive renders and steers as the data did
     sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
         hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
@@ -199,7 +199,7 @@ def _run_with_trainer(
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
             state, marks = _load_state(checkpoint_path, resolved, sizes)
             if state.done:  # finished before: only the derived files may be missing
-                _write_outputs(out_dir, config, setup, state, camera, _handovers(clock, state), baseline)
+                _write_outputs(out_dir, config, setup, state, settings, _handovers(clock, state), baseline)
                 return summarize(config, setup, state, _handovers(clock, state), baseline)
             log.info("resuming %s at step %d (cloud round %d)", out_dir, state.steps, state.cloud_rounds)
         else:
@@ -218,7 +218,7 @@ def _run_with_trainer(
             _save_state(checkpoint_path, resolved, new, marks)
             if after_checkpoint is not None:
                 after_checkpoint(new)
-            _write_outputs(out_dir, config, setup, new, camera, _handovers(clock, new), baseline)
+            _write_outputs(out_dir, config, setup, new, settings, _handovers(clock, new), baseline)
             if progress is not None:  # a step's postfix costs a pass over the records
                 report(progress, "step", new.steps, None, **progress_detail(new, sizes.budget_bytes, hyper))
 
@@ -369,17 +369,15 @@ def _write_outputs(
     config: RunConfig,
     setup: LoopInputs,
     state: FederationState,
-    camera: dict | None,
+    drive_settings: dict | None,
     handovers: int | None = None,
     baseline: Mapping[str, float] | None = None,
 ) -> None:
     """The files derived from the state, rewritten each step (each of a fixed size); the logs are apart.
 
-    ``camera``: the data set's raster and world settings (Manifest.camera), kept in the model files.
+    ``drive_settings``: the data set's camera and expert settings (Manifest.drive_settings), kept in the model files.
     """
-    extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds}
-    if camera is not None:
-        extra["camera"] = camera
+    extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds, **(drive_settings or {})}
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:
         save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})

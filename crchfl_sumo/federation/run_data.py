@@ -28,7 +28,7 @@ class RunData:
     home_site: Mapping[str, int]
     measured_sample_bytes: int | None
     root: Path | None = None  # the data set folder (the online mode reads its camera settings)
-    camera: dict | None = None  # the manifest's raster and world settings, kept in the model files
+    drive_settings: dict | None = None  # Manifest.drive_settings: kept in the model files
     sites: tuple[EdgeSite, ...] = ()  # the edge sites on the SUMO clock; none on the constant clock
 
 
@@ -83,7 +83,8 @@ def read_inputs(config: RunConfig) -> RunData:
             )
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
-    return RunData(vehicles, samples, test, edges, home, measured, root, manifest.camera, sites)
+    settings = manifest.drive_settings(f"{root}/manifest.json")
+    return RunData(vehicles, samples, test, edges, home, measured, root, settings, sites)
 
 
 def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:
@@ -138,7 +139,7 @@ def online_collector(config: RunConfig, inputs: RunData, scenario):
     manifest = read_manifest(inputs.root)
     where = f"{inputs.root}/manifest.json"
     raster, world = camera_settings(manifest.camera, f"{where}: camera")
-    expert = from_mapping(ExpertConfig, manifest.labels.get("expert", {}), f"{where}: labels.expert")
+    expert = manifest.expert(where)
     command = from_mapping(CommandConfig, manifest.labels.get("command", {}), f"{where}: labels.command")
     if (raster.camera.height_px, raster.camera.width_px) != (manifest.image_height, manifest.image_width):
         raise CrchflError(f"{where}: camera settings do not match the image size; regenerate the data set")

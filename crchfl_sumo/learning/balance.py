@@ -80,13 +80,15 @@ def epoch_batches(samples: Samples, batch_size: int, sampling: str, generator: t
     return list(order.split(batch_size))
 
 
-def class_weights(steer_class: torch.Tensor, weighting: str) -> torch.Tensor | None:
-    """float32 [7] cross-entropy weights for ``weighting`` (None for "none"); absent classes get 0."""
+def class_weights(
+    steer_class: torch.Tensor, weighting: str, num_classes: int = NUM_STEER_CLASSES
+) -> torch.Tensor | None:
+    """float32 [num_classes] cross-entropy weights for ``weighting`` (None for "none"); absent classes get 0."""
     if weighting == "none" or len(steer_class) == 0:
         return None
-    counts = torch.bincount(steer_class.cpu(), minlength=NUM_STEER_CLASSES).to(torch.float64)
+    counts = torch.bincount(steer_class.cpu(), minlength=num_classes).to(torch.float64)
     present = counts > 0
-    raw = torch.zeros(NUM_STEER_CLASSES, dtype=torch.float64)
+    raw = torch.zeros(num_classes, dtype=torch.float64)
     raw[present] = 1.0 / (counts[present] if weighting == "inverse" else counts[present].sqrt())
     weights = raw * counts.sum() / (raw * counts).sum()
     return weights.to(torch.float32)

@@ -28,6 +28,8 @@ import torch
 from crchfl_sumo.core.atomic import atomic_path, atomic_path_keeping_previous
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import expert_from_labels
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.learning.model import DrivingModel, model_from_state
 from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.vision.raster import camera_settings
@@ -92,9 +94,12 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     # Format-2 files written before command_pedals / longitudinal existed: an unconditioned pedal branch.
     mapping.setdefault("command_pedals", False)
     mapping.setdefault("longitudinal", "pedals")
+    mapping.setdefault("steer_bins", NUM_STEER_CLASSES)  # written before finer steer heads: the paper's 7
     model_config = from_mapping(ModelConfig, mapping, f"{path}: model_config")
     if payload["extra"].get("camera"):  # the data set's cameras, which a drive renders with
         camera_settings(payload["extra"]["camera"], f"{path}: extra.camera")
+    if "expert" in payload["extra"]:  # the data set's expert, whose steering rack a drive steers through
+        expert_from_labels(payload["extra"]["expert"], f"{path}: extra.expert")
     state_dict = payload["state_dict"]
     if not all(isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in state_dict.items()):
         raise CrchflError(f"{path}: checkpoint's state_dict holds something other than named tensors; retrain the model")

@@ -3,9 +3,11 @@
 ``evaluate_model(model, samples)`` (``training.evaluate`` with a TrainConfig) gives, over a set of N samples:
 
 - loss: MSE of branch I (mean over throttle and brake, or on the scaled target
-  speed: model.longitudinal_target) + cross-entropy of branch II;
+  speed: model.longitudinal_target) + cross-entropy of branch II (over the
+  steer head's classes: model.steer_targets);
   loss_throttle_brake and loss_steer are the two parts (plain, unweighted means);
-- accuracy: top-1 steer-class accuracy, the paper's Accuracy;
+- accuracy: top-1 steer-class accuracy, the paper's Accuracy (a head of finer
+  steer bins is read on the paper's 7 classes: model.paper_class_of_bin);
 - confusion: the 7 x 7 matrix of counts, row = true class, column = predicted class;
 - recall: per class c, confusion[c, c] / (samples of true class c); NaN for a
   class absent from the set;
@@ -15,7 +17,7 @@
   sklearn's ``balanced_accuracy_score``. A model that always predicts one
   class present in the set scores 1 / (number of classes present): 1/7 with
   all seven;
-- steer_error: mean |steer_from_class(predicted class) - true analogue steer|,
+- steer_error: mean |value of the predicted class - true analogue steer|,
   the error of the steer the vehicle would get after the DAC;
 - throttle_error, brake_error: mean absolute error of the two pedals (a
   target-speed model's pedals are model.longitudinal_pedals' at the sample's
@@ -37,9 +39,16 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.learning.model import DrivingModel, longitudinal_pedals, longitudinal_target
+from crchfl_sumo.learning.model import (
+    DrivingModel,
+    longitudinal_pedals,
+    longitudinal_target,
+    paper_class_of_bin,
+    steer_targets,
+    steer_values,
+)
 from crchfl_sumo.learning.settings import SPEED_SCALE_MPS
 
 STRAIGHT_CLASS = 0  # labels.STEER_CLASS_VALUES[0] == 0.0
@@ -121,12 +130,13 @@ def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int =
     model.eval()
     sums = np.zeros(6)  # MSE, CE, |throttle|, |brake|, |steer|, |target speed| sums
     predicted = []
-    values = torch.as_tensor(STEER_CLASS_VALUES, device=device)
+    values = torch.as_tensor(steer_values(model.config), device=device)
+    paper_class = torch.as_tensor(paper_class_of_bin(model.config), device=device)
     try:
         for start in range(0, len(samples), eval_batch_size):
             batch = samples.subset(slice(start, start + eval_batch_size)).to(device)
             longitudinal, steer_logits = model(batch.images, batch.command, batch.speed_mps)
-            guess = steer_logits.argmax(dim=1)
+            guess = steer_logits.argmax(dim=1)  # the steer head's class
             target = longitudinal_target(model.config, batch.actions, batch.target_speed_mps)
             output = longitudinal.double().cpu().numpy()
             throttle, brake = longitudinal_pedals(model.config, output, batch.speed_mps.cpu().numpy())
@@ -134,13 +144,14 @@ def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int =
             speed_error = np.abs(output[:, 0] * SPEED_SCALE_MPS - batch.target_speed_mps.cpu().numpy()).sum()
             sums += [
                 float((longitudinal - target).double().square().mean(dim=1).sum()),
-                float(F.cross_entropy(steer_logits.double(), batch.steer_class, reduction="sum")),
+                float(F.cross_entropy(steer_logits.double(), steer_targets(model.config, batch.steer_class,
+                                                                           batch.actions[:, 1]), reduction="sum")),
                 np.abs(throttle - actions[:, 0]).sum(),
                 np.abs(brake - actions[:, 2]).sum(),
                 float((values[guess] - batch.actions[:, 1]).abs().double().sum()),
                 speed_error if model.config.longitudinal == "target_speed" else math.nan,
             ]
-            predicted.append(guess.cpu())
+            predicted.append(paper_class[guess].cpu())
     finally:
         model.train(was_training)
     n = len(samples)

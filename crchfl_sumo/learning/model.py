@@ -4,7 +4,8 @@ Branch I sees the head camera (CamH) and regresses (throttle, brake), or, with
 ``ModelConfig.longitudinal = "target_speed"``, the speed to drive at
 (data/expert.py: the expert's speed 1 s ahead), which a controller turns into pedals.
 Branch II sees the front, left and right cameras stacked into 9 channels and
-classifies the steer into the 7 classes of ``labels.STEER_CLASS_VALUES``.
+classifies the steer into the 7 classes of ``labels.STEER_CLASS_VALUES`` (or,
+``ModelConfig.steer_bins``, into finer evenly spaced steer values).
 Both branches share one topology (a PilotNet-like conv stack, adaptive average
 pooling to a fixed grid, a small MLP); the two sizes differ only in widths:
 
@@ -49,7 +50,7 @@ from crchfl_sumo.data.expert import (
     ExpertConfig,
     pedals_towards,
 )
-from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES, steer_from_class
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, digitize_steer, steer_bin_values
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
     SPEED_SCALE_MPS,
@@ -191,7 +192,7 @@ def _initialise(module: nn.Module) -> None:
 
 class DrivingModel(nn.Module):
     """(uint8 images [B, 4, H, W, 3], command int64 [B], speed_mps float [B]) ->
-    (branch I [B, 2] or [B, 1], steer_logits [B, 7]).
+    (branch I [B, 2] or [B, 1], steer_logits [B, steer_bins]).
 
     Branch I gives throttle and brake in [0, 1], or (longitudinal "target_speed")
     the target speed / SPEED_SCALE_MPS, unbounded (longitudinal_target says what
@@ -214,7 +215,7 @@ class DrivingModel(nn.Module):
             3, longitudinal_width(config), shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
         )
         self.branch_steer = ConditionedBranch(
-            9, NUM_STEER_CLASSES, shape, config.norm, heads, one_hot, config.speed_input and config.steer_speed_input
+            9, config.steer_bins, shape, config.norm, heads, one_hot, config.speed_input and config.steer_speed_input
         )
         _initialise(self)
 
@@ -231,6 +232,26 @@ class DrivingModel(nn.Module):
             longitudinal = torch.sigmoid(longitudinal)
         steer_logits = self.branch_steer(sides, command, speed_mps)
         return longitudinal, steer_logits
+
+
+def steer_values(config: ModelConfig) -> np.ndarray:
+    """float32 [steer_bins]: the steer value of each of the steer head's classes (labels.steer_bin_values)."""
+    return steer_bin_values(config.steer_bins)
+
+
+def paper_class_of_bin(config: ModelConfig) -> np.ndarray:
+    """int64 [steer_bins]: the paper's steer class (labels.digitize_steer) of each steer head class's value;
+    the identity for the paper's 7. The test metrics read a prediction through it."""
+    return digitize_steer(steer_values(config))
+
+
+def steer_targets(config: ModelConfig, steer_class: torch.Tensor, steer: torch.Tensor) -> torch.Tensor:
+    """int64 [B]: the steer head's class each sample teaches: its paper class for 7 bins, else the bin nearest
+    its analogue steer label (ties: the lower bin)."""
+    if config.steer_bins == NUM_STEER_CLASSES:
+        return steer_class
+    values = torch.as_tensor(steer_values(config), device=steer.device)
+    return (steer.to(values.dtype)[:, None] - values).abs().argmin(dim=1)
 
 
 def longitudinal_width(config: ModelConfig) -> int:
@@ -341,10 +362,11 @@ def predict_actions(
     throttle, brake = longitudinal_pedals(
         model.config, longitudinal.cpu().numpy(), speed_mps.cpu().numpy(), max_accel_mps2, max_decel_mps2, brake_gain
     )
+    values = steer_values(model.config)
     if steer_decoding == "expected":
         probabilities = torch.softmax(steer_logits.float(), dim=1).cpu().numpy()
-        steer = probabilities @ STEER_CLASS_VALUES
+        steer = probabilities @ values
     else:
-        steer = steer_from_class(steer_logits.argmax(dim=1).cpu().numpy())
+        steer = values[steer_logits.argmax(dim=1).cpu().numpy()]
     actions = np.stack([throttle, steer, brake], axis=1).astype(np.float32)
     return actions[0] if single else actions

@@ -12,6 +12,7 @@ from typing import Literal
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.vision.camera import MAX_HEIGHT_PX, MAX_WIDTH_PX
 
 MIN_IMAGE_HEIGHT = 48
@@ -91,6 +92,11 @@ class ModelConfig:
     speed_horizon_s: how far ahead the target speed looks (the data set's
         expert.speed_horizon_s, 1 s by default); the controller reaches a
         target over the same time. Training refuses data of another horizon.
+    steer_bins: the steer head's classes: 7 is the paper's digitizer and DAC
+        (labels.STEER_CLASS_VALUES); an odd count up to MAX_STEER_BINS spaces
+        that many steer values evenly over [-1, 1] (labels.steer_bin_values),
+        learnt from the analogue steer label. The test metrics stay on the
+        paper's 7 classes (the predicted value digitized). Arch "paper": 7 only.
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -104,6 +110,7 @@ class ModelConfig:
     steer_speed_input: bool = True
     longitudinal: Literal["pedals", "target_speed"] | None = None
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
+    steer_bins: int = NUM_STEER_CLASSES
 
     def __post_init__(self) -> None:
         if self.longitudinal is None:  # frozen: the architecture's default is filled in once, here
@@ -121,14 +128,19 @@ class ModelConfig:
         for key in ("command_pedals", "speed_input", "steer_speed_input"):
             if not isinstance(getattr(self, key), bool):
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
+        bins = self.steer_bins
+        if not (isinstance(bins, int) and not isinstance(bins, bool) and bins % 2 == 1 and 7 <= bins <= MAX_STEER_BINS):
+            raise CrchflError(
+                f"model.steer_bins: {bins!r}; use 7 (the paper's classes) or an odd count up to {MAX_STEER_BINS}"
+            )
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
             paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input")}
-            for key, value in {**paper_values, "longitudinal": "pedals"}.items():
+            for key, value in {**paper_values, "longitudinal": "pedals", "steer_bins": NUM_STEER_CLASSES}.items():
                 if getattr(self, key) != value:
                     raise CrchflError(
                         f"model.{key}: {getattr(self, key)!r} applies to arch 'cil' only; the 'paper' architecture "
-                        "has no normalisation, command or speed input and predicts pedals; drop the key or set "
+                        "has no normalisation, command or speed input, predicts pedals and the 7 steer classes; drop the key or set "
                         "arch = 'cil'"
                     )
         if self.image_height < MIN_IMAGE_HEIGHT or self.image_width < MIN_IMAGE_WIDTH:
@@ -169,6 +181,9 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
 
+
+# Steer head classes at most (model.steer_bins): 0.01 steps over [-1, 1].
+MAX_STEER_BINS = 201
 
 MAX_BATCH_SIZE = 65_536  # samples a batch: four camera images each
 

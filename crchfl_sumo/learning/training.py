@@ -45,12 +45,19 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress, report
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.balance import class_weights, epoch_batches
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
-from crchfl_sumo.learning.model import DrivingModel, State, build_model, longitudinal_target, model_from_state
+from crchfl_sumo.learning.model import (
+    DrivingModel,
+    State,
+    build_model,
+    longitudinal_target,
+    model_from_state,
+    paper_class_of_bin,
+    steer_targets,
+)
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 
 log = logging.getLogger(__name__)
@@ -115,7 +122,8 @@ def branch_losses(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(MSE of branch I on its target, model.longitudinal_target; cross-entropy of branch II), batch means.
 
-    ``class_weight`` [7] (balance.class_weights) makes the cross-entropy a weighted mean.
+    ``steer_class``: the steer head's classes (model.steer_targets); ``class_weight`` [steer_bins]
+    (balance.class_weights) makes the cross-entropy a weighted mean.
     """
     steer_loss = F.cross_entropy(steer_logits, steer_class, weight=class_weight)
     return F.mse_loss(longitudinal, longitudinal_target), steer_loss
@@ -163,16 +171,17 @@ class Learner:
         """
         self.model.train()
         samples = samples.to(self.device)
-        weight = class_weights(samples.steer_class, self.config.class_weighting)
+        model_config = self.model.config
+        classes = steer_targets(model_config, samples.steer_class, samples.actions[:, 1])
+        paper_class = torch.as_tensor(paper_class_of_bin(model_config), device=self.device)
+        weight = class_weights(classes, self.config.class_weighting, model_config.steer_bins)
         weight = None if weight is None else weight.to(self.device)
         sums = torch.zeros(3, dtype=torch.float64, device=self.device)
         done = 0
         for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator):
             indices = indices.to(self.device)
-            images, steer_class = samples.images[indices], samples.steer_class[indices]
-            target = longitudinal_target(
-                self.model.config, samples.actions[indices], samples.target_speed_mps[indices]
-            )
+            images, steer_class = samples.images[indices], classes[indices]
+            target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
             longitudinal, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
@@ -183,7 +192,8 @@ class Learner:
                 optimizer.step()
             n = len(indices)
             with torch.no_grad():
-                correct = (steer_logits.argmax(dim=1) == steer_class).sum().to(torch.float64)
+                # accuracy on the paper's classes, whatever the head's bins
+                correct = (paper_class[steer_logits.argmax(dim=1)] == samples.steer_class[indices]).sum().double()
                 sums += torch.stack([loss_tb.detach().double() * n, loss_steer.detach().double() * n, correct])
             done += n
             report(progress, "train", done, len(samples))
@@ -272,11 +282,15 @@ def _train_vehicles_vmap(
         schedules.append(
             [(e, idx) for e in range(epochs) for idx in epoch_batches(samples, batch_size, config.sampling, generator)]
         )
-    # Each vehicle's steer-class weights from its own samples (all ones for "none").
+    # Each vehicle's steer-head classes (model.steer_targets), and their weights from its own samples
+    # (all ones for "none").
+    bins = model_config.steer_bins
+    vehicle_classes = [steer_targets(model_config, s.steer_class, s.actions[:, 1]) for s in samples_on_device]
+    paper_class = torch.as_tensor(paper_class_of_bin(model_config), device=device)
     steer_weights = []
-    for samples in vehicle_samples:
-        weight = class_weights(samples.steer_class, config.class_weighting)
-        steer_weights.append(torch.ones(NUM_STEER_CLASSES) if weight is None else weight)
+    for classes in vehicle_classes:
+        weight = class_weights(classes, config.class_weighting, bins)
+        steer_weights.append(torch.ones(bins) if weight is None else weight)
     steer_weights_on_device = torch.stack(steer_weights).to(device)
     # Per vehicle and epoch: summed branch-I loss, branch-II loss, correct count.
     sums = torch.zeros(num_vehicles, max(epochs, 1), 3, dtype=torch.float64, device=device)
@@ -288,6 +302,7 @@ def _train_vehicles_vmap(
         speed_mps: torch.Tensor,
         target: torch.Tensor,
         steer_class: torch.Tensor,
+        paper_steer_class: torch.Tensor,
         weight: torch.Tensor,
         class_weight: torch.Tensor,
     ):
@@ -298,14 +313,14 @@ def _train_vehicles_vmap(
         steer_weight = weight * class_weight[steer_class]  # torch's weighted mean, padding rows at 0
         loss_tb = (per_sample_tb * weight).sum() / n
         loss_steer = (per_sample_steer * steer_weight).sum() / steer_weight.sum()
-        correct = ((steer_logits.argmax(dim=1) == steer_class).to(weight.dtype) * weight).sum()
+        correct = ((paper_class[steer_logits.argmax(dim=1)] == paper_steer_class).to(weight.dtype) * weight).sum()
         return loss_tb + loss_steer, torch.stack([loss_tb * n, loss_steer * n, correct]).detach()
 
     grad_fn = vmap(grad(loss_fn, has_aux=True))
     num_steps = max((len(s) for s in schedules), default=0)
     for step in range(num_steps):
         active = [v for v in range(num_vehicles) if step < len(schedules[v])]
-        images, commands, speeds, targets, classes, weights = [], [], [], [], [], []
+        images, commands, speeds, targets, classes, paper_classes, weights = [], [], [], [], [], [], []
         for v in active:
             indices = schedules[v][step][1].to(device)
             n = len(indices)
@@ -319,7 +334,8 @@ def _train_vehicles_vmap(
             speeds.append(samples.speed_mps[indices])
             target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
             targets.append(target)
-            classes.append(samples.steer_class[indices])
+            classes.append(vehicle_classes[v][indices])
+            paper_classes.append(samples.steer_class[indices])
             weights.append(weight)
         every = len(active) == num_vehicles
         rows = torch.tensor(active, device=device)
@@ -331,6 +347,7 @@ def _train_vehicles_vmap(
             torch.stack(speeds),
             torch.stack(targets),
             torch.stack(classes),
+            torch.stack(paper_classes),
             torch.stack(weights),
             steer_weights_on_device[rows],
         )
@@ -390,13 +407,13 @@ def train_centralized(
     seed: int,
     progress: Progress | None = None,
     initial_state: State | None = None,
-    camera: dict | None = None,
+    drive_settings: dict | None = None,
     resume: bool = False,
 ) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
 
-    ``camera``: the data set's raster and world settings (``Manifest.camera``),
-    kept in the checkpoint's extra so that a drive renders what the model learned from.
+    ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
+    kept in the checkpoint's extra so that a drive renders and steers as the model learned.
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch and the test metrics of evaluation.py: loss,
@@ -475,7 +492,7 @@ def train_centralized(
             trainer.model.state_dict(),
             {
                 "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
-                "resume": resume_state, **({} if camera is None else {"camera": camera}),
+                "resume": resume_state, **(drive_settings or {}),
             },
             keep_previous=True,
         )

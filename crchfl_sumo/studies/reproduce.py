@@ -269,7 +269,8 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     manifest = read_manifest(out_dir / "data")
     manifest.check_model(run.model, str(out_dir / "data"))
     records = train_centralized(
-        train, test, config.centralized_epochs, folder, run.model, run.train, seed, camera=manifest.camera
+        train, test, config.centralized_epochs, folder, run.model, run.train, seed,
+        drive_settings=manifest.drive_settings(str(out_dir / "data" / "manifest.json")),
     )
     # the best epoch as the federation ranks its models: balanced accuracy, then accuracy, then loss
     best = max(records, key=lambda r: (r["balanced_accuracy"], r["accuracy"], -r["loss"]))

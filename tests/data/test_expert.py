@@ -8,6 +8,7 @@ from crchfl_sumo.data.expert import (
     ExpertConfig,
     Track,
     expert_actions,
+    expert_from_labels,
     expert_labels,
     pedals,
     pedals_towards,
@@ -17,6 +18,7 @@ from crchfl_sumo.data.expert import (
     target_speed_from_accel,
     target_speeds,
     tracks_from_frames,
+    wheel_angle_from_steer,
 )
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.sumo.frame import make_frame
@@ -170,6 +172,37 @@ def test_steer_sign_and_saturation():
     assert steer[3] == -1.0 and steer[4] == 1.0
 
 
+def test_progressive_rack_keeps_the_small_classes_and_sharpens_the_largest():
+    rack = ExpertConfig(steer_knee=0.275, sharp_steer_gain=2.0)
+    # below the knee 40 deg per unit: 0.125 -> 5 deg, 0.275 -> 11 deg; above it 80 deg per unit:
+    # 0.425 -> 11 + 0.15 * 80 = 23 deg, and the lock 11 + 0.725 * 80 = 69 deg
+    degrees = np.degrees(wheel_angle_from_steer(np.array([0.125, 0.275, 0.425, 1.0, 2.0, -0.425]), rack))
+    assert np.allclose(degrees, [-5.0, -11.0, -23.0, -69.0, -69.0, 23.0])  # positive steer = right = clockwise
+    assert rack.lock_angle_deg == pytest.approx(69.0)
+    # a 6.83 m right turn (tan 23 deg = 2.9 / 6.83) labels 0.425, where the linear rack saturates its class
+    kappa = -math.tan(math.radians(23.0)) / CFG.wheelbase_m
+    assert steer_from_curvature(np.array([kappa]), rack)[0] == pytest.approx(0.425)
+    assert steer_from_curvature(np.array([kappa]), CFG)[0] == pytest.approx(23.0 / 40.0)
+    # the two mappings invert each other on both sides of the knee
+    steer = np.linspace(-1.0, 1.0, 41)
+    kappas = np.tan(wheel_angle_from_steer(steer, rack)) / rack.wheelbase_m
+    assert np.allclose(steer_from_curvature(kappas, rack), steer)
+    # the default rack is linear: 40 deg at full steer, as before the knee existed
+    assert np.degrees(wheel_angle_from_steer(np.array([0.425, 1.0]), CFG)) == pytest.approx([-17.0, -40.0])
+
+
+def test_a_stored_expert_block_without_the_rack_reads_linear():
+    # blocks written before the rack had keys steered linearly, whatever today's default
+    assert (expert_from_labels({"max_steer_angle_deg": 40.0}, "m").steer_knee,
+            expert_from_labels({}, "m").sharp_steer_gain) == (1.0, 1.0)
+    stored = expert_from_labels({"steer_knee": 0.3, "sharp_steer_gain": 2.5}, "m")
+    assert (stored.steer_knee, stored.sharp_steer_gain) == (0.3, 2.5)
+    with pytest.raises(CrchflError, match=r"data/manifest.json: labels.expert.steer_knee must lie in"):
+        expert_from_labels({"steer_knee": 1.5}, "data/manifest.json: labels.expert")
+    with pytest.raises(CrchflError, match="model.pt: extra.expert: expected a table"):
+        expert_from_labels([1], "model.pt: extra.expert")
+
+
 def test_standing_vehicle_holds_wheels_straight_then_steers_into_the_turn():
     # Waiting 5 s at the stop line of a left turn, then driving it.
     track, _ = turn_track(radius_m=15.0, left=True)
@@ -245,3 +278,9 @@ def test_config_rejects_bad_values():
         ExpertConfig(max_steer_angle_deg=0)
     with pytest.raises(CrchflError, match="hold_brake"):
         ExpertConfig(hold_brake=1.5)
+    with pytest.raises(CrchflError, match="steer_knee"):
+        ExpertConfig(steer_knee=0)
+    with pytest.raises(CrchflError, match="sharp_steer_gain"):
+        ExpertConfig(sharp_steer_gain=0)
+    with pytest.raises(CrchflError, match="91 deg lock"):  # 40 * (0.5 + 0.5 * 3.55)
+        ExpertConfig(steer_knee=0.5, sharp_steer_gain=3.55)

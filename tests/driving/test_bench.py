@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.bench_score import penalty, route_completion, score_episode, succeeded, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
@@ -240,6 +241,9 @@ class HardSteerDriver:
     def policy(self, route, net):
         return ConstantPolicy(0.5, 0.425, 0.0)
 
+    def expert(self):
+        return ExpertConfig()
+
 
 SUITE = BenchConfig(tasks=("straight", "one_turn", "navigation"))
 
@@ -359,3 +363,25 @@ def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
     save_checkpoint(tmp_path / "bad.pt", model.config, model.state_dict(), bad)
     with pytest.raises(CrchflError, match="bad.pt: extra.camera.raster"):
         ModelDriver(str(tmp_path / "bad.pt")).renderer(net)
+
+
+def test_a_model_drives_through_the_steering_rack_of_its_training_data(tmp_path):
+    from crchfl_sumo.driving.bench import ModelDriver
+    from crchfl_sumo.driving.dynamics import curvature_from_steer
+    from crchfl_sumo.learning.checkpoint import save_checkpoint
+    from crchfl_sumo.learning.model import build_model
+    from crchfl_sumo.learning.settings import ModelConfig
+
+    model = build_model(ModelConfig(image_height=48, image_width=64), seed=0)
+    rack = {"steer_knee": 0.275, "sharp_steer_gain": 2.0}
+    save_checkpoint(tmp_path / "rack.pt", model.config, model.state_dict(), {"expert": rack})
+    expert = ModelDriver(str(tmp_path / "rack.pt")).expert()
+    # the sharpest class turns the wheels 23 deg (11 + 0.15 * 80), where a linear 40 deg rack gives 17
+    assert curvature_from_steer(0.425, expert) == pytest.approx(-math.tan(math.radians(23.0)) / 2.9)
+    # a checkpoint written before the rack travelled was labelled linearly, whatever today's default
+    save_checkpoint(tmp_path / "old.pt", model.config, model.state_dict())
+    old = ModelDriver(str(tmp_path / "old.pt")).expert()
+    assert curvature_from_steer(0.425, old) == pytest.approx(-math.tan(math.radians(17.0)) / 2.9)
+    save_checkpoint(tmp_path / "bad.pt", model.config, model.state_dict(), {"expert": {"steer_knee": 2.0}})
+    with pytest.raises(CrchflError, match="bad.pt: extra.expert.steer_knee must lie in"):
+        ModelDriver(str(tmp_path / "bad.pt")).model()

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import LINEAR_RACK, ExpertConfig
 from crchfl_sumo.federation.run import run_command, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig, builtin_experiments, load_run_config
 from crchfl_sumo.federation.run_data import read_inputs
@@ -60,7 +61,11 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     model = load_checkpoint(out / "best_model.pt")
     assert model.model_config.image_height == 48
     # the data set's camera settings travel with the model, for the drives
-    assert model.extra["camera"] == json.loads((Path(dataset) / "manifest.json").read_text())["camera"]
+    manifest = json.loads((Path(dataset) / "manifest.json").read_text())
+    assert model.extra["camera"] == manifest["camera"]
+    # and the expert's settings, whose steering rack the drive's dynamics steer through
+    stored = manifest["labels"].get("expert", {})  # this hand-made data set names none: the defaults, linear rack
+    assert model.extra["expert"] == {**to_mapping(ExpertConfig()), **LINEAR_RACK, **stored}
     with pytest.raises(CrchflError, match="--resume"):
         run_command(path, out)
     # resuming a finished run changes nothing

@@ -29,7 +29,7 @@ class FixedModel(torch.nn.Module):
     def forward(self, images, command, speed_mps):
         self.calls.append((command.clone(), speed_mps.clone()))
         index = images[:, 0, 0, 0, 0].long()  # each sample's image carries its own index
-        logits = torch.nn.functional.one_hot(self.classes[index], 7).float() * 10.0
+        logits = torch.nn.functional.one_hot(self.classes[index], self.config.steer_bins).float() * 10.0
         return self.pedals[index], logits
 
 
@@ -96,6 +96,23 @@ def test_evaluate_model_by_hand():
     record = result.record()
     assert record["recall"][2] is None and record["recall"][5] == 1.0
     assert record["confusion"][0] == [1, 0, 1, 0, 0, 0, 0] and record["samples"] == 4
+
+
+def test_a_finer_steer_head_is_scored_on_the_paper_classes():
+    # 21 bins, 0.1 apart over [-1, 1]: bin k is -1 + 0.1 k
+    actions = [[0.0, 0.0, 0.0], [0.0, 0.12, 0.0], [0.0, -0.6, 0.0], [0.0, 0.3, 0.0]]
+    classes = [0, 1, 6, 2]  # the paper's digitizer of those steers
+    predicted = [10, 11, 4, 17]  # values 0.0, 0.1, -0.6, 0.7
+    model = FixedModel([[0.0, 0.0]] * 4, predicted, ModelConfig(longitudinal="pedals", steer_bins=21))
+    result = evaluate_model(model, _samples(actions, classes))
+    # read on the paper's classes: 0.0 -> 0, 0.1 -> 1 (0.125), -0.6 -> 6 (-0.425), 0.7 -> 3 (0.425)
+    assert result.confusion[0][0] == result.confusion[1][1] == result.confusion[6][6] == result.confusion[2][3] == 1
+    assert result.accuracy == 0.75 and result.balanced_accuracy == pytest.approx(0.75)
+    # the steer the vehicle gets is the bin's value: |0 - 0|, |0.1 - 0.12|, |-0.6 + 0.6|, |0.7 - 0.3|
+    assert result.steer_error == pytest.approx((0.02 + 0.4) / 4, abs=1e-6)
+    # the cross-entropy is over the head's bins, each sample's target the bin nearest its steer (10, 11, 4, 13):
+    # the fourth predicts bin 17, so its loss is about 10 (logits 10 apart), the others' about 0
+    assert result.loss_steer == pytest.approx(10.0 / 4, rel=0.01)
 
 
 def test_evaluate_target_speed_model_by_hand():

@@ -261,15 +261,20 @@ def test_config_validation_and_round_trip():
         ModelConfig("huge")
     config = ModelConfig(
         "paper", 64, 96, norm="batch", command_input="concat", command_pedals=True, speed_input=True,
-        longitudinal="target_speed", speed_horizon_s=1.5,
+        longitudinal="target_speed", speed_horizon_s=1.5, steer_bins=21,
     )
     assert from_mapping(ModelConfig, to_mapping(config)) == config
     assert to_mapping(config) == {
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
         "steer_speed_input": True,
-        "longitudinal": "target_speed", "speed_horizon_s": 1.5,
+        "longitudinal": "target_speed", "speed_horizon_s": 1.5, "steer_bins": 21,
     }
+    for bad in (6, 8, 5, 203, 7.0, True):
+        with pytest.raises(CrchflError, match="model.steer_bins"):
+            ModelConfig(steer_bins=bad)
+    with pytest.raises(CrchflError, match="model.steer_bins: 21 applies to arch 'cil' only"):
+        ModelConfig(arch="paper", steer_bins=21)
     for bad in (0.0, 7.0, float("nan")):
         with pytest.raises(CrchflError, match="model.speed_horizon_s must lie in"):
             ModelConfig(speed_horizon_s=bad)
@@ -325,3 +330,23 @@ def test_the_controller_reaches_the_target_over_the_models_horizon():
     # at 5 m/s: +1 m/s over 1 s (not 0.5 m/s^2 as over 2 s), plus rolling resistance and drag
     throttle = predict_actions(model, _images(1)[0], 0, 5.0)[0]
     assert throttle == pytest.approx((1.0 + 0.015 * 9.81 + 2.64e-4 * 25) / 2.6, rel=1e-5)
+
+
+def test_a_finer_steer_head_learns_the_nearest_bin_and_reads_as_the_papers_class():
+    from crchfl_sumo.learning.model import paper_class_of_bin, steer_targets
+
+    fine = ModelConfig(image_height=48, image_width=64, steer_bins=21)
+    model = build_model(fine, seed=0)
+    images = torch.zeros(2, 4, 48, 64, 3, dtype=torch.uint8)
+    _, logits = model(images, torch.tensor([0, 1]), torch.zeros(2))
+    assert logits.shape == (2, 21)
+    # targets: the bin nearest the analogue steer (0.23 -> 0.2, -0.46 -> -0.5); the paper's 7 keep their class
+    steer = torch.tensor([0.23, -0.46])
+    assert steer_targets(fine, torch.tensor([2, 6]), steer).tolist() == [12, 5]
+    assert steer_targets(ModelConfig(), torch.tensor([2, 6]), steer).tolist() == [2, 6]
+    # each bin's paper class: -1 .. -0.4 -> 6 (-0.425), -0.3 -> 5, -0.2 and -0.1 -> 4, 0 -> 0, ..., 0.4 .. 1 -> 3
+    assert paper_class_of_bin(fine).tolist() == [6] * 7 + [5, 4, 4, 0, 1, 1, 2] + [3] * 7
+    assert paper_class_of_bin(ModelConfig()).tolist() == list(range(7))
+    # a drive gets the bin's value
+    actions = predict_actions(model, images[0], 0, 0.0)
+    assert np.isclose(actions[1], np.round(actions[1], 1))

@@ -72,6 +72,7 @@ def _max_difference(a, b):
         (SMALL, dict(sampling="uniform", class_weighting="sqrt_inverse"), 1),  # the defaults
         (ModelConfig("compact", 48, 64, speed_input=True, longitudinal="pedals"), dict(sampling="class_balanced"), 1),
         (ModelConfig("compact", 48, 64, arch="paper"), dict(sampling="command_balanced", learning_rate=1e-4), 2),
+        (ModelConfig("compact", 48, 64, steer_bins=21), dict(class_weighting="inverse"), 1),  # finer steer bins
     ],
 )
 def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles(model_config, balance, epochs):
@@ -124,6 +125,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
         "size": "compact", "image_height": 48, "image_width": 64,
         "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
         "speed_input": False, "steer_speed_input": True, "longitudinal": "target_speed", "speed_horizon_s": 1.0,
+        "steer_bins": 7,
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
@@ -155,7 +157,7 @@ def test_a_format_1_checkpoint_loads_as_the_paper_architecture(tmp_path):
 def test_a_format_2_checkpoint_without_command_pedals_has_an_unconditioned_pedal_branch(tmp_path):
     before = ModelConfig("compact", 48, 64, command_pedals=False, longitudinal="pedals")
     model = build_model(before, seed=0)
-    new_keys = ("command_pedals", "longitudinal", "speed_horizon_s")
+    new_keys = ("command_pedals", "longitudinal", "speed_horizon_s", "steer_bins")
     mapping = {k: v for k, v in to_mapping(before).items() if k not in new_keys}  # written before the keys
     torch.save({"format": "crchfl-sumo-model/2", "model_config": mapping, "state_dict": model.state_dict(),
                 "extra": {}}, tmp_path / "before.pt")
