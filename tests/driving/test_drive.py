@@ -15,7 +15,7 @@ import torch
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
-from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES, digitize_steer
+from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES, digitize_steer, steer_bin_values
 from crchfl_sumo.driving.drive import (
     DriveConfig,
     count_onsets,
@@ -400,7 +400,7 @@ def test_untrained_model_drives_through_the_loop(roads):
     model = build_model(ModelConfig(), seed=0)
     result = drive(scenario, geometry, ModelPolicy(model, commands), seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
     acted = result.log.steer[:-1]
-    assert len(acted) == 8 and np.isin(acted.astype(np.float32), STEER_CLASS_VALUES).all()
+    assert len(acted) == 8 and np.isin(acted.astype(np.float32), steer_bin_values(model.config.steer_bins)).all()
     assert np.all((result.log.throttle[:-1] >= 0) & (result.log.throttle[:-1] <= 1))
     assert not np.any((result.log.throttle[:-1] > 0) & (result.log.brake[:-1] > 0))  # one pedal at a time
     with pytest.raises(CrchflError, match="needs camera images"):
@@ -432,7 +432,7 @@ class _Commands:
 def test_model_policy_feeds_the_route_command_and_the_ego_speed(roads):
     scenario = load_scenario(roads / "straight.sumocfg")
     geometry = route_geometry(read_net(Path(scenario.net_path)), ["AC"])
-    model = build_model(ModelConfig(), seed=0)
+    model = build_model(ModelConfig(steer_bins=7), seed=0)
     with torch.no_grad():  # steer head k says class k + 1, whatever the images; a 14 m/s target speed
         for k, head in enumerate(model.branch_steer.heads):
             head[-1].weight.zero_()

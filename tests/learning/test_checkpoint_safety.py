@@ -14,7 +14,7 @@ from crchfl_sumo.learning.checkpoint import CHECKPOINT_FORMAT, load_checkpoint, 
 from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig
 
-CONFIG = ModelConfig(image_height=48, image_width=64)
+CONFIG = ModelConfig(image_height=48, image_width=64, steer_bins=7)  # the hand-made tensors below have 7 values
 
 
 class RunsCode:

@@ -18,7 +18,7 @@ from crchfl_sumo.learning.settings import ModelConfig
 class FixedModel(torch.nn.Module):
     """Predicts given pedals and steer classes for samples 0..N-1, whatever the input."""
 
-    def __init__(self, pedals, classes, config=ModelConfig(longitudinal="pedals")):
+    def __init__(self, pedals, classes, config=ModelConfig(longitudinal="pedals", steer_bins=7)):
         super().__init__()
         self.config = config
         self.weight = torch.nn.Parameter(torch.zeros(1))  # evaluate reads the device from a parameter

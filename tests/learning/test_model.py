@@ -21,6 +21,7 @@ from crchfl_sumo.learning.settings import ModelConfig
 
 SMALL = ModelConfig("compact", 48, 64)
 PAPER_ARCH = ModelConfig("compact", 48, 64, arch="paper")
+SEVEN = ModelConfig("compact", 48, 64, steer_bins=7)  # the cil network with the paper's 7 steer classes
 COMMANDS = torch.tensor([0, 1, 2, 3, 1])
 SPEEDS = torch.tensor([0.0, 3.0, 8.0, 12.5, 5.0])
 
@@ -47,7 +48,7 @@ def test_output_shapes_and_ranges(height, width, options):
     config = ModelConfig("compact", height, width, **options)
     longitudinal, steer_logits = build_model(config, seed=0)(_images(5, config), COMMANDS, SPEEDS)
     assert config.longitudinal == ("pedals" if options.get("arch") == "paper" else "target_speed")  # the defaults
-    assert longitudinal.shape == (5, 2 if config.longitudinal == "pedals" else 1) and steer_logits.shape == (5, 7)
+    assert longitudinal.shape == (5, 2 if config.longitudinal == "pedals" else 1) and steer_logits.shape == (5, config.steer_bins)
     if config.longitudinal == "pedals":
         assert longitudinal.min() >= 0 and longitudinal.max() <= 1
     assert torch.isfinite(longitudinal).all() and torch.isfinite(steer_logits).all()
@@ -59,7 +60,7 @@ def test_a_target_speed_model_has_one_unbounded_branch_i_output():
     with torch.no_grad():
         model.branch_throttle_brake.heads[0][-1].bias.fill_(1.3)  # 13 m/s: beyond a sigmoid's range
     target, steer_logits = model(_images(5, config), COMMANDS, SPEEDS)
-    assert target.shape == (5, 1) and steer_logits.shape == (5, 7)
+    assert target.shape == (5, 1) and steer_logits.shape == (5, config.steer_bins)
     assert target.min() > 1.0
 
 
@@ -118,19 +119,19 @@ def test_the_cil_architecture_is_normalised_without_the_bottleneck():
     assert [(n.num_groups, n.num_channels) for n in norms] == [(8, 24), (4, 36), (8, 48), (8, 64), (8, 64)]
     assert len(model.branch_steer.heads) == 4 and len(model.branch_throttle_brake.heads) == 1
     widths = [m.out_features for m in model.branch_steer.heads[0] if isinstance(m, torch.nn.Linear)]
-    assert widths == [50, 7]  # 50 units before the 7-way output, not 10
+    assert widths == [50, 21]  # 50 units before the 21-way output, not 10
     assert isinstance(DrivingModel(ModelConfig(norm="batch")).branch_steer.features[1], torch.nn.BatchNorm2d)
     assert DrivingModel(ModelConfig(norm="layer")).branch_steer.features[1].num_groups == 1
 
 
 def test_initial_steer_logits_are_near_uniform():
     _, logits = _run(build_model(SMALL, seed=0), _images(8))
-    probabilities = logits.softmax(dim=1)
-    assert probabilities.max() < 0.2 and probabilities.min() > 0.1  # 1/7 = 0.143 each, no class favoured
+    probabilities, n = logits.softmax(dim=1), SMALL.steer_bins
+    assert probabilities.max() < 1.4 / n and probabilities.min() > 0.7 / n  # 1/21 = 0.048 each, no class favoured
 
 
 def test_branched_heads_are_picked_by_the_command():
-    model = build_model(SMALL, seed=0)
+    model = build_model(SEVEN, seed=0)
     with torch.no_grad():
         for k, head in enumerate(model.branch_steer.heads):
             head[-1].weight.zero_()
@@ -229,7 +230,7 @@ def test_expected_steer_decoding_weights_the_class_values_by_probability():
 
 
 def test_predict_actions_passes_command_and_speed():
-    model = build_model(ModelConfig("compact", 48, 64, longitudinal="pedals"), seed=0)
+    model = build_model(ModelConfig("compact", 48, 64, longitudinal="pedals", steer_bins=7), seed=0)
     images = _images(3)
     command, speed = torch.tensor([1, 2, 3]), torch.tensor([0.0, 4.0, 11.0])
     throttle_brake, logits = model.eval()(images, command, speed)
@@ -343,10 +344,10 @@ def test_a_finer_steer_head_learns_the_nearest_bin_and_reads_as_the_papers_class
     # targets: the bin nearest the analogue steer (0.23 -> 0.2, -0.46 -> -0.5); the paper's 7 keep their class
     steer = torch.tensor([0.23, -0.46])
     assert steer_targets(fine, torch.tensor([2, 6]), steer).tolist() == [12, 5]
-    assert steer_targets(ModelConfig(), torch.tensor([2, 6]), steer).tolist() == [2, 6]
+    assert steer_targets(ModelConfig(steer_bins=7), torch.tensor([2, 6]), steer).tolist() == [2, 6]
     # each bin's paper class: -1 .. -0.4 -> 6 (-0.425), -0.3 -> 5, -0.2 and -0.1 -> 4, 0 -> 0, ..., 0.4 .. 1 -> 3
     assert paper_class_of_bin(fine).tolist() == [6] * 7 + [5, 4, 4, 0, 1, 1, 2] + [3] * 7
-    assert paper_class_of_bin(ModelConfig()).tolist() == list(range(7))
+    assert paper_class_of_bin(ModelConfig(steer_bins=7)).tolist() == list(range(7))
     # a drive gets the bin's value
     actions = predict_actions(model, images[0], 0, 0.0)
     assert np.isclose(actions[1], np.round(actions[1], 1))

@@ -7,6 +7,7 @@ import torch
 
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
@@ -47,8 +48,12 @@ def test_evaluate_matches_a_direct_computation_and_ignores_batching():
     with torch.no_grad():
         target_speed, logits = model.eval()(samples.images, samples.command, samples.speed_mps)
     mse = ((target_speed[:, 0] - samples.target_speed_mps / 10) ** 2).mean().item()  # the default: target speed
-    ce = torch.nn.functional.cross_entropy(logits, samples.steer_class).item()
-    accuracy = (logits.argmax(1) == samples.steer_class).float().mean().item()
+    # the default head's 21 bins 0.1 apart: each sample's target is the bin nearest its steer, and a
+    # predicted bin is scored as the paper's class of its value
+    bins = torch.round((samples.actions[:, 1] + 1) * 10).long()
+    ce = torch.nn.functional.cross_entropy(logits, bins).item()
+    paper = torch.as_tensor(digitize_steer(np.linspace(-1, 1, 21)))
+    accuracy = (paper[logits.argmax(1)] == samples.steer_class).float().mean().item()
     assert small_batches.loss_throttle_brake == pytest.approx(mse, rel=1e-5)
     assert small_batches.loss_steer == pytest.approx(ce, rel=1e-5)
     assert small_batches.loss == pytest.approx(mse + ce, rel=1e-5)
@@ -125,7 +130,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
         "size": "compact", "image_height": 48, "image_width": 64,
         "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
         "speed_input": False, "steer_speed_input": True, "longitudinal": "target_speed", "speed_horizon_s": 1.0,
-        "steer_bins": 7,
+        "steer_bins": 21,
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
@@ -155,7 +160,7 @@ def test_a_format_1_checkpoint_loads_as_the_paper_architecture(tmp_path):
 
 
 def test_a_format_2_checkpoint_without_command_pedals_has_an_unconditioned_pedal_branch(tmp_path):
-    before = ModelConfig("compact", 48, 64, command_pedals=False, longitudinal="pedals")
+    before = ModelConfig("compact", 48, 64, command_pedals=False, longitudinal="pedals", steer_bins=7)
     model = build_model(before, seed=0)
     new_keys = ("command_pedals", "longitudinal", "speed_horizon_s", "steer_bins")
     mapping = {k: v for k, v in to_mapping(before).items() if k not in new_keys}  # written before the keys
