@@ -48,6 +48,7 @@ from typing import Sequence
 
 import numpy as np
 
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.sumo.frame import Frame
@@ -133,8 +134,6 @@ LINEAR_RACK = {"steer_knee": 1.0, "sharp_steer_gain": 1.0}
 def expert_from_labels(mapping, where: str) -> ExpertConfig:
     """The ExpertConfig of a stored block (a manifest's labels.expert, a checkpoint's extra.expert), checked;
     keys it lacks take today's defaults, except the rack, which is linear as it was before it had keys."""
-    from crchfl_sumo.core.config import from_mapping
-
     if not isinstance(mapping, dict):
         raise CrchflError(f"{where}: expected a table of expert settings, got {type(mapping).__name__}")
     return from_mapping(ExpertConfig, {**LINEAR_RACK, **mapping}, where)
