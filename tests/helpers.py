@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
 from crchfl_sumo.sumo.scenario import sumo_binary
 
@@ -103,3 +104,16 @@ def half_hour_statistics(sumocfg: Path, tmp_path: Path) -> ET.Element:
         check=True, capture_output=True,
     )
     return ET.parse(stats).getroot()
+
+
+def random_samples(n: int, seed: int):
+    """n Samples of random images and labels at 48 x 64 (what a trainer's tests need, not a drive)."""
+    rng = np.random.default_rng(seed)
+    return Samples.from_numpy(
+        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
+        rng.random((n, 3), dtype=np.float32),
+        rng.integers(0, 7, size=n),
+        rng.integers(0, 4, size=n),
+        rng.uniform(0, 14, size=n),
+        rng.uniform(0, 14, size=n),
+    )

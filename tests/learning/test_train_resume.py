@@ -17,22 +17,12 @@ from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import train_centralized
 
-from helpers import PAPER_VEHICLES, write_dataset
+from helpers import PAPER_VEHICLES, random_samples as _samples, write_dataset
 
 SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu", deterministic=True, sampling="class_balanced")  # balanced: the generator matters
 
 
-def _samples(n, seed):
-    rng = np.random.default_rng(seed)
-    return Samples.from_numpy(
-        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
-        rng.random((n, 3), dtype=np.float32),
-        rng.integers(0, 7, size=n),
-        rng.integers(0, 4, size=n),
-        rng.uniform(0, 14, size=n),
-        rng.uniform(0, 14, size=n),
-    )
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import Samples
+from helpers import random_samples as _samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import build_model
@@ -19,16 +20,6 @@ SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu")
 
 
-def _samples(n, seed):
-    rng = np.random.default_rng(seed)
-    return Samples.from_numpy(
-        rng.integers(0, 256, size=(n, 4, 48, 64, 3), dtype=np.uint8),
-        rng.random((n, 3), dtype=np.float32),
-        rng.integers(0, 7, size=n),
-        rng.integers(0, 4, size=n),
-        rng.uniform(0, 14, size=n),
-        rng.uniform(0, 14, size=n),
-    )
 
 
 def test_one_training_step_lowers_the_loss_on_a_fixed_batch():
