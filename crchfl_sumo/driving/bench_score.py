@@ -78,3 +78,25 @@ def summarize_task(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "infractions": counts,
         "distance_km": km,
     }
+
+
+def pool_task_summaries(summaries: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """One task's results over the episodes of several runs (several models of one scheme, say), as
+    summarize_task would give them over all those episodes together."""
+    episodes = [int(s["episodes"]) for s in summaries]
+    total = sum(episodes)
+
+    def mean(key: str) -> float:
+        return float(sum(n * s[key] for n, s in zip(episodes, summaries)) / total)
+
+    km = float(sum(s["distance_km"] for s in summaries))
+    counts = {k: int(sum(s["infractions"][k] for s in summaries)) for k in INFRACTIONS}
+    return {
+        "episodes": total,
+        "success_rate": mean("success_rate"),
+        "route_completion": mean("route_completion"),
+        "driving_score": mean("driving_score"),
+        "infractions_per_km": sum(counts.values()) / km if km > 0 else None,
+        "infractions": counts,
+        "distance_km": km,
+    }

@@ -271,6 +271,7 @@ def _closed_loop(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list
 def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
     """The closed-loop benchmark: per town, each model's success, route completion and driving score per task."""
     bench = summary.get("drive_bench") or {}
+    spread = summary.get("drive_bench_spread") or {}
     if not bench:
         return []
     lines = [
@@ -279,6 +280,13 @@ def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
         "routes (docs/drive.md). A cell: success rate / route completion / driving score (route completion "
         "x the CARLA Leaderboard's infraction penalty), each in %; infractions per km after the bar.",
     ]
+    if spread:
+        lines += [
+            "",
+            f"{', '.join(NAMES.get(label, label) for label in spread)}: every seed's model drove the same episodes; "
+            "a cell gives all their episodes together, with the sample standard deviation over the seeds' "
+            "models after the success rate and the driving score (±).",
+        ]
     towns = list(dict.fromkeys(town for results in bench.values() for town in results))
     for town in towns:
         tasks = list(dict.fromkeys(t for results in bench.values() for t in results.get(town, {})))
@@ -287,14 +295,21 @@ def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
             cells = []
             for task in tasks:
                 r = results.get(town, {}).get(task)
+                s = spread.get(label, {}).get(town, {}).get(task)
                 cells.append("-" if r is None else (
-                    f"{100 * r['success_rate']:.0f} / {100 * r['route_completion']:.0f} / "
-                    f"{100 * r['driving_score']:.0f} | {_fmt(r['infractions_per_km'], 2)}"
+                    f"{100 * r['success_rate']:.0f}{_seed_std(s, 'success_rate')} / {100 * r['route_completion']:.0f} / "
+                    f"{100 * r['driving_score']:.0f}{_seed_std(s, 'driving_score')} | {_fmt(r['infractions_per_km'], 2)}"
                 ))
             rows.append([NAMES.get(label, label), *cells])
         lines += ["", f"### {town}", ""]
         lines += _table(["model", *tasks], rows)
     return lines
+
+
+def _seed_std(spread: Mapping[str, Any] | None, key: str) -> str:
+    """' ± S' (S in %) of a benchmark spread entry, '' without one or with a single seed."""
+    std = (spread or {}).get(key, {}).get("std")
+    return "" if std is None else f" ± {100 * std:.0f}"
 
 
 def _settings(summary: Mapping[str, Any], results: Mapping[str, Any]) -> list[str]:

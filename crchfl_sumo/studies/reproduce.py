@@ -322,17 +322,19 @@ def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
     """The closed-loop benchmark for one model (its own process already: the episodes run one by one)."""
     from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 
-    model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
+    model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme, part.seed)
     run_benchmark(
         model, out_dir / part.key, episodes=config.bench_episodes, jobs=1, seed=config.bench_seed,
         towns=config.bench_towns, config=BenchConfig(tasks=config.bench_tasks),
     )
 
 
-def model_for(out_dir: Path, label: str) -> Path:
-    """The model that drives for ``label``: the best_model.pt of the scheme's best seed; for the
-    centralized bound, the last epoch's checkpoint of the seed that ended best."""
+def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
+    """The model that drives for ``label``: the best_model.pt of the scheme's best seed (or of ``seed``);
+    for the centralized bound, the last epoch's checkpoint of the seed that ended best (or of ``seed``)."""
     folder = Path(out_dir) / (CENTRALIZED if label == CENTRALIZED else f"runs/{label}")
+    if seed is not None:
+        return folder / f"seed-{seed}" / ("checkpoint.pt" if label == CENTRALIZED else "best_model.pt")
     summaries = {}
     for path in sorted(folder.glob("seed-*/summary.json")):
         summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))

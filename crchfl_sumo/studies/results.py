@@ -27,27 +27,49 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
+def seed_folders(folder: Path) -> dict[int, Path]:
+    """seed -> ``folder/seed-S`` for each such folder holding a summary.json, by seed."""
+    found = {}
+    for summary_path in Path(folder).glob("seed-*/summary.json"):
+        try:
+            found[int(summary_path.parent.name.split("-", 1)[1])] = summary_path.parent
+        except ValueError:
+            continue
+    return dict(sorted(found.items()))
+
+
 def read_seed_runs(folder: Path) -> dict[int, dict[str, Any]]:
     """seed -> {"summary", "metrics", "config"} of each ``folder/seed-S`` holding a summary.json."""
     runs = {}
-    for summary_path in sorted(Path(folder).glob("seed-*/summary.json")):
-        run_dir = summary_path.parent
-        try:
-            seed = int(run_dir.name.split("-", 1)[1])
-        except ValueError:
-            continue
+    for seed, run_dir in seed_folders(folder).items():
         config_path = run_dir / "config.json"
         runs[seed] = {
-            "summary": read_json(summary_path),
+            "summary": read_json(run_dir / "summary.json"),
             "metrics": read_jsonl(run_dir / "metrics.jsonl"),
             "config": read_json(config_path) if config_path.is_file() else None,
         }
-    return dict(sorted(runs.items()))
+    return runs
 
 
 def _ordered(names: Iterable[str], order: Sequence[str]) -> list[str]:
     names = list(names)
     return [n for n in order if n in names] + sorted(n for n in names if n not in order)
+
+
+def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
+    """label -> the drive-bench summary.json of ``bench_dir/LABEL``, or {"seeds": {seed: summary}} where
+    the benchmark drove every seed's model (``bench_dir/LABEL/seed-S/summary.json``)."""
+    bench: dict[str, dict[str, Any]] = {}
+    if not bench_dir.is_dir():
+        return bench
+    for folder in bench_dir.iterdir():
+        if (folder / "summary.json").is_file():
+            bench[folder.name] = read_json(folder / "summary.json")
+        elif folder.is_dir():
+            seeds = {seed: read_json(path / "summary.json") for seed, path in seed_folders(folder).items()}
+            if seeds:
+                bench[folder.name] = {"seeds": seeds}
+    return {label: bench[label] for label in _ordered(bench, LABEL_ORDER)}
 
 
 def read_results(out_dir: str | Path) -> dict[str, Any]:
@@ -77,11 +99,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
                 drives[route_dir.name] = {
                     label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, LABEL_ORDER)
                 }
-    bench_dir = out_dir / "drive_bench"
-    bench = {}
-    if bench_dir.is_dir():
-        labels = [p.name for p in bench_dir.iterdir() if (p / "summary.json").is_file()]
-        bench = {label: read_json(bench_dir / label / "summary.json") for label in _ordered(labels, LABEL_ORDER)}
+    bench = read_benchmarks(out_dir / "drive_bench")
     if not schemes and not ablation:
         raise CrchflError(
             f"{out_dir}: no finished run (runs/SCHEME/seed-S/summary.json); "

@@ -9,6 +9,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from crchfl_sumo.accounting.schedules import STAGES
+from crchfl_sumo.driving.bench_score import pool_task_summaries
 
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
 PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}
@@ -178,6 +179,37 @@ def elapsed_s(spans: Iterable[Mapping[str, float]]) -> float:
     return covered
 
 
+# The benchmark's per-episode means whose spread over seeds the summary gives.
+BENCH_SPREAD_KEYS = ("success_rate", "route_completion", "driving_score")
+
+
+def bench_stats(bench: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """summary.json's ``drive_bench`` (label -> results[TOWN][TASK]) and ``drive_bench_spread``.
+
+    A label benchmarked with one model gives its results as they are. A label benchmarked with every
+    seed's model ({"seeds": {seed: summary}}) gives the results over all its episodes together in
+    ``drive_bench``, and in ``drive_bench_spread[label][TOWN][TASK][KEY]`` the mean, sample std and
+    per-seed values of each seed's success rate, route completion and driving score.
+    """
+    pooled: dict[str, Any] = {}
+    spread: dict[str, Any] = {}
+    for label, found in bench.items():
+        if "seeds" not in found:
+            pooled[label] = found["results"]
+            continue
+        per_seed = [summary["results"] for summary in found["seeds"].values()]
+        pooled[label], spread[label] = {}, {"seeds": list(found["seeds"])}
+        for town, tasks in per_seed[0].items():
+            pooled[label][town], spread[label][town] = {}, {}
+            for task in tasks:
+                runs = [results[town][task] for results in per_seed]
+                pooled[label][town][task] = pool_task_summaries(runs)
+                spread[label][town][task] = {
+                    key: {**mean_std(r[key] for r in runs), "values": [r[key] for r in runs]} for key in BENCH_SPREAD_KEYS
+                }
+    return {"drive_bench": pooled, "drive_bench_spread": spread}
+
+
 def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
     """summary.json: per scheme cloud_rounds, accuracies and losses (mean, std), bytes, closed loop."""
     schemes = {name: scheme_stats(runs) for name, runs in results["schemes"].items()}
@@ -207,6 +239,6 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "centralized": centralized_stats(results["centralized"]),
         "ablation": ablation,
         "closed_loop": results["drives"],
-        "drive_bench": {label: bench["results"] for label, bench in results["drive_bench"].items()},
+        **bench_stats(results["drive_bench"]),
         "running_time_s": timing_groups(results["timings"]),
     }

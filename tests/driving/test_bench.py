@@ -15,7 +15,14 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.bench_score import penalty, route_completion, score_episode, succeeded, summarize_task
+from crchfl_sumo.driving.bench_score import (
+    penalty,
+    pool_task_summaries,
+    route_completion,
+    score_episode,
+    succeeded,
+    summarize_task,
+)
 from crchfl_sumo.driving.bench_tasks import (
     TASKS,
     TIME_BUDGET_SPEED_MPS,
@@ -83,6 +90,19 @@ def test_task_summary_of_scripted_episodes_by_hand():
     assert s["infractions_per_km"] == pytest.approx(7.0)
     assert s["infractions"] == {"collisions": 1, "red_light_violations": 3, "off_road_events": 1, "lane_departures": 2}
     assert summarize_task([_record("time limit", 0.0, 0.0)])["infractions_per_km"] is None  # never moved
+
+
+def test_pooled_task_summaries_equal_the_summary_of_all_episodes():
+    first = [_record("completed", 1.0, 400.0), _record("completed", 1.0, 300.0, collisions=1, red=1)]
+    second = [_record("time limit", 0.8, 200.0, red=2, departures=1), _record("left the route", 0.25, 100.0, off_road=1),
+              _record("completed", 1.0, 500.0)]
+    pooled = pool_task_summaries([summarize_task(first), summarize_task(second)])
+    together = summarize_task(first + second)
+    assert pooled.pop("infractions") == together.pop("infractions")
+    assert pooled == pytest.approx(together)
+    # by hand: 2 of 5 succeed; 1 + 1 + 2 + 1 + 1 = 6 infractions over 1.5 km
+    assert pooled["episodes"] == 5 and pooled["success_rate"] == pytest.approx(0.4)
+    assert pooled["infractions_per_km"] == pytest.approx(4.0)
 
 
 def test_footprint_overlap_by_hand():

@@ -257,3 +257,33 @@ def test_format_summary_lists_schemes_and_gains(results):
     text = format_summary(report_command(results), results)
     assert "CRCHFL over HFL: +10.00 %" in text and "(paper: +12.41 %)" in text
     assert text.splitlines()[0].startswith("CRCHFL") and str(results / "report.md") in text
+
+
+def _fake_bench(folder: Path, success: float, score: float, km: float, collisions: int) -> None:
+    """A drive-bench summary.json of one town and task, 4 episodes."""
+    _write(folder / "summary.json", {"results": {"town01": {"navigation": {
+        "episodes": 4, "success_rate": success, "route_completion": 1.0, "driving_score": score,
+        "infractions_per_km": collisions / km, "distance_km": km,
+        "infractions": {"collisions": collisions, "red_light_violations": 0, "off_road_events": 0,
+                        "lane_departures": 0},
+    }}}})
+
+
+def test_a_benchmark_of_every_seed_gives_all_episodes_and_the_spread_over_seeds(results):
+    _fake_bench(results / "drive_bench" / "crchfl" / "seed-0", 0.5, 0.6, 2.0, 2)
+    _fake_bench(results / "drive_bench" / "crchfl" / "seed-1", 1.0, 0.8, 3.0, 0)
+    _fake_bench(results / "drive_bench" / "reference", 1.0, 1.0, 2.5, 0)
+    summary = report_command(results)
+    pooled = summary["drive_bench"]["crchfl"]["town01"]["navigation"]
+    # 8 episodes: 2 + 4 successes, 2 collisions over 5 km
+    assert pooled["episodes"] == 8 and pooled["success_rate"] == pytest.approx(0.75)
+    assert pooled["driving_score"] == pytest.approx(0.7) and pooled["infractions_per_km"] == pytest.approx(0.4)
+    spread = summary["drive_bench_spread"]["crchfl"]
+    assert spread["seeds"] == [0, 1]
+    success = spread["town01"]["navigation"]["success_rate"]
+    assert success["values"] == [0.5, 1.0] and success["std"] == pytest.approx(math.sqrt(0.125))  # ddof 1
+    assert summary["drive_bench"]["reference"]["town01"]["navigation"]["episodes"] == 4
+    assert "reference" not in summary["drive_bench_spread"]
+    report = (results / "report.md").read_text()
+    assert "| CRCHFL | 75 ± 35 / 100 / 70 ± 14 | 0.40 |" in report
+    assert "| Reference driver | 100 / 100 / 100 | 0.00 |" in report

@@ -74,6 +74,29 @@ def test_presets_and_seed_override():
     assert [p.key for p in plan_parts(full)][-3:] == ["ablation/ie-2/seed-2", "ablation/ie-3/seed-2", "ablation/ie-4/seed-2"]
 
 
+def test_the_benchmark_drives_the_best_seed_or_every_seed():
+    from crchfl_sumo.studies.reproduce_plan import bench_parts
+
+    config = ReproduceConfig(seeds=2, schemes=("crchfl", "hfl"), bench_episodes=1)
+    assert [(p.key, p.scheme, p.seed) for p in bench_parts(config)] == [
+        ("drive_bench/crchfl", "crchfl", None), ("drive_bench/hfl", "hfl", None),
+        ("drive_bench/centralized", "centralized", None), ("drive_bench/reference", "reference", None),
+    ]
+    every = ReproduceConfig(seeds=2, schemes=("crchfl",), bench_episodes=1, bench_every_seed=True, first_seed=3)
+    assert [p.key for p in bench_parts(every)] == [
+        "drive_bench/crchfl/seed-3", "drive_bench/crchfl/seed-4", "drive_bench/centralized/seed-3",
+        "drive_bench/centralized/seed-4", "drive_bench/reference",
+    ]
+    assert bench_parts(ReproduceConfig(bench_episodes=0, bench_every_seed=True)) == []
+
+
+def test_a_seed_names_its_own_model():
+    from crchfl_sumo.studies.reproduce import model_for
+
+    assert model_for(Path("r"), "hfl", 2) == Path("r/runs/hfl/seed-2/best_model.pt")
+    assert model_for(Path("r"), "centralized", 0) == Path("r/centralized/seed-0/checkpoint.pt")
+
+
 def test_best_seed():
     assert best_seed({0: {"balanced_accuracy": 0.5}, 1: {"balanced_accuracy": 0.7}, 2: {"balanced_accuracy": 0.7}}) == 1
     assert best_seed({0: {"balanced_accuracy": None}, 3: {"balanced_accuracy": 0.1}}) == 3
