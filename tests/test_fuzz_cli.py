@@ -406,5 +406,5 @@ def test_fuzz_bad_inputs_exit_2_with_a_message_naming_them(tmp_path, capsys, mon
 def test_fuzz_huge_values_are_refused_for_every_key(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     cases = _huge_cases(tmp_path)
-    assert len(cases) >= 3 * 200  # every numeric key of the presets and schemas (218 now), three values each
+    assert len(cases) >= 3 * 250  # every numeric key of the presets and schemas (263 now), three values each
     _check(cases, capsys)
