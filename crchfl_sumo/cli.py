@@ -137,16 +137,21 @@ def _overwrite_argument(p: argparse.ArgumentParser, file: bool = False) -> None:
                    "write into --out even if it holds earlier results (files of the same names are replaced)")
 
 
-def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=()):
-    """``with`` this around a command's work: core.outputs.output_dir checks --out (or ``out``) with its settings."""
+def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=(), extendable=()):
+    """``with`` this around a command's work: core.outputs.output_dir checks --out (or ``out``) with its settings.
+
+    ``extendable``: arguments a ``--resume`` may change (train's --epochs); every other setting it must keep.
+    """
     from crchfl_sumo.core.outputs import fingerprint, output_dir
 
     settings = {k: v for k, v in sorted(vars(args).items()) if k not in _NOT_SETTINGS}
     config = getattr(args, "config", None)
     files = [config] if config is not None and Path(config).is_file() else []
+    kept = {k: v for k, v in settings.items() if k not in extendable}
     return output_dir(
         args.out if out is None else out, command, fingerprint(settings, files), flag=f"{args.command} --out",
         replace=getattr(args, "overwrite", False), resumable=resumable, beside=beside,
+        resume_fingerprint=fingerprint(kept, files) if extendable else None, resuming=getattr(args, "resume", False),
     )
 
 
@@ -318,7 +323,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
     p.add_argument("--resume", action="store_true",
-                   help="continue the training in --out after its last checkpointed epoch (the same command line)")
+                   help="continue the training in --out after its last checkpointed epoch (the same command line; "
+                   "--epochs may be raised)")
 
 
 def _run_train(args) -> int:
@@ -327,7 +333,7 @@ def _run_train(args) -> int:
     from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
     from crchfl_sumo.learning.training import train_centralized
 
-    with _output_folder(args, "train"):
+    with _output_folder(args, "train", extendable=("epochs",)):  # --resume --epochs N continues to N
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         manifest = read_manifest(args.dataset)
         model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)

@@ -19,8 +19,7 @@ that no case starts real work. Anything escaping ``main`` fails the test.
 
 Absurd magnitudes (1e308, -1e308, 2**63 - 1) are never valid: every setting has a bound
 (issue 18). Besides the seeded mutations, every numeric key of every preset and schema
-is given each of them once (``_huge_cases``); the only keys let through are those of
-``OWNED_ELSEWHERE``, whose bounds belong to modules this suite does not change.
+is given each of them once (``_huge_cases``), and no key is let through.
 """
 
 from __future__ import annotations
@@ -40,15 +39,15 @@ from crchfl_sumo.cli import build_parser, main
 from crchfl_sumo.core.config import read_toml
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.federation.run_config import RunConfig
+from crchfl_sumo.studies.reproduce_plan import ReproduceConfig
 
 SEED = 18
 REFUSED = ("nan", "-inf", "text", "bool", "list", "table", "1e308", "-1e308", "2**63-1")  # never a valid number
 MAYBE = ("-1", "0")  # valid for some settings: the key or the sentinel
 HUGE = ("1e308", "-1e308", "2**63-1")
-# Tables whose settings have no upper bounds yet: ExpertConfig (data/expert.py) and DriveConfig
-# (driving/drive.py) are being changed by another branch; their bounds go there. A huge value of theirs
-# may reach the sentinel; one anywhere else fails the fuzz.
-OWNED_ELSEWHERE = ("expert", "drive")
+# Presets mutated at every key of their schema too, not only at those they set (the reproduce
+# schema brings the drives' [drive] table and the data set's [generate.expert]).
+SCHEMAS = {"crchfl": RunConfig, "reproduce_quick": ReproduceConfig}
 VALUES = {
     "nan": math.nan, "inf": math.inf, "-inf": -math.inf, "-1": -1, "0": 0, "1e308": 1e308, "-1e308": -1e308,
     "2**63-1": 2**63 - 1, "text": "text", "bool": True, "list": [1.0], "table": {"x": 1},
@@ -160,12 +159,11 @@ def _config_cases(tmp: Path) -> list[Case]:
         path.write_text(tomli_w.dumps(data), encoding="utf-8")
         return path
 
-    schema_defaults = dict(_schema_leaves(RunConfig))
     for preset, (data, argv, sentinels) in _preset_commands(tmp).items():
         leaves = dict(_leaves(data))
         per_key = 2 if preset.endswith("_full") else 3  # mutations a key: the full presets repeat the quick ones' keys
-        if preset == "crchfl":  # every key of the schema, not only those the preset sets
-            leaves.update({p: d for p, d in schema_defaults.items() if p not in leaves})
+        if preset in SCHEMAS:  # every key of the schema, not only those the preset sets
+            leaves.update({p: d for p, d in _schema_leaves(SCHEMAS[preset]) if p not in leaves})
         for path, default in leaves.items():
             key = next(str(k) for k in reversed(path) if isinstance(k, str))
             factor_value = path[0] == "factor" and key == "values"  # a study's value of the run setting it names
@@ -175,8 +173,7 @@ def _config_cases(tmp: Path) -> list[Case]:
             for label in chosen:
                 mutated = _copy(data)
                 _set(mutated, path, VALUES[label])
-                may_pass = (label in MAYBE or (label == "inf" and (default == math.inf or factor_value))
-                            or (label in HUGE and _owned_elsewhere(path)))
+                may_pass = label in MAYBE or (label == "inf" and (default == math.inf or factor_value))
                 cases.append(Case(argv(write(mutated, label)), (key,), sentinels if may_pass else ()))
         tables = [p for p, v in _dict_paths(data)]
         for table in tables:
@@ -205,16 +202,11 @@ def _config_cases(tmp: Path) -> list[Case]:
             for label in ["nan", *rng.sample([v for v in VALUES if v != "nan"], 2)]:
                 mutated = {}
                 _set(mutated, path, VALUES[label])
-                may_pass = (label in MAYBE or (label == "inf" and default == math.inf)
-                            or (label in HUGE and _owned_elsewhere(path)))
+                may_pass = label in MAYBE or (label == "inf" and default == math.inf)
                 config = str(write(mutated, label))
                 argv = [command, "nowhere", "--out", str(tmp / f"{command}-out"), "--config", config]
                 cases.append(Case(argv, (path[-1],), ("not a built-in scenario",) if may_pass else ()))
     return cases
-
-
-def _owned_elsewhere(path) -> bool:
-    return any(k in OWNED_ELSEWHERE for k in path if isinstance(k, str))
 
 
 def _huge_cases(tmp: Path) -> list[Case]:
@@ -225,17 +217,16 @@ def _huge_cases(tmp: Path) -> list[Case]:
     from crchfl_sumo.data.generation import GenerateConfig
     from crchfl_sumo.studies.simulate import SimulateConfig
 
-    targets = []  # (document, path, argv for a config path, sentinels)
-    schema_defaults = dict(_schema_leaves(RunConfig))
-    for preset, (data, argv, sentinels) in _preset_commands(tmp).items():
+    targets = []  # (document, path, argv for a config path)
+    for preset, (data, argv, _) in _preset_commands(tmp).items():
         paths = list(dict(_leaves(data)))
-        if preset == "crchfl":
-            paths += [p for p in schema_defaults if p not in paths]
-        targets += [(data, p, argv, sentinels) for p in paths]
+        if preset in SCHEMAS:
+            paths += [p for p, _ in _schema_leaves(SCHEMAS[preset]) if p not in paths]
+        targets += [(data, p, argv) for p in paths]
     for command, cls in (("simulate", SimulateConfig), ("dataset", GenerateConfig)):
         argv = (lambda c: lambda p: [c, "nowhere", "--out", str(tmp / f"{c}-out"), "--config", str(p)])(command)
-        targets += [({}, p, argv, ("not a built-in scenario",)) for p, _ in _schema_leaves(cls)]
-    for data, path, argv, sentinels in targets:
+        targets += [({}, p, argv) for p, _ in _schema_leaves(cls)]
+    for data, path, argv in targets:
         key = next(str(k) for k in reversed(path) if isinstance(k, str))
         if path[0] == "factor" and key == "values":
             key = str(data["factor"][path[1]]["key"]).split(".")[-1]
@@ -244,7 +235,7 @@ def _huge_cases(tmp: Path) -> list[Case]:
             _set(mutated, path, VALUES[label])
             config = folder / f"{len(cases):04d}-{label}.toml"
             config.write_text(tomli_w.dumps(mutated), encoding="utf-8")
-            cases.append(Case(argv(config), (key,), sentinels if _owned_elsewhere(path) else ()))
+            cases.append(Case(argv(config), (key,)))
     return cases
 
 
@@ -415,5 +406,5 @@ def test_fuzz_bad_inputs_exit_2_with_a_message_naming_them(tmp_path, capsys, mon
 def test_fuzz_huge_values_are_refused_for_every_key(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     cases = _huge_cases(tmp_path)
-    assert len(cases) >= 3 * 200  # every numeric key of the presets and schemas (218 now), three values each
+    assert len(cases) >= 3 * 250  # every numeric key of the presets and schemas (263 now), three values each
     _check(cases, capsys)

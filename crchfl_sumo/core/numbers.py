@@ -33,13 +33,13 @@ MAX_RATE_BPS = 1e12  # a link's rate [bit/s]: 1 Tbit/s, above any radio or fibre
 MAX_JOBS = 1024  # processes at a time: more than any machine's cores
 
 
-def range_text(lo: float, hi: float, lo_open: bool = False) -> str:
-    """``(0, 86400]``-style text of a range; ``lo_open`` excludes ``lo``."""
-    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+def range_text(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> str:
+    """``(0, 86400]``-style text of a range; ``lo_open`` excludes ``lo``, ``hi_open`` excludes ``hi``."""
+    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
 
 
-def in_range(value: float, lo: float, hi: float, lo_open: bool = False) -> bool:
-    return (lo < value if lo_open else lo <= value) and value <= hi
+def in_range(value: float, lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> bool:
+    return (lo < value if lo_open else lo <= value) and (value < hi if hi_open else value <= hi)
 
 
 def check_seed(value: object, where: str) -> int:
@@ -52,21 +52,23 @@ def check_seed(value: object, where: str) -> int:
 
 
 def check_range(
-    value: float, where: str, lo: float, hi: float, what: str, lo_open: bool = False, inf_ok: bool = False
+    value: float, where: str, lo: float, hi: float, what: str, lo_open: bool = False, inf_ok: bool = False,
+    hi_open: bool = False,
 ) -> float:
-    """``value`` if it is finite and in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); a CrchflError otherwise.
+    """``value`` if it is finite and in ``[lo, hi]`` (``lo_open``/``hi_open`` exclude an end); a CrchflError otherwise.
 
     ``what`` names the unit in the message: "give {what} in [lo, hi]". ``inf_ok``:
     ``inf`` passes too (a setting whose inf means "no limit"; say so in ``what``).
     """
+    wanted = f"{what} in {range_text(lo, hi, lo_open, hi_open)}"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise CrchflError(f"{where}: {value!r} is not a number; give {what} in {range_text(lo, hi, lo_open)}")
+        raise CrchflError(f"{where}: {value!r} is not a number; give {wanted}")
     if inf_ok and value == math.inf:
         return value
     if not math.isfinite(value):
-        raise CrchflError(f"{where}: {value} is not a finite number; give {what} in {range_text(lo, hi, lo_open)}")
-    if not in_range(value, lo, hi, lo_open):
-        raise CrchflError(f"{where}: {value:g} is out of range; give {what} in {range_text(lo, hi, lo_open)}")
+        raise CrchflError(f"{where}: {value} is not a finite number; give {wanted}")
+    if not in_range(value, lo, hi, lo_open, hi_open):
+        raise CrchflError(f"{where}: {value:g} is out of range; give {wanted}")
     return value
 
 

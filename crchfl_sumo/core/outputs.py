@@ -11,13 +11,20 @@ settings, which is how the next call knows whose results the folder holds.
 Commands that resume (dataset, run, sweep, mobility-study, reproduce) pass
 ``resumable``: their own earlier results are theirs to judge (they compare
 the stored config and refuse or continue), so only the other checks apply.
+A command that continues its own results only when asked (train --resume)
+passes ``resume_fingerprint`` too: the fingerprint of the settings a
+continuation must keep (all but those it may extend, train's --epochs). The
+marker keeps it, and with ``resuming`` a folder whose marker holds the same
+one is this command's, whatever the extendable settings were.
 ``prepare_output_file`` does the same for a command whose output is one file:
 it refuses a file that exists unless ``replace`` (--overwrite); the command
 then writes it atomically (core/atomic.py), so the old file stays whole until
 the new one replaces it.
 ``output_dir`` wraps ``prepare_output_dir`` around a command's work: when the
 work fails before writing anything, it takes back the marker and the folders
-it created, so a refused input leaves nothing behind.
+it created, so a refused input leaves nothing behind; when the work refuses
+its input (a CrchflError) in a folder that had a marker, it puts that marker
+back, so the folder still names the settings of the results it holds.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
-from crchfl_sumo.core.atomic import TMP_MARK, atomic_write_text
+from crchfl_sumo.core.atomic import TMP_MARK, atomic_write_bytes, atomic_write_text
 from crchfl_sumo.core.errors import CrchflError
 
 MARKER_PREFIX = ".crchfl-sumo-"
@@ -71,6 +78,8 @@ def prepare_output_dir(
     replace: bool = False,
     resumable: bool = False,
     beside: tuple[str, ...] = (),
+    resume_fingerprint: str | None = None,
+    resuming: bool = False,
 ) -> Path:
     """Check (and create) ``path`` as ``command``'s output folder before any work; leave its marker.
 
@@ -79,6 +88,9 @@ def prepare_output_dir(
     its own earlier results itself. ``beside``: commands whose results the
     folder may also hold, because it is this command's input (dataset-stats
     writes beside its data set); files without a marker are then expected too.
+    ``resume_fingerprint``: the settings a continuation must keep, kept in the
+    marker; ``resuming``: this call continues the folder's results, so a marker
+    with the same ``resume_fingerprint`` is this command's too.
     """
     path = Path(path)
     where = f"{flag} {path}"
@@ -98,7 +110,9 @@ def prepare_output_dir(
         )
     if not resumable and not replace:
         if command in found:
-            if found[command].get("fingerprint") != settings_fingerprint:
+            stored = found[command]
+            continues = resuming and resume_fingerprint is not None and stored.get("resume_fingerprint") == resume_fingerprint
+            if stored.get("fingerprint") != settings_fingerprint and not continues:
                 raise CrchflError(
                     f"{where}: holds results of `crchfl-sumo {command}` with other settings; "
                     f"choose another folder{overwrite_hint}"
@@ -108,10 +122,10 @@ def prepare_output_dir(
                 f"{where}: already holds files that are not this command's results; "
                 f"choose an empty or new folder{overwrite_hint}"
             )
-    atomic_write_text(
-        marker_path(path, command),
-        json.dumps({"command": command, "fingerprint": settings_fingerprint}, indent=2) + "\n",
-    )
+    marker = {"command": command, "fingerprint": settings_fingerprint}
+    if resume_fingerprint is not None:
+        marker["resume_fingerprint"] = resume_fingerprint
+    atomic_write_text(marker_path(path, command), json.dumps(marker, indent=2) + "\n")
     return path
 
 
@@ -122,14 +136,20 @@ def output_dir(path: str | Path, command: str, settings_fingerprint: str = "", *
     created = [p for p in (path, *path.parents) if not p.exists()]  # deepest first
     marker = marker_path(path, command)
     had_marker = marker.exists()
+    try:
+        before = marker.read_bytes() if had_marker else None
+    except OSError:
+        before = None
     prepare_output_dir(path, command, settings_fingerprint, **options)
     try:
         yield path
-    except BaseException:
+    except BaseException as exc:
         if not had_marker and [p.name for p in path.iterdir()] == [marker.name]:
             marker.unlink()
             for folder in created:
                 folder.rmdir()
+        elif before is not None and isinstance(exc, CrchflError):  # a refused input: the results are as they were
+            atomic_write_bytes(marker, before)
         raise
 
 

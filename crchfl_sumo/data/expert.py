@@ -50,6 +50,7 @@ import numpy as np
 
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.sumo.frame import Frame
 
@@ -63,11 +64,33 @@ PASSENGER_MAX_DECEL_MPS2 = 4.5
 STAND_TARGET_MPS = 1.0
 DEFAULT_SPEED_HORIZON_S = 1.0  # the target speed's horizon (ExpertConfig and ModelConfig)
 
+# The ranges of ExpertConfig's settings, each with its reason.
+# Pure pursuit looks a few to tens of metres ahead; a point 100 m ahead lies past the next junction
+# of any town block, so its bearing no longer says how to follow the lane.
+MAX_PURSUIT_LOOKAHEAD_M = 100.0
+# Trackers look 0.5 to 2 s ahead; 5 s is 70 m at the towns' 50 km/h, past the next junction as above.
+MAX_PURSUIT_LOOKAHEAD_S = 5.0
+# Longer than the whole of any road vehicle but a road train (the EU allows 18.75 m), so more than any wheelbase.
+MAX_WHEELBASE_M = 20.0
+# At 90 deg a wheel rolls sideways: the bicycle model's tan(delta) has no finite value (open bound).
+MAX_STEER_LOCK_DEG = 90.0
+# Variable-ratio racks change their ratio by well under 2x; tenfold bounds any tuning of the steer classes.
+MAX_SHARP_STEER_GAIN = 10.0
+# A coefficient: tyres on asphalt 0.01 to 0.015, on loose sand about 0.3; at 1 rolling alone brakes at 1 g.
+MAX_ROLLING_RESISTANCE = 1.0
+# A car's is about 2.6e-4 1/m; at 0.1 1/m drag alone brakes at 1 g from 10 m/s (36 km/h).
+MAX_DRAG_PER_MASS_PER_M = 0.1
+# A vehicle faster than 2 m/s (7 km/h, above walking pace) is rolling, not standing at a light.
+MAX_STOP_SPEED_MPS = 2.0
+# Further ahead, the target speed no longer says what to do now (ModelConfig.speed_horizon_s takes the same range).
+MAX_SPEED_HORIZON_S = 5.0
+
 
 @dataclass(frozen=True)
 class ExpertConfig:
     """Constants of the expert's label mapping (docs/dataset.md explains each choice).
 
+    Each has a range, checked in __post_init__ against the bounds above, their reasons beside them.
     lookahead_min_m, lookahead_time_s: L = max(lookahead_min_m, lookahead_time_s * speed).
     wheelbase_m: bicycle-model wheelbase (a mid-size saloon, 2.9 m).
     max_steer_angle_deg: wheel angle per unit of steer up to steer_knee (with
@@ -77,6 +100,7 @@ class ExpertConfig:
         sharp_steer_gain times faster per unit of steer (a progressive rack, as
         variable-ratio steering has), so the paper's sharpest class reaches a
         tighter turn while the classes below keep their angles. Knee 1: linear.
+        The lock they give at |steer| = 1 (lock_angle_deg) stays below 90 deg too.
     rolling_resistance: rolling-resistance coefficient (tyres on asphalt).
     drag_per_mass_per_m: 0.5 * rho_air * Cd * A / mass [1/m] (1.2*0.3*2.2/2/1500).
     stop_speed_mps: below this speed a vehicle counts as standing.
@@ -100,25 +124,25 @@ class ExpertConfig:
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
 
     def __post_init__(self) -> None:
-        positive = ("lookahead_min_m", "wheelbase_m", "max_steer_angle_deg", "stop_speed_mps", "speed_horizon_s")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise CrchflError(f"expert.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("lookahead_time_s", "rolling_resistance", "drag_per_mass_per_m"):
-            if getattr(self, name) < 0:
-                raise CrchflError(f"expert.{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 <= self.hold_brake <= 1:
-            raise CrchflError(f"expert.hold_brake must lie in [0, 1], got {self.hold_brake}")
-        if self.speed_horizon_s > 5.0:  # further ahead, the target no longer says what to do now
-            raise CrchflError(f"expert.speed_horizon_s must be at most 5 s, got {self.speed_horizon_s}")
-        if not 0 < self.steer_knee <= 1:
-            raise CrchflError(f"expert.steer_knee must lie in (0, 1], got {self.steer_knee}")
-        if not 0 < self.sharp_steer_gain <= 10:
-            raise CrchflError(f"expert.sharp_steer_gain must lie in (0, 10], got {self.sharp_steer_gain}")
-        if self.lock_angle_deg >= 90:
+        check_range(self.lookahead_min_m, "expert.lookahead_min_m", 0, MAX_PURSUIT_LOOKAHEAD_M, "metres", lo_open=True)
+        check_range(self.lookahead_time_s, "expert.lookahead_time_s", 0, MAX_PURSUIT_LOOKAHEAD_S, "seconds")
+        check_range(self.wheelbase_m, "expert.wheelbase_m", 0, MAX_WHEELBASE_M, "metres", lo_open=True)
+        check_range(self.max_steer_angle_deg, "expert.max_steer_angle_deg", 0, MAX_STEER_LOCK_DEG, "degrees",
+                    lo_open=True, hi_open=True)
+        check_range(self.steer_knee, "expert.steer_knee", 0, 1, "a share of full steer", lo_open=True)
+        check_range(self.sharp_steer_gain, "expert.sharp_steer_gain", 0, MAX_SHARP_STEER_GAIN,
+                    "a factor (1: a linear rack)", lo_open=True)
+        check_range(self.rolling_resistance, "expert.rolling_resistance", 0, MAX_ROLLING_RESISTANCE,
+                    "a coefficient (asphalt: 0.015)")
+        check_range(self.drag_per_mass_per_m, "expert.drag_per_mass_per_m", 0, MAX_DRAG_PER_MASS_PER_M,
+                    "1/m (a car: 2.64e-4)")
+        check_range(self.stop_speed_mps, "expert.stop_speed_mps", 0, MAX_STOP_SPEED_MPS, "m/s", lo_open=True)
+        check_range(self.hold_brake, "expert.hold_brake", 0, 1, "a brake pedal position")
+        check_range(self.speed_horizon_s, "expert.speed_horizon_s", 0, MAX_SPEED_HORIZON_S, "seconds", lo_open=True)
+        if self.lock_angle_deg >= MAX_STEER_LOCK_DEG:
             raise CrchflError(
                 f"expert.max_steer_angle_deg, steer_knee and sharp_steer_gain give a {self.lock_angle_deg:g} deg "
-                "lock at |steer| = 1; it must be < 90 deg"
+                f"lock at |steer| = 1; it must be < {MAX_STEER_LOCK_DEG:g} deg"
             )
 
     @property

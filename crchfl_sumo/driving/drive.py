@@ -34,6 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_DRIVE_S, check_range
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals, bicycle_step
 from crchfl_sumo.driving.policies import Observation, Policy
@@ -119,9 +120,16 @@ def footprints_overlap(
 # --- the loop ------------------------------------------------------------------------------------
 
 
+# The ranges of DriveConfig's settings, each with its reason. Its times are at most MAX_DRIVE_S, the hour a drive
+# lasts at most (`drive --warmup-s` and `--max-s` take the same); stuck_s may be inf: a drive never ends stuck.
+MAX_FINISH_BEFORE_END_M = 100.0  # farther than a town block (about 100 m) from its end, a route is not reached
+MAX_LOST_OFFSET_M = 100.0  # a town block off its route's centre line, the ego is on another street
+MAX_OFF_ROAD_MARGIN_M = 10.0  # three lane widths (3.2 m each) beyond a lane's edge is off any road
+
+
 @dataclass(frozen=True)
 class DriveConfig:
-    """Settings of a closed-loop drive.
+    """Settings of a closed-loop drive (each with a range, checked in __post_init__: the bounds above).
 
     ego_id               id of the driven vehicle in SUMO
     type_id              its SUMO vehicle type (SUMO's default type if the scenario lacks it)
@@ -144,12 +152,13 @@ class DriveConfig:
     stuck_s: float = math.inf
 
     def __post_init__(self) -> None:
-        for name in ("warmup_s", "finish_before_end_m", "off_road_margin_m"):
-            if getattr(self, name) < 0:
-                raise CrchflError(f"drive.{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("insert_timeout_s", "lost_offset_m", "stuck_s"):
-            if not getattr(self, name) > 0:
-                raise CrchflError(f"drive.{name} must be > 0, got {getattr(self, name)}")
+        check_range(self.warmup_s, "drive.warmup_s", 0, MAX_DRIVE_S, "simulated seconds")
+        check_range(self.insert_timeout_s, "drive.insert_timeout_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
+        check_range(self.finish_before_end_m, "drive.finish_before_end_m", 0, MAX_FINISH_BEFORE_END_M, "metres")
+        check_range(self.lost_offset_m, "drive.lost_offset_m", 0, MAX_LOST_OFFSET_M, "metres", lo_open=True)
+        check_range(self.off_road_margin_m, "drive.off_road_margin_m", 0, MAX_OFF_ROAD_MARGIN_M, "metres")
+        check_range(self.stuck_s, "drive.stuck_s", 0, MAX_DRIVE_S, "simulated seconds (or inf: never)",
+                    lo_open=True, inf_ok=True)
         if not self.ego_id:
             raise CrchflError("drive.ego_id must not be empty")
 

@@ -68,6 +68,41 @@ def test_the_same_settings_rerun_other_settings_or_commands_are_refused(tmp_path
     assert markers(tmp_path)["train"]["fingerprint"] == "f2"
 
 
+def test_a_resume_may_change_only_what_it_extends(tmp_path):
+    # train --epochs 6: fingerprint "e6" of all its settings, "kept" of all but --epochs
+    prepare_output_dir(tmp_path, "train", "e6", resume_fingerprint="kept")
+    (tmp_path / "metrics.jsonl").write_text("{}\n")
+    assert markers(tmp_path)["train"] == {"command": "train", "fingerprint": "e6", "resume_fingerprint": "kept"}
+    with pytest.raises(CrchflError, match="with other settings"):  # --epochs 10 without --resume: another setting
+        prepare_output_dir(tmp_path, "train", "e10", resume_fingerprint="kept")
+    with pytest.raises(CrchflError, match="with other settings"):  # --resume with another seed
+        prepare_output_dir(tmp_path, "train", "e10-seed4", resume_fingerprint="kept-seed4", resuming=True)
+    prepare_output_dir(tmp_path, "train", "e10", resume_fingerprint="kept", resuming=True)  # --resume --epochs 10
+    assert markers(tmp_path)["train"]["fingerprint"] == "e10"  # the folder now holds (or will) ten epochs
+    with pytest.raises(CrchflError, match="with other settings"):
+        prepare_output_dir(tmp_path, "train", "e6", resume_fingerprint="kept")
+    # a marker written before resume fingerprints existed: a resume needs all settings the same
+    marker_path(tmp_path, "train").write_text(json.dumps({"command": "train", "fingerprint": "e6"}))
+    with pytest.raises(CrchflError, match="with other settings"):
+        prepare_output_dir(tmp_path, "train", "e10", resume_fingerprint="kept", resuming=True)
+    prepare_output_dir(tmp_path, "train", "e6", resume_fingerprint="kept", resuming=True)
+
+
+def test_a_refused_input_puts_back_the_marker_it_found(tmp_path):
+    prepare_output_dir(tmp_path, "train", "e6", resume_fingerprint="kept")
+    (tmp_path / "metrics.jsonl").write_text("{}\n")
+    before = marker_path(tmp_path, "train").read_bytes()
+    with pytest.raises(CrchflError):  # --resume --epochs 3, refused by the checkpoint's six epochs
+        with output_dir(tmp_path, "train", "e3", resume_fingerprint="kept", resuming=True):
+            assert markers(tmp_path)["train"]["fingerprint"] == "e3"
+            raise CrchflError("holds 6 epochs already")
+    assert marker_path(tmp_path, "train").read_bytes() == before
+    with pytest.raises(RuntimeError):  # killed while extending: the marker names the settings being written
+        with output_dir(tmp_path, "train", "e10", resume_fingerprint="kept", resuming=True):
+            raise RuntimeError("killed half-way")
+    assert markers(tmp_path)["train"]["fingerprint"] == "e10"
+
+
 def test_files_without_a_marker_are_refused_unless_the_command_resumes_or_overwrites(tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(CrchflError, match="already holds files that are not this command's results"):

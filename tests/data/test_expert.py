@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -197,7 +198,7 @@ def test_a_stored_expert_block_without_the_rack_reads_linear():
             expert_from_labels({}, "m").sharp_steer_gain) == (1.0, 1.0)
     stored = expert_from_labels({"steer_knee": 0.3, "sharp_steer_gain": 2.5}, "m")
     assert (stored.steer_knee, stored.sharp_steer_gain) == (0.3, 2.5)
-    with pytest.raises(CrchflError, match=r"data/manifest.json: labels.expert.steer_knee must lie in"):
+    with pytest.raises(CrchflError, match=r"data/manifest.json: labels.expert.steer_knee: 1.5 is out of range"):
         expert_from_labels({"steer_knee": 1.5}, "data/manifest.json: labels.expert")
     with pytest.raises(CrchflError, match="model.pt: extra.expert: expected a table"):
         expert_from_labels([1], "model.pt: extra.expert")
@@ -269,18 +270,43 @@ def test_brake_gain_reaches_a_lower_target_sooner_and_leaves_a_higher_one_alone(
         pedals_towards(speed, target, *limits, CFG, brake_gain=0.0)
 
 
+# key: (values just outside its range, values at or just inside its ends); hand-written from the reasons in expert.py
+EXPERT_RANGES = {
+    "lookahead_min_m": ((0, 100.5), (0.01, 100)),
+    "lookahead_time_s": ((-0.01, 5.01), (0, 5)),
+    "wheelbase_m": ((0, 20.01), (0.5, 20)),
+    "max_steer_angle_deg": ((0, 90), (0.5, 89.9)),
+    "steer_knee": ((0, 1.01), (0.01, 1)),
+    "sharp_steer_gain": ((0, 10.01), (0.01, 10)),  # with the knee at 1 the gain acts on nothing: the lock stays 40
+    "rolling_resistance": ((-0.01, 1.01), (0, 1)),
+    "drag_per_mass_per_m": ((-1e-6, 0.101), (0, 0.1)),
+    "stop_speed_mps": ((0, 2.01), (0.01, 2)),
+    "hold_brake": ((-0.01, 1.01), (0, 1)),
+    "speed_horizon_s": ((0, 5.01), (0.01, 5)),
+}
+
+
+def test_every_expert_setting_is_listed_with_its_range():
+    assert set(EXPERT_RANGES) == {f.name for f in dataclasses.fields(ExpertConfig)}
+
+
+@pytest.mark.parametrize("key", sorted(EXPERT_RANGES))
+def test_every_expert_setting_has_a_finite_range(key):
+    refused, accepted = EXPERT_RANGES[key]
+    for value in (*refused, 1e308, -1e308, 2**63 - 1, math.nan, math.inf, -math.inf):
+        with pytest.raises(CrchflError, match=rf"^expert\.{key}: .+; give .+ in [\[(]"):
+            ExpertConfig(**{key: value})
+    for value in accepted:
+        assert getattr(ExpertConfig(**{key: value}), key) == value
+
+
 def test_config_rejects_bad_values():
-    with pytest.raises(CrchflError, match="speed_horizon_s"):
-        ExpertConfig(speed_horizon_s=0)
-    with pytest.raises(CrchflError, match="speed_horizon_s must be at most 5 s"):
+    with pytest.raises(CrchflError, match=r"speed_horizon_s: 8 is out of range; give seconds in \(0, 5\]"):
         ExpertConfig(speed_horizon_s=8)
-    with pytest.raises(CrchflError, match="max_steer_angle_deg"):
-        ExpertConfig(max_steer_angle_deg=0)
-    with pytest.raises(CrchflError, match="hold_brake"):
-        ExpertConfig(hold_brake=1.5)
-    with pytest.raises(CrchflError, match="steer_knee"):
-        ExpertConfig(steer_knee=0)
-    with pytest.raises(CrchflError, match="sharp_steer_gain"):
-        ExpertConfig(sharp_steer_gain=0)
+    with pytest.raises(CrchflError, match=r"max_steer_angle_deg: 90 is out of range; give degrees in \(0, 90\)$"):
+        ExpertConfig(max_steer_angle_deg=90)  # a wheel at 90 deg rolls sideways: the bound is open
     with pytest.raises(CrchflError, match="91 deg lock"):  # 40 * (0.5 + 0.5 * 3.55)
         ExpertConfig(steer_knee=0.5, sharp_steer_gain=3.55)
+    # a stored block (a manifest's labels.expert) names its file and key, whatever the value
+    with pytest.raises(CrchflError, match=r"^data/manifest.json: labels.expert.wheelbase_m: 1e\+308 is out of range"):
+        expert_from_labels({"wheelbase_m": 1e308}, "data/manifest.json: labels.expert")

@@ -182,7 +182,10 @@ def test_an_unreadable_manifest_is_refused(tmp_path, text, message):
         ({"sample_period_s": 1e308}, r"sample_period_s is 1e\+308, not a time in \(0, 60\] s"),
         ({"labels": {"expert": 5}}, r"labels\.expert: expected a table"),
         ({"labels": {"expert": {"speed_horizon_s": "1"}}}, r"labels\.expert\.speed_horizon_s: expected a number"),
-        ({"labels": {"expert": {"stop_speed_mps": -1}}}, r"manifest\.json: labels\.expert\.stop_speed_mps must be > 0"),
+        ({"labels": {"expert": {"stop_speed_mps": -1}}},
+         r"manifest\.json: labels\.expert\.stop_speed_mps: -1 is out of range; give m/s in \(0, 2\]; regenerate"),
+        ({"labels": {"expert": {"wheelbase_m": 1e308}}},
+         r"manifest\.json: labels\.expert\.wheelbase_m: 1e\+308 is out of range; give metres in \(0, 20\]; regenerate"),
     ],
 )
 def test_manifest_values_are_checked(data, change, message):

@@ -403,5 +403,5 @@ def test_a_model_drives_through_the_steering_rack_of_its_training_data(tmp_path)
     old = ModelDriver(str(tmp_path / "old.pt")).expert()
     assert curvature_from_steer(0.425, old) == pytest.approx(-math.tan(math.radians(17.0)) / 2.9)
     save_checkpoint(tmp_path / "bad.pt", model.config, model.state_dict(), {"expert": {"steer_knee": 2.0}})
-    with pytest.raises(CrchflError, match="bad.pt: extra.expert.steer_knee must lie in"):
+    with pytest.raises(CrchflError, match="bad.pt: extra.expert.steer_knee: 2 is out of range"):
         ModelDriver(str(tmp_path / "bad.pt")).model()

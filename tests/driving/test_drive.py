@@ -197,6 +197,30 @@ def test_named_routes_resolve_in_both_towns_with_turns_and_signals():
         resolve_route("nowhere", None)
 
 
+# key: (values just outside its range, values at or just inside its ends); hand-written from the reasons in drive.py
+DRIVE_RANGES = {
+    "warmup_s": ((-0.01, 3600.01), (0, 3600)),
+    "insert_timeout_s": ((0, 3600.01), (0.01, 3600)),
+    "finish_before_end_m": ((-0.01, 100.01), (0, 100)),
+    "lost_offset_m": ((0, 100.01), (0.01, 100)),
+    "off_road_margin_m": ((-0.01, 10.01), (0, 10)),
+    "stuck_s": ((0, 3600.01, -math.inf), (0.01, 3600, math.inf)),  # inf: a drive never ends stuck
+}
+
+
+def test_every_numeric_drive_setting_has_a_finite_range():
+    numeric = {f.name for f in dataclasses.fields(DriveConfig) if f.type in ("float", "int", float, int)}
+    assert set(DRIVE_RANGES) == numeric
+    for key, (refused, accepted) in DRIVE_RANGES.items():
+        for value in (*refused, 1e308, -1e308, 2**63 - 1, math.nan):
+            with pytest.raises(CrchflError, match=rf"^drive\.{key}: .+; give .+ in [\[(]"):
+                DriveConfig(**{key: value})
+        for value in accepted:
+            assert getattr(DriveConfig(**{key: value}), key) == value
+    with pytest.raises(CrchflError, match=r"^drive\.warmup_s: inf is not a finite number; give simulated seconds in \[0, 3600\]$"):
+        DriveConfig(warmup_s=math.inf)  # only stuck_s's inf means "no limit"
+
+
 def test_settings_and_route_files_are_checked(tmp_path):
     with pytest.raises(CrchflError, match="drive.warmup_s"):
         DriveConfig(warmup_s=-1.0)

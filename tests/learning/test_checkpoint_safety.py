@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -82,6 +83,9 @@ def test_an_empty_or_truncated_checkpoint_is_refused(tmp_path, weights, cut):
         ({"format": "other"}, "not a crchfl-sumo checkpoint"),
         ({"extra": {"camera": [1]}}, "extra.camera: expected a table of raster and world settings, got list"),
         ({"extra": {"camera": {"raster": {"camera": {"height_px": 4096, "width_px": 8192}}}}}, "4096x8192 is too large"),
+        ({"extra": {"expert": {"lookahead_min_m": 1e308}}},
+         r"extra\.expert\.lookahead_min_m: 1e\+308 is out of range; give metres in \(0, 100\]"),
+        ({"extra": {"expert": {"max_steer_angle_deg": 2**63 - 1}}}, r"extra\.expert\.max_steer_angle_deg: .* out of range"),
     ],
 )
 def test_a_payload_with_missing_or_wrong_parts_is_refused_naming_the_file(tmp_path, weights, changes, message):
@@ -125,3 +129,26 @@ def test_a_valid_checkpoint_still_loads(tmp_path, weights):
     save_checkpoint(path, CONFIG, weights, {"epoch": 1})
     model = load_model(path)
     assert all(torch.equal(model.state_dict()[k], weights[k]) for k in weights)
+
+
+def test_data_sets_and_model_files_the_package_writes_pass_the_expert_bounds(tmp_path, weights):
+    """A manifest's labels.expert as `dataset` records it (today's defaults, a progressive rack, a block from before
+    the rack had keys), and the model file a training keeps it in (Manifest.drive_settings), still load."""
+    from helpers import PAPER_VEHICLES, write_dataset
+
+    from crchfl_sumo.data.expert import LINEAR_RACK, ExpertConfig
+    from crchfl_sumo.data.shards import MANIFEST_NAME, read_manifest
+
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    defaults = to_mapping(ExpertConfig())
+    before_the_rack = {k: v for k, v in defaults.items() if k not in LINEAR_RACK}
+    for i, expert in enumerate([defaults, {**defaults, "steer_knee": 0.275, "sharp_steer_gain": 2.0}, before_the_rack]):
+        raw = json.loads((data / MANIFEST_NAME).read_text())
+        raw["labels"]["expert"] = expert
+        (data / MANIFEST_NAME).write_text(json.dumps(raw))
+        manifest = read_manifest(data)
+        where = str(data / MANIFEST_NAME)
+        assert to_mapping(manifest.expert(where)) == {**defaults, **LINEAR_RACK, **expert}
+        path = tmp_path / f"model{i}.pt"
+        save_checkpoint(path, CONFIG, weights, manifest.drive_settings(where))
+        assert load_checkpoint(path).extra["expert"] == to_mapping(manifest.expert(where))

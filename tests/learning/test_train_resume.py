@@ -4,6 +4,7 @@ checkpoint.prev.pt, the epoch before (core.atomic.read_latest, as a federated ru
 
 from __future__ import annotations
 
+import json
 import logging
 
 import numpy as np
@@ -101,3 +102,32 @@ def test_train_resume_on_the_command_line_continues_past_a_truncated_checkpoint(
     a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt").state_dict
     b = load_checkpoint(path).state_dict
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, capsys):
+    """`train --epochs 2`, then `train --resume --epochs 3` into the same folder: the uninterrupted 3-epoch training."""
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--deterministic"]
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert main([*argv, "--epochs", "3", "--out", str(whole)]) == 0
+    assert main([*argv, "--epochs", "2", "--out", str(cut)]) == 0
+    marker = cut / ".crchfl-sumo-train.json"
+    two_epochs = marker.read_bytes()
+    capsys.readouterr()
+    # without --resume, more epochs are other settings; so is any other changed setting with it
+    assert main([*argv, "--epochs", "3", "--out", str(cut)]) == 2
+    assert main([*argv, "--epochs", "3", "--out", str(cut), "--resume", "--seed", "4"]) == 2
+    assert capsys.readouterr().err.count("holds results of `crchfl-sumo train` with other settings") == 2
+    # fewer epochs than the folder holds: refused by the checkpoint, and the marker stays as it was
+    assert main([*argv, "--epochs", "1", "--out", str(cut), "--resume"]) == 2
+    assert "holds 2 epochs already; ask for --epochs 2 or more" in capsys.readouterr().err
+    assert marker.read_bytes() == two_epochs
+    assert main([*argv, "--epochs", "3", "--out", str(cut), "--resume"]) == 0
+    a = load_checkpoint(whole / "checkpoint.pt").state_dict
+    b = load_checkpoint(cut / "checkpoint.pt").state_dict
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    records = [[json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()] for out in (whole, cut)]
+    assert [r["epoch"] for r in records[1]] == [1, 2, 3]
+    assert _without_rates(records[1]) == _without_rates(records[0])
+    # the folder now holds a 3-epoch training: the same settings as the uninterrupted one's
+    assert marker.read_bytes() == (whole / ".crchfl-sumo-train.json").read_bytes()
