@@ -54,9 +54,9 @@ from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, digitize_st
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
     SPEED_SCALE_MPS,
-    STEER_DECODINGS,
     BranchShape,
     ModelConfig,
+    resolved_steer_decoding,
 )
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
@@ -340,10 +340,10 @@ def predict_actions(
     "argmax" is the paper's DAC, the value of the most likely class; "expected"
     is the classes' values weighted by their softmax probabilities, a steer
     between the classes (0.125 steps are a 33 m radius each: argmax can only
-    steer in those steps).
+    steer in those steps); "auto" is argmax for the paper's 7 classes and
+    expected for a finer head (settings.resolved_steer_decoding).
     """
-    if steer_decoding not in STEER_DECODINGS:
-        raise ValueError(f"predict_actions: steer_decoding must be one of {STEER_DECODINGS}, got {steer_decoding!r}")
+    steer_decoding = resolved_steer_decoding(steer_decoding, model.config.steer_bins)
     single = images.dim() == 4
     batch = images.unsqueeze(0) if single else images
     device = next(model.parameters()).device

@@ -336,7 +336,7 @@ def test_bad_arguments_name_the_option(ladder, tmp_path):
         run_benchmark(tmp_path / "missing.pt", tmp_path, towns=(cfg,))
     with pytest.raises(CrchflError, match="--tasks: unknown task 'loops'"):
         BenchConfig(tasks=("loops",))
-    with pytest.raises(CrchflError, match="--steer-decoding: use one of argmax, expected"):
+    with pytest.raises(CrchflError, match="--steer-decoding: use one of auto, argmax, expected"):
         BenchConfig(steer_decoding="mean")
     with pytest.raises(CrchflError, match="--brake-gain must be > 0"):
         BenchConfig(brake_gain=float("nan"))

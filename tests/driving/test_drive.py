@@ -422,7 +422,8 @@ def _straight_road_with_cameras(roads):
 def test_untrained_model_drives_through_the_loop(roads):
     scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
     model = build_model(ModelConfig(), seed=0)
-    result = drive(scenario, geometry, ModelPolicy(model, commands), seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
+    policy = ModelPolicy(model, commands, steer_decoding="argmax")  # the DAC: every steer is a bin's value
+    result = drive(scenario, geometry, policy, seed=1, max_s=2.0, config=NO_WARMUP, renderer=renderer)
     acted = result.log.steer[:-1]
     assert len(acted) == 8 and np.isin(acted.astype(np.float32), steer_bin_values(model.config.steer_bins)).all()
     assert np.all((result.log.throttle[:-1] >= 0) & (result.log.throttle[:-1] <= 1))
@@ -432,7 +433,7 @@ def test_untrained_model_drives_through_the_loop(roads):
     with pytest.raises(CrchflError, match="needs the route's commands"):
         ModelPolicy(model)
     ModelPolicy(build_model(ModelConfig(arch="paper"), seed=0))  # the paper's network sees no command
-    with pytest.raises(CrchflError, match="steer decoding must be one of argmax, expected"):
+    with pytest.raises(CrchflError, match="steer decoding must be one of auto, argmax, expected"):
         ModelPolicy(model, commands, steer_decoding="mean")
 
 

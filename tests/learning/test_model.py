@@ -225,8 +225,24 @@ def test_expected_steer_decoding_weights_the_class_values_by_probability():
     assert expected[:, 1] == pytest.approx([0.0625, 0.0625], abs=1e-6)
     assert argmax[:, 1] == pytest.approx([0.125, 0.125])
     assert expected[:, [0, 2]] == pytest.approx(argmax[:, [0, 2]])  # the pedals do not depend on the decoding
-    with pytest.raises(ValueError, match="steer_decoding"):
+    assert predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "auto") == pytest.approx(argmax)
+    with pytest.raises(CrchflError, match="steer-decoding"):
         predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "mean")
+
+
+def test_auto_decoding_weights_a_fine_steer_head_by_probability():
+    model = build_model(ModelConfig("compact", 48, 64), seed=0)  # cil: 21 bins 0.1 apart over [-1, 1]
+    assert model.config.steer_bins == 21
+    logits = torch.full((21,), -50.0)
+    logits[11], logits[12] = float(np.log(3.0)), 0.0  # bins of 0.1 and 0.2: 0.75 * 0.1 + 0.25 * 0.2 = 0.125
+    with torch.no_grad():
+        for head in model.branch_steer.heads:  # one per route command
+            head[-1].weight.zero_()
+            head[-1].bias.copy_(logits)
+    images = _images(2)
+    auto = predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2))
+    assert auto[:, 1] == pytest.approx([0.125, 0.125], abs=1e-6)
+    assert predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2), "argmax")[:, 1] == pytest.approx([0.1, 0.1])
 
 
 def test_predict_actions_passes_command_and_speed():
