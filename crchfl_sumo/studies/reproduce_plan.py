@@ -49,7 +49,7 @@ class ReproduceConfig:
     bench_episodes: episodes per task and town of the closed-loop benchmark (`drive-bench`) that
         each scheme's best model, the centralized model and the reference drive; 0 = no benchmark.
     bench_towns, bench_tasks, bench_seed: the benchmark's towns, task suites and seed.
-    bench_every_seed: the benchmark drives every seed's model (each scheme's best_model.pt of
+    bench_all_seeds: the benchmark drives every seed's model (each scheme's best_model.pt of
         every seed, every centralized seed's last epoch), so that the report gives the spread over
         seeds; false: only the model of the seed with the highest balanced accuracy drives.
     generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
@@ -75,7 +75,7 @@ class ReproduceConfig:
     bench_towns: tuple[str, ...] = DEFAULT_TOWNS
     bench_tasks: tuple[str, ...] = TASK_NAMES
     bench_seed: int = 0
-    bench_every_seed: bool = False
+    bench_all_seeds: bool = False
     generate: GenerateConfig = field(default_factory=GenerateConfig)
     run: dict[str, Any] = field(default_factory=dict)
 
@@ -203,12 +203,12 @@ def drive_parts(config: ReproduceConfig) -> list[ReproductionPart]:
 
 
 def bench_parts(config: ReproduceConfig) -> list[ReproductionPart]:
-    """The benchmark's parts: per model label one, or with ``bench_every_seed`` one per seed (``drive_bench/LABEL/seed-S``)."""
+    """The benchmark's parts: per model label one, or with ``bench_all_seeds`` one per seed (``drive_bench/LABEL/seed-S``)."""
     if not config.bench_episodes:
         return []
     parts = []
     for label in drive_labels(config):
-        if config.bench_every_seed and label != REFERENCE:
+        if config.bench_all_seeds and label != REFERENCE:
             parts += [ReproductionPart(f"drive_bench/{label}/seed-{s}", "bench", label, s) for s in config.seed_list]
         else:
             parts.append(ReproductionPart(f"drive_bench/{label}", "bench", label))

@@ -82,12 +82,12 @@ def test_the_benchmark_drives_the_best_seed_or_every_seed():
         ("drive_bench/crchfl", "crchfl", None), ("drive_bench/hfl", "hfl", None),
         ("drive_bench/centralized", "centralized", None), ("drive_bench/reference", "reference", None),
     ]
-    every = ReproduceConfig(seeds=2, schemes=("crchfl",), bench_episodes=1, bench_every_seed=True, first_seed=3)
+    every = ReproduceConfig(seeds=2, schemes=("crchfl",), bench_episodes=1, bench_all_seeds=True, first_seed=3)
     assert [p.key for p in bench_parts(every)] == [
         "drive_bench/crchfl/seed-3", "drive_bench/crchfl/seed-4", "drive_bench/centralized/seed-3",
         "drive_bench/centralized/seed-4", "drive_bench/reference",
     ]
-    assert bench_parts(ReproduceConfig(bench_episodes=0, bench_every_seed=True)) == []
+    assert bench_parts(ReproduceConfig(bench_episodes=0, bench_all_seeds=True)) == []
 
 
 def test_a_seed_names_its_own_model():
