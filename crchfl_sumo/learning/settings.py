@@ -176,10 +176,10 @@ STEER_DECODINGS = ("auto", "argmax", "expected")
 DEFAULT_STEER_DECODING = "auto"
 
 
-def resolved_steer_decoding(steer_decoding: str, steer_bins: int) -> str:
+def resolved_steer_decoding(steer_decoding: str, steer_bins: int, where: str = "--steer-decoding") -> str:
     """"argmax" or "expected": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
     if steer_decoding not in STEER_DECODINGS:
-        raise CrchflError(f"--steer-decoding: use one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
+        raise CrchflError(f"{where}: use one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
     if steer_decoding != "auto":
         return steer_decoding
     return "argmax" if steer_bins == NUM_STEER_CLASSES else "expected"

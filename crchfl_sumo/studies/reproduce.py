@@ -314,7 +314,7 @@ def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
     drive_command(
         model, None, part.route, out_dir / part.key, seed=config.drive_seed, max_s=config.drive_max_s,
-        config=config.drive, video=config.drive_video,
+        config=config.drive, video=config.drive_video, steer_decoding=config.steer_decoding,
     )
 
 
@@ -325,7 +325,7 @@ def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme, part.seed)
     run_benchmark(
         model, out_dir / part.key, episodes=config.bench_episodes, jobs=1, seed=config.bench_seed,
-        towns=config.bench_towns, config=BenchConfig(tasks=config.bench_tasks),
+        towns=config.bench_towns, config=BenchConfig(tasks=config.bench_tasks, steer_decoding=config.steer_decoding),
     )
 
 

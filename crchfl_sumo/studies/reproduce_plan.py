@@ -17,7 +17,9 @@ from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.federation.run_config import RunConfig
+from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, resolved_steer_decoding
 from crchfl_sumo.planning.problem import MAX_INTERVAL
 
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
@@ -49,6 +51,9 @@ class ReproduceConfig:
     bench_episodes: episodes per task and town of the closed-loop benchmark (`drive-bench`) that
         each scheme's best model, the centralized model and the reference drive; 0 = no benchmark.
     bench_towns, bench_tasks, bench_seed: the benchmark's towns, task suites and seed.
+    steer_decoding: how the drives and the benchmark turn each model's steer scores into a steer
+        (learning.settings.STEER_DECODINGS; "auto": the DAC for 7 classes, the probability-weighted
+        bins for a finer head).
     bench_all_seeds: the benchmark drives every seed's model (each scheme's best_model.pt of
         every seed, every centralized seed's last epoch), so that the report gives the spread over
         seeds; false: only the model of the seed with the highest balanced accuracy drives.
@@ -76,6 +81,7 @@ class ReproduceConfig:
     bench_tasks: tuple[str, ...] = TASK_NAMES
     bench_seed: int = 0
     bench_all_seeds: bool = False
+    steer_decoding: str = DEFAULT_STEER_DECODING
     generate: GenerateConfig = field(default_factory=GenerateConfig)
     run: dict[str, Any] = field(default_factory=dict)
 
@@ -111,6 +117,7 @@ class ReproduceConfig:
             raise CrchflError("reproduce.bench_towns / bench_tasks: name at least one of each, or set bench_episodes = 0")
         for task in self.bench_tasks:
             task_by_name(task)
+        resolved_steer_decoding(self.steer_decoding, NUM_STEER_CLASSES, "reproduce.steer_decoding")  # a known name
         if self.bench_seed < 0:
             raise CrchflError(f"reproduce.bench_seed: {self.bench_seed} must be >= 0")
         check_range(self.drive_max_s, "reproduce.drive_max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)

@@ -55,6 +55,7 @@ def test_run_mapping_lays_overrides_data_and_seed_over_the_builtin():
         ({"run": {"federation": {"seed": 1}}}, "reproduce.run.federation.seed"),
         ({"run": {"ledger": {"budget_gb": -1.0}}}, "budget_gb"),
         ({"run": {"federation": {"typo": 1}}}, "typo"),
+        ({"steer_decoding": "mean"}, "reproduce.steer_decoding: use one of auto"),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, mapping, match):
@@ -67,6 +68,7 @@ def test_config_errors_name_the_key(tmp_path, mapping, match):
 def test_presets_and_seed_override():
     quick, full = load_reproduce_config("quick"), load_reproduce_config("full", seeds=4)
     assert quick.name == "quick" and quick.seed_list == [0] and quick.ablation_seed_list == []
+    assert quick.steer_decoding == "argmax" and full.steer_decoding == "auto"
     assert full.seed_list == [0, 1, 2, 3] and full.ablation_seed_list == [0, 1, 2]
     assert sum(sum(t.train_samples) for t in full.generate.dataset.towns) == 12584  # the paper's split
     keys = [p.key for p in plan_parts(quick)]
