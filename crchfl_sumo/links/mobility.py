@@ -254,14 +254,13 @@ class LinkModel:
         )
         p_los = ch.los_probability(d2d_m, cfg.scenario, cfg.vehicle_antenna_height_m)
         los_weight = {
-            "random": lambda: (ch.standard_normal_cdf(los_z) < p_los).astype(np.float64),
+            "random": lambda: ch.below_standard_normal_cdf(los_z, p_los).astype(np.float64),
             "expected": lambda: p_los,
             "los": lambda: np.ones_like(p_los),
             "nlos": lambda: np.zeros_like(p_los),
         }[cfg.los_mode]()
-        path_loss = los_weight * ch.los_path_loss_db(d2d_m, self._site_h_m, cfg) + (1.0 - los_weight) * (
-            ch.nlos_path_loss_db(d2d_m, self._site_h_m, cfg)
-        )
+        los_db, nlos_db = ch.path_loss_pair_db(d2d_m, self._site_h_m, cfg)
+        path_loss = los_weight * los_db + (1.0 - los_weight) * nlos_db
         sigma_db = los_weight * sp.shadow_sigma_los_db + (1.0 - los_weight) * sp.shadow_sigma_nlos_db
         decorrelation_m = (
             los_weight * sp.shadow_decorrelation_los_m + (1.0 - los_weight) * sp.shadow_decorrelation_nlos_m
