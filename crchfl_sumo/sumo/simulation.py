@@ -9,8 +9,10 @@ counters and signal states come through subscriptions; vehicle state through
 three in-process getters a vehicle (position, angle, speed). In SUMO 1.28
 variable subscriptions on every vehicle cost SUMO time that grows faster than
 the number of vehicles, and a network-wide context subscription costs several
-times what three libsumo getters do. Lane and signal ahead need a route walk inside SUMO,
-so they are read only for the vehicles a caller watches.
+times what three libsumo getters do; SUMO's own FCD output costs SUMO more than
+the getters (its text formatting), before any reading. Lane and signal ahead need
+a route walk inside SUMO, so they are read only for the vehicles a caller watches,
+and signal states only when the caller asks for them (``signals``).
 
 Most callers need only a few vehicles and their surroundings (the federated
 vehicles for the link models, the sampled ones and what their cameras see).
