@@ -10,7 +10,7 @@ three in-process getters a vehicle (position, angle, speed). In SUMO 1.28
 variable subscriptions on every vehicle cost SUMO time that grows faster than
 the number of vehicles, and a network-wide context subscription costs several
 times what three libsumo getters do; SUMO's own FCD output costs SUMO more than
-the getters (its text formatting), before any reading. Lane and signal ahead need
+the getters (writing it), before any reading. Lane and signal ahead need
 a route walk inside SUMO, so they are read only for the vehicles a caller watches,
 and signal states only when the caller asks for them (``signals``).
 
