@@ -163,27 +163,33 @@ class _State:
 
     def carried_to(self, ids: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> tuple["_State", np.ndarray]:
         """State re-indexed to ``ids``; new vehicles get fresh rows. Also returns the 'is new' mask."""
-        n, s, k = len(ids), self.los_z.shape[1], self.fade_gain.shape[1]
+        n = len(ids)
         _, new_rows, old_rows = np.intersect1d(ids, self.ids, assume_unique=True, return_indices=True)
         is_new = np.ones(n, dtype=bool)
         is_new[new_rows] = False
+        source = np.zeros(n, dtype=np.intp)
+        source[new_rows] = old_rows
+        fresh = np.flatnonzero(is_new)
 
-        def take(old: np.ndarray, fill, shape_tail=()) -> np.ndarray:
-            out = np.full((n, *shape_tail), fill, dtype=old.dtype)
-            out[new_rows] = old[old_rows]
+        def take(old: np.ndarray, fill) -> np.ndarray:
+            # one gather of whole rows, then the few new rows filled (a step's arrays are mostly carried)
+            if not len(old):
+                return np.full((n, *old.shape[1:]), fill, dtype=old.dtype)
+            out = old[source]
+            out[fresh] = fill
             return out
 
         state = _State(
             ids=ids,
             x_m=np.where(is_new, x_m, take(self.x_m, 0.0)),
             y_m=np.where(is_new, y_m, take(self.y_m, 0.0)),
-            los_z=take(self.los_z, 0.0, (s,)),
-            shadow_z=take(self.shadow_z, 0.0, (s,)),
-            filtered_dbm=take(self.filtered_dbm, np.nan, (s,)),
+            los_z=take(self.los_z, 0.0),
+            shadow_z=take(self.shadow_z, 0.0),
+            filtered_dbm=take(self.filtered_dbm, np.nan),
             serving=take(self.serving, NO_SITE),
             weak_since_s=take(self.weak_since_s, np.nan),
-            beats_since_s=take(self.beats_since_s, np.nan, (s,)),
-            fade_gain=take(self.fade_gain, 1.0, (k,)),
+            beats_since_s=take(self.beats_since_s, np.nan),
+            fade_gain=take(self.fade_gain, 1.0),
             fade_blocks=take(self.fade_blocks, 0),
             fade_until_s=take(self.fade_until_s, -np.inf),
             fade_site=take(self.fade_site, NO_SITE),
@@ -254,14 +260,13 @@ class LinkModel:
         )
         p_los = ch.los_probability(d2d_m, cfg.scenario, cfg.vehicle_antenna_height_m)
         los_weight = {
-            "random": lambda: (ch.standard_normal_cdf(los_z) < p_los).astype(np.float64),
+            "random": lambda: ch.below_standard_normal_cdf(los_z, p_los).astype(np.float64),
             "expected": lambda: p_los,
             "los": lambda: np.ones_like(p_los),
             "nlos": lambda: np.zeros_like(p_los),
         }[cfg.los_mode]()
-        path_loss = los_weight * ch.los_path_loss_db(d2d_m, self._site_h_m, cfg) + (1.0 - los_weight) * (
-            ch.nlos_path_loss_db(d2d_m, self._site_h_m, cfg)
-        )
+        los_db, nlos_db = ch.path_loss_pair_db(d2d_m, self._site_h_m, cfg)
+        path_loss = los_weight * los_db + (1.0 - los_weight) * nlos_db
         sigma_db = los_weight * sp.shadow_sigma_los_db + (1.0 - los_weight) * sp.shadow_sigma_nlos_db
         decorrelation_m = (
             los_weight * sp.shadow_decorrelation_los_m + (1.0 - los_weight) * sp.shadow_decorrelation_nlos_m

@@ -77,9 +77,9 @@ def simulate(
     links = LinkModel(scenario.edge_sites, cfg.channel, cfg.mobility, seed=cfg.seed)
     columns: dict[str, list[np.ndarray]] = {k: [] for k in ("t_s", "vehicle", "x_m", "y_m", "speed_mps", "site", "rate_bps")}
     handovers = []
-    watched = {v for town in scenario.towns for v in town.data_vehicles}
     total_steps = int(round(duration_s / scenario.step_length_s))
-    with Simulation(scenario, seed=cfg.seed, watch=watched) as sim:
+    # Positions and speeds are all the links and the trace read: no lanes, signals ahead or signal states.
+    with Simulation(scenario, seed=cfg.seed, watch=(), signals=False) as sim:
         for frame in sim.run(duration_s):
             snapshot = links.step(frame)
             columns["t_s"].append(np.full(len(frame), frame.t_s))

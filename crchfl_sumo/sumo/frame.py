@@ -38,7 +38,8 @@ class Frame:
       tls_ahead_state [V] str   its one-letter state for this vehicle's link
                                 (SUMO letters: r y g G u o O s; '' if none)
       tls_ahead_dist_m [V] f64  distance to its stop line (inf if none)
-      tls_states      dict tls id -> full SUMO state string (one letter a link)
+      tls_states      dict tls id -> full SUMO state string (one letter a link;
+                                empty from a Simulation with signals=False)
 
     The lane and tls_ahead_* columns cost the simulator a route walk a vehicle,
     so sim.Simulation fills them only for the vehicles it is told to watch.

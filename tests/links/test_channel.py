@@ -128,6 +128,19 @@ def test_standard_normal_cdf():
     assert ch.standard_normal_cdf(np.array([-1.959964, 1.959964])) == pytest.approx([0.025, 0.975], abs=1e-6)
 
 
+def test_below_standard_normal_cdf_answers_as_the_exact_formula_even_at_ties():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.standard_normal(100_000) * 3.0, [-40.0, -9.0, 0.0, 9.0, 40.0]])
+    p = np.concatenate([rng.random(100_000), [0.0, 1e-20, 0.5, 1.0, 1.0]])
+    # thresholds at the exact value of Phi and one ulp either side: only the exact formula separates them
+    exact = ch.standard_normal_cdf(x[:2000])
+    x = np.concatenate([x, x[:2000], x[:2000], x[:2000]])
+    p = np.concatenate([p, exact, np.nextafter(exact, 2.0), np.nextafter(exact, -1.0)])
+    below = ch.below_standard_normal_cdf(x, p)
+    assert np.array_equal(below, ch.standard_normal_cdf(x) < p)
+    assert below[-4000:-2000].all() and not below[-6000:-4000].any()  # strictly below one ulp up, not at Phi
+
+
 def test_coherence_time_from_doppler():
     # f_D = 10 * 5.9e9 / 299792458 = 196.80 Hz; T_c = 0.423 / 196.80 = 2.1494 ms
     assert ch.coherence_time_s(10.0, 5.9e9) == pytest.approx(2.1494e-3, rel=1e-4)

@@ -13,6 +13,7 @@ from crchfl_sumo.links import channel as ch
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.macro import MacroLinkConfig, hex_grid_sites, macro_link_model
 from crchfl_sumo.links.mobility import (
+    NO_SITE,
     Handover,
     LinkModel,
     MobilityConfig,
@@ -208,6 +209,40 @@ def test_same_seed_same_frames_identical_outputs():
             assert np.array_equal(getattr(sa, field), getattr(sb, field), equal_nan=True)
         assert sa.handovers == sb.handovers
     assert not all(np.array_equal(sa.rate_bps, sc.rate_bps) for sa, sc in zip(a, c))
+
+
+def test_random_radio_on_crossing_tracks_gives_the_recorded_links():
+    """Every random process on (LOS state, shadowing, fading, the layer-3 filter, A3 and T310):
+    the figures below were recorded from the link model before its speed-up (issue #17)
+    and must not move."""
+    sites = (EdgeSite("a", 0.0, 0.0), EdgeSite("b", 400.0, 0.0), EdgeSite("c", 0.0, 400.0), EdgeSite("d", 400.0, 400.0))
+    rng = np.random.default_rng(11)
+    n, steps, dt_s = 24, 480, 0.25
+    start_m = rng.uniform(-150.0, 550.0, (n, 2))
+    heading = rng.uniform(0.0, 2.0 * np.pi, n)
+    speed_mps = rng.uniform(0.0, 16.0, n)
+    enter, leave = rng.integers(0, steps // 2, n), rng.integers(steps // 2, steps, n)
+    ids = np.array([f"v{i:02d}" for i in range(n)])
+    model = LinkModel(sites, seed=5)
+    snaps = []
+    for k in range(steps):
+        on = (enter <= k) & (k < leave)  # vehicles come and go: state follows them by id
+        pos_m = start_m + (speed_mps * k * dt_s)[:, None] * np.c_[np.cos(heading), np.sin(heading)]
+        frame = make_frame(t_s=k * dt_s, ids=ids[on], x_m=pos_m[on, 0], y_m=pos_m[on, 1], speed_mps=speed_mps[on])
+        snaps.append(model.step(frame))
+    site = np.concatenate([s.site for s in snaps])
+    rate_bps = np.concatenate([s.rate_bps for s in snaps])
+    events = handovers(snaps)
+    assert len(site) == 5397 and len(events) == 84
+    assert [(h.t_s, h.vehicle_id, h.from_site, h.to_site) for h in events if NO_SITE not in (h.from_site, h.to_site)] == [
+        (11.0, "v05", 2, 3), (12.25, "v05", 3, 1), (22.25, "v23", 0, 1), (27.75, "v05", 1, 3),
+        (36.75, "v23", 1, 2), (42.0, "v08", 3, 2), (44.75, "v23", 2, 3), (49.25, "v17", 1, 3),
+        (56.25, "v08", 2, 3), (57.25, "v13", 2, 1), (64.0, "v15", 0, 1), (71.0, "v13", 1, 0),
+        (78.75, "v13", 0, 1), (92.25, "v08", 2, 3), (100.0, "v08", 3, 2),
+    ]  # fmt: skip
+    assert np.bincount(site + 1).tolist() == [1805, 389, 1184, 715, 1304]  # none, a, b, c, d
+    assert rate_bps.sum() == pytest.approx(55331962748.20871, rel=1e-12)
+    assert rate_bps.max() == 111e6  # 20 MHz x the 5.55 bit/s/Hz cap
 
 
 def test_block_fading_is_held_within_the_coherence_time():

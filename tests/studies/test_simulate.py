@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from crchfl_sumo.cli import main
-from crchfl_sumo.links.mobility import Handover
-from crchfl_sumo.studies.simulate import SimulateConfig, Trace, summarize
+from crchfl_sumo.links.mobility import NO_SITE, Handover, LinkModel, MobilityConfig
+from crchfl_sumo.studies.simulate import SimulateConfig, Trace, simulate, summarize
 from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
 
 
@@ -43,6 +44,36 @@ def test_summary_figures_by_hand(grid_dir):
     assert summary["coverage_changes"] == 2
     assert summary["ping_pongs"] == 0
     assert summary["per_edge"]["e0"] == {"samples": 2, "mean_rate_bps": pytest.approx(5e6)}
+
+
+def test_simulate_gives_what_full_frames_and_the_link_model_give_on_town01():
+    """simulate reads lean frames (no lanes, signals ahead or signal states); its positions, speeds,
+    association, rates and handovers must equal those of full frames (as simulate read them before:
+    every column, the data vehicles watched) fed to the link model, to the last bit."""
+    corners = [(60.0, 60.0), (330.0, 60.0), (60.0, 270.0), (330.0, 270.0)]
+    cfg = SimulateConfig(
+        seed=2,
+        edge_sites=tuple(EdgeSite(f"e{i}", x, y) for i, (x, y) in enumerate(corners)),
+        mobility=MobilityConfig(coverage_radius_m=150.0),  # cells overlap and leave a gap: handovers and losses
+    )
+    scenario = load_scenario("town01", cfg.edge_sites, cfg.mobility.coverage_radius_m)
+    trace = simulate(scenario, 120.0, cfg)
+
+    links = LinkModel(scenario.edge_sites, cfg.channel, cfg.mobility, seed=cfg.seed)
+    watched = [v for town in scenario.towns for v in town.data_vehicles]
+    with Simulation(scenario, seed=cfg.seed, watch=watched) as sim:
+        frames = list(sim.run(120.0))
+    snapshots = [links.step(frame) for frame in frames]
+    assert trace.steps == len(frames) == 480
+    assert np.array_equal(trace.t_s, np.concatenate([np.full(len(f), f.t_s) for f in frames]))
+    assert np.array_equal(trace.vehicle, np.concatenate([f.ids for f in frames]))
+    for column in ("x_m", "y_m", "speed_mps"):
+        assert np.array_equal(getattr(trace, column), np.concatenate([getattr(f, column) for f in frames]))
+    assert np.array_equal(trace.site, np.concatenate([s.site for s in snapshots]))
+    assert np.array_equal(trace.rate_bps, np.concatenate([s.rate_bps for s in snapshots]))
+    assert trace.handovers == tuple(h for s in snapshots for h in s.handovers)
+    between_sites = [h for h in trace.handovers if NO_SITE not in (h.from_site, h.to_site)]
+    assert len(between_sites) >= 3 and any(h.to_site == NO_SITE for h in trace.handovers)
 
 
 def test_simulate_command_writes_consistent_outputs(tmp_path):

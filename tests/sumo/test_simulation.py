@@ -89,6 +89,18 @@ def test_signal_ahead_is_read_only_for_watched_vehicles(grid):
     assert np.array_equal(frame.x_m, everyone.x_m)  # watching changes nothing else
 
 
+def test_without_signals_frames_carry_no_signal_states_and_the_same_vehicles(grid):
+    with Simulation(grid, seed=1) as sim:
+        signalled = list(sim.run(30.0))
+    with Simulation(grid, seed=1, signals=False) as sim:
+        plain = list(sim.run(30.0))
+        assert sim.tls_ids() == ()
+    assert all(f.tls_states == {} for f in plain) and signalled[-1].tls_states
+    for a, b in zip(signalled, plain):
+        assert np.array_equal(a.ids, b.ids) and np.array_equal(a.x_m, b.x_m) and np.array_equal(a.speed_mps, b.speed_mps)
+        assert np.array_equal(a.tls_ahead_state, b.tls_ahead_state)  # the signal ahead is read either way
+
+
 def test_derived_acceleration_equals_sumos_own(grid):
     # The frame derives acceleration from the speed change; SUMO's getter must agree.
     with Simulation(grid, seed=4) as sim:
