@@ -364,6 +364,8 @@ def test_a_finer_steer_head_learns_the_nearest_bin_and_reads_as_the_papers_class
     # each bin's paper class: -1 .. -0.4 -> 6 (-0.425), -0.3 -> 5, -0.2 and -0.1 -> 4, 0 -> 0, ..., 0.4 .. 1 -> 3
     assert paper_class_of_bin(fine).tolist() == [6] * 7 + [5, 4, 4, 0, 1, 1, 2] + [3] * 7
     assert paper_class_of_bin(ModelConfig(steer_bins=7)).tolist() == list(range(7))
-    # a drive gets the bin's value
-    actions = predict_actions(model, images[0], 0, 0.0)
+    # argmax drives with the bin's value; auto (the default) weighs the 21 values, so it lies between bins
+    actions = predict_actions(model, images[0], 0, 0.0, steer_decoding="argmax")
     assert np.isclose(actions[1], np.round(actions[1], 1))
+    expected = predict_actions(model, images[0], 0, 0.0, steer_decoding="expected")
+    assert np.isclose(predict_actions(model, images[0], 0, 0.0)[1], expected[1])
