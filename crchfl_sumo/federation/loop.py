@@ -303,8 +303,8 @@ class Federation:
         Returns the receivers' averages (those that received a model) and the trained models of the vehicles
         in ``keep`` (a vehicle whose download failed keeps its own). Each model is folded into its
         receiver's average as the trainer yields it and then dropped, so the step never holds every
-        vehicle's model at once (a thousand of them are gigabytes); the sums run in the vehicles' order,
-        which is the order of each receiver's arrivals, so they equal the batch FedAvg to the bit.
+        vehicle's model at once (a thousand of them are gigabytes). The sums run in the vehicles' order, as
+        a FedAvg over each receiver's list of arrivals does, so they equal it to the bit.
         """
         vehicles = list(samples)
         seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
