@@ -315,8 +315,8 @@ class Federation:
                 weights.setdefault(receiver[v], []).append(len(samples[v]))
         running = {r: RunningAverage(w) for r, w in weights.items()}
         kept: dict[str, State] = {}
-        trained = self.trainer.train([state.vehicle_models[v] for v in vehicles], [samples[v] for v in vehicles], epochs,
-                                     seed)
+        starts = [state.vehicle_models[v] for v in vehicles]
+        trained = self.trainer.train(starts, [samples[v] for v in vehicles], epochs, seed)
         for v, model in zip(vehicles, trained, strict=True):
             if v in receiver:
                 running[receiver[v]].add(model)

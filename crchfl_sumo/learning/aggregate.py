@@ -79,7 +79,8 @@ class RunningAverage:
             _check_first(state)
             self._layout = {key: (tensor.shape, tensor.dtype) for key, tensor in state.items()}
             self._sums = {
-                key: torch.zeros(tensor.shape, dtype=torch.float64, device=tensor.device) for key, tensor in state.items()
+                key: torch.zeros(tensor.shape, dtype=torch.float64, device=tensor.device)
+                for key, tensor in state.items()
             }
         else:
             _check_like_first(i, state, self._layout)
@@ -147,7 +148,10 @@ def _check_like_first(i: int, state: StateDict, layout: Mapping[str, tuple[torch
             raise CrchflError(f"weighted_average: state {i} entry {key!r} is not a tensor")
         if other.shape != shape:
             raise CrchflError(
-                f"weighted_average: entry {key!r} has shape {tuple(other.shape)} in state {i} but {tuple(shape)} in state 0"
+                f"weighted_average: entry {key!r} has shape {tuple(other.shape)} in state {i} "
+                f"but {tuple(shape)} in state 0"
             )
         if other.dtype != dtype:
-            raise CrchflError(f"weighted_average: entry {key!r} has dtype {other.dtype} in state {i} but {dtype} in state 0")
+            raise CrchflError(
+                f"weighted_average: entry {key!r} has dtype {other.dtype} in state {i} but {dtype} in state 0"
+            )
