@@ -3,7 +3,7 @@
     nice -n 10 python tools/bench_scale.py [--samples 8] [--test-samples 50] [--scheme hfl]
                                            [--rounds 3] [--cloud-interval 2] [--out DIR] [--profile N]
                                            [--download-handover relay|restart|drop]
-                                           [--scenario scale200|DIR] [--backend local|ray]
+                                           [--scenario scale200|DIR] [--backend local|ray] [--data DIR]
 
 A larger federation: ``python tools/build_nets.py --scale-clients 1000 --out DIR``
 builds DIR/scale1000 (20 copies of Town01, 1,000 data vehicles, 40 edge
@@ -29,7 +29,12 @@ clients as tasks of a local Ray runtime (RayTrainer).
    (ru_maxrss of each process), and the machine's memory in use above its
    level at the start, sampled every 0.5 s (MemTotal - MemAvailable: every
    process, Ray's workers and object store included; other work on the
-   machine moves it too).
+   machine moves it too). The federation process's resident memory is split
+   into its own (RssAnon) and the shared pages it maps (RssShmem: Ray's
+   object store, which the machine's Shmem counts once), sampled too.
+
+--data DIR federates on a data set generated before (OUT/data of an earlier
+run with --out OUT) and skips step 1.
 
 --profile N also prints the N functions with the most own time in the
 federation (cProfile; it slows the run down).
@@ -57,24 +62,47 @@ import torch
 SCENARIO = "scale200"  # the default; --scenario names another
 
 
+def kib_fields(path: str) -> dict[str, float]:
+    """The ``Name: N kB`` lines of a /proc file, in MiB."""
+    fields = {}
+    for line in Path(path).read_text().splitlines():
+        name, _, value = line.partition(":")
+        if value.strip().endswith("kB"):
+            fields[name] = float(value.split()[0]) / 1024
+    return fields
+
+
+def memory_now() -> dict[str, float]:
+    """What is in use now [MiB]: on the machine (MemTotal - MemAvailable) and its shared memory
+    (Shmem: Ray's object store lives there), and this process's resident memory split into its own
+    (RssAnon) and the shared pages it has mapped (RssShmem: object-store pages it wrote or read)."""
+    machine, own = kib_fields("/proc/meminfo"), kib_fields("/proc/self/status")
+    return {
+        "machine": machine["MemTotal"] - machine["MemAvailable"],
+        "machine shared": machine["Shmem"],
+        "process anon": own["RssAnon"],
+        "process shared": own["RssShmem"],
+    }
+
+
 class MachineMemory:
-    """Peak memory in use on the machine (MemTotal - MemAvailable) above the level at the start, sampled."""
+    """Peaks of ``memory_now``'s figures, sampled; ``above_start_mib``: the machine's above the level at the start."""
 
     def __init__(self, period_s: float = 0.5) -> None:
         self.period_s = period_s
-        self.start_mib = self.peak_mib = self.used_mib()
+        self.start = memory_now()
+        self.peak = dict(self.start)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
 
-    @staticmethod
-    def used_mib() -> float:
-        fields = dict(line.split(":", 1) for line in Path("/proc/meminfo").read_text().splitlines())
-        kib = lambda name: float(fields[name].split()[0])  # noqa: E731
-        return (kib("MemTotal") - kib("MemAvailable")) / 1024
+    def sample(self) -> dict[str, float]:
+        now = memory_now()
+        self.peak = {k: max(v, now[k]) for k, v in self.peak.items()}
+        return now
 
     def _sample(self) -> None:
         while not self._stop.wait(self.period_s):
-            self.peak_mib = max(self.peak_mib, self.used_mib())
+            self.sample()
 
     def __enter__(self) -> "MachineMemory":
         self._thread.start()
@@ -83,11 +111,15 @@ class MachineMemory:
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
         self._thread.join()
-        self.peak_mib = max(self.peak_mib, self.used_mib())
+        self.sample()
+
+    @property
+    def start_mib(self) -> float:
+        return self.start["machine"]
 
     @property
     def above_start_mib(self) -> float:
-        return self.peak_mib - self.start_mib
+        return self.peak["machine"] - self.start["machine"]
 
 
 def peak_rss_mib() -> float:
@@ -144,18 +176,19 @@ class Stopwatch:
         self.calls: dict[str, int] = collections.defaultdict(int)
 
     @contextlib.contextmanager
-    def part(self, name: str):
+    def part(self, name: str, count: bool = True):
+        """Time the block under ``name``; ``count``: it is a call of its own (not a piece of one)."""
         start = time.perf_counter()
         try:
             yield
         finally:
             self.seconds[name] += time.perf_counter() - start
-            self.calls[name] += 1
+            self.calls[name] += count
 
-    def wrap(self, name: str, function):
+    def wrap(self, name: str, function, count: bool = True):
         @functools.wraps(function)
         def timed(*args, **kwargs):
-            with self.part(name):
+            with self.part(name, count):
                 return function(*args, **kwargs)
 
         return timed
@@ -166,9 +199,32 @@ class TimedTrainer:
 
     def __init__(self, inner, watch: Stopwatch) -> None:
         self.inner = inner
+        self.watch = watch
         self.initial_state = inner.initial_state
-        self.train = watch.wrap("local training", inner.train)
         self.evaluate = watch.wrap("evaluation", inner.evaluate)
+
+    def train(self, *args):
+        """The inner trainer's models as it yields them; the waits for them are the training's time
+        (the loop folds each into its FedAvg between two waits)."""
+        with self.watch.part("local training"):
+            models = iter(self.inner.train(*args))
+        while True:
+            with self.watch.part("local training", count=False):
+                model = next(models, None)
+            if model is None:
+                return
+            yield model
+
+
+def timed_running_average(watch: Stopwatch):
+    """loop.RunningAverage with its folds timed as FedAvg (a result counts as one average)."""
+    from crchfl_sumo.learning.aggregate import RunningAverage
+
+    class Timed(RunningAverage):
+        add = watch.wrap("FedAvg", RunningAverage.add, count=False)
+        result = watch.wrap("FedAvg", RunningAverage.result)
+
+    return Timed
 
 
 class TimedClock:
@@ -255,17 +311,21 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     step_ends = [time.perf_counter()]
     step_parts = [dict(watch.seconds)]  # the stopwatch after every step
     step_rss = []
+    step_memory = []  # memory_now() after every step
 
     def progress(info: dict) -> None:
         step_ends.append(time.perf_counter())
         step_parts.append(dict(watch.seconds))
         step_rss.append(peak_rss_mib())
+        step_memory.append(memory_now())
 
     profiler = cProfile.Profile() if args.profile else None
     with stack:
         stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
         stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
         stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
+        if hasattr(federation_module, "RunningAverage"):  # edge FedAvg folded in as the models come
+            stack.enter_context(patched(federation_module, "RunningAverage", timed_running_average(watch)))
         for name in ("append_logs", "_save_state", "_write_outputs"):  # run.py's per-step files
             if hasattr(run_module, name):
                 timed = watch.wrap("checkpoint + outputs", getattr(run_module, name))
@@ -289,6 +349,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         "step_s": [b - a for a, b in zip(step_ends, step_ends[1:])],
         "step_parts": [{k: b.get(k, 0.0) - a.get(k, 0.0) for k in b} for a, b in zip(step_parts, step_parts[1:])],
         "step_rss_mib": step_rss,
+        "step_memory": step_memory,
         "link_handovers": link_handovers(clock, inputs.vehicles),
         "clock_steps": int(round((clock.t_s - clock.start_s) / clock.step_s)) + 1,
         "rss_inputs_mib": rss_inputs,
@@ -336,13 +397,20 @@ def ledger_figures(out_dir: Path, vehicles) -> dict:
 # ------------------------------------------------------------------ report
 
 
-def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> None:
-    config, inputs, summary, watch = fed["config"], fed["inputs"], fed["summary"], fed["watch"]
+def report(args: argparse.Namespace, data: dict | None, fed: dict, out_dir: Path) -> None:
+    inputs = fed["inputs"]
     clients = len(inputs.vehicles)
-    train_samples = sum(len(inputs.samples[v]) for v in inputs.vehicles)
     print(f"scenario {args.scenario}, backend {args.backend}: {clients} clients over {len(inputs.edges)} edge sites; torch threads "
           f"{torch.get_num_threads()}")
 
+    if data is None:
+        print(f"\n1. data set: {args.data} (given, not generated)")
+    else:
+        report_data(args, data)
+    report_federation(args, fed, out_dir)
+
+
+def report_data(args: argparse.Namespace, data: dict) -> None:
     print(f"\n1. data set: {data['samples']} samples ({data['train_shards']} train shards x {args.samples}, "
           f"{data['test_shards']} test shards x {args.test_samples}), 64 x 128, in {data['total_s']:.1f} s")
     for stage in ("simulate", "world", "label", "render", "write"):
@@ -351,6 +419,12 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     other = data["total_s"] - sum(data["stages_s"].values())
     print(f"   {'other':9s} {other:7.1f} s  {100 * other / data['total_s']:5.1f} %  (scenario load, plan, manifest)")
     print(f"   peak memory of the generating process: {data['peak_rss_mib']:.0f} MiB")
+
+
+def report_federation(args: argparse.Namespace, fed: dict, out_dir: Path) -> None:
+    config, inputs, summary, watch = fed["config"], fed["inputs"], fed["summary"], fed["watch"]
+    clients = len(inputs.vehicles)
+    train_samples = sum(len(inputs.samples[v]) for v in inputs.vehicles)
 
     rounds, aggregations = summary["cloud_rounds"], summary["edge_aggregations"]
     hyper = summary["hyper"]
@@ -379,13 +453,16 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     parts.append(("loop (transfers, ledger)", loop, "the rest: transfers over the series, ledger, bookkeeping"))
     for name, seconds, note in parts:
         print(f"   {name:26s} {seconds:7.2f} s  {100 * seconds / total:5.1f} %  {note}")
-    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs [ms]  loop  peak MiB")
-    for k, (wall, part, rss) in enumerate(zip(fed["step_s"], fed["step_parts"], fed["step_rss_mib"]), start=1):
+    print("   per step [s]:  step   wall  training  clock  FedAvg+eval  checkpoint+outputs [ms]  loop  peak MiB"
+          "  after it: anon MiB  shared MiB  machine shared MiB")
+    rows = zip(fed["step_s"], fed["step_parts"], fed["step_rss_mib"], fed["step_memory"])
+    for k, (wall, part, rss, now) in enumerate(rows, start=1):
         known = ("local training", "clock (all)", "FedAvg", "evaluation", "checkpoint + outputs")
         print(f"                 {k:4d} {wall:6.2f} {part.get('local training', 0):9.2f} "
               f"{part.get('clock (all)', 0):6.2f} "
               f"{part.get('FedAvg', 0) + part.get('evaluation', 0):12.2f} {1e3 * part.get('checkpoint + outputs', 0):24.1f} "
-              f"{wall - sum(part.get(x, 0) for x in known):5.2f} {rss:9.0f}")
+              f"{wall - sum(part.get(x, 0) for x in known):5.2f} {rss:9.0f} {now['process anon']:19.0f} "
+              f"{now['process shared']:11.0f} {now['machine shared']:19.0f}")
 
     ledger = ledger_figures(out_dir, inputs.vehicles)
     per_round = max(rounds, 1)
@@ -421,10 +498,15 @@ def report(args: argparse.Namespace, data: dict, fed: dict, out_dir: Path) -> No
     checkpoint = out_dir / "checkpoint.pt"
     print("\n4. memory")
     print(f"   peak of the federation process: {peak_rss_mib():.0f} MiB (after loading the data set: "
-          f"{fed['rss_inputs_mib']:.0f} MiB); data generation (child): {data['peak_rss_mib']:.0f} MiB")
-    print(f"   the machine during the federation: peak {fed['machine'].above_start_mib:.0f} MiB in use above the "
-          f"{fed['machine'].start_mib:.0f} MiB at its start (every process; {clients} clients: "
-          f"{fed['machine'].above_start_mib / clients:.1f} MiB a client)")
+          f"{fed['rss_inputs_mib']:.0f} MiB)")
+    machine = fed["machine"]
+    print(f"   the machine during the federation: peak {machine.above_start_mib:.0f} MiB in use above the "
+          f"{machine.start_mib:.0f} MiB at its start (every process; {clients} clients: "
+          f"{machine.above_start_mib / clients:.1f} MiB a client)")
+    print(f"   sampled peaks: federation process {machine.peak['process anon']:.0f} MiB its own (RssAnon) + "
+          f"{machine.peak['process shared']:.0f} MiB shared pages mapped (RssShmem); the machine's shared memory "
+          f"(Ray's object store) {machine.peak['machine shared'] - machine.start['machine shared']:.0f} MiB above "
+          f"its start")
     images = sum(x.images.nelement() * x.images.element_size() for x in inputs.samples.values())
     print(f"   training images in memory {images / mib:.1f} MiB; checkpoint.pt {checkpoint.stat().st_size / mib:.1f} "
           f"MiB; ledger.jsonl {(out_dir / 'ledger.jsonl').stat().st_size / 1024:.0f} KiB")
@@ -452,14 +534,19 @@ def main() -> None:
     parser.add_argument("--backend", choices=("local", "ray"), default="local", help="where the clients train")
     parser.add_argument("--metres-per-pixel", type=float, default=0.1,
                         help="the ground texture's resolution (default 0.1; scale1000's 20 towns need 0.15)")
+    parser.add_argument("--data", type=Path,
+                        help="federate on this data set (OUT/data of an earlier run of this script) instead of "
+                             "generating one")
     args = parser.parse_args()
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
-        data_dir, out_dir = root / "data", root / "run"
-        with multiprocessing.get_context("spawn").Pool(1) as pool:
-            data = pool.apply(generate, (args.scenario, str(data_dir), args.samples, args.test_samples, args.seed,
-                                            args.metres_per_pixel))
+        data_dir, out_dir = args.data or root / "data", root / "run"
+        data = None
+        if args.data is None:
+            with multiprocessing.get_context("spawn").Pool(1) as pool:
+                data = pool.apply(generate, (args.scenario, str(data_dir), args.samples, args.test_samples, args.seed,
+                                                args.metres_per_pixel))
         with MachineMemory() as machine:
             fed = federate(args, data_dir, out_dir)
         fed["machine"] = machine

@@ -1,9 +1,11 @@
 """Where work runs: in this process (``local``) or as Ray tasks (``ray``), behind one small API.
 
 A run trains its vehicles and evaluates its models through an ``Executor``;
-a sweep runs its independent runs through one. Both ask for the same two
+a sweep runs its independent runs through one. Both ask for the same few
 things: ``put`` a large object once (a vehicle's samples, the test set) and
-``map`` a function over argument tuples, results in order.
+``map`` a function over argument tuples, results in order; ``imap`` yields
+them in order as they finish, so a caller that uses each result and drops it
+never holds them all (a thousand trained models are gigabytes).
 
 * ``local``: ``map`` calls the function in this process; ``map(...,
   isolate=True)`` gives every call its own fresh process (spawned, one task
@@ -27,7 +29,7 @@ import math
 import multiprocessing
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Callable, Iterator, Literal, Sequence
 
 from crchfl_sumo.core.cpus import available_cpus
 from crchfl_sumo.core.errors import CrchflError
@@ -150,7 +152,12 @@ class Executor:
         if not args:
             return []
         if self.is_ray:
-            return self._map_ray(fn, args, isolate, num_cpus, on_result)
+            results = [None] * len(args)
+            for i, result in self._ray_results(fn, args, isolate, num_cpus):
+                results[i] = result
+                if on_result is not None:
+                    on_result(i, result)
+            return results
         if isolate:
             return _map_processes(fn, args, self.config, on_result)
         results = []
@@ -160,15 +167,30 @@ class Executor:
                 on_result(i, results[-1])
         return results
 
-    def _map_ray(self, fn, args: list[tuple], isolate: bool, num_cpus: float, on_result: OnResult | None) -> list:
+    def imap(self, fn: Callable[..., Any], args: Sequence[tuple], *, num_cpus: float = 1) -> Iterator:
+        """``fn(*a) for a in args`` on the backend, yielded in order.
+
+        Local: each call runs when its result is asked for. Ray: every call is
+        a task from the first request on; a result is fetched when its task
+        finishes and released from the object store as it is handed over, so a
+        caller that drops each result before asking for the next holds only
+        those that finished ahead of an earlier one. Closing the iterator early
+        cancels the tasks still running.
+        """
+        args = list(args)
+        if not self.is_ray:
+            return (fn(*a) for a in args)
+        return _in_order(self._ray_results(fn, args, False, num_cpus))
+
+    def _ray_results(self, fn, args: list[tuple], isolate: bool, num_cpus: float) -> Iterator[tuple[int, Any]]:
+        """(index, result) of every call as its task finishes; each result is fetched once."""
         ray, cfg = self._ray, self.config
         options: dict[str, Any] = {"max_retries": cfg.max_retries, "num_cpus": num_cpus}
         if isolate:
             options["max_calls"] = 1  # the worker process exits after one task: one SUMO per process
         remote = ray.remote(**options)(fn)
-        refs = [remote.remote(*a) for a in args]
-        index = {ref: i for i, ref in enumerate(refs)}
-        pending = list(refs)
+        pending = [remote.remote(*a) for a in args]
+        index = {ref: i for i, ref in enumerate(pending)}  # a ref leaves it when its result is handed over
         timeout = None if math.isinf(cfg.task_timeout_s) else cfg.task_timeout_s
         try:
             while pending:
@@ -176,14 +198,11 @@ class Executor:
                 if not done:
                     raise CrchflError(
                         f"no Ray task finished within backend.task_timeout_s = {cfg.task_timeout_s:g} s "
-                        f"({len(pending)} of {len(refs)} unfinished); a worker or node may be lost: check "
+                        f"({len(pending)} of {len(args)} unfinished); a worker or node may be lost: check "
                         "`ray status`, or raise backend.task_timeout_s for longer tasks"
                     )
-                finished = ray.get(done)  # a failed task raises now, not after the others
-                if on_result is not None:
-                    for ref, result in zip(done, finished):
-                        on_result(index[ref], result)
-            return ray.get(refs)
+                for ref in done:
+                    yield index.pop(ref), ray.get(ref)  # a failed task raises now, not after the others
         except ray.exceptions.RayTaskError as exc:  # the task itself raised: the same error here
             _cancel(ray, pending)
             cause = getattr(exc, "cause", None)
@@ -196,9 +215,23 @@ class Executor:
                 f"a Ray task was lost ({type(exc).__name__}: {exc}) after backend.max_retries = {cfg.max_retries} "
                 "reruns; check memory and the nodes (`ray status`) or raise backend.max_retries"
             ) from None
-        except BaseException:
+        except BaseException:  # the caller stopped early (GeneratorExit) or was interrupted
             _cancel(ray, pending)
             raise
+
+
+def _in_order(results: Iterator[tuple[int, Any]]) -> Iterator:
+    """The results of (index, result) pairs that come in any order, yielded in index order as soon as each can be."""
+    ahead: dict[int, Any] = {}  # results that finished before an earlier one
+    following = 0
+    try:
+        for i, result in results:
+            ahead[i] = result
+            while following in ahead:
+                yield ahead.pop(following)
+                following += 1
+    finally:
+        results.close()  # cancels the tasks still running when the caller stops early
 
 
 def _cancel(ray, refs) -> None:

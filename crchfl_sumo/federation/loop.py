@@ -47,7 +47,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -64,7 +64,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation import selection
 from crchfl_sumo.federation.settings import SFL_LINK
 from crchfl_sumo.federation.state import FederationState, LoopInputs, Trainer
-from crchfl_sumo.learning.aggregate import fedavg
+from crchfl_sumo.learning.aggregate import RunningAverage, fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import Clock, Relay, WirelessOutcome, edge_download, wireless_transfer, with_deadline
@@ -289,15 +289,40 @@ class Federation:
         """Every vehicle's samples for the training it would start now (when it holds its model)."""
         return {v: self.data(v, state.ready_s[v]) for v in self.setup.vehicles}
 
-    def _train(
-        self, state: FederationState, epochs: int, samples: Mapping[str, Samples]
-    ) -> tuple[dict[str, State], dict[str, int]]:
-        """The models of the vehicles in ``samples`` after ``epochs`` on them, and the counts |T_nk| behind them."""
+    def _train_and_average(
+        self,
+        state: FederationState,
+        epochs: int,
+        samples: Mapping[str, Samples],
+        arrived: Mapping[str, Collection[str]],
+        keep: Collection[str],
+    ) -> tuple[dict[str, State], dict[str, State]]:
+        """Train the vehicles of ``samples`` for ``epochs``; average, per receiver (edge or cloud), the models
+        that arrived there (``arrived``; FedAvg weights |T_nk| = the samples trained on).
+
+        Returns the receivers' averages (those that received a model) and the trained models of the vehicles
+        in ``keep`` (a vehicle whose download failed keeps its own). Each model is folded into its
+        receiver's average as the trainer yields it and then dropped, so the step never holds every
+        vehicle's model at once (a thousand of them are gigabytes). The sums run in the vehicles' order, as
+        a FedAvg over each receiver's list of arrivals does, so they equal it to the bit.
+        """
         vehicles = list(samples)
         seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
-        new = self.trainer.train([state.vehicle_models[v] for v in vehicles], [samples[v] for v in vehicles], epochs,
-                                 seed)
-        return dict(zip(vehicles, new)), {v: len(samples[v]) for v in vehicles}
+        receiver = {v: r for r, arrivals in arrived.items() for v in arrivals}
+        weights: dict[str, list[int]] = {}
+        for v in vehicles:
+            if v in receiver:
+                weights.setdefault(receiver[v], []).append(len(samples[v]))
+        running = {r: RunningAverage(w) for r, w in weights.items()}
+        kept: dict[str, State] = {}
+        starts = [state.vehicle_models[v] for v in vehicles]
+        trained = self.trainer.train(starts, [samples[v] for v in vehicles], epochs, seed)
+        for v, model in zip(vehicles, trained, strict=True):
+            if v in receiver:
+                running[receiver[v]].add(model)
+            if v in keep:
+                kept[v] = model
+        return {r: average.result() for r, average in running.items()}, kept
 
     def _select(self, state: FederationState, samples: Mapping[str, Samples]) -> tuple[str, ...]:
         """The vehicles that train in this edge aggregation (``federation.selection``; federation/selection.py)."""
@@ -391,7 +416,7 @@ class Federation:
         if uploaded:
             parts = [uploaded[v] for v in setup.vehicles if v in uploaded]
             seed = int(np.random.SeedSequence([cfg.seed, 3]).generate_state(1)[0])
-            model = self.trainer.train([state.cloud_model], [Samples.concat(parts)], cfg.pretrain_epochs, seed)[0]
+            [model] = self.trainer.train([state.cloud_model], [Samples.concat(parts)], cfg.pretrain_epochs, seed)
         pretrained_s = start_s + cfg.pretrain_epochs * n * cfg.compute_s_per_sample
         # release: cloud -> every edge (wireline), edge -> its vehicles (wireless)
         ready, models, open_s = dict(state.ready_s), dict(state.vehicle_models), dict(state.open_s)
@@ -399,7 +424,8 @@ class Federation:
             ev = _wireline(pretrained_s, sizes.model_bytes, setup.wireline)
             events[(CLOUD, e, "downlink")] = ev
             open_s[e] = ev.end_s
-            self._send_down(state, e, vehicles, ev.end_s, model, "I", events, models, ready, relays)
+            delivered = self._send_down(state, e, vehicles, ev.end_s, "I", events, ready, relays)
+            models.update(dict.fromkeys(delivered, model))
         received = {v: shares[v] for v in setup.vehicles}
         schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
         if not _charge(ledger, schedule, events, setup.rule, 0, state, relays, setup.edges):
@@ -419,39 +445,52 @@ class Federation:
         return Topology(edges, groups)
 
     def _edge_step(self, state: FederationState, ledger: Ledger) -> None:
-        """Stage II: one edge aggregation; when it is the ``cloud_interval``-th, stage III follows."""
+        """Stage II: one edge aggregation; when it is the ``cloud_interval``-th, stage III follows.
+
+        The step's times do not depend on what the models learn (training takes
+        its simulated compute time), so its transfers are worked out first and
+        the vehicles train last, each model folded into its edge's FedAvg as it
+        comes (``_train_and_average``).
+        """
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
         samples = self._data(state)
         picked = self._select(state, samples)
-        trained, counts = self._train(state, setup.hyper.edge_interval, {v: samples[v] for v in picked})
+        counts = {v: len(samples[v]) for v in picked}  # |T_nk| of the vehicles that train
         skipped = [v for v in setup.vehicles if v not in picked]
-        trained = {**state.vehicle_models, **trained}  # a skipped vehicle keeps its model
         events: dict[tuple[str, str, str], TransferEvent] = {}
         relays: list[RelayedTransfer] = []
         uploads, member = self._vehicle_uploads(state, counts)
         topology = self._topology(member)
-        agg_s, received_by, edge_models, edge_weights = self._edge_fedavg(
-            state, topology, uploads, trained, counts, events, relays
-        )
-        edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
+        agg_s, received_by = self._edge_arrivals(state, topology, uploads, events, relays)
         for e in agg_s:
             # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
             events[(e, CLOUD, "uplink")] = _wireline(agg_s[e], sizes.model_bytes, setup.wireline)
-        cloud_model, cloud_s, release_s = state.cloud_model, None, agg_s
+        cloud_s, release_s = None, agg_s
         if followed:
             cloud_s = max(events[(e, CLOUD, "uplink")].end_s for e in agg_s)
-            fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
-            cloud_model = fedavg(fresh) if fresh else state.cloud_model
             release_s = {}
             for e in agg_s:
                 events[(CLOUD, e, "downlink")] = _wireline(cloud_s, sizes.model_bytes, setup.wireline)
-                edge_models[e] = cloud_model
                 release_s[e] = events[(CLOUD, e, "downlink")].end_s
         stage = "III" if followed else "II"
-        models, ready, open_s = self._release(
-            state, topology, release_s, edge_models, trained, events, stage, relays
+        ready, open_s, delivered = self._release(state, topology, release_s, events, stage, relays)
+        averages, kept = self._train_and_average(
+            state, setup.hyper.edge_interval, {v: samples[v] for v in picked}, received_by, set(counts) - delivered
         )
+        edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
+        for e, average in averages.items():  # an edge that received no model keeps its previous one
+            edge_models[e] = average
+            edge_weights[e] = float(sum(counts[v] for v in received_by[e]))
+        edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
+        cloud_model = state.cloud_model
+        if followed:
+            fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
+            cloud_model = fedavg(fresh) if fresh else state.cloud_model
+            edge_models.update(dict.fromkeys(agg_s, cloud_model))
+        models = {**state.vehicle_models, **kept}  # a skipped vehicle, or one whose download failed, keeps its own
+        for e, vehicles in topology.active():
+            models.update(dict.fromkeys((v for v in vehicles if v in delivered), edge_models[e]))
         next_round = state.cloud_rounds + 1
         schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
         if followed:
@@ -491,17 +530,17 @@ class Federation:
                 member[v] = setup.edges[out.site]
         return uploads, member
 
-    def _edge_fedavg(self, state, topology, uploads, trained, counts, events, relays):
-        """Each edge averages the models that arrived, once its members' uploads ended (at the latest, its deadline).
+    def _edge_arrivals(self, state, topology, uploads, events, relays):
+        """When each edge aggregates (once its members' uploads ended; at the latest, its deadline) and
+        whose models it holds then.
 
-        Returns (aggregation time, received vehicles, edge models, edge weights) per edge; records the
-        uploads in ``events`` and the stragglers in ``state``.
+        Returns (aggregation time, vehicles whose model arrived) per edge; records the uploads in
+        ``events`` and the stragglers in ``state``.
         """
         agg_s: dict[str, float] = {}
         received_by: dict[str, list[str]] = {}
-        edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         for e, vehicles in topology.active():
-            ends, received = self._gather_uploads(
+            ends, received_by[e] = self._gather_uploads(
                 state,
                 {v: uploads[v] for v in vehicles if v in uploads},
                 e,
@@ -511,33 +550,28 @@ class Federation:
                 relays,
             )
             agg_s[e] = max(ends, default=state.open_s[e])  # no member trained: nothing to wait for
-            received_by[e] = received
-            if received:
-                edge_models[e] = fedavg([(trained[v], counts[v]) for v in received])
-                edge_weights[e] = float(sum(counts[v] for v in received))
-        return agg_s, received_by, edge_models, edge_weights
+        return agg_s, received_by
 
-    def _release(self, state, topology, release_s, edge_models, trained, events, stage, relays):
+    def _release(self, state, topology, release_s, events, stage, relays):
         """Each edge sends its model to its vehicles from ``release_s[edge]`` on.
 
-        Returns the vehicles' models (a failed download leaves the vehicle its own trained model),
-        the times they hold them, and the edges' new window openings.
+        Returns the times the vehicles hold their models, the edges' new window openings, and the
+        vehicles whose download arrived (the others keep their own model).
         """
-        models, ready, open_s = dict(trained), dict(state.ready_s), dict(state.open_s)
+        ready, open_s, delivered = dict(state.ready_s), dict(state.open_s), set()
         for e, vehicles in topology.active():
             open_s[e] = release_s[e]
-            self._send_down(state, e, vehicles, release_s[e], edge_models[e], stage, events, models, ready, relays)
-        return models, ready, open_s
+            delivered.update(self._send_down(state, e, vehicles, release_s[e], stage, events, ready, relays))
+        return ready, open_s, delivered
 
-    def _send_down(
-        self, state, sender: str, vehicles, start_s: float, model: State, stage: str, events, models, ready, relays
-    ):
-        """``sender`` (an edge, or the cloud in SFL) sends ``model`` to each of ``vehicles`` from ``start_s`` on.
+    def _send_down(self, state, sender: str, vehicles, start_s: float, stage: str, events, ready, relays) -> list[str]:
+        """``sender`` (an edge, or the cloud in SFL) sends its model to each of ``vehicles`` from ``start_s`` on.
 
-        Records each download in ``events``, its relays in ``relays`` and its arrival in ``ready``; a
-        vehicle whose download fails keeps the model ``models`` holds for it and is recorded as a straggler.
+        Returns the vehicles whose download arrived. Records each download in ``events``, its relays in
+        ``relays`` and its arrival in ``ready``; a vehicle whose download fails is recorded as a straggler.
         """
         edge = None if sender == CLOUD else sender
+        delivered = []
         for v in vehicles:
             out, moved = self._download(v, start_s, self.setup.sizes.model_bytes, edge)
             events[(sender, v, "downlink")] = _wireless(out)
@@ -546,9 +580,10 @@ class Federation:
                 relays.append(RelayedTransfer(stage, "downlink", "model", moved))
             ready[v] = out.end_s
             if out.ok:
-                models[v] = model
+                delivered.append(v)
             else:
                 self._straggler(state, v, stage, f"download {out.reason}", out.end_s)
+        return delivered
 
     def _evaluate_edges(self, models, weights, edges) -> dict[str, float]:
         """Sample-weighted means of the edge models' scalar test metrics."""
@@ -603,7 +638,8 @@ class Federation:
     def _sfl_round(self, state: FederationState, ledger: Ledger) -> None:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         epochs = setup.hyper.edge_interval
-        trained, counts = self._train(state, epochs, self._data(state))
+        samples = self._data(state)
+        counts = {v: len(samples[v]) for v in samples}
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
         relays: list[RelayedTransfer] = []
@@ -615,9 +651,12 @@ class Federation:
         }
         ends, received = self._gather_uploads(state, uploads, CLOUD, "III", lambda v: window_end, events, relays)
         cloud_s = max(ends)
-        cloud_model = fedavg([(trained[v], counts[v]) for v in received]) if received else state.cloud_model
-        models, ready = dict(trained), dict(state.ready_s)
-        self._send_down(state, CLOUD, setup.vehicles, cloud_s, cloud_model, "III", events, models, ready, relays)
+        ready = dict(state.ready_s)
+        delivered = set(self._send_down(state, CLOUD, setup.vehicles, cloud_s, "III", events, ready, relays))
+        # the times first, the training last (as in _edge_step)
+        averages, kept = self._train_and_average(state, epochs, samples, {CLOUD: received}, set(samples) - delivered)
+        cloud_model = averages.get(CLOUD, state.cloud_model)
+        models = {v: cloud_model if v in delivered else kept[v] for v in setup.vehicles}
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)

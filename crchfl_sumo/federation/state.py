@@ -7,7 +7,7 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Literal, Mapping, Protocol, Sequence
+from typing import Any, Iterable, Literal, Mapping, Protocol, Sequence
 
 import torch
 
@@ -31,7 +31,10 @@ class Trainer(Protocol):
 
     def initial_state(self) -> State: ...
 
-    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> list[State]: ...
+    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> Iterable[State]:
+        """Each vehicle's new state, in the order of ``states``. An iterator that yields each as it is
+        trained lets the loop fold it into its FedAvg and drop it before the next arrives."""
+        ...
 
     def evaluate(self, state: State) -> Mapping[str, Any]:
         """Test-set metrics: at least ``loss`` and ``accuracy``; every key goes into the metric line.

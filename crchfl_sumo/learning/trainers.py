@@ -3,7 +3,9 @@
 ``federation.Trainer`` asks for an initial state, local training of several
 vehicles and a test-set evaluation. ``TorchTrainer`` does them here;
 ``RayTrainer`` sends every vehicle's training and every evaluation to an
-``Executor`` (backend.py) and returns bit-identical results.
+``Executor`` (backend.py) and returns bit-identical results. Both yield the
+trained models one by one, in order, as they are ready: the loop folds each
+into its FedAvg and drops it, so a step never holds every vehicle's model.
 
 Evaluation: ``evaluation(state)`` gives the full test metrics
 (evaluation.Evaluation: balanced accuracy, recall, confusion, steer and
@@ -15,7 +17,7 @@ constant-straight baseline on the same test set.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 
@@ -48,9 +50,16 @@ class TorchTrainer:
     def initial_state(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().cpu().clone() for k, v in build_model(self.model_config, self.seed).state_dict().items()}
 
-    def train(self, states, samples, epochs, seed):
-        new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
-        return new
+    def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
+        """Each vehicle's new state, in order, trained when it is asked for: vehicle i with
+        ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (``multi_vehicle = "vmap"``: all at once)."""
+        if self.config.multi_vehicle == "vmap":
+            new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
+            return iter(new)
+        return (
+            train_vehicle(state, x, epochs, self.model_config, self.config, vehicle_seed(seed, i))[0]
+            for i, (state, x) in enumerate(zip(states, samples, strict=True))
+        )
 
     def evaluation(self, state) -> Evaluation:
         """The full test-set metrics of ``state``."""
@@ -70,7 +79,9 @@ class RayTrainer(TorchTrainer):
     Vehicle i of a call trains alone with ``vehicle_seed(seed, i)``, exactly as
     ``train_vehicles`` trains it sequentially, and every task uses the driver's
     number of torch threads, so the results are bit-identical to the local
-    backend's. Samples and the test set go to the object store once.
+    backend's. Samples, starting models and the test set go to the object
+    store once each (a thousand vehicles starting from their edge's model
+    share a few dozen copies, not a thousand).
     """
 
     def __init__(self, model_config, config, test, seed, executor: Executor) -> None:
@@ -80,21 +91,24 @@ class RayTrainer(TorchTrainer):
         self._test_ref = executor.put(test)
         self._sample_refs: dict[int, tuple[Samples, Any]] = {}  # id -> (the object, kept alive; its handle)
 
-    def _samples_ref(self, samples: Samples, refs: dict) -> Any:
-        key = id(samples)
+    def _put_once(self, obj: Any, refs: dict, known: dict | None = None) -> Any:
+        """``obj``'s handle, put once per distinct object (by identity) into ``refs``; ``known``: handles of an
+        earlier call to reuse. ``refs`` keeps the object alive, so its id is not reused meanwhile."""
+        key = id(obj)
         if key not in refs:
-            known = self._sample_refs.get(key)
-            refs[key] = known if known is not None else (samples, self.executor.put(samples))
+            refs[key] = (known or {}).get(key) or (obj, self.executor.put(obj))
         return refs[key][1]
 
-    def train(self, states, samples, epochs, seed):
-        refs: dict[int, tuple[Samples, Any]] = {}
+    def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
+        sample_refs: dict[int, tuple[Samples, Any]] = {}
+        state_refs: dict[int, tuple[Any, Any]] = {}
         args = [
-            (state, self._samples_ref(x, refs), epochs, self.model_config, self.config, vehicle_seed(seed, i), self.threads)
-            for i, (state, x) in enumerate(zip(states, samples))
+            (self._put_once(state, state_refs), self._put_once(x, sample_refs, self._sample_refs), epochs,
+             self.model_config, self.config, vehicle_seed(seed, i), self.threads)
+            for i, (state, x) in enumerate(zip(states, samples, strict=True))
         ]
-        self._sample_refs = refs  # handles of samples no longer trained on are released
-        return self.executor.map(train_vehicle_task, args)
+        self._sample_refs = sample_refs  # handles of samples no longer trained on are released
+        return self.executor.imap(train_vehicle_task, args)
 
     def evaluation(self, state) -> Evaluation:
         args = (state, self._test_ref, self.model_config, self.config, self.threads)

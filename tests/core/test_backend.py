@@ -113,6 +113,20 @@ def test_local_map_keeps_order_and_put_is_the_object():
         assert executor.map(square, []) == []
 
 
+def test_local_imap_runs_each_call_when_its_result_is_asked_for():
+    calls = []
+
+    def square_noting(x):
+        calls.append(x)
+        return x * x
+
+    with Executor(BackendConfig()) as executor:
+        results = executor.imap(square_noting, [(1,), (2,), (3,)])
+        assert calls == []
+        assert next(results) == 1 and calls == [1]
+        assert list(results) == [4, 9] and calls == [1, 2, 3]
+
+
 def test_local_isolated_tasks_run_in_other_processes_and_a_dead_one_is_retried(tmp_path):
     with Executor(BackendConfig(num_cpus=2)) as executor:
         results = executor.map(die_once, [(str(tmp_path / "a"),), (str(tmp_path / "b"),)], isolate=True)
@@ -175,6 +189,19 @@ def test_ray_map_keeps_order_and_resolves_put_objects(ray_runtime):
         handle = executor.put(torch.arange(5.0))
         assert executor.map(tensor_sum, [(handle,), (handle,)]) == [10.0, 10.0]
     assert ray_runtime.is_initialized()  # a runtime the executor did not start is left running
+
+
+def test_ray_imap_yields_in_order_and_closing_it_cancels_the_rest(ray_runtime):
+    with Executor(BackendConfig(kind="ray")) as executor:
+        # the first task finishes last: the others wait in order behind it
+        assert list(executor.imap(sleep_s, [(1.0,), (0.0,), (0.1,)])) == [1.0, 0.0, 0.1]
+        results = executor.imap(sleep_s, [(0.0,), (600.0,), (600.0,)])
+        assert next(results) == 0.0
+        results.close()  # the two long tasks hold both CPUs until they are cancelled
+    with Executor(BackendConfig(kind="ray", task_timeout_s=120.0)) as executor:
+        assert executor.map(square, [(3,)]) == [9]
+        with pytest.raises(CrchflError, match="^dataset: no such folder; check the path$"):
+            list(executor.imap(user_error, [()]))
 
 
 def test_ray_worker_that_dies_is_retried(ray_runtime, tmp_path):

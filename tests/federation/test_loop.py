@@ -1,8 +1,11 @@
-"""The federation loop on scripted clocks with a toy trainer: counts, charges, FedAvg, policies."""
+"""The federation loop on scripted clocks with a toy trainer: counts, charges, FedAvg, policies
+(and a real one: averages folded in as the models come equal the batch FedAvg)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import weakref
 
 import numpy as np
 import pytest
@@ -15,6 +18,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.loop import CLOUD, Federation
 from crchfl_sumo.federation.settings import FederationConfig, HyperParameters
 from crchfl_sumo.federation.state import LoopInputs, initial_state
+from crchfl_sumo.learning.aggregate import weighted_average
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig
@@ -243,6 +247,104 @@ def test_edge_and_cloud_fedavg_weight_by_sample_counts():
     assert state.edge_weights == {"e0": 4.0, "e1": 2.0}
     assert state.cloud_model["w"].tolist() == [pytest.approx((4 * e0 + 2 * 10) / 6)] * 2
     assert all(m["w"].tolist() == state.cloud_model["w"].tolist() for m in state.vehicle_models.values())
+
+
+class CountingTrainer(SumTrainer):
+    """Yields each model when it is asked for (as TorchTrainer and RayTrainer do) and counts how many of
+    the models it yielded are still alive anywhere."""
+
+    def __init__(self):
+        self.alive = self.peak = 0
+
+    def _dropped(self):
+        self.alive -= 1
+
+    def train(self, states, samples, epochs, seed):
+        for s, x in zip(states, samples):
+            w = s["w"] + epochs * len(x)
+            self.alive += 1
+            self.peak = max(self.peak, self.alive)
+            weakref.finalize(w, self._dropped)
+            yield {"w": w}
+
+
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_the_loop_drops_each_trained_model_once_it_is_averaged(scheme):
+    counts = {f"v{i}": i + 1 for i in range(8)}
+    home = {v: i % 2 for i, v in enumerate(counts)}
+    config = FederationConfig(scheme=scheme, edge_interval=1, cloud_interval=1, cloud_rounds=2, compute_s_per_sample=0.0)
+    setup = _setup(config, _hyper(config), counts, home, ledger=SMALL)
+    trainer = CountingTrainer()
+    state = _run(setup, ScriptedClock.constant(home, 8e6), trainer)
+    assert state.cloud_rounds == 2 and state.stragglers == []
+    # the model being averaged and the one before it; holding them all until the FedAvg would make 8
+    assert trainer.peak == 2
+    assert trainer.alive == 0  # every vehicle holds the released average, not its own model
+    # the averages are still right: 2 epochs of (1 + ... + 8) samples, weighted by the counts
+    assert state.cloud_model["w"].tolist() == [pytest.approx(2 * sum(n * n for n in range(1, 9)) / 36)] * 2
+
+
+class OrderedTrainer(SumTrainer):
+    """Training sets the i-th vehicle of a call to ``values[i]`` (the loop trains them in the setup's order)."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def train(self, states, samples, epochs, seed):
+        return ({"w": torch.full((2,), float(v), dtype=torch.float64)} for v in self.values[: len(states)])
+
+
+def test_a_vehicle_whose_download_fails_keeps_the_model_it_trained():
+    # a misses e0's deadline and cannot get the release either (drop); the cloud averages b (1) and c (3)
+    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=OrderedTrainer([7.0, 1.0, 3.0]),
+                        download_handover="drop")
+    assert [(s["vehicle"], s["reason"]) for s in state.stragglers] == [("a", "deadline"), ("a", "download outage")]
+    assert state.cloud_model["w"].tolist() == [2.0, 2.0]
+    assert {v: m["w"].tolist() for v, m in state.vehicle_models.items()} == {
+        "a": [7.0, 7.0], "b": [2.0, 2.0], "c": [2.0, 2.0]
+    }
+
+
+class RecordingTrainer:
+    """A real trainer whose yielded models are also copied aside: the inputs of a batch FedAvg."""
+
+    def __init__(self, inner):
+        self.inner, self.models = inner, []
+        self.initial_state, self.evaluate = inner.initial_state, inner.evaluate
+
+    def train(self, states, samples, epochs, seed):
+        for model in self.inner.train(states, samples, epochs, seed):
+            self.models.append({k: t.clone() for k, t in model.items()})
+            yield model
+
+
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_averages_folded_in_as_models_come_equal_the_batch_fedavg_to_the_bit(scheme):
+    from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+    from crchfl_sumo.learning.trainers import TorchTrainer
+
+    from helpers import random_samples
+
+    counts = {"a": 3, "b": 5, "c": 2, "d": 4}
+    home = {"a": 0, "b": 1, "c": 0, "d": 1}
+    interval = 1 if scheme == "sfl" else 2  # hfl: the step is an edge aggregation alone
+    config = FederationConfig(scheme=scheme, edge_interval=1, cloud_interval=interval, cloud_rounds=1,
+                              compute_s_per_sample=0.0)
+    setup = _setup(config, _hyper(config), counts, home, ledger=SMALL)
+    setup = dataclasses.replace(setup, samples={v: random_samples(n, seed=i) for i, (v, n) in enumerate(counts.items())})
+    inner = TorchTrainer(ModelConfig("compact", 48, 64), TrainConfig(device="cpu", deterministic=True),
+                         random_samples(4, seed=9), seed=0)
+    trainer = RecordingTrainer(inner)
+    start = initial_state(setup, trainer, 0.0)
+    state = Federation(setup, ScriptedClock.constant(home, 8e6), trainer).step(start)  # one edge aggregation / SFL round
+    trained = dict(zip(counts, trainer.models))
+    groups = {CLOUD: list(counts)} if scheme == "sfl" else {"e0": ["a", "c"], "e1": ["b", "d"]}
+    for receiver, vehicles in groups.items():
+        batch = weighted_average([trained[v] for v in vehicles], [counts[v] for v in vehicles])
+        folded = state.cloud_model if receiver == CLOUD else state.edge_models[receiver]
+        assert not any(torch.equal(folded[k], start.cloud_model[k]) for k in folded if folded[k].is_floating_point())
+        assert all(torch.equal(folded[k], batch[k]) for k in batch) and list(folded) == list(batch)
+        assert all(state.vehicle_models[v] is folded for v in vehicles)
 
 
 # ------------------------------------------------------------------ handover and straggler policies

@@ -1,10 +1,12 @@
 from __future__ import annotations
 
+import weakref
+
 import pytest
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.learning.aggregate import fedavg, weighted_average
+from crchfl_sumo.learning.aggregate import RunningAverage, fedavg, weighted_average
 
 
 def _state(w: list[float], b: float, count: int) -> dict[str, torch.Tensor]:
@@ -80,6 +82,54 @@ def test_inputs_not_mutated_and_outputs_are_new_memory():
     single = weighted_average([a], [5])
     assert torch.equal(single["w"], a["w"])
     assert single["w"].data_ptr() != a["w"].data_ptr()
+
+
+def test_running_average_by_hand_and_equal_to_the_batch_to_the_bit():
+    running = RunningAverage([1, 3])
+    running.add(_state([1.0, 2.0], 4.0, 10))
+    running.add(_state([5.0, -2.0], 0.0, 20))
+    out = running.result()
+    assert torch.equal(out["w"], torch.tensor([4.0, -1.0])) and out["bn.num_batches_tracked"].item() == 18
+    gen = torch.Generator().manual_seed(1)
+    states = [{"w": torch.randn(64, 32, generator=gen), "n": torch.tensor(i, dtype=torch.int64)} for i in range(9)]
+    counts = [2928, 2586, 2587, 1555, 1, 13, 0, 7, 449]
+    running = RunningAverage(counts)
+    for state in states:
+        running.add(state)
+    folded, batch = running.result(), weighted_average(states, counts)
+    assert list(folded) == ["w", "n"] and all(torch.equal(folded[k], batch[k]) for k in batch)
+    # and the FedAvg itself, summed another way
+    reference = sum(c * s["w"].double() for c, s in zip(counts, states)) / sum(counts)
+    assert torch.allclose(folded["w"], reference.float(), rtol=0, atol=1e-7)
+
+
+def test_running_average_keeps_no_state_it_was_given():
+    running = RunningAverage([1, 1])
+    dropped = []
+    first = {"w": torch.ones(1000)}
+    weakref.finalize(first["w"], dropped.append, "first")
+    running.add(first)
+    del first
+    assert dropped == ["first"]  # only its share of the sum is left
+    running.add({"w": torch.full((1000,), 3.0)})
+    assert torch.equal(running.result()["w"], torch.full((1000,), 2.0))
+
+
+def test_running_average_wants_one_state_per_weight_and_gives_its_result_once():
+    running = RunningAverage([1, 2])
+    running.add({"p": torch.zeros(2)})
+    with pytest.raises(CrchflError, match="1 states but 2 weights"):
+        running.result()
+    running.add({"p": torch.ones(2)})
+    with pytest.raises(CrchflError, match="more than 2 states"):
+        running.add({"p": torch.ones(2)})
+    assert torch.allclose(running.result()["p"], torch.full((2,), 2 / 3))
+    with pytest.raises(CrchflError, match="taken already"):
+        running.result()
+    with pytest.raises(CrchflError, match="keys differ"):
+        mismatched = RunningAverage([1, 1])
+        mismatched.add({"p": torch.zeros(2)})
+        mismatched.add({"q": torch.zeros(2)})
 
 
 def test_numpy_sample_counts_are_weights():

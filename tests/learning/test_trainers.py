@@ -30,8 +30,8 @@ def test_trainers_give_full_metrics_and_the_same_models(sampling, class_weightin
     vehicles = [_samples(20, seed=2), _samples(9, seed=3)]
     local = TorchTrainer(SMALL, config, test, seed=0)
     start = local.initial_state()
-    trained = local.train([start, start], vehicles, 1, seed=4)
-    again = TorchTrainer(SMALL, config, test, seed=0).train([start, start], vehicles, 1, seed=4)
+    trained = list(local.train([start, start], vehicles, 1, seed=4))
+    again = list(TorchTrainer(SMALL, config, test, seed=0).train([start, start], vehicles, 1, seed=4))
     assert all((a[k] == b[k]).all() for a, b in zip(trained, again) for k in a)  # same seed, same models
     evaluation = local.evaluation(trained[0])
     assert isinstance(evaluation, Evaluation) and evaluation.num_samples == 12
@@ -40,7 +40,25 @@ def test_trainers_give_full_metrics_and_the_same_models(sampling, class_weightin
     assert local.always_straight["accuracy"] == pytest.approx(float((test.steer_class == 0).double().mean()))
     with Executor(BackendConfig()) as executor:
         remote = RayTrainer(SMALL, config, test, 0, executor)
-        remote_trained = remote.train([start, start], vehicles, 1, seed=4)
+        remote_trained = list(remote.train([start, start], vehicles, 1, seed=4))
         assert all((a[k] == b[k]).all() for a, b in zip(trained, remote_trained) for k in a)
         assert remote.evaluation(trained[0]).record() == evaluation.record()  # NaN recall compares as None
         assert remote.evaluate(trained[0]) == expected
+
+
+def test_ray_trainer_sends_each_distinct_model_and_sample_set_once():
+    test = _samples(4, seed=1)
+    first, second = _samples(3, seed=2), _samples(2, seed=3)
+    with Executor(BackendConfig()) as executor:
+        put = executor.put
+        sent = []
+        executor.put = lambda obj: sent.append(obj) or put(obj)
+        remote = RayTrainer(SMALL, CPU, test, 0, executor)
+        shared, own = remote.initial_state(), TorchTrainer(SMALL, CPU, test, seed=1).initial_state()
+        models = list(remote.train([shared, shared, own, shared], [first, second, first, first], 1, seed=4))
+        assert len(models) == 4
+        # the test set, then each starting model and each sample set once: 4 objects for 4 vehicles, not 8
+        assert [id(x) for x in sent] == [id(test), id(shared), id(first), id(second), id(own)]
+        sent.clear()
+        list(remote.train([shared], [first], 1, seed=5))
+        assert [id(x) for x in sent] == [id(shared)]  # the samples were sent before
