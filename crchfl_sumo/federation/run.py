@@ -22,7 +22,9 @@ latest checkpoint and ends with the same files as an uninterrupted run with
 the same seed: every step's randomness derives from the seed and the step
 number, the clock re-runs SUMO deterministically from the start, and the
 logs are cut back to the checkpoint's marks. A step writes its log lines,
-then the checkpoint, then the files derived from the state (models, summary).
+then the checkpoint, then the files derived from the state (models, summary),
+on a background thread while the next step runs (core/background.py: one
+save at a time, in order; the run waits for the last before it returns).
 The checkpoint it replaces becomes checkpoint.prev.pt, so one empty, truncated
 or damaged checkpoint.pt costs a step, not the run: a resume refuses it with
 a message and continues from the previous one. A run or resume first removes
@@ -47,6 +49,7 @@ from crchfl_sumo.core.atomic import (
     read_latest,
     remove_stale_temporaries,
 )
+from crchfl_sumo.core.background import BackgroundSaver
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
@@ -212,17 +215,22 @@ def _run_with_trainer(
         data = _online_data(clock, inputs) if config.data_mode == "online" else None
         federation = Federation(setup, clock, trainer, data)
 
-        def on_step(new: FederationState) -> None:
+        def save_step(new: FederationState, handovers: int | None) -> None:
+            # on the saver's thread; the logs reach the disk before the checkpoint that names their ends
             nonlocal marks
             marks = append_logs(out_dir, new, marks)
             _save_state(checkpoint_path, resolved, new, marks)
             if after_checkpoint is not None:
                 after_checkpoint(new)
-            _write_outputs(out_dir, config, setup, new, settings, _handovers(clock, new), baseline)
+            _write_outputs(out_dir, config, setup, new, settings, handovers, baseline)
+
+        def on_step(new: FederationState) -> None:
+            saver.submit(save_step, new, _handovers(clock, new))  # the clock moves on: count its handovers now
             if progress is not None:  # a step's postfix costs a pass over the records
                 report(progress, "step", new.steps, None, **progress_detail(new, sizes.budget_bytes, hyper))
 
-        state = federation.run(state, on_step)
+        with BackgroundSaver("federation-save") as saver:  # a step's files go to disk while the next one runs
+            state = federation.run(state, on_step)
         return summarize(config, setup, state, _handovers(clock, state), baseline)
 
 

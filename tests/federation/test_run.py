@@ -281,6 +281,35 @@ def test_the_bytes_a_step_writes_do_not_grow_with_the_record_count(tmp_path, dat
     assert (out / "ledger.jsonl").read_text().count("\n") == records[-1] + 1  # the header and every record
 
 
+def test_a_steps_files_are_written_while_the_next_step_runs(tmp_path, dataset, monkeypatch):
+    # step 1's save blocks until the loop starts step 2: with the save in the loop, step 2 would never start
+    import threading
+
+    from crchfl_sumo.federation.loop import Federation
+
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=1))
+    inputs = read_inputs(config)
+    run_federation_dir(config, inputs, tmp_path / "plain", trainer=SumTrainer())
+    second_step_started = threading.Event()
+    step = Federation.step
+
+    def noting_step(self, state):
+        if state.steps == 1:  # the state after step 1: this call computes step 2
+            second_step_started.set()
+        return step(self, state)
+
+    waited = []
+
+    def hold(state):
+        if state.steps == 1:
+            waited.append(second_step_started.wait(30))
+
+    monkeypatch.setattr(Federation, "step", noting_step)
+    run_federation_dir(config, inputs, tmp_path / "held", trainer=SumTrainer(), after_checkpoint=hold)
+    assert waited == [True]
+    assert result_files(tmp_path / "held") == result_files(tmp_path / "plain")
+
+
 def test_kill_between_the_logs_and_the_checkpoint_and_a_torn_log_line_resume_exactly(tmp_path, dataset, monkeypatch):
     from crchfl_sumo.federation import run as run_module
 
