@@ -361,6 +361,7 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
         "clock_steps": int(round((clock.t_s - clock.start_s) / clock.step_s)) + 1,
         "rss_inputs_mib": rss_inputs,
         "profile": profiler,
+        "background_saves": saver is not None,
     }
 
 
@@ -455,7 +456,7 @@ def report_federation(args: argparse.Namespace, fed: dict, out_dir: Path) -> Non
         ("FedAvg", s["FedAvg"], f"{watch.calls['FedAvg']} averages"),
         ("evaluation", s["evaluation"], f"{watch.calls['evaluation']} test-set evaluations"),
     ]
-    background = "BackgroundSaver" in vars(run_module)
+    background = fed["background_saves"]
     saving = ("save: waited", s["save: waited"], "the loop waiting for the previous step's files") if background else (
         "checkpoint + outputs", s["checkpoint + outputs"], "checkpoint.pt, ledger, metrics, models, summary per step")
     parts.append(saving)
