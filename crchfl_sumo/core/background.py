@@ -43,12 +43,10 @@ class BackgroundSaver:
 
     def __exit__(self, kind, error, trace) -> None:
         try:
+            self.wait()
+        except Exception as save_error:
             if error is None:
-                self.wait()
-            else:  # the caller's error goes on; the save's own, if any, is only logged
-                try:
-                    self.wait()
-                except Exception as save_error:  # noqa: BLE001 - reported, the first error wins
-                    log.error("a background save failed too: %s", save_error)
+                raise
+            log.error("a background save failed too: %s", save_error)  # the caller's error goes on
         finally:
             self._pool.shutdown(wait=True)

@@ -47,8 +47,8 @@ from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import (
     DEFAULT_BRAKE_GAIN,
     DEFAULT_STEER_DECODING,
-    STEER_DECODINGS,
     check_brake_gain,
+    check_steer_decoding,
 )
 from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
@@ -91,8 +91,7 @@ class BenchConfig:
             task_by_name(name)
         if self.group_episodes < 1:
             raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
-        if self.steer_decoding not in STEER_DECODINGS:
-            raise CrchflError(f"--steer-decoding: use one of {', '.join(STEER_DECODINGS)}, got {self.steer_decoding!r}")
+        check_steer_decoding(self.steer_decoding)
         check_brake_gain(self.brake_gain)
 
 

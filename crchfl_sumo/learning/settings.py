@@ -176,11 +176,16 @@ STEER_DECODINGS = ("auto", "argmax", "expected")
 DEFAULT_STEER_DECODING = "auto"
 
 
-def resolved_steer_decoding(steer_decoding: str, steer_bins: int, where: str = "--steer-decoding") -> str:
-    """"argmax" or "expected": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
+def check_steer_decoding(steer_decoding: str, where: str = "--steer-decoding") -> str:
+    """``steer_decoding`` if it is one of STEER_DECODINGS; else a CrchflError naming ``where``."""
     if steer_decoding not in STEER_DECODINGS:
         raise CrchflError(f"{where}: use one of {', '.join(STEER_DECODINGS)}, got {steer_decoding!r}")
-    if steer_decoding != "auto":
+    return steer_decoding
+
+
+def resolved_steer_decoding(steer_decoding: str, steer_bins: int) -> str:
+    """"argmax" or "expected": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
+    if check_steer_decoding(steer_decoding) != "auto":
         return steer_decoding
     return "argmax" if steer_bins == NUM_STEER_CLASSES else "expected"
 # A driving target-speed model reaches a lower target in half its speed horizon

@@ -17,9 +17,8 @@ from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES
 from crchfl_sumo.federation.run_config import RunConfig
-from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, resolved_steer_decoding
+from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, check_steer_decoding
 from crchfl_sumo.planning.problem import MAX_INTERVAL
 
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
@@ -117,7 +116,7 @@ class ReproduceConfig:
             raise CrchflError("reproduce.bench_towns / bench_tasks: name at least one of each, or set bench_episodes = 0")
         for task in self.bench_tasks:
             task_by_name(task)
-        resolved_steer_decoding(self.steer_decoding, NUM_STEER_CLASSES, "reproduce.steer_decoding")  # a known name
+        check_steer_decoding(self.steer_decoding, "reproduce.steer_decoding")
         if self.bench_seed < 0:
             raise CrchflError(f"reproduce.bench_seed: {self.bench_seed} must be >= 0")
         check_range(self.drive_max_s, "reproduce.drive_max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
