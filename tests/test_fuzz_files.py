@@ -30,7 +30,7 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.config import from_mapping, to_mapping, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples
-from crchfl_sumo.data.shards import LABEL_DATASETS, MANIFEST_NAME, DatasetWriter, Manifest, ShardData, sha256_file
+from crchfl_sumo.data.shards import LABEL_DATASETS, LABEL_SHAPES, MANIFEST_NAME, DatasetWriter, Manifest, ShardData, sha256_file
 from crchfl_sumo.data.stats import dataset_stats, write_mosaic
 from crchfl_sumo.federation.run import PREVIOUS_CHECKPOINT, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
@@ -109,7 +109,7 @@ def shard_data(n: int, rng: np.random.Generator) -> ShardData:
         rng.integers(0, 4, n),
         rng.uniform(0, 14, n).astype(np.float32),
         rng.uniform(0, 14, n).astype(np.float32),
-        np.zeros((n, 2), np.float32),
+        np.zeros((n, 3), np.float32),
         np.arange(n) * 0.25,
         zeros,
         zeros,
@@ -245,7 +245,7 @@ def test_fuzz_shard_content(original_dataset, tmp_path, capsys):
                 f.create_dataset("images", shape=(n, 4, H, W, 3), dtype=np.uint8, chunks=(1, 4, H, W, 3),
                                  compression=["gzip", "lzf"][int(rng.integers(0, 2))])
                 for name, dtype in LABEL_DATASETS.items():
-                    f.create_dataset(name, shape=(n, *{"actions": (3,), "perturbation": (2,)}.get(name, ())), dtype=dtype)
+                    f.create_dataset(name, shape=(n, *LABEL_SHAPES.get(name, ())), dtype=dtype)
             what, changes = f"declared {n} samples", {"samples": n}
         else:
             with h5py.File(root / file, "a") as f:

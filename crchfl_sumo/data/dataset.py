@@ -80,6 +80,10 @@ class DatasetConfig:
         within +-recovery_lateral_m sideways and +-recovery_yaw_deg in heading.
         1 m keeps the car's side within a 4 m lane (1.8 m wide car: 1.1 m to
         the line); 15 deg gives labels up to the outer steer classes.
+    recovery_queue_share: share of the standing samples with a standing leader
+        2 to 5 m ahead rendered moved closer to it (0.5 to 2 m, nearer than SUMO
+        ever stands) and labelled to stay (data/recovery.py); 0 (default) turns
+        it off: measured, it did not help (docs/dataset.md).
 
     What a sample costs in the byte ledger is the ledger's setting
     (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
@@ -91,10 +95,12 @@ class DatasetConfig:
     recovery_share: float = 0.25
     recovery_lateral_m: float = 1.0
     recovery_yaw_deg: float = 15.0
+    recovery_queue_share: float = 0.0
 
     def __post_init__(self) -> None:
-        if not 0 <= self.recovery_share <= 1:
-            raise CrchflError(f"dataset.recovery_share must lie in [0, 1], got {self.recovery_share}")
+        for name in ("recovery_share", "recovery_queue_share"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise CrchflError(f"dataset.{name} must lie in [0, 1], got {getattr(self, name)}")
         if not 0 <= self.recovery_lateral_m <= 2:
             raise CrchflError(
                 f"dataset.recovery_lateral_m must lie in [0, 2] (half a 4 m lane), got {self.recovery_lateral_m}"

@@ -51,7 +51,7 @@ from crchfl_sumo.data.expert import (
     tracks_from_frames,
 )
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.recovery import camera_pose, draw_perturbations, recovery_steer
+from crchfl_sumo.data.recovery import camera_pose, draw_perturbations, draw_queue_shifts, gap_ahead, recovery_steer
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
@@ -222,6 +222,7 @@ def generate_dataset(
                 "share": sizes.recovery_share,
                 "lateral_m": sizes.recovery_lateral_m,
                 "yaw_deg": sizes.recovery_yaw_deg,
+                "queue_share": sizes.recovery_queue_share,
             },
         },
         compression=sizes.compression,
@@ -253,7 +254,10 @@ def generate_dataset(
             rows = np.searchsorted(track.t_s, [frames[i].t_s for i in frame_rows])
             with clock("label"):
                 rng = np.random.default_rng(np.random.SeedSequence([int(seed), RECOVERY_STREAM, plan.index(shard)]))
-                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng)
+                gap_m = None if sizes.recovery_queue_share == 0 else np.array(
+                    [gap_ahead(frames[i], vehicle, expert.stop_speed_mps) for i in frame_rows]
+                )
+                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m)
             labelled.append((shard, vehicle, rows, labels, RenderJob(vehicle, frame_rows, labels.perturbation)))
         with clock("render"):
             images = render_samples(
@@ -289,7 +293,7 @@ class RenderJob:
 
     vehicle: str
     frame_rows: Sequence[int]  # index into the run's frames, per sample
-    perturbation: np.ndarray  # float32 [R, 2] (lateral_m, yaw_deg)
+    perturbation: np.ndarray  # float32 [R, 3] (lateral_m, yaw_deg, forward_m)
 
 
 def render_groups(shards: Sequence[PlannedShard], image_shape: tuple[int, ...], budget_bytes: int = RENDER_GROUP_BYTES):
@@ -353,8 +357,8 @@ class SampleLabels:
     steer_class: np.ndarray  # int64 [R]
     command: np.ndarray  # int64 [R]
     speed_mps: np.ndarray  # float32 [R]
-    target_speed_mps: np.ndarray  # float32 [R]; a recovery sample keeps its track's (only its pose moves)
-    perturbation: np.ndarray  # float32 [R, 2] (lateral_m, yaw_deg)
+    target_speed_mps: np.ndarray  # float32 [R]; a recovery sample keeps its track's, a queue sample's is 0
+    perturbation: np.ndarray  # float32 [R, 3] (lateral_m, yaw_deg, forward_m)
 
 
 def sample_labels(
@@ -365,22 +369,32 @@ def sample_labels(
     expert: ExpertConfig,
     command: CommandConfig,
     rng: np.random.Generator,
+    gap_m: np.ndarray | None = None,
 ) -> SampleLabels:
-    """Labels of the samples at track rows ``rows``, recovery draws included (``rng`` draws them)."""
+    """Labels of the samples at track rows ``rows``, recovery draws included (``rng`` draws them).
+
+    ``gap_m`` [R]: each sample's gap to a standing leader ahead (recovery.gap_ahead; inf for
+    none), which queue samples need; None: no sample has one.
+    """
     actions, _ = expert_labels(track, expert)
     actions = actions[rows]
-    moving = ~is_standing(track.speed_mps[rows], track.accel_mps2[rows], expert)
+    standing = is_standing(track.speed_mps[rows], track.accel_mps2[rows], expert)
+    # float32 before labelling: the steer label is worked out from the pose the images are drawn from
     perturbation = draw_perturbations(
-        moving, sizes.recovery_share, sizes.recovery_lateral_m, sizes.recovery_yaw_deg, rng
+        ~standing, sizes.recovery_share, sizes.recovery_lateral_m, sizes.recovery_yaw_deg, rng
     ).astype(np.float32)
     recovered = np.flatnonzero(np.any(perturbation != 0, axis=1))
     actions[recovered, 1] = recovery_steer(track, rows[recovered], perturbation[recovered], expert)
+    gap_m = np.full(len(rows), np.inf) if gap_m is None else gap_m
+    perturbation[:, 2] = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
+    target_speed = target_speeds(track, expert)[rows]
+    target_speed[perturbation[:, 2] != 0] = 0.0  # too close to the leader to go, whatever the queue does next
     return SampleLabels(
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),
         command=track_commands(track.x_m, track.y_m, junctions, command)[rows],
         speed_mps=track.speed_mps[rows].astype(np.float32),
-        target_speed_mps=target_speeds(track, expert)[rows],
+        target_speed_mps=target_speed,
         perturbation=perturbation,
     )
 

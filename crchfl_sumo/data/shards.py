@@ -7,8 +7,8 @@ Layout of a data set folder::
     DIR/<name>.h5         one vehicle's samples: datasets images uint8
                           [N,4,H,W,3] (one chunk per sample), actions float32
                           [N,3], steer_class int64 [N], command int64 [N],
-                          speed_mps, target_speed_mps float32 [N], perturbation float32 [N,2]
-                          (lateral_m, yaw_deg of a recovery sample's pose), t_s,
+                          speed_mps, target_speed_mps float32 [N], perturbation float32 [N,3]
+                          (lateral_m, yaw_deg, forward_m of a recovery sample's pose), t_s,
                           x_m, y_m, heading_rad float64 [N]; attributes
                           vehicle, town, edge, split
 
@@ -47,10 +47,11 @@ log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "crchfl-sumo-dataset"
-FORMAT_VERSION = 3  # 2: command, speed_mps and perturbation per sample; 3: target_speed_mps
+FORMAT_VERSION = 4  # 2: command, speed_mps and perturbation per sample; 3: target_speed_mps; 4: forward_m
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
-PERTURBATION_NAMES = ("lateral_m", "yaw_deg")  # positive = the rendered pose is left of / turned left of the track
+# positive = the rendered pose is left of / turned left of / ahead of the track (data/recovery.py)
+PERTURBATION_NAMES = ("lateral_m", "yaw_deg", "forward_m")
 # Per-sample datasets beyond the images, with their dtypes (what a shard of this version must hold).
 LABEL_DATASETS = {
     "actions": np.float32,
@@ -96,7 +97,7 @@ class ShardData:
     command: np.ndarray  # int64 [N], labels.COMMAND_NAMES
     speed_mps: np.ndarray  # float32 [N]
     target_speed_mps: np.ndarray  # float32 [N], data/expert.py's target_speeds
-    perturbation: np.ndarray  # float32 [N, 2] (lateral_m, yaw_deg); (0, 0) = rendered on the track
+    perturbation: np.ndarray  # float32 [N, 3] (lateral_m, yaw_deg, forward_m); all 0 = rendered on the track
     t_s: np.ndarray  # float64 [N] simulated time of each sample
     x_m: np.ndarray  # float64 [N] vehicle centre
     y_m: np.ndarray
@@ -110,7 +111,7 @@ class ShardData:
         if self.actions.shape != (n, len(ACTION_NAMES)):
             raise ValueError(f"actions must be [{n}, 3], got {self.actions.shape}")
         if self.perturbation.shape != (n, len(PERTURBATION_NAMES)):
-            raise ValueError(f"perturbation must be [{n}, 2], got {self.perturbation.shape}")
+            raise ValueError(f"perturbation must be [{n}, {len(PERTURBATION_NAMES)}], got {self.perturbation.shape}")
         for name in ("steer_class", "command", "speed_mps", "target_speed_mps", "t_s", "x_m", "y_m", "heading_rad"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be [{n}], got {getattr(self, name).shape}")

@@ -19,7 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
-from crchfl_sumo.data.shards import open_shard, read_manifest, read_shard
+from crchfl_sumo.data.shards import PERTURBATION_NAMES, open_shard, read_manifest, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,8 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
     throttle_hist / brake_hist [10] over PEDAL_BINS, speed_hist [16] over
     SPEED_BINS, throttle_mean, brake_mean, steer_mean, speed_mean,
     standing_share (speed below the expert's stop_speed_mps), hard_brake_share
-    (brake >= 0.8), recovery_share (samples rendered from a perturbed pose).
+    (brake >= 0.8), recovery_share (samples rendered from a pose off the track),
+    queue_share (standing samples rendered moved towards the leader).
     """
     root = Path(root)
     manifest = read_manifest(root)
@@ -59,7 +60,7 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
             for s in manifest.shards
         ],
     }
-    empty = {"actions": (0, 3), "steer_class": (0,), "command": (0,), "speed_mps": (0,), "perturbation": (0, 2)}
+    empty = {"actions": (0, 3), "steer_class": (0,), "command": (0,), "speed_mps": (0,), "perturbation": (0, len(PERTURBATION_NAMES))}
     for split in ("train", "test", "all"):
         chosen = ("train", "test") if split == "all" else (split,)
         arrays = {}
@@ -94,7 +95,8 @@ def _label_summary(
         "speed_mean": mean(speed_mps),
         "standing_share": mean((speed_mps < stop_speed_mps).astype(np.float64)),
         "hard_brake_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
-        "recovery_share": mean(np.any(perturbation != 0, axis=1).astype(np.float64)),
+        "recovery_share": mean(np.any(perturbation[:, :2] != 0, axis=1).astype(np.float64)),
+        "queue_share": mean((perturbation[:, 2] != 0).astype(np.float64)),
     }
 
 
@@ -171,7 +173,7 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
         throttle, steer, brake = labels["actions"][row]
         steer_class = int(labels["steer_class"][row])
         command = COMMAND_NAMES[int(labels["command"][row])]
-        lateral_m, yaw_deg = labels["perturbation"][row]
+        lateral_m, yaw_deg, forward_m = labels["perturbation"][row]
         tiles = [cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for img in images]
         strip = np.concatenate(tiles, axis=1)
         caption = np.full((22, strip.shape[1], 3), 255, np.uint8)
@@ -179,6 +181,7 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
             f"{file}#{row}  throttle {throttle:.2f}  steer {steer:+.3f} (class {steer_class}: "
             f"{STEER_CLASS_VALUES[steer_class]:+.3f})  brake {brake:.2f}  {command}"
             + (f"  off {lateral_m:+.2f} m {yaw_deg:+.1f} deg" if lateral_m or yaw_deg else "")
+            + (f"  {forward_m:.2f} m nearer the leader" if forward_m else "")
             + f"   [{' | '.join(CAMERA_NAMES)}]"
         )
         cv2.putText(caption, text, (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)

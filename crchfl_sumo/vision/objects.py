@@ -59,12 +59,21 @@ LAMP_RADIUS_M = 0.11
 LAMP_HEIGHTS_M = (HEAD_BOTTOM_M + 0.75, HEAD_BOTTOM_M + 0.45, HEAD_BOTTOM_M + 0.15)  # red, yellow, green
 
 
-# SUMO signal letter -> lit lamps (0 red, 1 yellow, 2 green). 'o'/'O' (off) and
-# unknown letters light nothing.
+# A permissive green (SUMO 'g': go, but yield to the traffic that has priority, as a left turn
+# across oncoming traffic does) in its own colour, when RasterConfig.mark_permissive is on: in
+# plain green a camera cannot tell it from a protected green ('G'), yet it decides whether to wait.
+LAMP_PERMISSIVE_RGB = (255, 0, 255)
+
+
+# SUMO signal letter -> lit lamps (0 red, 1 yellow, 2 green, 3 permissive green). 'o'/'O'
+# (off) and unknown letters light nothing.
 LIT_LAMPS = {"r": (0,), "s": (0,), "u": (0, 1), "y": (1,), "Y": (1,), "g": (2,), "G": (2,)}
+PERMISSIVE_LAMP = 3
+LIT_LAMPS_MARKED = {**LIT_LAMPS, "g": (PERMISSIVE_LAMP,)}
 
 
-LAMP_RGB = (LAMP_RED_RGB, LAMP_YELLOW_RGB, LAMP_GREEN_RGB)
+LAMP_RGB = (LAMP_RED_RGB, LAMP_YELLOW_RGB, LAMP_GREEN_RGB, LAMP_PERMISSIVE_RGB)
+LAMP_PLACE = (0, 1, 2, 2)  # the housing position (LAMP_HEIGHTS_M) of each lamp: permissive where green is
 
 
 # Box corner k = 4*ix + 2*iy + iz: ix 0 rear / 1 front, iy 0 right / 1 left, iz 0 bottom / 1 top.
@@ -106,11 +115,13 @@ def vehicle_rgb(vehicle_id: str) -> tuple[int, int, int]:
     return VEHICLE_PALETTE_RGB[zlib.crc32(vehicle_id.encode()) % len(VEHICLE_PALETTE_RGB)]
 
 
-def lit_lamps(world: World, tls_states: dict[str, str]) -> list[tuple[int, ...]]:
-    """For each signal head of ``world``: the lamps its SUMO state letter lights."""
+def lit_lamps(world: World, tls_states: dict[str, str], mark_permissive: bool = False) -> list[tuple[int, ...]]:
+    """For each signal head of ``world``: the lamps its SUMO state letter lights (``mark_permissive``:
+    a permissive green lights PERMISSIVE_LAMP instead of the green one)."""
+    lit = LIT_LAMPS_MARKED if mark_permissive else LIT_LAMPS
     out = []
     for head in world.heads:
         state = tls_states.get(head.tls_id, "")
         letter = state[head.link_index] if head.link_index < len(state) else ""
-        out.append(LIT_LAMPS.get(letter, ()))
+        out.append(lit.get(letter, ()))
     return out

@@ -52,6 +52,7 @@ from crchfl_sumo.vision.objects import (
     HEAD_WIDTH_M,
     HOUSING_RGB,
     LAMP_HEIGHTS_M,
+    LAMP_PLACE,
     LAMP_RADIUS_M,
     LAMP_RGB,
     POLE_RGB,
@@ -86,6 +87,10 @@ class RasterConfig:
                            a 5 px disc at 64 x 128 that the pedal branch can tell
                            red from green by; docs/model.md)
     interpolation          ground texture sampling, "nearest" (fast) or "linear"
+    mark_permissive        a permissive green (SUMO 'g': go but yield, e.g. a left
+                           turn across oncoming traffic) lights in its own colour
+                           (objects.LAMP_PERMISSIVE_RGB) instead of green; off by
+                           default: measured, it did not help (docs/raster.md)
     """
 
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -94,6 +99,7 @@ class RasterConfig:
     vehicle_height_m: float = 1.5
     lamp_min_radius_px: float = 2.5
     interpolation: Literal["nearest", "linear"] = "nearest"
+    mark_permissive: bool = False
 
     def __post_init__(self):
         for name in ("max_ground_distance_m", "max_object_distance_m"):
@@ -373,7 +379,7 @@ class Renderer:
         box_idx = pair_box[p_idx].tolist()
         face_rgb = self._face_rgb(frame)
         images = [[out[e, c] for c in range(len(CAMERA_NAMES))] for e in range(len(ego_rows))]
-        lamps = lit_lamps(self.world, frame.tls_states) if len(self.world.heads) else []
+        lamps = lit_lamps(self.world, frame.tls_states, self.config.mark_permissive) if len(self.world.heads) else []
         head_of = head_of_box.tolist()
         rows = zip(p_idx.tolist(), pair_ego[p_idx].tolist(), c_idx.tolist(), f_idx.tolist(), box_idx,
                    clip[p_idx, c_idx, f_idx].tolist())
@@ -413,7 +419,8 @@ class Renderer:
         self, image: np.ndarray, camera_from_world: np.ndarray, head: int, lamps: tuple[int, ...]
     ) -> None:
         k = self._intrinsics
-        centres = self._lamp_world[head, list(lamps)] @ camera_from_world[:, :3].T + camera_from_world[:, 3]
+        places = [LAMP_PLACE[lamp] for lamp in lamps]
+        centres = self._lamp_world[head, places] @ camera_from_world[:, :3].T + camera_from_world[:, 3]
         for lamp, centre in zip(lamps, centres):
             if centre[2] < self.config.camera.near_m:
                 continue

@@ -47,7 +47,8 @@ def fake_shard(n, seed):
         command=rng.integers(0, 4, size=n),
         speed_mps=np.where(rng.random(n) < 0.3, 0.0, 8.0).astype(np.float32),
         target_speed_mps=rng.uniform(0, 14, n).astype(np.float32),
-        perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n)], axis=1).astype(np.float32)
+        perturbation=np.stack([rng.uniform(-1, 1, n), rng.uniform(-15, 15, n), rng.uniform(0, 2, n)], axis=1)
+        .astype(np.float32)
         * (rng.random(n) < 0.5)[:, None],
         t_s=t_s,
         x_m=t_s * 8.0,
@@ -122,7 +123,7 @@ def test_shard_round_trip_readable_with_plain_h5py(tmp_path):
         assert f["images"].shape == (6, 4, H, W, 3) and f["images"].chunks == (1, 4, H, W, 3)
         assert f["actions"].dtype == np.float32 and f["steer_class"].dtype == np.int64
         assert f["command"].dtype == np.int64 and f["speed_mps"].dtype == np.float32
-        assert f["perturbation"].dtype == np.float32 and f["perturbation"].shape == (6, 2)
+        assert f["perturbation"].dtype == np.float32 and f["perturbation"].shape == (6, 3)
         assert (f.attrs["vehicle"], f.attrs["town"], f.attrs["edge"], f.attrs["split"]) == ("v1", "Town01", "e1", "train")
     assert not list(tmp_path.glob(".*"))  # no temporary left behind
 

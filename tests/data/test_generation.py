@@ -65,7 +65,7 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     perturbed = np.flatnonzero(np.any(data.perturbation != 0, axis=1))
     assert len(perturbed) == 1 and perturbed[0] != 0
     assert abs(data.perturbation[perturbed[0], 0]) <= 1.0 and abs(data.perturbation[perturbed[0], 1]) <= 15.0
-    assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0}
+    assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0, "queue_share": 0.0}
     assert full.labels["command"]["lookahead_m"] == 25.0
     assert full.png_bytes_per_sample > 0
 
@@ -163,11 +163,12 @@ def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
                   np.full(n, 2.6), np.full(n, 4.5))
     square = Junction("J", np.array([[100.0, -6.0], [112.0, -6.0], [112.0, 6.0], [100.0, 6.0]]))
     rows = np.arange(0, 40, 2)
-    sizes = DatasetConfig(recovery_share=1.0)
+    sizes = DatasetConfig(recovery_share=1.0, recovery_queue_share=1.0)
 
     labels = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1))
     standing = speed[rows] == 0
-    assert not labels.perturbation[standing].any() and np.all(labels.perturbation[~standing] != 0)
+    assert not labels.perturbation[standing].any() and np.all(labels.perturbation[~standing, :2] != 0)
+    assert not labels.perturbation[:, 2].any()  # no leader: no queue sample
     # Each perturbed label steers towards the unperturbed target (x + L, 0) on the straight track: right (> 0)
     # when the target lies to the right of the perturbed heading (alpha < 0), left otherwise.
     lateral, yaw = labels.perturbation[:, 0], np.radians(labels.perturbation[:, 1])
@@ -187,6 +188,17 @@ def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
     again = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1))
     assert np.array_equal(again.perturbation, labels.perturbation)
 
+    # A standing leader 2.5 m ahead of every sample: the standing samples become queue samples, moved
+    # 0.5 to 2 m from it, labelled to stay (target speed 0, the standing pedals); the moving ones do not.
+    queued = sample_labels(track, rows, [square], sizes, ExpertConfig(), CommandConfig(), np.random.default_rng(1),
+                           gap_m=np.full(len(rows), 2.5))
+    forward = queued.perturbation[:, 2]
+    assert np.all((forward[standing] >= 0.5) & (forward[standing] <= 2.0)) and not forward[~standing].any()
+    assert not queued.target_speed_mps[standing].any()
+    assert queued.target_speed_mps[~standing].tolist() == labels.target_speed_mps[~standing].tolist()
+    assert np.array_equal(queued.actions, labels.actions)  # standing: throttle 0, steer 0, the hold brake
+    assert np.array_equal(queued.perturbation[:, :2], labels.perturbation[:, :2])  # drawn first, unchanged
+
 
 def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
     """render_samples draws a frame's samples in one call; each image must equal that of the sample alone,
@@ -205,7 +217,7 @@ def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
     rng = np.random.default_rng(0)
     jobs = []
     for vehicle, rows in sampled.items():
-        perturbation = rng.uniform([-1.0, -15.0], [1.0, 15.0], (len(rows), 2)).astype(np.float32)
+        perturbation = rng.uniform([-1.0, -15.0, 0.0], [1.0, 15.0, 2.0], (len(rows), 3)).astype(np.float32)
         perturbation[::3] = 0.0  # every third sample on the track
         jobs.append(RenderJob(vehicle, rows, perturbation))
     shared = {int(i) for i in sampled["t01_data_0"]} & {int(i) for i in sampled["t01_data_1"]}

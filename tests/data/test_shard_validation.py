@@ -38,7 +38,7 @@ def shard_data(n: int) -> ShardData:
         np.arange(n) % 4,
         np.full(n, 5.0, np.float32),
         np.full(n, 6.0, np.float32),
-        np.zeros((n, 2), np.float32),
+        np.zeros((n, 3), np.float32),
         np.arange(n) * 0.25,
         zeros,
         zeros,
@@ -157,7 +157,7 @@ def test_a_manifest_entry_outside_the_folder_is_refused(data, tmp_path):
     [
         (b'{"format": "crchfl-sumo-dataset", "scenario": "\xff\xfe"}', r"not UTF-8 text \(byte 47\)"),
         (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
-        (b'{"format": "crchfl-sumo-dataset", "version": 3, "scenario": "x"}', "malformed manifest"),
+        (b'{"format": "crchfl-sumo-dataset", "version": 4, "scenario": "x"}', "malformed manifest"),
     ],
 )
 def test_an_unreadable_manifest_is_refused(tmp_path, text, message):

@@ -220,7 +220,7 @@ def _positioned_dataset(root: Path, positions: dict[str, tuple[float, float]]) -
         return ShardData(
             rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8), rng.random((n, 3), dtype=np.float32),
             rng.integers(0, 7, n), rng.integers(0, 4, n), rng.uniform(0, 14, n).astype(np.float32),
-            rng.uniform(0, 14, n).astype(np.float32), np.zeros((n, 2), np.float32), np.arange(n) * 0.25,
+            rng.uniform(0, 14, n).astype(np.float32), np.zeros((n, 3), np.float32), np.arange(n) * 0.25,
             x + 100.0 * np.arange(n), np.full(n, y), np.zeros(n),
         )
 

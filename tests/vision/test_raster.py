@@ -8,6 +8,7 @@ its stop line at x = 50.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import subprocess
@@ -19,8 +20,16 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
-from crchfl_sumo.vision.objects import LAMP_GREEN_RGB, LAMP_HEIGHTS_M, LAMP_RED_RGB, VEHICLE_PALETTE_RGB, lit_lamps
-from crchfl_sumo.vision.raster import RasterConfig, Renderer
+from crchfl_sumo.vision.objects import (
+    LAMP_GREEN_RGB,
+    LAMP_HEIGHTS_M,
+    LAMP_PERMISSIVE_RGB,
+    LAMP_RED_RGB,
+    PERMISSIVE_LAMP,
+    VEHICLE_PALETTE_RGB,
+    lit_lamps,
+)
+from crchfl_sumo.vision.raster import RasterConfig, Renderer, camera_settings
 from crchfl_sumo.vision.world import (
     SKY_RGB,
     WHITE_RGB,
@@ -211,6 +220,22 @@ def test_red_and_green_differ_at_the_lamp_from_stop_distance(renderer, decel_mps
         assert np.abs(lit[:, 1] - u).max() <= reach_px and np.abs(lit[:, 0] - v).max() <= reach_px
 
 
+def test_a_permissive_green_is_drawn_at_the_green_lamp_in_its_own_colour(renderer):
+    ego_x = STOP_X - 20.0
+    frames = {tls: ego_and({}, (ego_x, LANE_Y, 0.0), tls=tls) for tls in ("G", "g")}
+    marking = Renderer(renderer.world, dataclasses.replace(renderer.config, mark_permissive=True))
+    protected, permissive = (marking.render(frames[tls], ["ego"])[0, CAM_H] for tls in ("G", "g"))
+    u, v = lamp_pixels(renderer.config.camera, ego_x, 2)
+    lit = np.argwhere((permissive == LAMP_PERMISSIVE_RGB).all(axis=-1))
+    assert len(lit) > 0 and np.abs(lit[:, 1] - u).max() <= 4 and np.abs(lit[:, 0] - v).max() <= 4
+    assert not (permissive == LAMP_GREEN_RGB).all(axis=-1).any()
+    # Only the lamp's colour differs: the same pixels are lit green under a protected green.
+    np.testing.assert_array_equal((protected == LAMP_GREEN_RGB).all(axis=-1), (permissive == LAMP_PERMISSIVE_RGB).all(axis=-1))
+    # Unmarked (the default), a permissive green is plain green.
+    np.testing.assert_array_equal(renderer.render(frames["g"], ["ego"])[0, CAM_H], protected)
+    assert camera_settings({"raster": {"mark_permissive": True}, "world": {}}, "data")[0].mark_permissive is True
+
+
 def test_lamps_face_the_approaching_traffic_only(renderer):
     ego = (70.0, -LANE_Y, math.pi)  # westbound, looking at the back of the head
     red = renderer.render(ego_and({}, ego, tls="r"), ["ego"])[0]
@@ -238,6 +263,9 @@ def test_lit_lamps_follow_sumo_letters():
     assert lit_lamps(world, {"J": "r"}) == [(0,)]
     assert lit_lamps(world, {"J": "y"}) == [(1,)]
     assert lit_lamps(world, {"J": "G"}) == [(2,)]
+    assert lit_lamps(world, {"J": "g"}) == [(2,)]
+    assert lit_lamps(world, {"J": "g"}, mark_permissive=True) == [(PERMISSIVE_LAMP,)]
+    assert lit_lamps(world, {"J": "G"}, mark_permissive=True) == [(2,)]
     assert lit_lamps(world, {"J": "u"}) == [(0, 1)]
     assert lit_lamps(world, {"J": "O"}) == [()]
     assert lit_lamps(world, {}) == [()]
