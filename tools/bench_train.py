@@ -11,6 +11,12 @@ the paper's data set, FACTS.md), measures one epoch of training throughput of
 and prints samples/s, the ratios a/c and a/b for each method, and the achieved
 GFLOP/s against a large float32 matmul measured in the same run.
 
+Then the speed levers of one centralized training epoch, each against the
+plain float32 eager path in the same run, interleaved: the product's default
+path (``default/fp32 = X.XX``), bf16 autocast, channels_last weights, and both.
+None of the levers is a product option (docs/benchmarks.md says why), so the
+default path is the float32 one and its ratio measures only the noise.
+
 Then, in fresh processes, one centralized training at a time (``--busy-s``
 seconds each, best epoch kept): one thread on the otherwise idle machine
 (solo1); the product's defaults beside one busy process, which leaves one of
@@ -19,12 +25,14 @@ policy ``crchfl_sumo.core.cpus.choose_wait_policy`` picks as every command
 starts); and the same beside the busy process with OpenMP's spinning wait
 (before). It prints ``busy/solo1 = X.XX`` and ``before/solo1 = X.XX``.
 
-Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 5] [--busy-s 25] [--busy-only]
+Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 5] [--busy-s 25]
+       [--busy-only | --levers-only]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import subprocess
 import sys
@@ -138,6 +146,49 @@ def busy_against_solo(args) -> None:
     print(f"before/solo1 = {before / solo1:.2f}")
 
 
+def lever_rates(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> dict[str, float]:
+    """samples/s of one centralized epoch per speed lever, best of ``repeats`` interleaved runs."""
+
+    def epoch(bf16: bool, channels_last: bool, default: bool = False):
+        def run() -> None:
+            model = build_model(model_config, seed=0).to(device)
+            if channels_last:
+                model = model.to(memory_format=torch.channels_last)
+            trainer = Learner(model, TrainConfig(device=str(device)) if not default else TrainConfig())
+            autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+            with autocast:
+                trainer.train_epoch(samples, torch.Generator().manual_seed(1))
+
+        return run
+
+    levers = {
+        "fp32": epoch(False, False),
+        "default": epoch(False, False, default=True),
+        "bf16": epoch(True, False),
+        "channels_last": epoch(False, True),
+        "bf16+channels_last": epoch(True, True),
+    }
+    for run in levers.values():
+        run()
+    best_s = {name: float("inf") for name in levers}
+    names = list(levers)
+    for r in range(repeats):
+        # Each repeat starts with the next lever: the first run of a round is the slower one.
+        for name in names[r % len(names):] + names[: r % len(names)]:
+            best_s[name] = min(best_s[name], timed(levers[name]))
+    return {name: len(samples) / seconds for name, seconds in best_s.items()}
+
+
+def print_levers(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> None:
+    rate = lever_rates(samples, model_config, device, repeats)
+    print(f"centralized training, one epoch of {len(samples)} samples, best of {repeats} interleaved runs:")
+    for name, samples_per_s in rate.items():
+        print(f"{name:20s} {samples_per_s:8.1f} samples/s")
+    for name in rate:
+        if name != "fp32":
+            print(f"{name}/fp32 = {rate[name] / rate['fp32']:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=0.05, help="fraction of the paper's per-vehicle sample counts")
@@ -148,6 +199,7 @@ def main() -> None:
     parser.add_argument("--arch", default=ModelConfig.arch, choices=("cil", "paper"))
     parser.add_argument("--busy-s", type=float, default=25.0, help="seconds of each busy/solo1 training (0: skip)")
     parser.add_argument("--busy-only", action="store_true", help="measure only busy/solo1")
+    parser.add_argument("--levers-only", action="store_true", help="measure only the speed levers (default/fp32)")
     args = parser.parse_args()
     if args.busy_only:
         busy_against_solo(args)
@@ -164,6 +216,9 @@ def main() -> None:
     configs = {m: TrainConfig(device=args.device, multi_vehicle=m) for m in ("vmap", "sequential")}
 
     device = resolve_device(args.device)
+    if args.levers_only:
+        print_levers(everything.to(device), model_config, device, args.repeats)
+        return
     vehicles_on_device = [s.to(device) for s in vehicles]
     everything_on_device = everything.to(device)
 
@@ -210,6 +265,7 @@ def main() -> None:
         a = rate[f"a {method}"]
         print(f"a={method:10s}  a/c = {a / c:.3f}   a/b = {a / b:.3f}")
     print(f"b/c = {b / c:.3f}; train_vehicles default method: {TrainConfig().multi_vehicle}")
+    print_levers(everything_on_device, model_config, device, args.repeats)
     if args.busy_s > 0:
         busy_against_solo(args)
 
