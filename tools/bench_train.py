@@ -93,6 +93,20 @@ def timed(function) -> float:
     return time.perf_counter() - start
 
 
+def best_seconds(runs: dict, repeats: int) -> dict[str, float]:
+    """Best wall seconds of each run: one warm-up each, then ``repeats`` interleaved rounds, each
+    starting with the next run (the first run of a round is the slower one), so load changes and
+    that penalty hit all runs alike."""
+    for function in runs.values():
+        function()
+    best_s = {name: float("inf") for name in runs}
+    names = list(runs)
+    for r in range(repeats):
+        for name in names[r % len(names):] + names[: r % len(names)]:
+            best_s[name] = min(best_s[name], timed(runs[name]))
+    return best_s
+
+
 # One centralized training in a fresh process: the wait policy is chosen as a command would, before torch loads.
 EPOCH_RATE_CHILD = """
 import sys, time
@@ -149,12 +163,12 @@ def busy_against_solo(args) -> None:
 def lever_rates(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> dict[str, float]:
     """samples/s of one centralized epoch per speed lever, best of ``repeats`` interleaved runs."""
 
-    def epoch(bf16: bool, channels_last: bool, default: bool = False):
+    def epoch(bf16: bool, channels_last: bool, config: TrainConfig = TrainConfig(device=device.type)):
         def run() -> None:
             model = build_model(model_config, seed=0).to(device)
             if channels_last:
                 model = model.to(memory_format=torch.channels_last)
-            trainer = Learner(model, TrainConfig(device=str(device)) if not default else TrainConfig())
+            trainer = Learner(model, config)
             autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
             with autocast:
                 trainer.train_epoch(samples, torch.Generator().manual_seed(1))
@@ -163,20 +177,12 @@ def lever_rates(samples: Samples, model_config: ModelConfig, device: torch.devic
 
     levers = {
         "fp32": epoch(False, False),
-        "default": epoch(False, False, default=True),
+        "default": epoch(False, False, TrainConfig()),
         "bf16": epoch(True, False),
         "channels_last": epoch(False, True),
         "bf16+channels_last": epoch(True, True),
     }
-    for run in levers.values():
-        run()
-    best_s = {name: float("inf") for name in levers}
-    names = list(levers)
-    for r in range(repeats):
-        # Each repeat starts with the next lever: the first run of a round is the slower one.
-        for name in names[r % len(names):] + names[: r % len(names)]:
-            best_s[name] = min(best_s[name], timed(levers[name]))
-    return {name: len(samples) / seconds for name, seconds in best_s.items()}
+    return {name: len(samples) / seconds for name, seconds in best_seconds(levers, repeats).items()}
 
 
 def print_levers(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> None:
@@ -243,13 +249,7 @@ def main() -> None:
         "b plain loop": run_plain_loop,
         "c centralized": run_central,
     }
-    # Warm-up once each, then interleave the timed repeats so load changes hit all methods alike.
-    for function in runs.values():
-        function()
-    best_s = {name: float("inf") for name in runs}
-    for _ in range(args.repeats):
-        for name, function in runs.items():
-            best_s[name] = min(best_s[name], timed(function))
+    best_s = best_seconds(runs, args.repeats)
 
     flops = train_flops_per_sample(model_config, TrainConfig().batch_size)
     peak = matmul_gflops()

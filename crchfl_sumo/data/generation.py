@@ -385,7 +385,6 @@ def sample_labels(
     ).astype(np.float32)
     recovered = np.flatnonzero(np.any(perturbation != 0, axis=1))
     actions[recovered, 1] = recovery_steer(track, rows[recovered], perturbation[recovered], expert)
-    gap_m = np.full(len(rows), np.inf) if gap_m is None else gap_m
     perturbation[:, 2] = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
     target_speed = target_speeds(track, expert)[rows]
     target_speed[perturbation[:, 2] != 0] = 0.0  # too close to the leader to go, whatever the queue does next

@@ -77,16 +77,16 @@ def gap_ahead(frame: Frame, vehicle: str, stop_speed_mps: float) -> float:
 
 
 def draw_queue_shifts(
-    standing: np.ndarray, gap_m: np.ndarray, share: float, rng: np.random.Generator
+    standing: np.ndarray, gap_m: np.ndarray | None, share: float, rng: np.random.Generator
 ) -> np.ndarray:
     """Per sample the forward shift [m], float64 [N]: round(share * eligible) of the eligible samples
     (standing, with a standing leader more than QUEUE_CLOSE_M and at most QUEUE_GAP_MAX_M ahead:
-    ``gap_m``, inf for none), drawn without replacement, move towards it until it stands
-    g' ~ U(QUEUE_GAP_MIN_M, QUEUE_CLOSE_M) behind; the rest 0."""
-    gap_m = np.asarray(gap_m, dtype=np.float64)
-    out = np.zeros(len(gap_m))
-    if share == 0:
+    ``gap_m``, inf for none; None: no sample has one), drawn without replacement, move towards it
+    until it stands g' ~ U(QUEUE_GAP_MIN_M, QUEUE_CLOSE_M) behind; the rest 0."""
+    out = np.zeros(len(standing))
+    if share == 0 or gap_m is None:
         return out  # no draws: the other recovery draws stay as they were without queue samples
+    gap_m = np.asarray(gap_m, dtype=np.float64)
     candidates = np.flatnonzero(np.asarray(standing, dtype=bool) & (gap_m > QUEUE_CLOSE_M) & (gap_m <= QUEUE_GAP_MAX_M))
     chosen = np.sort(rng.choice(candidates, size=int(round(share * len(candidates))), replace=False))
     out[chosen] = gap_m[chosen] - rng.uniform(QUEUE_GAP_MIN_M, QUEUE_CLOSE_M, size=len(chosen))

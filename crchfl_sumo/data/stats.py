@@ -19,7 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
-from crchfl_sumo.data.shards import PERTURBATION_NAMES, open_shard, read_manifest, read_shard
+from crchfl_sumo.data.shards import LABEL_SHAPES, open_shard, read_manifest, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
@@ -60,13 +60,12 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
             for s in manifest.shards
         ],
     }
-    empty = {"actions": (0, 3), "steer_class": (0,), "command": (0,), "speed_mps": (0,), "perturbation": (0, len(PERTURBATION_NAMES))}
     for split in ("train", "test", "all"):
         chosen = ("train", "test") if split == "all" else (split,)
         arrays = {}
         for c in columns:
             pieces = [p for name in chosen for p in parts[name][c]]
-            arrays[c] = np.concatenate(pieces) if pieces else np.zeros(empty[c])
+            arrays[c] = np.concatenate(pieces) if pieces else np.zeros((0, *LABEL_SHAPES.get(c, ())))
         stats[split] = _label_summary(**arrays, stop_speed_mps=stop_speed_mps)
     return stats
 
