@@ -78,6 +78,8 @@ def _commands():
          _add_drive_compare, _run_drive_compare),
         ("drive-bench", "closed-loop benchmark of a model or 'reference': CoRL2017 tasks, success, driving score",
          _add_drive_bench, _run_drive_bench),
+        ("dagger", "DAgger: a model drives, the route expert labels what it sees, the model is fine-tuned on it",
+         _add_dagger, _run_dagger),
         ("run", "federated training (CRCHFL, HFL or SFL) on SUMO's clock: metrics, ledger, checkpoints, summary",
          _add_run, _run_run),
         ("sweep", "a grid of runs over config settings (mobility studies): a table and plots against each parameter",
@@ -450,6 +452,65 @@ def _run_drive_bench(args) -> int:
             )
     print(results_table(summary))
     print(f"{summary['wall_s']:.0f} s wall -> {args.out}")
+    return 0
+
+
+def _add_dagger(p: argparse.ArgumentParser) -> None:
+    from crchfl_sumo.driving.bench_tasks import TASK_NAMES
+    from crchfl_sumo.driving.dagger import MAX_ITERATIONS, DaggerConfig
+
+    p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
+    p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: iteration-K/ (expert_samples.npz, metrics.jsonl, checkpoint.pt), "
+                   "checkpoint.pt (the last iteration's model), summary.json")
+    _overwrite_argument(p)
+    p.add_argument("--iterations", type=integer_arg(1, MAX_ITERATIONS, "a number of iterations"), default=1,
+                   help="drive, label and fine-tune this many times (default 1)")
+    p.add_argument("--episodes", type=integer_arg(1, 10_000, "a number of episodes"), default=10,
+                   help="drives per task and town in each iteration (default 10)")
+    p.add_argument("--tasks", default="navigation_traffic",
+                   help=f"drive-bench tasks the drives are drawn from, separated by commas (of {','.join(TASK_NAMES)}; "
+                   "default navigation_traffic)")
+    p.add_argument("--towns", default="town01,town02",
+                   help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
+    p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=3,
+                   help="fine-tuning epochs per iteration (default 3)")
+    p.add_argument("--route-seed", type=seed_arg, default=DaggerConfig().seed,
+                   help=f"iteration K draws its routes with this + K (default {DaggerConfig().seed}; drive-bench "
+                   "uses 0: keep them apart so the model is not scored on the routes it was taught)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="iteration K fine-tunes with seed this + K (default 0)")
+    p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
+                   help="drives run at a time, each group in its own process (default 1)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue in --out after its last finished epoch (the same command line; --iterations may be "
+                   "raised). The same command line again also continues")
+
+
+def _run_dagger(args) -> int:
+    from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.data.shards import read_manifest
+    from crchfl_sumo.driving.dagger import DaggerConfig, dagger_iterations
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+    with _output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
+        towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
+        tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+        config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed)
+        start = load_checkpoint(args.model)
+        read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
+        train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+        records = dagger_iterations(args.model, train, test, args.out, towns, config, args.iterations, args.epochs,
+                                    args.seed, args.jobs)
+    for record in records:
+        straight = record["always_straight"]
+        print(
+            f"iteration {record['iteration']}: +{record['expert_samples']} expert-labelled samples "
+            f"({record['training_samples']} in all), accuracy {record['accuracy']:.3f} "
+            f"(always straight {straight['accuracy']:.3f}), balanced accuracy {record['balanced_accuracy']:.3f} "
+            f"(always straight {straight['balanced_accuracy']:.3f})"
+        )
+    print(f"-> {args.out / 'checkpoint.pt'}")
     return 0
 
 

@@ -5,7 +5,8 @@ Starting from a trained checkpoint (crchfl-sumo train), each iteration
      benchmark's), the scripted expert labelling every visited state
      (crchfl_sumo.driving.dagger),
   2. adds those samples to everything collected so far and to the data set's
-     training split, and fine-tunes the current model on the aggregate,
+     training split, and fine-tunes the current model on the aggregate
+     (driving.dagger.dagger_iterations, as `crchfl-sumo dagger` does),
   3. scores the new model on the same drive-bench episodes as the start model.
 Prints one line per model: balanced accuracy on the data set's test split and
 the closed-loop success, completion and driving score per task.
@@ -21,36 +22,14 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 from bench_closed_loop import task_columns  # tools/ is on the path when this script runs
 
-from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.data.dataset import load_samples
-from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.shards import DRIVE_SETTINGS, read_manifest
+from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.dagger import DaggerConfig, collect
+from crchfl_sumo.driving.dagger import DaggerConfig, dagger_iterations
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
-from crchfl_sumo.learning.settings import TrainConfig
-from crchfl_sumo.learning.training import evaluate, train_centralized
-
-
-def expert_samples(folder: Path, checkpoint: Path, towns: tuple[str, ...], config: DaggerConfig, jobs: int) -> Samples:
-    """One iteration's expert-labelled samples: read back from FOLDER/expert_samples.npz, else collected and kept there.
-
-    A rerun with more --iterations and the same --out goes on from the last finished iteration.
-    The collection is deterministic (seeded drives, one torch thread), so an earlier run's
-    iteration without the file is collected again from its start checkpoint.
-    """
-    path = folder / "expert_samples.npz"
-    if path.is_file():
-        with np.load(path, allow_pickle=False) as stored:
-            return Samples.from_numpy(**{name: stored[name] for name in FIELDS})
-    samples = collect(checkpoint, towns, config, jobs=jobs)
-    folder.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as temp, open(temp, "wb") as out:
-        np.savez(out, **{name: getattr(samples, name).numpy() for name in FIELDS})
-    return samples
+from crchfl_sumo.learning.training import evaluate
 
 
 def bench_line(name: str, summary: dict, balanced: float) -> str:
@@ -87,28 +66,21 @@ def main() -> None:
                                                        jobs=args.jobs, towns=bench_towns, config=bench),
                                 evaluate(load_model(checkpoint), test).balanced_accuracy))
         print(lines[-1], flush=True)
-    collected: list[Samples] = []
-    for iteration in range(1, args.iterations + 1):
-        folder = args.out / f"iteration-{iteration}"
-        config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes, seed=1000 + iteration)
-        collected.append(expert_samples(folder, checkpoint, towns, config, args.jobs))
-        if (folder / "bench" / "summary.json").is_file():  # finished in an earlier run with the same --out
+    config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes)
+    records = dagger_iterations(checkpoint, train, test, args.out, towns, config, args.iterations, args.epochs,
+                                args.seed, args.jobs)
+    for record in records:
+        folder = Path(record["checkpoint"]).parent
+        if (folder / "bench" / "summary.json").is_file():  # scored in an earlier run with the same --out
             summary = json.loads((folder / "bench" / "summary.json").read_text())
-            records = [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
         else:
-            records = train_centralized(
-                Samples.concat([train, *collected]), test, args.epochs, folder, start.model_config, TrainConfig(),
-                args.seed + iteration, initial_state=load_checkpoint(checkpoint).state_dict,
-                drive_settings={k: start.extra[k] for k in DRIVE_SETTINGS if k in start.extra},
-            )
-            summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.bench_episodes,
+            summary = run_benchmark(record["checkpoint"], folder / "bench", episodes=args.bench_episodes,
                                     jobs=args.jobs, towns=bench_towns, config=bench)
-        checkpoint = folder / "checkpoint.pt"
-        lines.append(bench_line(f"iteration {iteration} (+{sum(len(c) for c in collected)} expert-labelled samples)",
-                                summary, records[-1]["balanced_accuracy"]))
+        lines.append(bench_line(f"iteration {record['iteration']} (+{record['training_samples'] - len(train)} "
+                                "expert-labelled samples)", summary, record["balanced_accuracy"]))
         print(lines[-1], flush=True)
     (args.out / "dagger.txt").write_text("\n".join(lines) + "\n")
-    print(json.dumps({"dagger_samples": [len(c) for c in collected]}))
+    print(json.dumps({"dagger_samples": [record["expert_samples"] for record in records]}))
 
 
 if __name__ == "__main__":

@@ -7,8 +7,9 @@ every ``every``-th step of the learner's own drives with the action it would
 take there, in the data set's conventions (expert.pedals, the steer's
 class by labels.digitize_steer). The images are the ones the learner saw, the
 command the one it was given and the speed its own. Aggregating these samples
-with the data set and retraining is one DAgger iteration (tools/dagger.py
-runs them and measures each with drive-bench).
+with the data set and fine-tuning on the whole is one DAgger iteration
+(``dagger_iterations``; `crchfl-sumo dagger` runs it, tools/dagger.py
+measures each iteration with drive-bench).
 
 Routes are drawn like drive-bench's episodes (bench_tasks.draw_episodes), by
 a seed of their own: use another seed than the benchmark's, so the learner
@@ -18,6 +19,7 @@ is not trained on the episodes it is scored on.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,16 +27,23 @@ from typing import Sequence
 
 import numpy as np
 
+from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.data.expert import target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.data.samples import FIELDS, Samples
+from crchfl_sumo.data.shards import DRIVE_SETTINGS
 from crchfl_sumo.driving.bench import STUCK_S, ModelDriver
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy
+from crchfl_sumo.learning.checkpoint import load_checkpoint
+from crchfl_sumo.learning.settings import TrainConfig
+from crchfl_sumo.learning.training import CHECKPOINT_FILE, train_centralized
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 
@@ -146,3 +155,91 @@ def collect(
     with Executor(BackendConfig(num_cpus=jobs)) as executor:
         parts = executor.map(labelled_drives, calls, isolate=jobs > 1)
     return Samples.concat([Samples.from_numpy(**p) for p in parts])
+
+
+EXPERT_SAMPLES_FILE = "expert_samples.npz"
+MAX_ITERATIONS = 100
+
+
+def collected_samples(
+    folder: str | Path, checkpoint: str | Path, towns: Sequence[str], config: DaggerConfig, jobs: int = 1
+) -> Samples:
+    """One round's samples: read back from ``folder``/expert_samples.npz, else collected and kept there.
+
+    The collection is deterministic (seeded drives, one torch thread), so a kept file is what a
+    new collection would give; keeping it lets a stopped run go on without driving again.
+    """
+    path = Path(folder) / EXPERT_SAMPLES_FILE
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as stored:
+                return Samples.from_numpy(**{name: stored[name] for name in FIELDS})
+        except (OSError, ValueError, KeyError) as exc:
+            raise CrchflError(f"{path}: unreadable expert samples ({exc}); delete the file to collect them again") from None
+    samples = collect(checkpoint, towns, config, jobs=jobs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temp, open(temp, "wb") as out:
+        np.savez(out, **{name: getattr(samples, name).numpy() for name in FIELDS})
+    return samples
+
+
+def dagger_iterations(
+    checkpoint: str | Path,
+    train: Samples,
+    test: Samples,
+    out_dir: str | Path,
+    towns: Sequence[str],
+    config: DaggerConfig = DaggerConfig(),
+    iterations: int = 1,
+    epochs: int = 3,
+    seed: int = 0,
+    jobs: int = 1,
+) -> list[dict]:
+    """DAgger from ``checkpoint``: per iteration, the current model drives, the expert labels, the model is fine-tuned.
+
+    Iteration k (1, 2, ...) draws its routes with seed ``config.seed + k``, adds the
+    labelled samples to ``train`` and to the earlier iterations' samples, and fine-tunes
+    the current model on them all for ``epochs`` with the start checkpoint's training
+    settings (training seed ``seed + k``). Each iteration's folder
+    ``out_dir``/iteration-k holds expert_samples.npz, metrics.jsonl and checkpoint.pt;
+    ``out_dir``/checkpoint.pt is the last iteration's model and ``out_dir``/summary.json
+    lists the iterations. A rerun goes on after the last finished epoch. Returns the
+    summary's iteration records.
+    """
+    check_range(iterations, "dagger: iterations", 1, MAX_ITERATIONS, "a number of iterations")
+    check_range(epochs, "dagger: epochs", 1, MAX_EPOCHS, "a number of epochs")
+    check_seed(seed, "dagger: seed")
+    out_dir = Path(out_dir)
+    start = load_checkpoint(checkpoint)
+    train_config = from_mapping(TrainConfig, start.extra.get("train_config", {}), where=f"{checkpoint}: train_config")
+    drive_settings = {key: start.extra[key] for key in DRIVE_SETTINGS if key in start.extra}
+    current, collected, records = Path(checkpoint), [], []
+    for iteration in range(1, iterations + 1):
+        folder = out_dir / f"iteration-{iteration}"
+        round_config = dataclasses.replace(config, seed=config.seed + iteration)
+        collected.append(collected_samples(folder, current, towns, round_config, jobs))
+        metrics = train_centralized(
+            Samples.concat([train, *collected]), test, epochs, folder, start.model_config, train_config,
+            seed + iteration, initial_state=load_checkpoint(current).state_dict, drive_settings=drive_settings,
+            resume=True,
+        )
+        current = folder / CHECKPOINT_FILE
+        last = metrics[-1]
+        records.append({
+            "iteration": iteration,
+            "route_seed": round_config.seed,
+            "expert_samples": len(collected[-1]),
+            "training_samples": len(train) + sum(len(c) for c in collected),
+            "checkpoint": str(current),
+            "accuracy": last["accuracy"],
+            "balanced_accuracy": last["balanced_accuracy"],
+            "always_straight": last["always_straight"],
+        })
+    with atomic_path(out_dir / CHECKPOINT_FILE) as temp:
+        temp.write_bytes(current.read_bytes())
+    summary = {
+        "start_checkpoint": str(checkpoint), "towns": list(towns), "tasks": list(config.tasks),
+        "episodes": config.episodes, "every": config.every, "epochs": epochs, "seed": seed, "iterations": records,
+    }
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return records

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +40,7 @@ from crchfl_sumo.driving.bench_tasks import (
 from crchfl_sumo.driving.drive import DriveConfig, drive, footprints_overlap
 from crchfl_sumo.driving.policies import ConstantPolicy, RoutePolicy
 from crchfl_sumo.sumo.route import Crossing, RouteGeometry, read_net, route_geometry
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 
 # --- arithmetic by hand ---------------------------------------------------------------------------
@@ -136,44 +135,6 @@ def test_longest_waits_wrap_round_the_cycle_and_time_limit_by_hand(tmp_path):
 
 
 # --- routes on a known network ----------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def ladder(tmp_path_factory) -> Path:
-    """Two parallel 200 m roads joined at both ends and in the middle (priority junctions, no signals):
-
-        D ---- E ---- F        y = 100
-        |      |      |
-        A ---- B ---- C        y = 0
-    """
-    folder = tmp_path_factory.mktemp("ladder")
-    nodes = {"A": (0, 0), "B": (100, 0), "C": (200, 0), "D": (0, 100), "E": (100, 100), "F": (200, 100)}
-    (folder / "l.nod.xml").write_text(
-        "<nodes>" + "".join(f'<node id="{n}" x="{x}" y="{y}" type="priority"/>' for n, (x, y) in nodes.items())
-        + "</nodes>"
-    )
-    roads = ("AB", "BC", "DE", "EF", "AD", "BE", "CF")
-    (folder / "l.edg.xml").write_text(
-        "<edges>"
-        + "".join(
-            f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="1" speed="13.89" width="3.5"/>'
-            for r in roads for a, b in (r, r[::-1])
-        )
-        + "</edges>"
-    )
-    subprocess.run(
-        [sumo_binary("netconvert"), "-n", str(folder / "l.nod.xml"), "-e", str(folder / "l.edg.xml"),
-         "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / "ladder.net.xml")],
-        check=True, capture_output=True,
-    )
-    (folder / "flow.rou.xml").write_text(
-        '<routes><flow id="f" begin="0" end="100" period="5" departSpeed="max"><route edges="AB BC"/></flow></routes>'
-    )
-    (folder / "ladder.sumocfg").write_text(
-        '<configuration><input><net-file value="ladder.net.xml"/><route-files value="flow.rou.xml"/></input>'
-        '<time><step-length value="0.25"/></time></configuration>'
-    )
-    return folder
 
 
 def test_turns_are_counted_on_a_known_network(ladder):

@@ -1,0 +1,92 @@
+"""DAgger iterations (driving.dagger.dagger_iterations, `crchfl-sumo dagger`): the learner drives, the route
+expert labels its states, the model is fine-tuned on the data set plus every iteration's labels, and a rerun
+goes on where the last one stopped."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from crchfl_sumo.cli import main
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, dagger_iterations
+from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint
+from crchfl_sumo.learning.model import build_model
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import train_centralized
+
+from helpers import random_samples
+
+SMALL = ModelConfig("compact", 48, 64)  # random_samples' image size
+# One short drive a round on the ladder's straight road; every second step labelled.
+ROUND = DaggerConfig(tasks=("straight",), episodes=1, every=2, max_s=2.0, drive=DriveConfig(stuck_s=60.0))
+
+
+@pytest.fixture(scope="module")
+def start(tmp_path_factory):
+    """A model trained one epoch (its checkpoint carries the training settings a fine-tune reuses)."""
+    out = tmp_path_factory.mktemp("start")
+    train, test = random_samples(12, seed=1), random_samples(6, seed=2)
+    train_centralized(train, test, 1, out, SMALL, TrainConfig(device="cpu", deterministic=True, batch_size=4), seed=0)
+    return out / "checkpoint.pt", train, test
+
+
+def _states_equal(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_an_iteration_fine_tunes_on_the_data_and_the_experts_labels_and_a_rerun_goes_on(start, ladder, tmp_path):
+    checkpoint, train, test = start
+    towns = (str(ladder / "ladder.sumocfg"),)
+    out = tmp_path / "dagger"
+    (first,) = dagger_iterations(checkpoint, train, test, out, towns, ROUND, iterations=1, epochs=1, seed=7)
+
+    with np.load(out / "iteration-1" / EXPERT_SAMPLES_FILE) as stored:
+        actions, steer_class = stored["actions"], stored["steer_class"]
+        assert stored["images"].shape[1:] == (4, 48, 64, 3)  # drawn as the model's data: its camera size
+    # 2 s of driving at 0.25 s steps, every second step labelled (fewer only if the learner left the route)
+    assert 1 <= len(actions) <= 4 and first["expert_samples"] == len(actions)
+    assert steer_class.tolist() == digitize_steer(actions[:, 1]).tolist()  # the data set's steer classes
+    assert first["route_seed"] == ROUND.seed + 1 and first["training_samples"] == 12 + len(actions)
+    (record,) = [json.loads(line) for line in (out / "iteration-1" / "metrics.jsonl").read_text().splitlines()]
+    assert record["train_samples"] == 12 + len(actions)  # the data set and the labels, together
+    assert record["balanced_accuracy"] == first["balanced_accuracy"]
+    # Fine-tuned from the start model with its own training settings; out/checkpoint.pt is the last iteration's.
+    before, after = load_checkpoint(checkpoint), load_checkpoint(out / "iteration-1" / "checkpoint.pt")
+    assert after.extra["train_config"] == before.extra["train_config"]
+    assert after.extra["train_config"]["batch_size"] == 4
+    assert not _states_equal(before.state_dict, after.state_dict)
+    assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-1" / "checkpoint.pt").read_bytes()
+    assert json.loads((out / "summary.json").read_text())["iterations"] == [first]
+
+    # A second run with one more iteration keeps the first (not driven nor trained again) and adds the second,
+    # which starts from the first's model.
+    kept = (out / "iteration-1" / "checkpoint.pt").read_bytes()
+    records = dagger_iterations(checkpoint, train, test, out, towns, ROUND, iterations=2, epochs=1, seed=7)
+    assert records[0] == first and (out / "iteration-1" / "checkpoint.pt").read_bytes() == kept
+    assert records[1]["route_seed"] == ROUND.seed + 2
+    second = np.load(out / "iteration-2" / EXPERT_SAMPLES_FILE)["actions"]
+    assert records[1]["training_samples"] == 12 + len(actions) + len(second)
+    assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-2" / "checkpoint.pt").read_bytes()
+
+
+def test_bad_input_is_refused_with_the_file_or_option_named(start, ladder, tmp_path, capsys):
+    checkpoint, train, test = start
+    towns = (str(ladder / "ladder.sumocfg"),)
+    with pytest.raises(CrchflError, match="dagger: iterations"):
+        dagger_iterations(checkpoint, train, test, tmp_path / "a", towns, ROUND, iterations=0)
+    damaged = tmp_path / "b" / "iteration-1" / EXPERT_SAMPLES_FILE
+    damaged.parent.mkdir(parents=True)
+    damaged.write_bytes(b"not an npz file")
+    with pytest.raises(CrchflError, match="expert_samples.npz: unreadable.*delete the file"):
+        dagger_iterations(checkpoint, train, test, tmp_path / "b", towns, ROUND, iterations=1, epochs=1)
+    model = build_model(SMALL, seed=0)
+    save_checkpoint(tmp_path / "model.pt", model.config, model.state_dict())
+    code = main(["dagger", str(tmp_path / "model.pt"), str(tmp_path / "no-data"), "--out", str(tmp_path / "c")])
+    assert code == 2 and "no-data" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()  # a refused input leaves nothing behind
