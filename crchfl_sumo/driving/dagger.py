@@ -40,7 +40,7 @@ from crchfl_sumo.driving.bench import STUCK_S, ModelDriver
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
-from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy
+from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.training import CHECKPOINT_FILE, train_centralized
@@ -91,6 +91,11 @@ class ExpertLabelled:
         }
 
 
+# A learner standing within this of a stop line it must stop at is labelled to hold: the data set's
+# drivers never creep towards a red light, so a creep label there is one the data never gave.
+HOLD_SHORT_M = 10.0
+
+
 @dataclass(frozen=True)
 class DaggerConfig:
     """Settings of one round of expert-labelled drives.
@@ -100,6 +105,8 @@ class DaggerConfig:
     seed      draws the routes (not the benchmark's seed)
     every     one labelled sample every this many steps
     max_s     a drive ends after this long (or when stuck for STUCK_S, as in drive-bench)
+    expert    the route expert that labels (RoutePolicyConfig); it holds where the learner stood
+              still short of a red light instead of creeping up to the line
     """
 
     tasks: tuple[str, ...] = ("straight", "one_turn", "navigation")
@@ -108,6 +115,7 @@ class DaggerConfig:
     every: int = 2
     max_s: float = 90.0
     drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
+    expert: RoutePolicyConfig = field(default_factory=lambda: RoutePolicyConfig(hold_short_m=HOLD_SHORT_M))
 
     def __post_init__(self) -> None:
         for name in self.tasks:
@@ -129,7 +137,8 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
         for episode in episodes:
             route = route_geometry(net, episode.edges)
             # the route expert labels through the rack the learner's data were labelled with
-            policy = ExpertLabelled(driver.policy(route, net), RoutePolicy(route, expert=driver.expert()), config.every)
+            expert = RoutePolicy(route, config.expert, expert=driver.expert())
+            policy = ExpertLabelled(driver.policy(route, net), expert, config.every)
             drive(
                 scenario if traffic[episode.task] else without_traffic(scenario), route, policy,
                 seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),

@@ -76,6 +76,11 @@ class RoutePolicyConfig:
     stop_gap_m              the front bumper stops this far before the stop line
     yield_radius_m          on a minor green ('g') it waits while a vehicle within this distance of
                             the junction's middle moves towards it (or any vehicle is inside it)
+    hold_short_m            standing this close to a stop line it must stop at (red, or a minor
+                            green it yields on), it holds the brake instead of creeping up to the
+                            line; 0 (default) creeps. A labeller of a learner's states (DAgger) sets
+                            it: a learner that stopped short has stopped, and a creep label there
+                            teaches it to roll towards a red light
     """
 
     target_speed_mps: float = 8.0
@@ -87,12 +92,13 @@ class RoutePolicyConfig:
     comfort_decel_mps2: float = 2.5
     stop_gap_m: float = 1.0
     yield_radius_m: float = 30.0
+    hold_short_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("target_speed_mps", "lookahead_min_m", "speed_gain_per_s", "comfort_decel_mps2"):
             if not getattr(self, name) > 0:
                 raise CrchflError(f"route_policy.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("lookahead_time_s", "headway_s", "standstill_gap_m", "stop_gap_m", "yield_radius_m"):
+        for name in ("lookahead_time_s", "headway_s", "standstill_gap_m", "stop_gap_m", "yield_radius_m", "hold_short_m"):
             if getattr(self, name) < 0:
                 raise CrchflError(f"route_policy.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -153,7 +159,7 @@ class RoutePolicy:
             # on a minor green ('g': yield) while other traffic is in or heading into the junction.
             yield_now = letter == "g" and self._junction_busy(observation, crossing)
             if letter in RED_LETTERS or yield_now or (letter in YELLOW_LETTERS and needed <= cfg.comfort_decel_mps2):
-                if room <= 0.3:
+                if room <= 0.3 or (v < self.expert.stop_speed_mps and room <= cfg.hold_short_m):
                     accel = -max_decel
                 else:
                     creep = cfg.speed_gain_per_s * (math.sqrt(cfg.comfort_decel_mps2 * room) - v)

@@ -23,7 +23,7 @@ from crchfl_sumo.driving.drive import (
     lane_departed,
     red_light_violations,
 )
-from crchfl_sumo.driving.dagger import ExpertLabelled
+from crchfl_sumo.driving.dagger import DaggerConfig, ExpertLabelled
 from crchfl_sumo.driving.drive_command import drive_command
 from crchfl_sumo.driving.dynamics import (
     VehicleState,
@@ -388,6 +388,31 @@ def test_red_light_run_by_full_throttle_and_respected_by_the_route_policy(roads)
     front = stop.log.progress_m[-1] + stop.vehicle_length_m / 2
     assert 0.0 < line - front < 2.0 and stop.log.speed_mps[-1] == 0.0
     assert stop.log.signal_letter[-1] == "r"
+
+
+def test_standing_short_of_a_red_light_the_labeller_holds_where_the_driver_creeps(roads):
+    seen = []
+
+    class ShortStopper(RoutePolicy):  # stops 6 m before the line, as a learner may
+        def __call__(self, observation):
+            seen.append(observation)
+            return super().__call__(observation)
+
+    run = _drive(roads, "signal", ["AB", "BC"], lambda g: ShortStopper(g, RoutePolicyConfig(stop_gap_m=6.0)), max_s=40.0)
+    line = run.route.crossings[0].s_start_m
+    front = run.log.progress_m[-1] + run.vehicle_length_m / 2
+    assert 5.0 < line - front < 7.0 and run.log.speed_mps[-1] == 0.0
+    standing = seen[-1]
+    max_accel = standing.frame.max_accel_mps2[standing.ego_row]
+    max_decel = standing.frame.max_decel_mps2[standing.ego_row]
+    # The driver (1 m stop gap) creeps up to the line: sqrt(2.5 x ~5 m) x 1.5 per s is more than its
+    # acceleration allows. The labeller holds within hold_short_m of the line, and creeps from farther.
+    assert RoutePolicy(run.route).wanted_accel_mps2(standing) == pytest.approx(max_accel)
+    assert RoutePolicy(run.route, RoutePolicyConfig(hold_short_m=10.0)).wanted_accel_mps2(standing) == -max_decel
+    assert RoutePolicy(run.route, RoutePolicyConfig(hold_short_m=3.0)).wanted_accel_mps2(standing) == pytest.approx(max_accel)
+    assert DaggerConfig().expert.hold_short_m == 10.0  # DAgger labels with the holding expert
+    with pytest.raises(CrchflError, match="hold_short_m"):
+        RoutePolicyConfig(hold_short_m=-1.0)
 
 
 def test_an_ego_that_sumo_removes_ends_the_drive(roads, monkeypatch):
