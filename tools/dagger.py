@@ -51,6 +51,8 @@ def main() -> None:
     parser.add_argument("--bench-towns", default=None, help="towns the benchmark scores (default: --towns)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--corrections-only", action="store_true",
+                        help="keep only the states where the expert brakes harder or steers elsewhere")
     parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
     args = parser.parse_args()
     towns = tuple(args.towns.split(","))
@@ -66,7 +68,8 @@ def main() -> None:
                                                        jobs=args.jobs, towns=bench_towns, config=bench),
                                 evaluate(load_model(checkpoint), test).balanced_accuracy))
         print(lines[-1], flush=True)
-    config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes)
+    config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes,
+                          corrections_only=args.corrections_only)
     records = dagger_iterations(checkpoint, train, test, args.out, towns, config, args.iterations, args.epochs,
                                 args.seed, args.jobs)
     for record in records:

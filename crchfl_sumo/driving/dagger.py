@@ -51,10 +51,11 @@ from crchfl_sumo.sumo.scenario import load_scenario
 class ExpertLabelled:
     """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step."""
 
-    def __init__(self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1) -> None:
+    def __init__(self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1, corrections_only: bool = False) -> None:
         if every < 1:
             raise CrchflError(f"dagger.every must be >= 1, got {every}")
         self.learner, self.expert, self.every = learner, expert, every
+        self.corrections_only = corrections_only
         self.horizon = dataclasses.replace(expert.expert, speed_horizon_s=learner.model.config.speed_horizon_s)
         self.steps = 0
         self.images: list[np.ndarray] = []
@@ -65,9 +66,10 @@ class ExpertLabelled:
 
     def __call__(self, observation: Observation) -> Action:
         action = self.learner(observation)
-        if self.steps % self.every == 0:
+        expert_action = self.expert(observation) if self.steps % self.every == 0 else None
+        if expert_action is not None and (not self.corrections_only or is_correction(action, expert_action)):
             self.images.append(observation.images)
-            self.actions.append(self.expert(observation))
+            self.actions.append(expert_action)
             self.commands.append(self.learner.command(observation))
             speed_mps = float(observation.frame.speed_mps[observation.ego_row])
             self.speeds.append(speed_mps)
@@ -96,6 +98,16 @@ class ExpertLabelled:
 HOLD_SHORT_M = 10.0
 
 
+# What counts as the expert correcting the learner: it brakes this much harder, or steers this far apart.
+CORRECTION_BRAKE = 0.1
+CORRECTION_STEER = 0.1
+
+
+def is_correction(learner: Action, expert: Action) -> bool:
+    """Would the expert step in here: brake harder than the learner, or steer elsewhere?"""
+    return expert[2] > learner[2] + CORRECTION_BRAKE or abs(expert[1] - learner[1]) > CORRECTION_STEER
+
+
 @dataclass(frozen=True)
 class DaggerConfig:
     """Settings of one round of expert-labelled drives.
@@ -114,6 +126,7 @@ class DaggerConfig:
     seed: int = 1000
     every: int = 2
     max_s: float = 90.0
+    corrections_only: bool = False
     drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
     expert: RoutePolicyConfig = field(default_factory=lambda: RoutePolicyConfig(hold_short_m=HOLD_SHORT_M))
 
@@ -138,7 +151,7 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
             route = route_geometry(net, episode.edges)
             # the route expert labels through the rack the learner's data were labelled with
             expert = RoutePolicy(route, config.expert, expert=driver.expert())
-            policy = ExpertLabelled(driver.policy(route, net), expert, config.every)
+            policy = ExpertLabelled(driver.policy(route, net), expert, config.every, config.corrections_only)
             drive(
                 scenario if traffic[episode.task] else without_traffic(scenario), route, policy,
                 seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),

@@ -535,6 +535,48 @@ def test_one_pedal_keeps_the_stronger_pedal():
     assert one_pedal(0.0, 0.0) == (0.0, 0.0)
 
 
+def test_a_correction_is_the_expert_braking_harder_or_steering_elsewhere_by_hand():
+    from crchfl_sumo.driving.dagger import is_correction
+
+    assert is_correction((0.5, 0.0, 0.0), (0.0, 0.0, 0.9))  # the learner drives on, the expert brakes
+    assert not is_correction((0.0, 0.0, 0.9), (0.0, 0.0, 0.9))  # both brake
+    assert not is_correction((0.3, 0.0, 0.0), (0.8, 0.0, 0.0))  # the expert would go faster: no correction
+    assert not is_correction((0.0, 0.0, 0.5), (0.0, 0.0, 0.5 + 0.1))  # 0.1 harder is within the margin
+    assert is_correction((0.3, 0.05, 0.0), (0.3, -0.1, 0.0))  # 0.15 apart in steer
+    assert not is_correction((0.3, 0.05, 0.0), (0.3, 0.1, 0.0))
+
+
+def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
+    from crchfl_sumo.driving.dagger import is_correction
+
+    scenario = load_scenario(roads / "signal.sumocfg")
+    net = read_net(Path(scenario.net_path))
+    geometry = route_geometry(net, ["AB", "BC"])
+    renderer = Renderer(build_world(scenario.net_path))
+
+    class FullThrottle(ModelPolicy):  # a learner that never brakes, towards an always-red light
+        def __call__(self, observation):
+            super().__call__(observation)
+            return (0.8, 0.0, 0.0)
+
+    learner = FullThrottle(build_model(ModelConfig(), seed=0), RouteCommands(geometry, choice_junctions(net)))
+    expert = RoutePolicy(geometry)
+    steps = []
+
+    class Checked(ExpertLabelled):
+        def __call__(self, observation):
+            steps.append((learner(observation), expert(observation)))
+            return super().__call__(observation)
+
+    policy = Checked(learner, expert, every=2, corrections_only=True)
+    drive(scenario, geometry, policy, seed=1, max_s=12.0, config=NO_WARMUP, renderer=renderer)
+    labelled = steps[::2]
+    kept = [e for a, e in labelled if is_correction(a, e)]
+    assert 0 < len(kept) < len(labelled)  # it cruised with the learner at first, then braked for the light
+    np.testing.assert_allclose(policy.arrays()["actions"], np.asarray(kept, dtype=np.float32), rtol=1e-6)
+    assert len(policy.arrays()["images"]) == len(policy.arrays()["target_speed_mps"]) == len(kept)
+
+
 def test_expert_labelled_drive_records_the_route_policys_actions_on_the_learners_states(roads):
     scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
     learner = ModelPolicy(build_model(ModelConfig(), seed=0), commands)
