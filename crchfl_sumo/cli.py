@@ -480,6 +480,8 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
                    help=f"iteration K draws its routes with this + K (default {DaggerConfig().seed}; drive-bench "
                    "uses 0: keep them apart so the model is not scored on the routes it was taught)")
     p.add_argument("--seed", type=seed_arg, default=0, help="iteration K fine-tunes with seed this + K (default 0)")
+    p.add_argument("--corrections-only", action="store_true",
+                   help="label only the states where the expert brakes harder or steers elsewhere than the model")
     p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="drives run at a time, each group in its own process (default 1)")
     p.add_argument("--resume", action="store_true",
@@ -496,7 +498,8 @@ def _run_dagger(args) -> int:
     with _output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
         towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
         tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
-        config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed)
+        config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed,
+                              corrections_only=args.corrections_only)
         start = load_checkpoint(args.model)
         read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")

@@ -261,7 +261,8 @@ def dagger_iterations(
         temp.write_bytes(current.read_bytes())
     summary = {
         "start_checkpoint": str(checkpoint), "towns": list(towns), "tasks": list(config.tasks),
-        "episodes": config.episodes, "every": config.every, "epochs": epochs, "seed": seed, "iterations": records,
+        "episodes": config.episodes, "every": config.every, "corrections_only": config.corrections_only,
+        "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "seed": seed, "iterations": records,
     }
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return records
