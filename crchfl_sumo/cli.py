@@ -467,21 +467,23 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
     _overwrite_argument(p)
     p.add_argument("--iterations", type=integer_arg(1, MAX_ITERATIONS, "a number of iterations"), default=1,
                    help="drive, label and fine-tune this many times (default 1)")
-    p.add_argument("--episodes", type=integer_arg(1, 10_000, "a number of episodes"), default=10,
-                   help="drives per task and town in each iteration (default 10)")
-    p.add_argument("--tasks", default="navigation_traffic",
+    defaults = DaggerConfig()
+    p.add_argument("--episodes", type=integer_arg(1, 10_000, "a number of episodes"), default=defaults.episodes,
+                   help=f"drives per task and town in each iteration (default {defaults.episodes})")
+    p.add_argument("--tasks", default=",".join(defaults.tasks),
                    help=f"drive-bench tasks the drives are drawn from, separated by commas (of {','.join(TASK_NAMES)}; "
-                   "default navigation_traffic)")
+                   f"default {','.join(defaults.tasks)})")
     p.add_argument("--towns", default="town01,town02",
                    help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
     p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=3,
                    help="fine-tuning epochs per iteration (default 3)")
-    p.add_argument("--route-seed", type=seed_arg, default=DaggerConfig().seed,
-                   help=f"iteration K draws its routes with this + K (default {DaggerConfig().seed}; drive-bench "
+    p.add_argument("--route-seed", type=seed_arg, default=defaults.seed,
+                   help=f"iteration K draws its routes with this + K (default {defaults.seed}; drive-bench "
                    "uses 0: keep them apart so the model is not scored on the routes it was taught)")
     p.add_argument("--seed", type=seed_arg, default=0, help="iteration K fine-tunes with seed this + K (default 0)")
-    p.add_argument("--corrections-only", action="store_true",
-                   help="label only the states where the expert brakes harder or steers elsewhere than the model")
+    p.add_argument("--all-states", action="store_true",
+                   help="label every visited state (default: only those where the expert brakes harder or steers "
+                   "elsewhere than the model)")
     p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="drives run at a time, each group in its own process (default 1)")
     p.add_argument("--resume", action="store_true",
@@ -499,7 +501,7 @@ def _run_dagger(args) -> int:
         towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
         tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
         config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed,
-                              corrections_only=args.corrections_only)
+                              corrections_only=not args.all_states)
         start = load_checkpoint(args.model)
         read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")

@@ -42,7 +42,7 @@ def main() -> None:
     parser.add_argument("dataset")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--iterations", type=int, default=1)
-    parser.add_argument("--episodes", type=int, default=4, help="DAgger drives per task and town")
+    parser.add_argument("--episodes", type=int, default=DaggerConfig().episodes, help="DAgger drives per task and town")
     parser.add_argument("--epochs", type=int, default=3, help="fine-tuning epochs per iteration")
     parser.add_argument("--bench-episodes", type=int, default=6)
     parser.add_argument("--dagger-tasks", default=",".join(DaggerConfig().tasks), help="suites the DAgger drives use")
@@ -51,8 +51,8 @@ def main() -> None:
     parser.add_argument("--bench-towns", default=None, help="towns the benchmark scores (default: --towns)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--corrections-only", action="store_true",
-                        help="keep only the states where the expert brakes harder or steers elsewhere")
+    parser.add_argument("--all-states", action="store_true",
+                        help="label every visited state (default: only where the expert brakes harder or steers elsewhere)")
     parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
     args = parser.parse_args()
     towns = tuple(args.towns.split(","))
@@ -69,7 +69,7 @@ def main() -> None:
                                 evaluate(load_model(checkpoint), test).balanced_accuracy))
         print(lines[-1], flush=True)
     config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes,
-                          corrections_only=args.corrections_only)
+                          corrections_only=not args.all_states)
     records = dagger_iterations(checkpoint, train, test, args.out, towns, config, args.iterations, args.epochs,
                                 args.seed, args.jobs)
     for record in records:

@@ -46,6 +46,7 @@ from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.training import CHECKPOINT_FILE, train_centralized
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 
 class ExpertLabelled:
@@ -83,8 +84,11 @@ class ExpertLabelled:
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
         actions = np.asarray(self.actions, dtype=np.float32).reshape(-1, 3)
+        size = self.learner.model.config
+        images = (np.asarray(self.images, dtype=np.uint8) if self.images else  # else a drive with nothing kept
+                  np.zeros((0, len(CAMERA_NAMES), size.image_height, size.image_width, 3), dtype=np.uint8))
         return {
-            "images": np.asarray(self.images, dtype=np.uint8),
+            "images": images,
             "actions": actions,
             "steer_class": digitize_steer(actions[:, 1]),
             "command": np.asarray(self.commands, dtype=np.int64),
@@ -117,16 +121,18 @@ class DaggerConfig:
     seed      draws the routes (not the benchmark's seed)
     every     one labelled sample every this many steps
     max_s     a drive ends after this long (or when stuck for STUCK_S, as in drive-bench)
+    corrections_only  keep only the states where the expert steps in (is_correction): measured,
+              all states taught the models to run red lights (docs/model.md)
     expert    the route expert that labels (RoutePolicyConfig); it holds where the learner stood
               still short of a red light instead of creeping up to the line
     """
 
-    tasks: tuple[str, ...] = ("straight", "one_turn", "navigation")
-    episodes: int = 4
+    tasks: tuple[str, ...] = ("navigation_traffic",)
+    episodes: int = 10
     seed: int = 1000
     every: int = 2
     max_s: float = 90.0
-    corrections_only: bool = False
+    corrections_only: bool = True
     drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
     expert: RoutePolicyConfig = field(default_factory=lambda: RoutePolicyConfig(hold_short_m=HOLD_SHORT_M))
 
@@ -139,8 +145,8 @@ class DaggerConfig:
             raise CrchflError(f"dagger.max_s must be a finite number > 0, got {self.max_s}")
 
 
-def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> dict:
-    """Drive ``episodes`` with the learner, labelled by the expert; the arrays of all of them."""
+def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> list[dict]:
+    """Drive ``episodes`` with the learner, labelled by the expert; each episode's arrays, in their order."""
     scenario = load_scenario(town)
     traffic = {name: task_by_name(name).traffic for name in config.tasks}
     net = read_net(Path(scenario.net_path))
@@ -159,7 +165,7 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
                 expert=driver.expert(), keep_frames=False,
             )
             parts.append(policy.arrays())
-    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    return parts
 
 
 def collect(
@@ -169,14 +175,19 @@ def collect(
     driver = ModelDriver(str(checkpoint), label=Path(checkpoint).stem)
     driver.model()  # a bad checkpoint fails here, before any drive
     tasks = [task_by_name(name) for name in config.tasks]
-    calls = []
-    for town in towns:
+    calls, positions = [], []
+    for t, town in enumerate(towns):
         episodes = draw_episodes(load_scenario(town), tasks, config.episodes, config.seed)
         groups = max(1, min(jobs, len(episodes)))
-        calls += [(driver, town, episodes[g::groups], config) for g in range(groups)]
+        for g in range(groups):
+            calls.append((driver, town, episodes[g::groups], config))
+            positions.append([(t, i) for i in range(g, len(episodes), groups)])
     with Executor(BackendConfig(num_cpus=jobs)) as executor:
-        parts = executor.map(labelled_drives, calls, isolate=jobs > 1)
-    return Samples.concat([Samples.from_numpy(**p) for p in parts])
+        groups_done = executor.map(labelled_drives, calls, isolate=jobs > 1)
+    # Back in town and episode order, however they were grouped: the samples, and so the
+    # fine-tuning, do not depend on --jobs.
+    by_position = {pos: arrays for where, done in zip(positions, groups_done) for pos, arrays in zip(where, done)}
+    return Samples.concat([Samples.from_numpy(**by_position[pos]) for pos in sorted(by_position)])
 
 
 EXPERT_SAMPLES_FILE = "expert_samples.npz"

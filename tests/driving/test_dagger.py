@@ -4,6 +4,7 @@ goes on where the last one stopped."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,7 +14,8 @@ import torch
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, dagger_iterations
+from crchfl_sumo.data.samples import FIELDS
+from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, collect, dagger_iterations
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.model import build_model
@@ -23,8 +25,10 @@ from crchfl_sumo.learning.training import train_centralized
 from helpers import random_samples
 
 SMALL = ModelConfig("compact", 48, 64)  # random_samples' image size
-# One short drive a round on the ladder's straight road; every second step labelled.
-ROUND = DaggerConfig(tasks=("straight",), episodes=1, every=2, max_s=2.0, drive=DriveConfig(stuck_s=60.0))
+# One short drive a round on the ladder's straight road; every second step labelled, corrections or not
+# (the untrained model brakes where the expert drives on: the expert would never step in).
+ROUND = DaggerConfig(tasks=("straight",), episodes=1, every=2, max_s=2.0, corrections_only=False,
+                     drive=DriveConfig(stuck_s=60.0))
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +77,19 @@ def test_an_iteration_fine_tunes_on_the_data_and_the_experts_labels_and_a_rerun_
     second = np.load(out / "iteration-2" / EXPERT_SAMPLES_FILE)["actions"]
     assert records[1]["training_samples"] == 12 + len(actions) + len(second)
     assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-2" / "checkpoint.pt").read_bytes()
+
+
+def test_the_samples_do_not_depend_on_how_many_processes_drive(start, ladder):
+    checkpoint, _, _ = start
+    towns = (str(ladder / "ladder.sumocfg"),)
+    config = dataclasses.replace(ROUND, tasks=("straight", "one_turn"))  # 2 episodes: two groups with 2 jobs
+    one, two = collect(checkpoint, towns, config, jobs=1), collect(checkpoint, towns, config, jobs=2)
+    assert len(one) > 0
+    for name in FIELDS:
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+    # With corrections only, this model's drives keep nothing: empty arrays of the right shape.
+    none = collect(checkpoint, towns, dataclasses.replace(config, corrections_only=True))
+    assert len(none) == 0 and tuple(none.images.shape[1:]) == (4, 48, 64, 3)
 
 
 def test_bad_input_is_refused_with_the_file_or_option_named(start, ladder, tmp_path, capsys):
