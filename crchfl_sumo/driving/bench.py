@@ -27,6 +27,7 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.schemes import REFERENCE
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench_plots import plot_benchmark
@@ -54,7 +55,6 @@ from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
 
-REFERENCE = "reference"
 PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
 # An episode ends when the ego has not moved on for one signal cycle of the towns (90 s):
 # longer than any red (50 s) with a queue to start, shorter than the long time limits.

@@ -52,7 +52,9 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 class ExpertLabelled:
     """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step."""
 
-    def __init__(self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1, corrections_only: bool = False) -> None:
+    def __init__(
+        self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1, corrections_only: bool = False
+    ) -> None:
         if every < 1:
             raise CrchflError(f"dagger.every must be >= 1, got {every}")
         self.learner, self.expert, self.every = learner, expert, every
@@ -208,7 +210,9 @@ def collected_samples(
             with np.load(path, allow_pickle=False) as stored:
                 return Samples.from_numpy(**{name: stored[name] for name in FIELDS})
         except (OSError, ValueError, KeyError) as exc:
-            raise CrchflError(f"{path}: unreadable expert samples ({exc}); delete the file to collect them again") from None
+            raise CrchflError(
+                f"{path}: unreadable expert samples ({exc}); delete the file to collect them again"
+            ) from None
     samples = collect(checkpoint, towns, config, jobs=jobs)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as temp, open(temp, "wb") as out:

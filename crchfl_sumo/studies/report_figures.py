@@ -12,10 +12,12 @@ from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.figures import pyplot, save_figure
-from crchfl_sumo.core.schemes import DISPLAY_NAMES
+from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, DISPLAY_NAMES, REFERENCE
 from crchfl_sumo.studies.statistics import _curve, curve_by_bytes, curve_by_round, mean_std
 
-NAMES = {**DISPLAY_NAMES, "centralized": "Centralized", "reference": "Reference driver"}
+NAMES = {
+    **DISPLAY_NAMES, CENTRALIZED: "Centralized", CENTRALIZED_DAGGER: "Centralized + DAgger", REFERENCE: "Reference driver",
+}
 
 
 COLORS = {"crchfl": "tab:red", "hfl": "tab:blue", "sfl": "tab:green", "centralized": "black"}

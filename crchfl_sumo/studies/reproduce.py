@@ -36,9 +36,11 @@ from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.studies.reproduce_plan import (
     CENTRALIZED,
+    CENTRALIZED_DAGGER,
     REFERENCE,
     ReproduceConfig,
     ReproductionPart,
+    dagger_parts,
     drive_parts,
     load_reproduce_config,
     plan_parts,
@@ -86,7 +88,7 @@ def reproduce(
     out_dir = Path(out_dir).resolve()
     _start(config, out_dir, resume)
     parts = plan_parts(config)
-    total = len(parts) + len(drive_parts(config))
+    total = len(parts) + len(dagger_parts(config)) + len(drive_parts(config))
     done = 0  # parts finished, for progress
 
     def run_stage(stage: list[ReproductionPart]) -> None:
@@ -113,6 +115,7 @@ def reproduce(
 
     run_stage(parts[:1])  # the data set, read by every other part
     run_stage(parts[1:])
+    run_stage(dagger_parts(config))  # refines the centralized models just trained
     run_stage(drive_parts(config))  # which seed's model drives is known only now
     report(progress, "part", total, total, part="report")
     from crchfl_sumo.studies.report import write_report
@@ -223,6 +226,8 @@ def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, 
         _make_dataset(config, out_dir / part.key)
     elif part.kind == "centralized":
         _centralized(config, out_dir, part.seed, out_dir / part.key)
+    elif part.kind == "dagger":
+        _dagger(config, out_dir, part)
     elif part.kind == "drive":
         _drive_part(config, out_dir, part)
     elif part.kind == "bench":
@@ -297,6 +302,18 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
 
 
+def _dagger(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
+    """DAgger on one seed's centralized model, driving in the benchmark's towns (its own route seed)."""
+    from crchfl_sumo.data.dataset import load_samples
+    from crchfl_sumo.driving.dagger import dagger_iterations
+
+    train, test = load_samples(out_dir / "data", "train"), load_samples(out_dir / "data", "test")
+    dagger_iterations(
+        model_for(out_dir, CENTRALIZED, part.seed), train, test, out_dir / part.key, config.bench_towns,
+        config.dagger, config.dagger_iterations, config.dagger_epochs, part.seed,
+    )
+
+
 def _federated(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
     """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
     from crchfl_sumo.federation.run import run_command
@@ -331,13 +348,18 @@ def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
 
 def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
     """The model that drives for ``label``: the best_model.pt of the scheme's best seed (or of ``seed``);
-    for the centralized bound, the last epoch's checkpoint of the seed that ended best (or of ``seed``)."""
-    folder = Path(out_dir) / (CENTRALIZED if label == CENTRALIZED else f"runs/{label}")
+    for the centralized bound, the last epoch's checkpoint of the seed that ended best (or of ``seed``);
+    for the centralized bound refined by DAgger, its last iteration's, chosen the same way."""
+    centralized = label in (CENTRALIZED, CENTRALIZED_DAGGER)
+    folder = Path(out_dir) / (label if centralized else f"runs/{label}")
     if seed is not None:
-        return folder / f"seed-{seed}" / ("checkpoint.pt" if label == CENTRALIZED else "best_model.pt")
+        return folder / f"seed-{seed}" / ("checkpoint.pt" if centralized else "best_model.pt")
     summaries = {}
     for path in sorted(folder.glob("seed-*/summary.json")):
         summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))
+    if label == CENTRALIZED_DAGGER:  # the last iteration's model of the seed that ended best
+        last = {seed: summary["iterations"][-1] for seed, summary in summaries.items()}
+        return folder / f"seed-{best_seed(last)}" / "checkpoint.pt"
     if label == CENTRALIZED:
         return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / "checkpoint.pt"
     return folder / f"seed-{best_seed(summaries)}" / "best_model.pt"

@@ -13,9 +13,10 @@ from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, SEED_MAX, check_range
 from crchfl_sumo.core.resources import experiments_dir
-from crchfl_sumo.core.schemes import SCHEMES
+from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, REFERENCE, SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
+from crchfl_sumo.driving.dagger import MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, check_steer_decoding
@@ -24,10 +25,6 @@ from crchfl_sumo.planning.problem import MAX_INTERVAL
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 
 
-REFERENCE = "reference"  # the scripted route-following driver (drive.RoutePolicy)
-
-
-CENTRALIZED = "centralized"
 
 
 @dataclass(frozen=True)
@@ -42,6 +39,12 @@ class ReproduceConfig:
         of these (allocation.fix_edge_interval); empty = no ablation.
     ablation_seeds: seeds per ablation setting (the first ones of ``seeds``; at most ``seeds``).
     centralized_epochs: epochs of the centralized upper bound (0 = none); one per seed.
+    dagger_iterations: DAgger iterations that refine each centralized model (`crchfl-sumo dagger`:
+        the model drives routes of the benchmark's towns drawn with the DAgger seed, the route
+        expert labels where it would step in, the model is fine-tuned); the refined model drives and
+        is benched as ``centralized_dagger``. 0 = none.
+    dagger_epochs: fine-tuning epochs per DAgger iteration.
+    dagger: the DAgger drives (DaggerConfig: tasks, episodes, route seed, labelling).
     drive_routes: named routes (scenarios/drive_routes.toml) each model drives; empty = no drives.
     drive_max_s: simulated seconds a drive may last at most.
     drive_seed: SUMO seed of the drives (the same traffic for every model).
@@ -70,6 +73,9 @@ class ReproduceConfig:
     ablation_edge_intervals: tuple[int, ...] = (2, 3, 4)
     ablation_seeds: int = 3
     centralized_epochs: int = 20
+    dagger_iterations: int = 0
+    dagger_epochs: int = 3
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)
     drive_routes: tuple[str, ...] = ("town01_right_left", "town02_south_loop")
     drive_max_s: float = 120.0
     drive_seed: int = 0
@@ -108,6 +114,12 @@ class ReproduceConfig:
             )
         check_range(self.centralized_epochs, "reproduce.centralized_epochs", 0, MAX_EPOCHS,
                     "a number of epochs (0 = none)")
+        check_range(self.dagger_iterations, "reproduce.dagger_iterations", 0, MAX_ITERATIONS,
+                    "a number of iterations (0 = none)")
+        check_range(self.dagger_epochs, "reproduce.dagger_epochs", 1, MAX_EPOCHS, "a number of epochs")
+        if self.dagger_iterations and not self.centralized_epochs:
+            raise CrchflError("reproduce.dagger_iterations: DAgger refines the centralized models; "
+                              "set centralized_epochs > 0 or dagger_iterations = 0")
         if not 0 <= self.bench_episodes <= 10_000:
             raise CrchflError(
                 f"reproduce.bench_episodes: {self.bench_episodes} must be in 0 .. 10000 (0 = no benchmark)"
@@ -169,7 +181,7 @@ class ReproductionPart:
     """One unit of work: its key in timings.json (also its folder, relative to the results folder)."""
 
     key: str
-    kind: str  # "dataset", "centralized", "federated", "ablation", "drive"
+    kind: str  # "dataset", "centralized", "federated", "ablation", "dagger", "drive", "bench"
     scheme: str = ""
     seed: int | None = None  # None for the data set, the reference, and a benchmark of the best seed only
     edge_interval: int | None = None
@@ -194,8 +206,18 @@ def plan_parts(config: ReproduceConfig) -> list[ReproductionPart]:
     return parts
 
 
+def dagger_parts(config: ReproduceConfig) -> list[ReproductionPart]:
+    """DAgger on each centralized model: after the training parts, before the drives."""
+    if not config.dagger_iterations:
+        return []
+    return [
+        ReproductionPart(f"{CENTRALIZED_DAGGER}/seed-{s}", "dagger", CENTRALIZED_DAGGER, s) for s in config.seed_list
+    ]
+
+
 def drive_labels(config: ReproduceConfig) -> list[str]:
-    return [*config.schemes, *([CENTRALIZED] if config.centralized_epochs else []), REFERENCE]
+    centralized = [CENTRALIZED] if config.centralized_epochs else []
+    return [*config.schemes, *centralized, *([CENTRALIZED_DAGGER] if config.dagger_iterations else []), REFERENCE]
 
 
 def drive_parts(config: ReproduceConfig) -> list[ReproductionPart]:
@@ -228,6 +250,8 @@ def describe(config: ReproduceConfig) -> str:
         f"{config.name}: {sum(sizes)} training samples over {len(sizes)} vehicles, schemes "
         f"{', '.join(config.schemes)} x seeds {config.seed_list}, ablation edge_interval "
         f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
-        f"{config.centralized_epochs} epochs, drives {list(config.drive_routes)}, drive-bench "
+        f"{config.centralized_epochs} epochs"
+        + (f" + {config.dagger_iterations} DAgger iteration(s)" if config.dagger_iterations else "")
+        + f", drives {list(config.drive_routes)}, drive-bench "
         f"{config.bench_episodes} episodes per task in {', '.join(config.bench_towns)}"
     )

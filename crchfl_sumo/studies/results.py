@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.schemes import SCHEMES
+from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
 
-LABEL_ORDER = (*SCHEMES, "centralized", "reference")
+LABEL_ORDER = MODEL_LABELS
 
 
 def read_json(path: Path) -> Any:

@@ -56,6 +56,9 @@ def test_run_mapping_lays_overrides_data_and_seed_over_the_builtin():
         ({"run": {"ledger": {"budget_gb": -1.0}}}, "budget_gb"),
         ({"run": {"federation": {"typo": 1}}}, "typo"),
         ({"steer_decoding": "mean"}, "reproduce.steer_decoding: use one of auto"),
+        ({"centralized_epochs": 0, "dagger_iterations": 1}, "reproduce.dagger_iterations: DAgger refines"),
+        ({"dagger_iterations": -1}, "reproduce.dagger_iterations"),
+        ({"dagger": {"tasks": ["parking"]}}, "parking"),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, mapping, match):
@@ -97,6 +100,20 @@ def test_a_seed_names_its_own_model():
 
     assert model_for(Path("r"), "hfl", 2) == Path("r/runs/hfl/seed-2/best_model.pt")
     assert model_for(Path("r"), "centralized", 0) == Path("r/centralized/seed-0/checkpoint.pt")
+    assert model_for(Path("r"), "centralized_dagger", 1) == Path("r/centralized_dagger/seed-1/checkpoint.pt")
+
+
+def test_dagger_refines_every_centralized_seed_and_drives_beside_it():
+    from crchfl_sumo.studies.reproduce_plan import bench_parts, dagger_parts, drive_labels
+
+    config = ReproduceConfig(seeds=2, schemes=("crchfl",), bench_episodes=1, bench_all_seeds=True, dagger_iterations=1)
+    assert [(p.key, p.kind, p.seed) for p in dagger_parts(config)] == [
+        ("centralized_dagger/seed-0", "dagger", 0), ("centralized_dagger/seed-1", "dagger", 1),
+    ]
+    assert drive_labels(config) == ["crchfl", "centralized", "centralized_dagger", "reference"]
+    assert "drive_bench/centralized_dagger/seed-1" in [p.key for p in bench_parts(config)]
+    assert dagger_parts(ReproduceConfig()) == [] and "centralized_dagger" not in drive_labels(ReproduceConfig())
+    assert load_reproduce_config("full").dagger_iterations == 1 and load_reproduce_config("quick").dagger_iterations == 0
 
 
 def test_best_seed():
@@ -114,6 +131,8 @@ seeds = 2
 ablation_seeds = 1
 ablation_edge_intervals = [2, 3]
 centralized_epochs = 1
+dagger_iterations = 1
+dagger_epochs = 1
 drive_routes = ["town01_right_left"]
 drive_max_s = 3.0
 bench_episodes = 1
@@ -122,6 +141,12 @@ bench_tasks = ["straight"]
 
 [drive]
 warmup_s = 0.0
+
+[dagger]
+tasks = ["straight"]
+episodes = 1
+max_s = 3.0
+corrections_only = false
 
 [generate.dataset]
 [[generate.dataset.towns]]
@@ -161,7 +186,7 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
         out_dir=out, config_path=path, progress=lambda u: seen.append((u.done, u.total, u.detail["part"]))
     )
     assert folder == out
-    assert seen[0] == (0, 21, "data") and seen[-1] == (21, 21, "report")  # 1 + 2 + 6 + 2 + 5 + 5 parts
+    assert seen[0] == (0, 25, "data") and seen[-1] == (25, 25, "report")  # 1 + 2 + 6 + 2 + 2 + 6 + 6 parts
     assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
     # 5 GB of 150 MB models: SFL 10 transfers a round (3 rounds), HFL 14 (2 rounds)
     assert summary["schemes"]["sfl"]["cloud_rounds"]["values"] == [3, 3]
@@ -176,17 +201,22 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
         run_summary = json.loads((out / "runs" / scheme / "seed-1" / "summary.json").read_text())
         assert run_summary["scheme"] == scheme and run_summary["stop_reason"] in ("budget", "cloud_rounds")
         assert tomllib.loads((out / "configs" / f"runs_{scheme}_seed-1.toml").read_text())["federation"]["seed"] == 1
-    assert set(summary["closed_loop"]["town01_right_left"]) == {"crchfl", "hfl", "sfl", "centralized", "reference"}
+    labels = {"crchfl", "hfl", "sfl", "centralized", "centralized_dagger", "reference"}
+    assert set(summary["closed_loop"]["town01_right_left"]) == labels
     assert [a["hyper"]["edge_interval"] for a in summary["ablation"].values()] == [2, 3]
     assert summary["centralized"]["best_accuracy"]["n"] == 2
     assert set(summary["figures"]) == {"fig3", "fig4", "fig7", "centralized", "fig5_town01_right_left"}
     for figure in summary["figures"].values():
         assert (out / figure).is_file()
     timings = json.loads((out / "timings.json").read_text())
-    assert len(timings) == 21 and all(t["wall_s"] >= 0 for t in timings.values())
+    assert len(timings) == 25 and all(t["wall_s"] >= 0 for t in timings.values())
     # the benchmark: every model and the reference, results[TOWN][TASK] with the keys other tools read
     bench = summary["drive_bench"]
-    assert list(bench) == ["crchfl", "hfl", "sfl", "centralized", "reference"]
+    assert list(bench) == ["crchfl", "hfl", "sfl", "centralized", "centralized_dagger", "reference"]
+    # DAgger refined each seed's centralized model: its drives' labels added to the data set's 13 samples
+    for seed in (0, 1):
+        (record,) = json.loads((out / "centralized_dagger" / f"seed-{seed}" / "summary.json").read_text())["iterations"]
+        assert record["expert_samples"] > 0 and record["training_samples"] == 13 + record["expert_samples"]
     for results in bench.values():
         assert set(results["town02"]["straight"]) >= {"episodes", "success_rate", "route_completion",
                                                       "driving_score", "infractions_per_km"}
@@ -222,6 +252,7 @@ def test_parts_run_side_by_side_give_the_same_results(tmp_path):
     # one seed, no ablation, no drives: the data set, then 4 parts that --jobs 2 runs two at a time
     text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
     text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []").replace("bench_episodes = 1", "bench_episodes = 0")
+    text = text.replace("dagger_iterations = 1", "dagger_iterations = 0")
     path = tmp_path / "tiny.toml"
     path.write_text(text)
     seen = []
