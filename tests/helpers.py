@@ -1,4 +1,4 @@
-"""Helpers shared by the test modules: tiny data sets, run configs, kill hooks, SUMO statistics."""
+"""Helpers shared by the test modules: tiny data sets, run configs, kill hooks, SUMO statistics, hand-made networks."""
 
 from __future__ import annotations
 
@@ -116,4 +116,13 @@ def random_samples(n: int, seed: int):
         rng.integers(0, 4, size=n),
         rng.uniform(0, 14, size=n),
         rng.uniform(0, 14, size=n),
+    )
+
+
+def netconvert(nodes: Path, edges: Path, out: Path, *extra: str) -> None:
+    """netconvert a hand-written network as the towns are built: no U-turns, coordinates as written."""
+    subprocess.run(
+        [sumo_binary("netconvert"), "-n", str(nodes), "-e", str(edges), *extra,
+         "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(out)],
+        check=True, capture_output=True,
     )

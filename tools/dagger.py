@@ -51,6 +51,7 @@ def main() -> None:
     parser.add_argument("--bench-towns", default=None, help="towns the benchmark scores (default: --towns)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--learning-rate", type=float, default=None, help="fine-tuning learning rate (default: the model's)")
     parser.add_argument("--all-states", action="store_true",
                         help="label every visited state (default: only where the expert brakes harder or steers elsewhere)")
     parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
@@ -71,7 +72,7 @@ def main() -> None:
     config = DaggerConfig(tasks=tuple(args.dagger_tasks.split(",")), episodes=args.episodes,
                           corrections_only=not args.all_states)
     records = dagger_iterations(checkpoint, train, test, args.out, towns, config, args.iterations, args.epochs,
-                                args.seed, args.jobs)
+                                args.seed, args.jobs, args.learning_rate)
     for record in records:
         folder = Path(record["checkpoint"]).parent
         if (folder / "bench" / "summary.json").is_file():  # scored in an earlier run with the same --out

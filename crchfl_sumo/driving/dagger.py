@@ -231,13 +231,14 @@ def dagger_iterations(
     epochs: int = 3,
     seed: int = 0,
     jobs: int = 1,
+    learning_rate: float | None = None,
 ) -> list[dict]:
     """DAgger from ``checkpoint``: per iteration, the current model drives, the expert labels, the model is fine-tuned.
 
     Iteration k (1, 2, ...) draws its routes with seed ``config.seed + k``, adds the
     labelled samples to ``train`` and to the earlier iterations' samples, and fine-tunes
     the current model on them all for ``epochs`` with the start checkpoint's training
-    settings (training seed ``seed + k``). Each iteration's folder
+    settings (training seed ``seed + k``; ``learning_rate`` replaces the stored one). Each iteration's folder
     ``out_dir``/iteration-k holds expert_samples.npz, metrics.jsonl and checkpoint.pt;
     ``out_dir``/checkpoint.pt is the last iteration's model and ``out_dir``/summary.json
     lists the iterations. A rerun goes on after the last finished epoch. Returns the
@@ -249,6 +250,8 @@ def dagger_iterations(
     out_dir = Path(out_dir)
     start = load_checkpoint(checkpoint)
     train_config = from_mapping(TrainConfig, start.extra.get("train_config", {}), where=f"{checkpoint}: train_config")
+    if learning_rate is not None:  # fine-tuning more gently than the model was trained
+        train_config = dataclasses.replace(train_config, learning_rate=learning_rate)
     drive_settings = {key: start.extra[key] for key in DRIVE_SETTINGS if key in start.extra}
     current, collected, records = Path(checkpoint), [], []
     for iteration in range(1, iterations + 1):

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.sumo.scenario import sumo_binary
+from helpers import netconvert
 
 
 @pytest.fixture(scope="module")
@@ -33,11 +32,7 @@ def ladder(tmp_path_factory) -> Path:
         )
         + "</edges>"
     )
-    subprocess.run(
-        [sumo_binary("netconvert"), "-n", str(folder / "l.nod.xml"), "-e", str(folder / "l.edg.xml"),
-         "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(folder / "ladder.net.xml")],
-        check=True, capture_output=True,
-    )
+    netconvert(folder / "l.nod.xml", folder / "l.edg.xml", folder / "ladder.net.xml")
     (folder / "flow.rou.xml").write_text(
         '<routes><flow id="f" begin="0" end="100" period="5" departSpeed="max"><route edges="AB BC"/></flow></routes>'
     )

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -54,10 +53,12 @@ from crchfl_sumo.sumo.route import (
     route_geometry,
     signal_letter,
 )
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.raster import Renderer
 from crchfl_sumo.vision.world import build_world
+
+from helpers import netconvert
 
 EXPERT = ExpertConfig()
 NO_WARMUP = DriveConfig(warmup_s=0.0)
@@ -295,18 +296,7 @@ def roads(tmp_path_factory) -> Path:
     )
     for stem, extra in (("straight", []), ("signal", ["--tllogic-files", str(folder / "t.tll.xml")])):
         prefix = "s" if stem == "straight" else "t"
-        subprocess.run(
-            [
-                sumo_binary("netconvert"),
-                "-n", str(folder / f"{prefix}.nod.xml"),
-                "-e", str(folder / f"{prefix}.edg.xml"),
-                *extra,
-                "--no-turnarounds=true",
-                "--offset.disable-normalization=true",
-                "-o", str(folder / f"{stem}.net.xml"),
-            ],
-            check=True, capture_output=True,
-        )
+        netconvert(folder / f"{prefix}.nod.xml", folder / f"{prefix}.edg.xml", folder / f"{stem}.net.xml", *extra)
     (folder / "follower.rou.xml").write_text(
         '<routes><vehicle id="follower" depart="0" departSpeed="max"><route edges="XA AC"/></vehicle></routes>'
     )
