@@ -457,7 +457,7 @@ def _run_drive_bench(args) -> int:
 
 def _add_dagger(p: argparse.ArgumentParser) -> None:
     from crchfl_sumo.driving.bench_tasks import TASK_NAMES
-    from crchfl_sumo.driving.dagger import MAX_ITERATIONS, DaggerConfig
+    from crchfl_sumo.driving.dagger import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 
     p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
     p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")
@@ -481,6 +481,9 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
                    help=f"iteration K draws its routes with this + K (default {defaults.seed}; drive-bench "
                    "uses 0: keep them apart so the model is not scored on the routes it was taught)")
     p.add_argument("--seed", type=seed_arg, default=0, help="iteration K fine-tunes with seed this + K (default 0)")
+    p.add_argument("--learning-rate", type=number_arg(0, 1, "a learning rate", lo_open=True),
+                   default=FINE_TUNE_LEARNING_RATE,
+                   help=f"fine-tuning learning rate (default {FINE_TUNE_LEARNING_RATE:g})")
     p.add_argument("--all-states", action="store_true",
                    help="label every visited state (default: only those where the expert brakes harder or steers "
                    "elsewhere than the model)")
@@ -506,7 +509,7 @@ def _run_dagger(args) -> int:
         read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         records = dagger_iterations(args.model, train, test, args.out, towns, config, args.iterations, args.epochs,
-                                    args.seed, args.jobs)
+                                    args.seed, args.jobs, args.learning_rate)
     for record in records:
         straight = record["always_straight"]
         print(

@@ -27,7 +27,7 @@ from bench_closed_loop import task_columns  # tools/ is on the path when this sc
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.dagger import DaggerConfig, dagger_iterations
+from crchfl_sumo.driving.dagger import FINE_TUNE_LEARNING_RATE, DaggerConfig, dagger_iterations
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
 from crchfl_sumo.learning.training import evaluate
 
@@ -51,9 +51,11 @@ def main() -> None:
     parser.add_argument("--bench-towns", default=None, help="towns the benchmark scores (default: --towns)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--learning-rate", type=float, default=None, help="fine-tuning learning rate (default: the model's)")
+    parser.add_argument("--learning-rate", type=float, default=FINE_TUNE_LEARNING_RATE,
+                        help=f"fine-tuning learning rate (default {FINE_TUNE_LEARNING_RATE:g})")
     parser.add_argument("--all-states", action="store_true",
-                        help="label every visited state (default: only where the expert brakes harder or steers elsewhere)")
+                        help="label every visited state (default: only where the expert brakes harder or "
+                        "steers elsewhere)")
     parser.add_argument("--no-start-bench", action="store_true", help="skip scoring the start model")
     args = parser.parse_args()
     towns = tuple(args.towns.split(","))

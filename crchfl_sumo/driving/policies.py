@@ -11,6 +11,7 @@ from typing import Callable
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
@@ -95,12 +96,15 @@ class RoutePolicyConfig:
     hold_short_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("target_speed_mps", "lookahead_min_m", "speed_gain_per_s", "comfort_decel_mps2"):
-            if not getattr(self, name) > 0:
-                raise CrchflError(f"route_policy.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("lookahead_time_s", "headway_s", "standstill_gap_m", "stop_gap_m", "yield_radius_m", "hold_short_m"):
-            if getattr(self, name) < 0:
-                raise CrchflError(f"route_policy.{name} must be >= 0, got {getattr(self, name)}")
+        # (name, upper bound, unit): far beyond any sensible driver, so a typo is caught, not driven
+        for name, hi, what in (("target_speed_mps", 70.0, "m/s"), ("lookahead_min_m", 100.0, "metres"),
+                               ("speed_gain_per_s", 100.0, "a gain per second"),
+                               ("comfort_decel_mps2", 20.0, "m/s^2")):
+            check_range(getattr(self, name), f"route_policy.{name}", 0, hi, what, lo_open=True)
+        for name, hi, what in (("lookahead_time_s", 10.0, "seconds"), ("headway_s", 10.0, "seconds"),
+                               ("standstill_gap_m", 100.0, "metres"), ("stop_gap_m", 100.0, "metres"),
+                               ("yield_radius_m", 1000.0, "metres"), ("hold_short_m", 100.0, "metres")):
+            check_range(getattr(self, name), f"route_policy.{name}", 0, hi, what)
 
 
 class RoutePolicy:

@@ -16,7 +16,8 @@ from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, DISPLAY_NA
 from crchfl_sumo.studies.statistics import _curve, curve_by_bytes, curve_by_round, mean_std
 
 NAMES = {
-    **DISPLAY_NAMES, CENTRALIZED: "Centralized", CENTRALIZED_DAGGER: "Centralized + DAgger", REFERENCE: "Reference driver",
+    **DISPLAY_NAMES, CENTRALIZED: "Centralized", CENTRALIZED_DAGGER: "Centralized + DAgger",
+    REFERENCE: "Reference driver",
 }
 
 

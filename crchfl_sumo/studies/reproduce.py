@@ -311,6 +311,7 @@ def _dagger(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> N
     dagger_iterations(
         model_for(out_dir, CENTRALIZED, part.seed), train, test, out_dir / part.key, config.bench_towns,
         config.dagger, config.dagger_iterations, config.dagger_epochs, part.seed,
+        learning_rate=config.dagger_learning_rate,
     )
 
 

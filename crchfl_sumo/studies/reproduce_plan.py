@@ -16,7 +16,7 @@ from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, REFERENCE, SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
-from crchfl_sumo.driving.dagger import MAX_ITERATIONS, DaggerConfig
+from crchfl_sumo.driving.dagger import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, check_steer_decoding
@@ -43,7 +43,7 @@ class ReproduceConfig:
         the model drives routes of the benchmark's towns drawn with the DAgger seed, the route
         expert labels where it would step in, the model is fine-tuned); the refined model drives and
         is benched as ``centralized_dagger``. 0 = none.
-    dagger_epochs: fine-tuning epochs per DAgger iteration.
+    dagger_epochs, dagger_learning_rate: the fine-tuning of each DAgger iteration.
     dagger: the DAgger drives (DaggerConfig: tasks, episodes, route seed, labelling).
     drive_routes: named routes (scenarios/drive_routes.toml) each model drives; empty = no drives.
     drive_max_s: simulated seconds a drive may last at most.
@@ -75,6 +75,7 @@ class ReproduceConfig:
     centralized_epochs: int = 20
     dagger_iterations: int = 0
     dagger_epochs: int = 3
+    dagger_learning_rate: float = FINE_TUNE_LEARNING_RATE
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     drive_routes: tuple[str, ...] = ("town01_right_left", "town02_south_loop")
     drive_max_s: float = 120.0
@@ -117,6 +118,7 @@ class ReproduceConfig:
         check_range(self.dagger_iterations, "reproduce.dagger_iterations", 0, MAX_ITERATIONS,
                     "a number of iterations (0 = none)")
         check_range(self.dagger_epochs, "reproduce.dagger_epochs", 1, MAX_EPOCHS, "a number of epochs")
+        check_range(self.dagger_learning_rate, "reproduce.dagger_learning_rate", 0, 1, "a learning rate", lo_open=True)
         if self.dagger_iterations and not self.centralized_epochs:
             raise CrchflError("reproduce.dagger_iterations: DAgger refines the centralized models; "
                               "set centralized_epochs > 0 or dagger_iterations = 0")

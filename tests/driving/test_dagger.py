@@ -62,7 +62,8 @@ def test_an_iteration_fine_tunes_on_the_data_and_the_experts_labels_and_a_rerun_
     assert record["balanced_accuracy"] == first["balanced_accuracy"]
     # Fine-tuned from the start model with its own training settings; out/checkpoint.pt is the last iteration's.
     before, after = load_checkpoint(checkpoint), load_checkpoint(out / "iteration-1" / "checkpoint.pt")
-    assert after.extra["train_config"] == before.extra["train_config"]
+    # the start model's recipe, fine-tuned a tenth as fast
+    assert after.extra["train_config"] == {**before.extra["train_config"], "learning_rate": 1e-4}
     assert after.extra["train_config"]["batch_size"] == 4
     assert not _states_equal(before.state_dict, after.state_dict)
     assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-1" / "checkpoint.pt").read_bytes()
@@ -97,6 +98,8 @@ def test_bad_input_is_refused_with_the_file_or_option_named(start, ladder, tmp_p
     towns = (str(ladder / "ladder.sumocfg"),)
     with pytest.raises(CrchflError, match="dagger: iterations"):
         dagger_iterations(checkpoint, train, test, tmp_path / "a", towns, ROUND, iterations=0)
+    with pytest.raises(CrchflError, match="dagger: learning_rate"):
+        dagger_iterations(checkpoint, train, test, tmp_path / "a", towns, ROUND, learning_rate=float("nan"))
     damaged = tmp_path / "b" / "iteration-1" / EXPERT_SAMPLES_FILE
     damaged.parent.mkdir(parents=True)
     damaged.write_bytes(b"not an npz file")

@@ -399,7 +399,8 @@ def test_standing_short_of_a_red_light_the_labeller_holds_where_the_driver_creep
     # acceleration allows. The labeller holds within hold_short_m of the line, and creeps from farther.
     assert RoutePolicy(run.route).wanted_accel_mps2(standing) == pytest.approx(max_accel)
     assert RoutePolicy(run.route, RoutePolicyConfig(hold_short_m=10.0)).wanted_accel_mps2(standing) == -max_decel
-    assert RoutePolicy(run.route, RoutePolicyConfig(hold_short_m=3.0)).wanted_accel_mps2(standing) == pytest.approx(max_accel)
+    farther = RoutePolicy(run.route, RoutePolicyConfig(hold_short_m=3.0))
+    assert farther.wanted_accel_mps2(standing) == pytest.approx(max_accel)
     assert DaggerConfig().expert.hold_short_m == 10.0  # DAgger labels with the holding expert
     with pytest.raises(CrchflError, match="hold_short_m"):
         RoutePolicyConfig(hold_short_m=-1.0)
