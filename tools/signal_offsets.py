@@ -2,20 +2,20 @@
 
     python tools/signal_offsets.py [--candidates 64] [--search-seeds 1 2] [--check-seed 0]
 
-The towns' signals run a fixed 90 s cycle (two phases of 40 s green, 3 s
-yellow, 2 s all-red). With every offset 0 the named vehicles of `paper` stood
+The towns' signals run a fixed cycle (build_nets.SIGNAL_CYCLE_S: 90 s,
+two phases of 40 s green, 3 s yellow, 2 s all-red). With every offset 0 the named vehicles of `paper` stood
 (speed < 0.1 m/s) in 39 % of the samples of the paper's data set split. The
 offsets of one town do not affect the other (no road between them in
 `paper`), so each town is searched on its own:
 
-1. Candidate k draws every junction's offset uniformly from 0..89 s
+1. Candidate k draws every junction's offset uniformly from 0 to the cycle less 1 s
    (numpy generator seeded [SEARCH_SEED, k]).
 2. Its score in a town = the standing share of that town's named vehicles
    (data and test vehicles, each sampled every 0.25 s from departure for its
    count in the paper's split), averaged over the SUMO seeds --search-seeds.
 3. Per town the candidate with the lowest score wins, and is refined by
    --sweeps passes of coordinate descent: junction by junction, every offset
-   0, 5, ..., 85 s is tried and the best kept.
+   0, 5, 10, ... s within the cycle is tried and the best kept.
 4. The result is measured on --check-seed (the data set's default seed, not
    used to choose) beside all offsets 0 and the golden-ratio spread
    (junction k at k * 0.618 cycles).
@@ -35,11 +35,12 @@ from pathlib import Path
 import libsumo
 import numpy as np
 
+from build_nets import SIGNAL_CYCLE_S  # tools/ is this script's folder, first on sys.path
 from crchfl_sumo.data.dataset import PAPER_TOWNS
 from crchfl_sumo.sumo.scenario import load_scenario
 
 SEARCH_SEED = 15
-CYCLE_S = 90
+CYCLE_S = SIGNAL_CYCLE_S
 STOP_SPEED_MPS = 0.1  # the expert's stop speed (ExpertConfig.stop_speed_mps)
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
