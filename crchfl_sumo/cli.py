@@ -11,6 +11,7 @@ import argparse
 import json
 import logging
 import os
+import shutil
 import sys
 from contextlib import nullcontext
 from pathlib import Path
@@ -508,6 +509,9 @@ def _run_dagger(args) -> int:
         start = load_checkpoint(args.model)
         read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
+        if args.overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
+            for old in sorted(args.out.glob("iteration-*")):
+                shutil.rmtree(old)
         records = dagger_iterations(args.model, train, test, args.out, towns, config, args.iterations, args.epochs,
                                     args.seed, args.jobs, args.learning_rate)
     for record in records:

@@ -281,7 +281,8 @@ def dagger_iterations(
     summary = {
         "start_checkpoint": str(checkpoint), "towns": list(towns), "tasks": list(config.tasks),
         "episodes": config.episodes, "every": config.every, "corrections_only": config.corrections_only,
-        "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "seed": seed, "iterations": records,
+        "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "learning_rate": learning_rate, "seed": seed,
+        "iterations": records,
     }
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return records

@@ -22,7 +22,7 @@ from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import train_centralized
 
-from helpers import random_samples
+from helpers import PAPER_VEHICLES, random_samples, write_dataset
 
 SMALL = ModelConfig("compact", 48, 64)  # random_samples' image size
 # One short drive a round on the ladder's straight road; every second step labelled, corrections or not
@@ -110,3 +110,21 @@ def test_bad_input_is_refused_with_the_file_or_option_named(start, ladder, tmp_p
     code = main(["dagger", str(tmp_path / "model.pt"), str(tmp_path / "no-data"), "--out", str(tmp_path / "c")])
     assert code == 2 and "no-data" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()  # a refused input leaves nothing behind
+
+
+def test_the_command_runs_an_iteration_and_overwrite_starts_afresh(ladder, tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    model = build_model(SMALL, seed=0)
+    save_checkpoint(tmp_path / "model.pt", model.config, model.state_dict())
+    argv = ["dagger", str(tmp_path / "model.pt"), str(data), "--out", str(tmp_path / "out"), "--towns",
+            str(ladder / "ladder.sumocfg"), "--tasks", "straight", "--episodes", "1", "--all-states"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    (record,) = summary["iterations"]
+    assert f"+{record['expert_samples']} expert-labelled samples ({10 + record['expert_samples']} in all)" in printed
+    assert summary["corrections_only"] is False and summary["learning_rate"] == 1e-4
+    # --overwrite drives and trains again rather than taking up what the folder holds
+    (tmp_path / "out" / "iteration-1" / EXPERT_SAMPLES_FILE).write_bytes(b"left from another run")
+    assert main([*argv, "--overwrite"]) == 0
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["iterations"] == [record]
