@@ -158,6 +158,19 @@ def _output_folder(args, command: str, out: Path | None = None, resumable: bool 
     )
 
 
+def _towns_argument(p: argparse.ArgumentParser) -> None:
+    from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS
+
+    towns = ",".join(DEFAULT_TOWNS)
+    p.add_argument("--towns", default=towns,
+                   help=f"built-in scenarios or .sumocfg paths, separated by commas (default {towns})")
+
+
+def _comma_list(text: str) -> tuple[str, ...]:
+    """'a, b,,c' -> ('a', 'b', 'c'): the names of a comma-separated option."""
+    return tuple(name.strip() for name in text.split(",") if name.strip())
+
+
 def _scenario_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="built-in scenario name (town01, town02, paper, paper_linked) or a .sumocfg path")
 
@@ -433,8 +446,7 @@ def _add_drive_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="episode groups run at a time, each in its own process (default 1)")
     p.add_argument("--seed", type=seed_arg, default=0, help="draws the routes, SUMO seeds and warm-ups (default 0)")
-    p.add_argument("--towns", default="town01,town02",
-                   help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
+    _towns_argument(p)
     p.add_argument("--tasks", default=",".join(TASK_NAMES),
                    help=f"tasks separated by commas (default {','.join(TASK_NAMES)})")
     _decoding_arguments(p)
@@ -444,8 +456,7 @@ def _run_drive_bench(args) -> int:
     from crchfl_sumo.driving.bench import BenchConfig, results_table, run_benchmark
 
     with _output_folder(args, "drive-bench"):
-        towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
-        tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+        towns, tasks = _comma_list(args.towns), _comma_list(args.tasks)
         with ProgressBars("episode") as bars:
             summary = run_benchmark(
                 args.model, args.out, args.episodes, args.jobs, args.seed, towns,
@@ -474,8 +485,7 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", default=",".join(defaults.tasks),
                    help=f"drive-bench tasks the drives are drawn from, separated by commas (of {','.join(TASK_NAMES)}; "
                    f"default {','.join(defaults.tasks)})")
-    p.add_argument("--towns", default="town01,town02",
-                   help="built-in scenarios or .sumocfg paths, separated by commas (default town01,town02)")
+    _towns_argument(p)
     p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=3,
                    help="fine-tuning epochs per iteration (default 3)")
     p.add_argument("--route-seed", type=seed_arg, default=defaults.seed,
@@ -502,8 +512,7 @@ def _run_dagger(args) -> int:
     from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     with _output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
-        towns = tuple(t.strip() for t in args.towns.split(",") if t.strip())
-        tasks = tuple(t.strip() for t in args.tasks.split(",") if t.strip())
+        towns, tasks = _comma_list(args.towns), _comma_list(args.tasks)
         config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed,
                               corrections_only=not args.all_states)
         start = load_checkpoint(args.model)

@@ -68,19 +68,23 @@ class ExpertLabelled:
 
     def __call__(self, observation: Observation) -> Action:
         action = self.learner(observation)
-        expert_action = self.expert(observation) if self.steps % self.every == 0 else None
-        if expert_action is not None and (not self.corrections_only or is_correction(action, expert_action)):
-            self.images.append(observation.images)
-            self.actions.append(expert_action)
-            self.commands.append(self.learner.command(observation))
-            speed_mps = float(observation.frame.speed_mps[observation.ego_row])
-            self.speeds.append(speed_mps)
-            # No recorded future here: the speed the expert's wanted acceleration leads to, over the
-            # learner's own horizon.
-            wanted = self.expert.wanted_accel_mps2(observation)
-            self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
+        if self.steps % self.every == 0:
+            self._record(observation, action)
         self.steps += 1
         return action
+
+    def _record(self, observation: Observation, action: Action) -> None:
+        expert_action, wanted = self.expert.decide(observation)
+        if self.corrections_only and not is_correction(action, expert_action):
+            return
+        self.images.append(observation.images)
+        self.actions.append(expert_action)
+        self.commands.append(self.learner.command(observation))
+        speed_mps = float(observation.frame.speed_mps[observation.ego_row])
+        self.speeds.append(speed_mps)
+        # No recorded future here: the speed the expert's wanted acceleration leads to, over the
+        # learner's own horizon.
+        self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
@@ -261,8 +265,8 @@ def dagger_iterations(
         collected.append(collected_samples(folder, current, towns, round_config, jobs))
         metrics = train_centralized(
             Samples.concat([train, *collected]), test, epochs, folder, start.model_config, train_config,
-            seed + iteration, initial_state=load_checkpoint(current).state_dict, drive_settings=drive_settings,
-            resume=True,
+            seed + iteration, initial_state=start.state_dict if iteration == 1 else load_checkpoint(current).state_dict,
+            drive_settings=drive_settings, resume=True,
         )
         current = folder / CHECKPOINT_FILE
         last = metrics[-1]

@@ -190,12 +190,16 @@ class RoutePolicy:
         return bool(np.any(~behind & ~(in_my_lane & (s_o > crossing.s_end_m))))
 
     def __call__(self, observation: Observation) -> Action:
+        return self.decide(observation)[0]
+
+    def decide(self, observation: Observation) -> tuple[Action, float]:
+        """The action, and the acceleration it wanted (wanted_accel_mps2) before a standing car's hold."""
         frame, row = observation.frame, observation.ego_row
         v = float(frame.speed_mps[row])
         steer = self.steer(
             float(frame.x_m[row]), float(frame.y_m[row]), float(frame.heading_rad[row]), v, observation.progress_m
         )
-        accel = self.wanted_accel_mps2(observation)
+        wanted = accel = self.wanted_accel_mps2(observation)
         if v < self.expert.stop_speed_mps and accel < 0:
             accel, steer = 0.0, 0.0  # standing: pedals() holds the brake; wheels straight like the expert's
         max_accel, max_decel = float(frame.max_accel_mps2[row]), float(frame.max_decel_mps2[row])
@@ -203,7 +207,7 @@ class RoutePolicy:
         throttle, brake = pedals(
             np.array([v]), np.array([accel]), np.array([max_accel]), np.array([max_decel]), self.expert
         )
-        return (float(throttle[0]), steer, float(brake[0]))
+        return (float(throttle[0]), steer, float(brake[0])), wanted
 
 
 def one_pedal(throttle: float, brake: float) -> tuple[float, float]:

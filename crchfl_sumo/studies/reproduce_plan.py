@@ -25,8 +25,6 @@ from crchfl_sumo.planning.problem import MAX_INTERVAL
 PRESETS = {"quick": "reproduce_quick.toml", "full": "reproduce_full.toml"}  # in resources.experiments_dir()
 
 
-
-
 @dataclass(frozen=True)
 class ReproduceConfig:
     """What `reproduce` runs (TOML: reproduce_quick.toml / reproduce_full.toml).

@@ -10,8 +10,6 @@ from typing import Any, Iterable, Sequence
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
 
-LABEL_ORDER = MODEL_LABELS
-
 
 def read_json(path: Path) -> Any:
     try:
@@ -69,7 +67,7 @@ def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
             seeds = {seed: read_json(path / "summary.json") for seed, path in seed_folders(folder).items()}
             if seeds:
                 bench[folder.name] = {"seeds": seeds}
-    return {label: bench[label] for label in _ordered(bench, LABEL_ORDER)}
+    return {label: bench[label] for label in _ordered(bench, MODEL_LABELS)}
 
 
 def read_results(out_dir: str | Path) -> dict[str, Any]:
@@ -97,7 +95,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
             labels = [p.name for p in route_dir.iterdir() if (p / "metrics.json").is_file()]
             if labels:
                 drives[route_dir.name] = {
-                    label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, LABEL_ORDER)
+                    label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, MODEL_LABELS)
                 }
     bench = read_benchmarks(out_dir / "drive_bench")
     if not schemes and not ablation:
