@@ -535,6 +535,27 @@ def test_a_correction_is_the_expert_braking_harder_or_steering_elsewhere_by_hand
     assert not is_correction((0.0, 0.0, 0.5), (0.0, 0.0, 0.5 + 0.1))  # 0.1 harder is within the margin
     assert is_correction((0.3, 0.05, 0.0), (0.3, -0.1, 0.0))  # 0.15 apart in steer
     assert not is_correction((0.3, 0.05, 0.0), (0.3, 0.1, 0.0))
+    # Inside a junction the learner braking where the expert drives on is a correction too (clear the junction)
+    assert not is_correction((0.0, 0.0, 0.9), (0.5, 0.0, 0.0))
+    assert is_correction((0.0, 0.0, 0.9), (0.5, 0.0, 0.0), inside_junction=True)
+    assert not is_correction((0.0, 0.0, 0.3), (0.0, 0.0, 0.3 - 0.1), inside_junction=True)  # within the margin
+    assert not is_correction((0.5, 0.0, 0.0), (0.8, 0.0, 0.0), inside_junction=True)  # slower, not braking
+
+
+def test_in_junction_from_the_front_bumper_to_the_centre_leaving_by_hand():
+    from crchfl_sumo.driving.dagger import in_junction
+    from crchfl_sumo.sumo.route import Crossing
+
+    crossings = [Crossing(100.0, 116.0, "B", 0, "l"), Crossing(300.0, 310.0, "C", 1, "s")]
+    length = 4.0  # the front bumper is 2 m ahead of the centre
+    assert not in_junction(crossings, 97.9, length)  # front at 99.9: short of the stop line
+    assert not in_junction(crossings, 98.0, length)  # front exactly on the line: not yet in
+    assert in_junction(crossings, 98.1, length)
+    assert in_junction(crossings, 115.9, length)  # the centre still inside
+    assert not in_junction(crossings, 116.0, length)  # the centre has left
+    assert not in_junction(crossings, 200.0, length)  # between the junctions
+    assert in_junction(crossings, 305.0, length)
+    assert not in_junction([], 305.0, length)
 
 
 def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
