@@ -589,6 +589,35 @@ def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
     assert len(policy.arrays()["images"]) == len(policy.arrays()["target_speed_mps"]) == len(kept)
 
 
+def test_the_labeller_corrects_a_learner_that_stops_inside_a_junction(ladder):
+    from crchfl_sumo.driving.bench_tasks import without_traffic
+    from crchfl_sumo.driving.dagger import in_junction
+
+    scenario = without_traffic(load_scenario(ladder / "ladder.sumocfg"))
+    net = read_net(Path(scenario.net_path))
+    geometry = route_geometry(net, ["AB", "BE"])  # a left turn at B
+    expert = RoutePolicy(geometry)
+    inside_steps = []
+
+    class StopsInTheJunction(ModelPolicy):  # drives as the expert does, but brakes once inside the junction
+        def __call__(self, observation):
+            super().__call__(observation)
+            length_m = float(observation.frame.length_m[observation.ego_row])
+            inside = in_junction(geometry.crossings, observation.progress_m, length_m)
+            inside_steps.append(inside)
+            throttle, steer, _ = expert(observation)
+            return (0.0, steer, 1.0) if inside else (throttle, steer, 0.0)
+
+    learner = StopsInTheJunction(build_model(ModelConfig(), seed=0), RouteCommands(geometry, choice_junctions(net)))
+    policy = ExpertLabelled(learner, expert, every=1, corrections_only=True)
+    drive(scenario, geometry, policy, seed=1, max_s=30.0, config=NO_WARMUP, renderer=Renderer(build_world(scenario.net_path)))
+    labels = policy.arrays()["actions"]
+    # Outside the junction learner and expert agree (nothing kept); inside, every step is one where the expert
+    # drives on and the learner brakes: kept, labelled with no brake.
+    assert sum(inside_steps) > 10 and len(labels) == sum(inside_steps)
+    assert np.all(labels[:, 2] == 0.0) and np.all(labels[:, 0] > 0.0)
+
+
 def test_expert_labelled_drive_records_the_route_policys_actions_on_the_learners_states(roads):
     scenario, geometry, commands, renderer = _straight_road_with_cameras(roads)
     learner = ModelPolicy(build_model(ModelConfig(), seed=0), commands)
