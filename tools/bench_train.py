@@ -13,9 +13,11 @@ GFLOP/s against a large float32 matmul measured in the same run.
 
 Then the speed levers of one centralized training epoch, each against the
 plain float32 eager path in the same run, interleaved: the product's default
-path (``default/fp32 = X.XX``), bf16 autocast, channels_last weights, and both.
-None of the levers is a product option (docs/benchmarks.md says why), so the
-default path is the float32 one and its ratio measures only the noise.
+path (``default/fp32 = X.XX``), bf16 autocast, channels_last weights, both,
+torch.compile (inductor) and torch.compile with bf16. Compilation happens in
+the warm-up run, which is not timed; its seconds are printed apart. None of
+the levers is a product option (docs/benchmarks.md says why), so the default
+path is the float32 one and its ratio measures only the noise.
 
 Then, in fresh processes, one centralized training at a time (``--busy-s``
 seconds each, best epoch kept): one thread on the otherwise idle machine
@@ -93,12 +95,14 @@ def timed(function) -> float:
     return time.perf_counter() - start
 
 
-def best_seconds(runs: dict, repeats: int) -> dict[str, float]:
-    """Best wall seconds of each run: one warm-up each, then ``repeats`` interleaved rounds, each
-    starting with the next run (the first run of a round is the slower one), so load changes and
-    that penalty hit all runs alike."""
-    for function in runs.values():
-        function()
+def best_seconds(runs: dict, repeats: int, warmup_s: dict[str, float] | None = None) -> dict[str, float]:
+    """Best wall seconds of each run: one warm-up each (its seconds go into ``warmup_s``), then
+    ``repeats`` interleaved rounds, each starting with the next run (the first run of a round is
+    the slower one), so load changes and that penalty hit all runs alike."""
+    for name, function in runs.items():
+        seconds = timed(function)
+        if warmup_s is not None:
+            warmup_s[name] = seconds
     best_s = {name: float("inf") for name in runs}
     names = list(runs)
     for r in range(repeats):
@@ -160,14 +164,20 @@ def busy_against_solo(args) -> None:
     print(f"before/solo1 = {before / solo1:.2f}")
 
 
-def lever_rates(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> dict[str, float]:
-    """samples/s of one centralized epoch per speed lever, best of ``repeats`` interleaved runs."""
+def lever_rates(
+    samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int
+) -> tuple[dict[str, float], dict[str, float]]:
+    """(samples/s of one centralized epoch per speed lever, best of ``repeats`` interleaved runs;
+    seconds of each lever's warm-up epoch, compilation included)."""
 
-    def epoch(bf16: bool, channels_last: bool, config: TrainConfig = TrainConfig(device=device.type)):
+    def epoch(bf16: bool, channels_last: bool, config: TrainConfig = TrainConfig(device=device.type), compile=False):
         def run() -> None:
             model = build_model(model_config, seed=0).to(device)
             if channels_last:
                 model = model.to(memory_format=torch.channels_last)
+            if compile:
+                # A fresh model each run reuses the code compiled in the warm-up (parameters are graph inputs).
+                model = torch.compile(model)
             trainer = Learner(model, config)
             autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
             with autocast:
@@ -181,15 +191,19 @@ def lever_rates(samples: Samples, model_config: ModelConfig, device: torch.devic
         "bf16": epoch(True, False),
         "channels_last": epoch(False, True),
         "bf16+channels_last": epoch(True, True),
+        "compile": epoch(False, False, compile=True),
+        "bf16+compile": epoch(True, False, compile=True),
     }
-    return {name: len(samples) / seconds for name, seconds in best_seconds(levers, repeats).items()}
+    warmup_s: dict[str, float] = {}
+    best_s = best_seconds(levers, repeats, warmup_s)
+    return {name: len(samples) / seconds for name, seconds in best_s.items()}, warmup_s
 
 
 def print_levers(samples: Samples, model_config: ModelConfig, device: torch.device, repeats: int) -> None:
-    rate = lever_rates(samples, model_config, device, repeats)
+    rate, warmup_s = lever_rates(samples, model_config, device, repeats)
     print(f"centralized training, one epoch of {len(samples)} samples, best of {repeats} interleaved runs:")
     for name, samples_per_s in rate.items():
-        print(f"{name:20s} {samples_per_s:8.1f} samples/s")
+        print(f"{name:20s} {samples_per_s:8.1f} samples/s   (warm-up epoch {warmup_s[name]:.1f} s)")
     for name in rate:
         if name != "fp32":
             print(f"{name}/fp32 = {rate[name] / rate['fp32']:.2f}")
