@@ -73,7 +73,7 @@ def top_down_view(
             cv2.polylines(view, [to_view(outline)], True, EGO_RGB, 1, cv2.LINE_AA, 4)
         else:
             cv2.fillConvexPoly(view, to_view(outline), vehicle_rgb(vid), cv2.LINE_AA, 4)
-    lamps = lit_lamps(world, frame.tls_states)
+    lamps = lit_lamps(world, frame.tls_states, renderer.config.mark_permissive)  # as the cameras draw them
     for head, lit in zip(world.heads, lamps):
         rgb = LAMP_RGB[lit[-1]] if lit else UNLIT_HEAD_RGB
         centre_px = to_view(np.array([head.x_m, head.y_m]))

@@ -333,6 +333,20 @@ def test_render_run_writes_mosaics_and_video(renderer, tmp_path):
     assert not any((tmp_path / "none").iterdir())  # no empty video left behind
 
 
+def test_the_top_down_view_draws_a_permissive_green_as_the_cameras_do(renderer):
+    from crchfl_sumo.vision.mosaic import top_down_view
+
+    frames = {tls: ego_and({}, (STOP_X - 20.0, LANE_Y, 0.0), tls=tls) for tls in ("G", "g")}
+    marking = Renderer(renderer.world, dataclasses.replace(renderer.config, mark_permissive=True))
+    protected, permissive = (top_down_view(marking, frames[tls], "ego") for tls in ("G", "g"))
+    lamp = (protected == LAMP_GREEN_RGB).all(axis=-1)  # the disc's inside (its rim is antialiased)
+    assert lamp.sum() >= 4  # a disc of 0.6 m at the view's 0.23 m a pixel
+    assert (permissive[lamp] == LAMP_PERMISSIVE_RGB).all()
+    assert not (permissive == LAMP_GREEN_RGB).all(axis=-1).any()
+    # Unmarked (the default), a permissive green is plain green, as in the cameras.
+    np.testing.assert_array_equal(top_down_view(renderer, frames["g"], "ego"), protected)
+
+
 def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
     """CameraReach.may_see is a pre-filter: every camera image a box changes must be flagged."""
     from crchfl_sumo.vision.raster import CameraReach
