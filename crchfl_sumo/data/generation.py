@@ -51,7 +51,14 @@ from crchfl_sumo.data.expert import (
     tracks_from_frames,
 )
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.recovery import camera_pose, draw_perturbations, draw_queue_shifts, gap_ahead, recovery_steer
+from crchfl_sumo.data.recovery import (
+    FORWARD_M,
+    camera_pose,
+    draw_perturbations,
+    draw_queue_shifts,
+    gap_ahead,
+    recovery_steer,
+)
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
@@ -385,9 +392,9 @@ def sample_labels(
     ).astype(np.float32)
     recovered = np.flatnonzero(np.any(perturbation != 0, axis=1))
     actions[recovered, 1] = recovery_steer(track, rows[recovered], perturbation[recovered], expert)
-    perturbation[:, 2] = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
+    perturbation[:, FORWARD_M] = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
     target_speed = target_speeds(track, expert)[rows]
-    target_speed[perturbation[:, 2] != 0] = 0.0  # too close to the leader to go, whatever the queue does next
+    target_speed[perturbation[:, FORWARD_M] != 0] = 0.0  # too close to the leader to go, whatever the queue does next
     return SampleLabels(
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),

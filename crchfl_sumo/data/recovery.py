@@ -46,6 +46,9 @@ from crchfl_sumo.data.expert import (
 )
 from crchfl_sumo.sumo.frame import Frame
 
+# The columns of a sample's perturbation [N, 3], as the shard stores it ("perturbation").
+LATERAL_M, YAW_DEG, FORWARD_M = range(3)
+
 QUEUE_GAP_MAX_M = 5.0  # a standing leader at most this far ahead (bumper to bumper) makes a queue sample
 QUEUE_GAP_MIN_M = 0.5  # the closest a shifted sample stands to its leader ...
 QUEUE_CLOSE_M = 2.0  # ... and the farthest: closer than SUMO's standstill gap (minGap, 2.5 m by default)
@@ -103,8 +106,8 @@ def draw_perturbations(
     out = np.zeros((len(eligible), 3))
     candidates = np.flatnonzero(eligible)
     chosen = np.sort(rng.choice(candidates, size=int(round(share * len(candidates))), replace=False))
-    out[chosen, 0] = rng.uniform(-lateral_m, lateral_m, size=len(chosen))
-    out[chosen, 1] = rng.uniform(-yaw_deg, yaw_deg, size=len(chosen))
+    out[chosen, LATERAL_M] = rng.uniform(-lateral_m, lateral_m, size=len(chosen))
+    out[chosen, YAW_DEG] = rng.uniform(-yaw_deg, yaw_deg, size=len(chosen))
     return out
 
 
@@ -127,7 +130,8 @@ def perturbed_pose(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(x, y, heading) moved ``forward_m`` along the heading and ``lateral_m`` to its left, and turned
     ``yaw_deg`` CCW (``perturbation`` [N, 3]: lateral_m, yaw_deg, forward_m)."""
-    lateral, yaw_rad, forward = perturbation[:, 0], np.radians(perturbation[:, 1]), perturbation[:, 2]
+    lateral, forward = perturbation[:, LATERAL_M], perturbation[:, FORWARD_M]
+    yaw_rad = np.radians(perturbation[:, YAW_DEG])
     cos, sin = np.cos(heading_rad), np.sin(heading_rad)
     return x_m + forward * cos - lateral * sin, y_m + forward * sin + lateral * cos, heading_rad + yaw_rad
 

@@ -19,6 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.recovery import FORWARD_M, LATERAL_M, YAW_DEG
 from crchfl_sumo.data.shards import LABEL_SHAPES, open_shard, read_manifest, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -94,8 +95,8 @@ def _label_summary(
         "speed_mean": mean(speed_mps),
         "standing_share": mean((speed_mps < stop_speed_mps).astype(np.float64)),
         "hard_brake_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
-        "recovery_share": mean(np.any(perturbation[:, :2] != 0, axis=1).astype(np.float64)),
-        "queue_share": mean((perturbation[:, 2] != 0).astype(np.float64)),
+        "recovery_share": mean(np.any(perturbation[:, [LATERAL_M, YAW_DEG]] != 0, axis=1).astype(np.float64)),
+        "queue_share": mean((perturbation[:, FORWARD_M] != 0).astype(np.float64)),
     }
 
 
