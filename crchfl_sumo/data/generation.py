@@ -30,6 +30,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -79,6 +80,7 @@ RENDER_GROUP_BYTES = 1 << 30  # images of the shards rendered together, held unt
 def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
     """Shard file -> vehicle id, from the scenario towns' data/test vehicle lists."""
     towns = {t.name: t for t in scenario.towns}
+    wanted = Counter((shard.town, shard.split) for shard in plan)
     assigned = {}
     for shard in plan:
         town = towns.get(shard.town)
@@ -90,9 +92,16 @@ def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[st
         vehicles = town.data_vehicles if shard.split == "train" else town.test_vehicles
         key = "data_vehicles" if shard.split == "train" else "test_vehicles"
         if shard.index >= len(vehicles):
+            if not (town.data_vehicles or town.test_vehicles):
+                # A plain .sumocfg: its one town is the whole network, with no vehicles named.
+                fix = (f"put a scenario.toml beside {scenario.sumocfg_path.name} whose [[towns]] name {key}: "
+                       "vehicles that stay in the simulation for the whole run, e.g. on looping routes "
+                       "(docs/scenarios.md), and pass its folder")
+            else:
+                fix = "ask for fewer or name more"
             raise CrchflError(
-                f"dataset.towns.{shard.town}: {shard.index + 1} {shard.split} vehicles wanted, scenario "
-                f"'{scenario.name}' names {len(vehicles)} in its town's {key}; ask for fewer or name more"
+                f"dataset.towns.{shard.town}: {wanted[shard.town, shard.split]} {shard.split} vehicles wanted, "
+                f"scenario '{scenario.name}' names {len(vehicles)} in its town's {key}; {fix}"
             )
         assigned[shard.file] = vehicles[shard.index]
     return assigned
@@ -106,6 +115,18 @@ def nearest_site(sites: Sequence[EdgeSite], x_m: np.ndarray, y_m: np.ndarray) ->
     sy = np.array([s.y_m for s in sites])
     nearest = np.hypot(x_m[:, None] - sx, y_m[:, None] - sy).argmin(axis=1)
     return sites[int(np.bincount(nearest, minlength=len(sites)).argmax())].name
+
+
+def steps_per_sample(scenario: Scenario, sample_period_s: float) -> int:
+    """Simulation steps between two samples of a vehicle; the period must be a whole number of steps."""
+    step_s = scenario.step_length_s
+    every = int(round(sample_period_s / step_s))
+    if every < 1 or not math.isclose(every * step_s, sample_period_s, rel_tol=1e-6):
+        raise CrchflError(
+            f"dataset.sample_period_s = {sample_period_s} is not a multiple of the scenario's step "
+            f"length {step_s} s; choose a multiple"
+        )
+    return every
 
 
 def record_run(
@@ -125,12 +146,7 @@ def record_run(
     of its sampled frames.
     """
     step_s = scenario.step_length_s
-    every = int(round(sample_period_s / step_s))
-    if every < 1 or not math.isclose(every * step_s, sample_period_s, rel_tol=1e-6):
-        raise CrchflError(
-            f"dataset.sample_period_s = {sample_period_s} is not a multiple of the scenario's step "
-            f"length {step_s} s; choose a multiple"
-        )
+    every = steps_per_sample(scenario, sample_period_s)
     longest_s = max(needed.values(), default=0) * sample_period_s
     max_steps = int((4 * longest_s + 600.0) / step_s)
     frames: list[Frame] = []
@@ -214,6 +230,7 @@ def generate_dataset(
     clock = _StageClock(timings_s)
     plan = shard_plan(sizes)
     vehicles = assign_vehicles(scenario, plan)
+    steps_per_sample(scenario, sizes.sample_period_s)  # refused before anything is written
     header = Manifest(
         scenario=scenario.name,
         seed=int(seed),

@@ -561,7 +561,10 @@ class DatasetWriter:
     seed, cameras, labels, image size, compression) is resumed: shards whose
     file still matches its checksum and the shard schema count as done and are kept; the rest are
     dropped from the manifest and written again. A different header is an
-    error, so two data sets never mix in one folder.
+    error, so two data sets never mix in one folder, unless that manifest
+    lists no shard: a run that failed before its first shard (a vehicle that
+    left the network, say) leaves nothing to mix, and a rerun with mended
+    settings starts afresh there.
     """
 
     def __init__(self, root: Path, header: Manifest):
@@ -573,6 +576,9 @@ class DatasetWriter:
         kept: list[ShardEntry] = []
         if (self.root / MANIFEST_NAME).is_file():
             old = read_manifest(self.root)
+            if old.header() != header.header() and not old.shards:
+                log.info("%s: replacing the manifest of an earlier run that wrote no shard", self.root)
+                old = header
             if old.header() != header.header():
                 raise CrchflError(
                     f"{self.root / MANIFEST_NAME}: this folder holds a data set made with other settings "

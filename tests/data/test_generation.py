@@ -29,10 +29,55 @@ def test_vehicles_come_from_the_scenario_towns():
     sizes = from_mapping(DatasetConfig, SIZES)
     assert list(assign_vehicles(scenario, shard_plan(sizes)).values()) == ["t01_data_0", "t01_data_1", "t01_test_0"]
     too_many = from_mapping(DatasetConfig, {"towns": [{"town": "town01", "train_samples": [1, 1, 1]}]})
-    with pytest.raises(CrchflError, match="data_vehicles"):
+    with pytest.raises(CrchflError, match="3 train vehicles wanted, scenario 'paper' names 2 in its town's data_vehicles; ask for fewer"):
         assign_vehicles(scenario, shard_plan(too_many))
     with pytest.raises(CrchflError, match="no town 'Town9'"):
         assign_vehicles(scenario, shard_plan(from_mapping(DatasetConfig, {"towns": [{"town": "Town9", "train_samples": [1]}]})))
+
+
+def test_a_plain_sumocfg_names_no_vehicles_and_the_message_says_how_to(tmp_path):
+    """A .sumocfg without a scenario.toml has one town, the whole network, and no named vehicles."""
+    import shutil
+
+    town01 = load_scenario("town01")
+    shutil.copy(town01.net_path, tmp_path / "grid.net.xml")
+    (tmp_path / "grid.sumocfg").write_text(
+        '<configuration><input><net-file value="grid.net.xml"/></input></configuration>'
+    )
+    plain = load_scenario(tmp_path / "grid.sumocfg")
+    sizes = from_mapping(DatasetConfig, {"towns": [{"town": "grid", "train_samples": [5, 5]}]})
+    with pytest.raises(CrchflError, match=r"2 train vehicles wanted, scenario 'grid' names 0 .* scenario.toml beside grid.sumocfg"):
+        assign_vehicles(plain, shard_plan(sizes))
+
+
+def test_a_failed_first_run_leaves_no_manifest_that_blocks_a_mended_rerun(tmp_path, monkeypatch):
+    import dataclasses
+
+    from crchfl_sumo.data import generation
+
+    scenario = paper_scenario()
+    sizes = from_mapping(DatasetConfig, SIZES)
+    odd_period = dataclasses.replace(sizes, sample_period_s=0.3)  # the paper scenario steps 0.25 s
+    with pytest.raises(CrchflError, match="not a multiple of the scenario's step length 0.25 s"):
+        generate_dataset(scenario, tmp_path / "odd", sizes=odd_period, raster=RASTER)
+    assert not (tmp_path / "odd").exists()  # refused before the folder was made
+
+    # A run that fails in the simulation, after its manifest and before any shard ...
+    def vehicle_left(*args, **kwargs):
+        raise CrchflError("vehicle 't01_data_0' left the network")
+
+    monkeypatch.setattr(generation, "record_run", vehicle_left)
+    with pytest.raises(CrchflError, match="left the network"):
+        generate_dataset(scenario, tmp_path / "data", seed=3, sizes=sizes, raster=RASTER)
+    assert read_manifest(tmp_path / "data").shards == ()
+    monkeypatch.undo()
+    # ... does not block a rerun with other settings in that folder.
+    fewer = from_mapping(DatasetConfig, {"towns": [{"town": "town01", "train_samples": [3], "test_samples": [2]}]})
+    manifest = generate_dataset(scenario, tmp_path / "data", seed=4, sizes=fewer, raster=RASTER)
+    assert manifest.seed == 4 and [s.samples for s in manifest.shards] == [2, 3]
+    # Once a shard is written, other settings are refused as before.
+    with pytest.raises(CrchflError, match="other settings"):
+        generate_dataset(scenario, tmp_path / "data", seed=5, sizes=fewer, raster=RASTER)
 
 
 def test_nearest_site_takes_the_majority():
