@@ -16,7 +16,7 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
-from crchfl_sumo.core.cpus import choose_wait_policy
+from crchfl_sumo.core.cpus import choose_wait_policy, settle_native_libraries
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
     MAX_DRIVE_S,
@@ -661,6 +661,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
         choose_wait_policy()  # before any command imports torch: OpenMP reads it once
+        settle_native_libraries()  # OpenCV's threads, numpy's hugepages; spawned parts inherit them
         return int(args.run(args) or 0)
     except CrchflError as exc:
         print(f"crchfl-sumo: error: {exc}", file=sys.stderr)

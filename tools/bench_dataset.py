@@ -12,6 +12,8 @@
    and measures bytes per sample, write time, full load (fast path) with and
    without checksum verification, and random per-sample reads (ShardDataset).
 3. Prints the PNG bytes per sample against the paper's nominal 1800 KB.
+
+OpenCV and numpy run with the product's settings (core.cpus.settle_native_libraries).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crchfl_sumo.core.cpus import settle_native_libraries
 from crchfl_sumo.data.dataset import PAPER_TOWNS, DatasetConfig, ShardDataset, TownSplit, load_samples
 from crchfl_sumo.data.generation import generate_dataset
 from crchfl_sumo.data.shards import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
@@ -128,6 +131,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="alternating generations of each rendering mode")
     parser.add_argument("--no-codecs", action="store_true", help="skip the storage comparison")
     args = parser.parse_args()
+    settle_native_libraries()  # as every command does: OpenCV on one thread, no numpy hugepages
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp) / "dataset"
         generation_ratio(args, out)

@@ -14,6 +14,14 @@ were measured far slower than one (docs/benchmarks.md). When other processes
 keep at least ``BUSY_CPUS`` CPUs busy as a command starts, waiting threads
 sleep instead (``OMP_WAIT_POLICY=PASSIVE``). On an idle machine spinning is
 kept: sleeping threads made training a third slower there.
+
+Two defaults of native libraries cost this workload more than they give, so
+every command turns them off where the user has not set them
+(``settle_native_libraries``; docs/benchmarks.md): OpenCV's worker threads,
+which split each 64 x 128 image operation and spend their time waking and
+waiting, and numpy's MADV_HUGEPAGE on large arrays, whose first touch stalls
+in the kernel's memory compaction where transparent hugepages are 'madvise'
+(numpy issue 31590). Neither changes a result.
 """
 
 from __future__ import annotations
@@ -97,6 +105,30 @@ def choose_wait_policy(environ: MutableMapping[str, str] = os.environ, busy: flo
     environ[WAIT_POLICY] = "PASSIVE"
     log.info("%.1f of %d CPUs busy with other processes: torch's waiting threads sleep", busy, available_cpus())
     return "PASSIVE"
+
+
+# Environment variables read as OpenCV and numpy load (and inherited by spawned parts): their values here.
+NATIVE_SETTINGS = {"OPENCV_FOR_THREADS_NUM": "1", "NUMPY_MADVISE_HUGEPAGE": "0"}
+
+
+def settle_native_libraries(environ: MutableMapping[str, str] = os.environ) -> dict[str, str]:
+    """Set NATIVE_SETTINGS where ``environ`` has no value of its own; the settings made.
+
+    Where OpenCV or numpy is already loaded in this process, it is told directly as well.
+    """
+    made = {name: value for name, value in NATIVE_SETTINGS.items() if name not in environ}
+    environ.update(made)
+    if environ is not os.environ:
+        return made
+    if "OPENCV_FOR_THREADS_NUM" in made and "cv2" in sys.modules:
+        sys.modules["cv2"].setNumThreads(1)
+    if "NUMPY_MADVISE_HUGEPAGE" in made and "numpy" in sys.modules:
+        numpy = sys.modules["numpy"]
+        core = getattr(numpy, "_core", None) or numpy.core  # numpy 2 / numpy 1
+        set_hugepage = getattr(core.multiarray, "_set_madvise_hugepage", None)  # numpy's switch behind the variable
+        if set_hugepage is not None:
+            set_hugepage(False)
+    return made
 
 
 def _affinity() -> set[int]:

@@ -370,9 +370,6 @@ def render_samples(
     return images
 
 
-    return writer.manifest
-
-
 @dataclass(frozen=True)
 class SampleLabels:
     """The labels of one vehicle's samples (R of them): what its shard stores besides images and pose."""

@@ -91,3 +91,29 @@ def test_one_cpu_has_no_waiting_threads(monkeypatch):
     monkeypatch.delitem(sys.modules, "torch", raising=False)
     monkeypatch.setattr(cpus, "available_cpus", lambda: 1)
     assert cpus.choose_wait_policy({}, busy=2.0) is None
+
+
+def test_native_settings_are_made_only_where_the_user_set_none():
+    environ = {"OPENCV_FOR_THREADS_NUM": "2"}
+    assert cpus.settle_native_libraries(environ) == {"NUMPY_MADVISE_HUGEPAGE": "0"}
+    assert environ == {"OPENCV_FOR_THREADS_NUM": "2", "NUMPY_MADVISE_HUGEPAGE": "0"}
+    assert cpus.settle_native_libraries(environ) == {}
+
+
+@pytest.mark.parametrize("user_threads, threads, hugepages", [(None, 1, False), ("2", 2, False)])
+def test_native_libraries_already_loaded_are_told_directly(user_threads, threads, hugepages):
+    """In a fresh process (the settings are process-wide): numpy and OpenCV load first, as the CLI loads them."""
+    import os
+    import subprocess
+
+    code = (
+        "import cv2, numpy\n"
+        "from crchfl_sumo.core.cpus import settle_native_libraries\n"
+        "settle_native_libraries()\n"
+        "print(cv2.getNumThreads(), numpy._core.multiarray._get_madvise_hugepage())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in cpus.NATIVE_SETTINGS}
+    if user_threads is not None:
+        env["OPENCV_FOR_THREADS_NUM"] = user_threads
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == [str(threads), str(hugepages)]
