@@ -218,8 +218,8 @@ def _run_report(args) -> int:
 def _add_simulate(p: argparse.ArgumentParser) -> None:
     _scenario_argument(p)
     p.add_argument("--duration-s", type=number_arg(0, MAX_SIMULATED_S, "simulated seconds", lo_open=True),
-                   default=300.0,
-                   help="simulated seconds (default 300)")
+                   default=None,
+                   help="simulated seconds (default: the .sumocfg's <end> less <begin>; without an end 300)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _overwrite_argument(p)
     p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")

@@ -34,6 +34,8 @@ from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
 
+DEFAULT_DURATION_S = 300.0  # simulated seconds of a scenario whose configuration sets no end
+
 
 @dataclass(frozen=True)
 class SimulateConfig:
@@ -217,16 +219,21 @@ def plot_rates(trace: Trace, scenario: Scenario, path: Path) -> None:
 
 def run_simulate_command(
     scenario_name: str,
-    duration_s: float,
+    duration_s: float | None,
     out_dir: Path,
     seed: int | None,
     config_path: Path | None,
     progress: Progress | None = None,
 ) -> dict:
-    """What `crchfl-sumo simulate` does; returns the summary."""
-    check_range(duration_s, "simulate --duration-s", 0.0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
+    """What `crchfl-sumo simulate` does; returns the summary.
+
+    ``duration_s`` None: the scenario's own length (its configuration's end), else DEFAULT_DURATION_S.
+    """
     cfg = load_simulate_config(config_path, seed)
     scenario = load_scenario(scenario_name, cfg.edge_sites, cfg.mobility.coverage_radius_m)
+    if duration_s is None:
+        duration_s = scenario.length_s or DEFAULT_DURATION_S
+    check_range(duration_s, "simulate --duration-s", 0.0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
     trace = simulate(scenario, duration_s, cfg, progress=progress)
     summary = summarize(trace, scenario, duration_s, cfg)
     write_outputs(trace, scenario, summary, out_dir)

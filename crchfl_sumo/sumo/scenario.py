@@ -105,6 +105,7 @@ class Scenario:
     towns: tuple[Town, ...]
     description: str = ""
     dropped_options: tuple[str, ...] = field(default=(), compare=False)
+    length_s: float | None = None  # the configuration's <end> less its <begin>; None: it sets no end
     demand_scale: float = 1.0  # SumoConfig.scale: applied by sim.Simulation
     speed_limit_mps: float = math.inf  # SumoConfig.speed_limit_mps: applied by sim.Simulation
 
@@ -217,6 +218,12 @@ def load_scenario(
     bounds = read_net_bounds(net_path)
     step = _option_value(options, "step-length")
     step_length_s = float(step) if step else 1.0
+    end = _option_value(options, "end")
+    length_s = None if end is None else sumo_time_s(end, cfg_path, "end") - sumo_time_s(
+        _option_value(options, "begin") or "0", cfg_path, "begin"
+    )
+    if length_s is not None and length_s <= 0:
+        raise CrchflError(f"{cfg_path}: <end> is not after <begin>; set a later end or remove it")
     if edge_sites is not None:
         sites = tuple(edge_sites)
     if not sites:
@@ -242,6 +249,7 @@ def load_scenario(
         towns=tuple(towns),
         description=description,
         dropped_options=tuple(dropped),
+        length_s=length_s,
     )
 
 
@@ -323,6 +331,20 @@ def _config_value(element: ET.Element) -> str | None:
 def _split_files(value: str) -> list[str]:
     # sumo separates file lists by commas only: a space may be part of a path
     return [p.strip() for p in value.split(",") if p.strip()]
+
+
+def sumo_time_s(text: str, cfg_path: Path, option: str) -> float:
+    """A SUMO time value in seconds: plain seconds or [[days:]hours:]minutes:seconds."""
+    parts = text.split(":")
+    try:
+        if len(parts) > 4:
+            raise ValueError
+        seconds = sum(unit * float(part) for unit, part in zip((86400.0, 3600.0, 60.0, 1.0)[-len(parts):], parts))
+    except ValueError:
+        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a time; give seconds") from None
+    if not math.isfinite(seconds):
+        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a finite time; give seconds")
+    return seconds
 
 
 def _option_value(options: list[str] | tuple[str, ...], name: str) -> str | None:

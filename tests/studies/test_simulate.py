@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from crchfl_sumo.cli import main
+from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.links.mobility import NO_SITE, Handover, LinkModel, MobilityConfig
 from crchfl_sumo.studies.simulate import SimulateConfig, Trace, simulate, summarize
 from crchfl_sumo.sumo.scenario import load_scenario
@@ -129,6 +130,28 @@ def test_bad_config_exits_2_with_named_key_and_writes_nothing(tmp_path, capsys, 
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_a_sumocfg_with_an_end_runs_its_own_length_unless_told(tmp_path, capsys):
+    town = scenarios_dir() / "town02"
+    net, routes = town / "town02.net.xml", f"{town / 'town02.ego.rou.xml'},{town / 'town02.bg.rou.xml'}"
+    config = tmp_path / "timed.sumocfg"
+    config.write_text(
+        f'<configuration><input><net-file value="{net}"/><route-files value="{routes}"/>'
+        f'<additional-files value="{town / "vtypes.add.xml"}"/></input>'
+        '<time><begin value="5"/><end value="0:0:17.5"/><step-length value="0.25"/></time></configuration>'
+    )
+    assert main(["simulate", str(config), "--out", str(tmp_path / "own")]) == 0
+    assert json.loads((tmp_path / "own" / "summary.json").read_text())["duration_s"] == 12.5
+    assert json.loads((tmp_path / "own" / "summary.json").read_text())["steps"] == 50  # 12.5 s at 0.25 s
+    assert main(["simulate", str(config), "--duration-s", "2", "--out", str(tmp_path / "told")]) == 0
+    assert json.loads((tmp_path / "told" / "summary.json").read_text())["steps"] == 8
+    config.write_text(config.read_text().replace('"0:0:17.5"', '"soon"'))
+    assert main(["simulate", str(config), "--out", str(tmp_path / "bad")]) == 2
+    assert "timed.sumocfg: <end> 'soon' is not a time; give seconds" in capsys.readouterr().err
+    config.write_text(config.read_text().replace('"soon"', '"5"'))
+    assert main(["simulate", str(config), "--out", str(tmp_path / "bad")]) == 2
+    assert "<end> is not after <begin>" in capsys.readouterr().err
 
 
 def test_missing_config_and_negative_duration_exit_2(tmp_path, capsys):
