@@ -576,14 +576,13 @@ class DatasetWriter:
         kept: list[ShardEntry] = []
         if (self.root / MANIFEST_NAME).is_file():
             old = read_manifest(self.root)
-            if old.header() != header.header() and not old.shards:
-                log.info("%s: replacing the manifest of an earlier run that wrote no shard", self.root)
-                old = header
             if old.header() != header.header():
-                raise CrchflError(
-                    f"{self.root / MANIFEST_NAME}: this folder holds a data set made with other settings "
-                    f"(scenario {old.scenario!r}, seed {old.seed}); choose another --out folder or delete this one"
-                )
+                if old.shards:
+                    raise CrchflError(
+                        f"{self.root / MANIFEST_NAME}: this folder holds a data set made with other settings "
+                        f"(scenario {old.scenario!r}, seed {old.seed}); choose another --out folder or delete this one"
+                    )
+                log.info("%s: replacing the manifest of an earlier run that wrote no shard", self.root)
             for entry in old.shards:
                 try:
                     read_shard(self.root, entry, images=False, image_hw=(header.image_height, header.image_width))

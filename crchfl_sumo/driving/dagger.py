@@ -43,7 +43,7 @@ from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, Route
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.training import CHECKPOINT_FILE, train_centralized
-from crchfl_sumo.sumo.route import Crossing, read_net, route_geometry
+from crchfl_sumo.sumo.route import inside_crossing, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -77,7 +77,7 @@ class ExpertLabelled:
         expert_action, wanted = self.expert.decide(observation)
         if self.corrections_only:
             length_m = float(observation.frame.length_m[observation.ego_row])
-            inside = in_junction(self.expert.route.crossings, observation.progress_m, length_m)
+            inside = inside_crossing(self.expert.route.crossings, observation.progress_m, length_m)
             if not is_correction(action, expert_action, inside):
                 return
         self.images.append(observation.images)
@@ -126,12 +126,6 @@ def is_correction(learner: Action, expert: Action, inside_junction: bool = False
     braking_apart = expert[2] - learner[2]
     return (braking_apart > CORRECTION_BRAKE or abs(expert[1] - learner[1]) > CORRECTION_STEER
             or (inside_junction and -braking_apart > CORRECTION_BRAKE))
-
-
-def in_junction(crossings: Sequence[Crossing], centre_s_m: float, length_m: float) -> bool:
-    """Has a vehicle's front bumper passed a stop line on its route, with its centre not yet out of that junction?"""
-    front_s_m = centre_s_m + length_m / 2.0
-    return any(c.s_start_m < front_s_m and centre_s_m < c.s_end_m for c in crossings)
 
 
 @dataclass(frozen=True)

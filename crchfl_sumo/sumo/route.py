@@ -275,6 +275,12 @@ def signal_letter(crossing: Crossing, tls_states: Mapping[str, str]) -> str:
     return state[crossing.link_index] if 0 <= crossing.link_index < len(state) else ""
 
 
+def inside_crossing(crossings: Sequence[Crossing], centre_s_m: float, length_m: float) -> bool:
+    """Has a vehicle's front bumper passed a stop line on its route, with its centre not yet out of that junction?"""
+    front_s_m = centre_s_m + length_m / 2.0
+    return any(c.s_start_m < front_s_m and centre_s_m < c.s_end_m for c in crossings)
+
+
 def next_crossing(crossings: Sequence[Crossing], front_s_m: float) -> int:
     """Index of the first crossing whose stop line lies at or ahead of the front bumper (-1 if none)."""
     for index, crossing in enumerate(crossings):

@@ -542,20 +542,20 @@ def test_a_correction_is_the_expert_braking_harder_or_steering_elsewhere_by_hand
     assert not is_correction((0.5, 0.0, 0.0), (0.8, 0.0, 0.0), inside_junction=True)  # slower, not braking
 
 
-def test_in_junction_from_the_front_bumper_to_the_centre_leaving_by_hand():
-    from crchfl_sumo.driving.dagger import in_junction
+def test_inside_crossing_from_the_front_bumper_to_the_centre_leaving_by_hand():
+    from crchfl_sumo.sumo.route import inside_crossing
     from crchfl_sumo.sumo.route import Crossing
 
     crossings = [Crossing(100.0, 116.0, "B", 0, "l"), Crossing(300.0, 310.0, "C", 1, "s")]
     length = 4.0  # the front bumper is 2 m ahead of the centre
-    assert not in_junction(crossings, 97.9, length)  # front at 99.9: short of the stop line
-    assert not in_junction(crossings, 98.0, length)  # front exactly on the line: not yet in
-    assert in_junction(crossings, 98.1, length)
-    assert in_junction(crossings, 115.9, length)  # the centre still inside
-    assert not in_junction(crossings, 116.0, length)  # the centre has left
-    assert not in_junction(crossings, 200.0, length)  # between the junctions
-    assert in_junction(crossings, 305.0, length)
-    assert not in_junction([], 305.0, length)
+    assert not inside_crossing(crossings, 97.9, length)  # front at 99.9: short of the stop line
+    assert not inside_crossing(crossings, 98.0, length)  # front exactly on the line: not yet in
+    assert inside_crossing(crossings, 98.1, length)
+    assert inside_crossing(crossings, 115.9, length)  # the centre still inside
+    assert not inside_crossing(crossings, 116.0, length)  # the centre has left
+    assert not inside_crossing(crossings, 200.0, length)  # between the junctions
+    assert inside_crossing(crossings, 305.0, length)
+    assert not inside_crossing([], 305.0, length)
 
 
 def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
@@ -591,7 +591,7 @@ def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
 
 def test_the_labeller_corrects_a_learner_that_stops_inside_a_junction(ladder):
     from crchfl_sumo.driving.bench_tasks import without_traffic
-    from crchfl_sumo.driving.dagger import in_junction
+    from crchfl_sumo.sumo.route import inside_crossing
 
     scenario = without_traffic(load_scenario(ladder / "ladder.sumocfg"))
     net = read_net(Path(scenario.net_path))
@@ -603,7 +603,7 @@ def test_the_labeller_corrects_a_learner_that_stops_inside_a_junction(ladder):
         def __call__(self, observation):
             super().__call__(observation)
             length_m = float(observation.frame.length_m[observation.ego_row])
-            inside = in_junction(geometry.crossings, observation.progress_m, length_m)
+            inside = inside_crossing(geometry.crossings, observation.progress_m, length_m)
             inside_steps.append(inside)
             throttle, steer, _ = expert(observation)
             return (0.0, steer, 1.0) if inside else (throttle, steer, 0.0)
