@@ -27,7 +27,7 @@ from crchfl_sumo.core.numbers import (
     number_arg,
     seed_arg,
 )
-from crchfl_sumo.learning.settings import ARCHS
+from crchfl_sumo.learning.settings import ARCHS, PRECISIONS, TrainConfig
 
 
 class _Parser(argparse.ArgumentParser):
@@ -338,6 +338,9 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=0, help="seed of initialisation and shuffling (default 0)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
+    p.add_argument("--precision", choices=PRECISIONS, default=TrainConfig.precision,
+                   help=f"forward pass in float32 or under bfloat16 autocast (default {TrainConfig.precision}; "
+                   "docs/model.md measures both)")
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
                    "--epochs may be raised)")
@@ -346,14 +349,14 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 def _run_train(args) -> int:
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.data.shards import read_manifest
-    from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+    from crchfl_sumo.learning.settings import ModelConfig
     from crchfl_sumo.learning.training import train_centralized
 
     with _output_folder(args, "train", extendable=("epochs",)):  # --resume --epochs N continues to N
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         manifest = read_manifest(args.dataset)
         model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
-        config = TrainConfig(device=args.device, deterministic=args.deterministic)
+        config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision)
         with ProgressBars("sample") as bars:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,

@@ -204,6 +204,8 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
+# Arithmetic of training's forward pass (TrainConfig.precision): weights and optimiser stay float32 in both.
+PRECISIONS = ("fp32", "bf16")
 
 
 # Steer head classes at most (model.steer_bins): 0.01 steps over [-1, 1].
@@ -227,6 +229,8 @@ class TrainConfig:
     multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
     sampling: "uniform", "class_balanced", "command_balanced" or "pedal_balanced" (balance.py).
     class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
+    precision: "fp32" (float32 throughout) or "bf16" (the forward pass under bfloat16 autocast, on
+        CPU or CUDA; weights, gradients and Adam stay float32; docs/model.md measures both).
     """
 
     learning_rate: float = 1e-3
@@ -241,6 +245,7 @@ class TrainConfig:
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
     sampling: Literal["uniform", "class_balanced", "command_balanced", "pedal_balanced"] = "uniform"
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
+    precision: Literal["fp32", "bf16"] = "fp32"
 
     def __post_init__(self) -> None:
         if not 0 < self.learning_rate <= 10:
@@ -263,6 +268,10 @@ class TrainConfig:
             raise CrchflError(f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use 'sequential' or 'vmap'")
         if self.sampling not in SAMPLINGS:
             raise CrchflError(f"train.sampling: {self.sampling!r} is unknown; use one of {', '.join(map(repr, SAMPLINGS))}")
+        if self.precision not in PRECISIONS:
+            raise CrchflError(
+                f"train.precision: {self.precision!r} is unknown; use one of {', '.join(map(repr, PRECISIONS))}"
+            )
         if self.class_weighting not in CLASS_WEIGHTINGS:
             raise CrchflError(
                 f"train.class_weighting: {self.class_weighting!r} is unknown; "

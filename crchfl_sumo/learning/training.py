@@ -25,6 +25,7 @@ seed and the vehicle's index, so the result does not depend on the method.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -108,6 +109,16 @@ def configure_determinism(enabled: bool) -> None:
     torch.use_deterministic_algorithms(True)
 
 
+def forward_precision(config: TrainConfig, device: torch.device) -> contextlib.AbstractContextManager:
+    """The context a training forward pass runs in: bfloat16 autocast for precision "bf16", else none.
+
+    Only the forward pass runs inside it; the losses are taken in float32 from its outputs.
+    """
+    if config.precision == "bf16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
 def vehicle_seed(seed: int, vehicle_index: int) -> int:
     """Seed of one vehicle's shuffling, derived from the caller's seed."""
     return int(np.random.SeedSequence([seed, vehicle_index]).generate_state(1)[0])
@@ -184,7 +195,9 @@ class Learner:
             target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
-            longitudinal, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
+            with forward_precision(self.config, self.device):
+                longitudinal, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
+            longitudinal, steer_logits = longitudinal.float(), steer_logits.float()
             loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, steer_class, weight)
             # The branches share no weights, so one backward of the sum gives each branch its own gradient.
             (loss_tb + loss_steer).backward()
@@ -306,7 +319,9 @@ def _train_vehicles_vmap(
         weight: torch.Tensor,
         class_weight: torch.Tensor,
     ):
-        longitudinal, steer_logits = functional_call(template, p, (images, command, speed_mps))
+        with forward_precision(config, device):
+            longitudinal, steer_logits = functional_call(template, p, (images, command, speed_mps))
+        longitudinal, steer_logits = longitudinal.float(), steer_logits.float()
         per_sample_tb = (longitudinal - target).square().mean(dim=1)
         per_sample_steer = F.cross_entropy(steer_logits, steer_class, reduction="none")
         n = weight.sum()

@@ -3,6 +3,7 @@ import io
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
@@ -11,6 +12,7 @@ from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.learning.model import (
     DrivingModel,
     GridAveragePool,
+    GroupNorm,
     build_model,
     count_parameters,
     model_from_state,
@@ -369,3 +371,44 @@ def test_a_finer_steer_head_learns_the_nearest_bin_and_reads_as_the_papers_class
     assert np.isclose(actions[1], np.round(actions[1], 1))
     expected = predict_actions(model, images[0], 0, 0.0, steer_decoding="expected")
     assert np.isclose(predict_actions(model, images[0], 0, 0.0)[1], expected[1])
+
+
+def test_group_norm_on_bfloat16_channels_last_follows_float32():
+    # Under bfloat16 autocast the convolutions hand GroupNorm bfloat16 in channels_last layout; its fast
+    # path must give nn.GroupNorm's result within bfloat16's rounding, keep the layout the next convolution
+    # wants, and send float32 gradients to the float32 affine weights.
+    torch.manual_seed(0)
+    norm = GroupNorm(8, 24)
+    with torch.no_grad():
+        norm.weight.uniform_(0.5, 1.5)
+        norm.bias.uniform_(-0.5, 0.5)
+    # (an input that needs no gradient crashes PyTorch 2.13's channels_last float32 backward; in the
+    # network every GroupNorm input comes from a trained convolution)
+    x = torch.randn(4, 24, 7, 9).contiguous(memory_format=torch.channels_last).requires_grad_()
+    expected = nn.GroupNorm.forward(norm, x)
+    assert torch.equal(norm(x), expected)  # float32: nn.GroupNorm's own path
+    y = norm(x.detach().bfloat16().requires_grad_())
+    assert y.dtype == torch.bfloat16 and y.is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(y.float(), expected, atol=0.05, rtol=0.02)  # bfloat16: 8 significant bits
+    y.float().square().sum().backward()
+    float_weight = norm.weight.grad.clone()
+    norm.weight.grad = None
+    expected.square().sum().backward()
+    assert norm.weight.grad.dtype == torch.float32
+    assert torch.allclose(float_weight, norm.weight.grad, rtol=0.05)
+
+
+def test_under_autocast_the_branches_see_bfloat16_images_equal_to_the_float32_ones_rounded():
+    model = build_model(SMALL, seed=0)
+    seen = {}
+    model.branch_throttle_brake.register_forward_pre_hook(lambda m, args: seen.update(head=args[0]))
+    model.branch_steer.register_forward_pre_hook(lambda m, args: seen.update(sides=args[0]))
+    images = _images(2)
+    _run(model, images)
+    float32 = dict(seen)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        longitudinal, steer_logits = _run(model, images)
+    for name in ("head", "sides"):
+        assert seen[name].dtype == torch.bfloat16
+        assert torch.allclose(seen[name].float(), float32[name], atol=4e-3)  # bfloat16 steps near 1: 2**-8
+    assert torch.isfinite(steer_logits.float()).all() and torch.isfinite(longitudinal.float()).all()
