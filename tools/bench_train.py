@@ -13,11 +13,11 @@ GFLOP/s against a large float32 matmul measured in the same run.
 
 Then the speed levers of one centralized training epoch, each against the
 plain float32 eager path in the same run, interleaved: the product's default
-path (``default/fp32 = X.XX``), bf16 autocast, channels_last weights, both,
-torch.compile (inductor) and torch.compile with bf16. Compilation happens in
-the warm-up run, which is not timed; its seconds are printed apart. None of
-the levers is a product option (docs/benchmarks.md says why), so the default
-path is the float32 one and its ratio measures only the noise.
+path (``default/fp32 = X.XX``, TrainConfig's default precision), the bf16
+precision (``train.precision = "bf16"``: the forward pass under bfloat16
+autocast), channels_last weights, torch.compile (inductor) and torch.compile
+with bf16. Compilation happens in the warm-up run, which is not timed; its
+seconds are printed apart.
 
 Then, in fresh processes, one centralized training at a time (``--busy-s``
 seconds each, best epoch kept): one thread on the otherwise idle machine
@@ -34,7 +34,6 @@ Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [-
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import subprocess
 import sys
@@ -170,7 +169,7 @@ def lever_rates(
     """(samples/s of one centralized epoch per speed lever, best of ``repeats`` interleaved runs;
     seconds of each lever's warm-up epoch, compilation included)."""
 
-    def epoch(bf16: bool, channels_last: bool, config: TrainConfig = TrainConfig(device=device.type), compile=False):
+    def epoch(config: TrainConfig, channels_last: bool = False, compile: bool = False):
         def run() -> None:
             model = build_model(model_config, seed=0).to(device)
             if channels_last:
@@ -178,21 +177,18 @@ def lever_rates(
             if compile:
                 # A fresh model each run reuses the code compiled in the warm-up (parameters are graph inputs).
                 model = torch.compile(model)
-            trainer = Learner(model, config)
-            autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
-            with autocast:
-                trainer.train_epoch(samples, torch.Generator().manual_seed(1))
+            Learner(model, config).train_epoch(samples, torch.Generator().manual_seed(1))
 
         return run
 
+    fp32, bf16 = TrainConfig(device=device.type), TrainConfig(device=device.type, precision="bf16")
     levers = {
-        "fp32": epoch(False, False),
-        "default": epoch(False, False, TrainConfig()),
-        "bf16": epoch(True, False),
-        "channels_last": epoch(False, True),
-        "bf16+channels_last": epoch(True, True),
-        "compile": epoch(False, False, compile=True),
-        "bf16+compile": epoch(True, False, compile=True),
+        "fp32": epoch(fp32),
+        "default": epoch(TrainConfig(device=device.type, precision=TrainConfig.precision)),
+        "bf16": epoch(bf16),
+        "channels_last": epoch(fp32, channels_last=True),
+        "compile": epoch(fp32, compile=True),
+        "bf16+compile": epoch(bf16, compile=True),
     }
     warmup_s: dict[str, float] = {}
     best_s = best_seconds(levers, repeats, warmup_s)

@@ -77,7 +77,8 @@ def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles(model_config
     start = [build_model(model_config, seed=s).state_dict() for s in (0, 1, 2, 0)]
     results = {
         method: train_vehicles(
-            start, vehicles, epochs, model_config, TrainConfig(device="cpu", multi_vehicle=method, **balance), seed=5
+            start, vehicles, epochs, model_config,
+            TrainConfig(device="cpu", multi_vehicle=method, precision="fp32", **balance), seed=5,
         )
         for method in ("sequential", "vmap")
     }
