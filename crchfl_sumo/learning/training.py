@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -109,6 +110,28 @@ def configure_determinism(enabled: bool) -> None:
     torch.use_deterministic_algorithms(True)
 
 
+@functools.cache
+def native_bfloat16(device_type: str) -> bool:
+    """Whether this machine multiplies bfloat16 in hardware: AVX-512 BF16 or AMX on a CPU, a GPU that does.
+
+    Elsewhere bfloat16 is emulated, slower than float32 (measured by capping oneDNN's instruction set
+    here: 0.60x with AVX-512 and 0.12x with AVX2; docs/model.md).
+    """
+    if device_type == "cuda":
+        return torch.cuda.is_bf16_supported(including_emulation=False)
+    # torch's own probes of the CPU (private names: a torch without them counts as no bfloat16)
+    probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
+    return any(probe() for probe in probes if probe is not None)
+
+
+@functools.cache
+def _warn_emulated_bfloat16(device_type: str) -> None:
+    log.warning(
+        "train.precision = 'bf16' on a %s without bfloat16 arithmetic: it is emulated and slower than float32 "
+        "(0.12 to 0.60x measured); set train.precision = 'fp32' (train --precision fp32)", device_type.upper()
+    )
+
+
 def forward_precision(config: TrainConfig, device: torch.device) -> contextlib.AbstractContextManager:
     """The context a training forward pass runs in: bfloat16 autocast for precision "bf16", else none.
 
@@ -157,6 +180,8 @@ class Learner:
     def __init__(self, model: DrivingModel, config: TrainConfig) -> None:
         self.model = model
         self.config = config
+        if config.precision == "bf16" and not native_bfloat16(self.device.type):
+            _warn_emulated_bfloat16(self.device.type)
         adam = dict(
             lr=config.learning_rate,
             betas=(config.beta1, config.beta2),
@@ -278,6 +303,8 @@ def _train_vehicles_vmap(
 ) -> tuple[list[State], list[list[Metrics]]]:
     """All vehicles in one vmapped step; Adam on stacked tensors, identical to torch.optim.Adam's update."""
     device = resolve_device(config.device)
+    if config.precision == "bf16" and not native_bfloat16(device.type):
+        _warn_emulated_bfloat16(device.type)
     num_vehicles, batch_size = len(states), config.batch_size
     # A weightless copy of the network for functional_call: its parameters are replaced on each call.
     with torch.device("meta"):

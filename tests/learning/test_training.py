@@ -261,3 +261,23 @@ def test_bf16_vmap_trainer_follows_the_sequential_loop():
 def test_an_unknown_precision_is_refused_naming_the_key():
     with pytest.raises(CrchflError, match="train.precision.*'fp16'.*'fp32', 'bf16'"):
         TrainConfig(precision="fp16")
+
+
+def test_bf16_on_a_cpu_without_bfloat16_arithmetic_warns_once_naming_the_fix(monkeypatch, caplog):
+    from crchfl_sumo.learning import training
+
+    # Isolates the probe: this machine's CPU answers for itself, the test asks for one without bfloat16.
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+    training.native_bfloat16.cache_clear()
+    training._warn_emulated_bfloat16.cache_clear()
+    try:
+        with caplog.at_level("WARNING", logger=training.log.name):
+            Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="bf16"))
+            Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="bf16"))
+            Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="fp32"))
+        warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert len(warnings) == 1 and "emulated" in warnings[0] and "train.precision = 'fp32'" in warnings[0]
+    finally:
+        training.native_bfloat16.cache_clear()
+        training._warn_emulated_bfloat16.cache_clear()
