@@ -339,8 +339,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
     p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
     p.add_argument("--precision", choices=PRECISIONS, default=TrainConfig.precision,
-                   help=f"forward pass in float32 or under bfloat16 autocast (default {TrainConfig.precision}; "
-                   "docs/model.md measures both)")
+                   help=f"forward pass in float32, under bfloat16 autocast, or auto: bf16 where the device has "
+                   f"bfloat16 arithmetic, else fp32 (default {TrainConfig.precision}; docs/model.md measures both)")
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
                    "--epochs may be raised)")

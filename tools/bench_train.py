@@ -181,7 +181,7 @@ def lever_rates(
 
         return run
 
-    fp32, bf16 = TrainConfig(device=device.type), TrainConfig(device=device.type, precision="bf16")
+    fp32, bf16 = TrainConfig(device=device.type, precision="fp32"), TrainConfig(device=device.type, precision="bf16")
     levers = {
         "fp32": epoch(fp32),
         "default": epoch(TrainConfig(device=device.type, precision=TrainConfig.precision)),

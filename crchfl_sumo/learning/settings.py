@@ -204,8 +204,9 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
-# Arithmetic of training's forward pass (TrainConfig.precision): weights and optimiser stay float32 in both.
-PRECISIONS = ("fp32", "bf16")
+# Arithmetic of training's forward pass (TrainConfig.precision): weights and optimiser stay float32 in each;
+# "auto" is bf16 where the device multiplies bfloat16 in hardware, else fp32 (training.resolved_precision).
+PRECISIONS = ("auto", "fp32", "bf16")
 
 
 # Steer head classes at most (model.steer_bins): 0.01 steps over [-1, 1].
@@ -229,8 +230,10 @@ class TrainConfig:
     multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
     sampling: "uniform", "class_balanced", "command_balanced" or "pedal_balanced" (balance.py).
     class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
-    precision: "fp32" (float32 throughout) or "bf16" (the forward pass under bfloat16 autocast, on
-        CPU or CUDA; weights, gradients and Adam stay float32; docs/model.md measures both).
+    precision: "auto" (default: "bf16" where the device has bfloat16 arithmetic, AVX-512 BF16 or AMX
+        on a CPU, else "fp32"), "fp32" (float32 throughout) or "bf16" (the forward pass under
+        bfloat16 autocast, on CPU or CUDA; weights, gradients and Adam stay float32). docs/model.md
+        measures both.
     """
 
     learning_rate: float = 1e-3
@@ -245,7 +248,7 @@ class TrainConfig:
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
     sampling: Literal["uniform", "class_balanced", "command_balanced", "pedal_balanced"] = "uniform"
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
-    precision: Literal["fp32", "bf16"] = "fp32"
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
 
     def __post_init__(self) -> None:
         if not 0 < self.learning_rate <= 10:

@@ -132,12 +132,21 @@ def _warn_emulated_bfloat16(device_type: str) -> None:
     )
 
 
+def resolved_precision(config: TrainConfig, device: torch.device) -> str:
+    """"fp32" or "bf16": ``config.precision``, with "auto" decided by the device's bfloat16 arithmetic."""
+    if config.precision == "auto":
+        return "bf16" if native_bfloat16(device.type) else "fp32"
+    if config.precision == "bf16" and not native_bfloat16(device.type):
+        _warn_emulated_bfloat16(device.type)
+    return config.precision
+
+
 def forward_precision(config: TrainConfig, device: torch.device) -> contextlib.AbstractContextManager:
     """The context a training forward pass runs in: bfloat16 autocast for precision "bf16", else none.
 
     Only the forward pass runs inside it; the losses are taken in float32 from its outputs.
     """
-    if config.precision == "bf16":
+    if resolved_precision(config, device) == "bf16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
     return contextlib.nullcontext()
 
@@ -180,8 +189,7 @@ class Learner:
     def __init__(self, model: DrivingModel, config: TrainConfig) -> None:
         self.model = model
         self.config = config
-        if config.precision == "bf16" and not native_bfloat16(self.device.type):
-            _warn_emulated_bfloat16(self.device.type)
+        self.precision = resolved_precision(config, self.device)
         adam = dict(
             lr=config.learning_rate,
             betas=(config.beta1, config.beta2),
@@ -303,8 +311,7 @@ def _train_vehicles_vmap(
 ) -> tuple[list[State], list[list[Metrics]]]:
     """All vehicles in one vmapped step; Adam on stacked tensors, identical to torch.optim.Adam's update."""
     device = resolve_device(config.device)
-    if config.precision == "bf16" and not native_bfloat16(device.type):
-        _warn_emulated_bfloat16(device.type)
+    resolved_precision(config, device)  # warns once where bfloat16 is emulated
     num_vehicles, batch_size = len(states), config.batch_size
     # A weightless copy of the network for functional_call: its parameters are replaced on each call.
     with torch.device("meta"):
@@ -515,6 +522,7 @@ def train_centralized(
             "train_accuracy": train_metrics.accuracy,
             "train_samples": train_metrics.num_samples,
             "samples_per_s": len(train) / train_time_s,
+            "precision": trainer.precision,
         }
         records.append(record)
         log.info(

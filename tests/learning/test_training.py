@@ -281,3 +281,22 @@ def test_bf16_on_a_cpu_without_bfloat16_arithmetic_warns_once_naming_the_fix(mon
     finally:
         training.native_bfloat16.cache_clear()
         training._warn_emulated_bfloat16.cache_clear()
+
+
+@pytest.mark.parametrize("has_bfloat16,expected", [(True, "bf16"), (False, "fp32")])
+def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch, has_bfloat16, expected):
+    from crchfl_sumo.learning import training
+
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: has_bfloat16, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+    training.native_bfloat16.cache_clear()
+    try:
+        assert TrainConfig().precision == "auto"
+        trainer = Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu"))
+        assert trainer.precision == expected
+        seen = []
+        trainer.model.branch_steer.register_forward_pre_hook(lambda m, args: seen.append(args[0].dtype))
+        trainer.train_epoch(_samples(8, seed=1), torch.Generator().manual_seed(0))
+        assert seen == [torch.bfloat16 if expected == "bf16" else torch.float32]
+    finally:
+        training.native_bfloat16.cache_clear()
