@@ -184,13 +184,20 @@ def test_same_seed_same_weights_and_other_seed_differs():
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
-def test_branches_see_their_cameras_in_order():
-    model = build_model(SMALL, seed=0)
+def _branch_inputs(model, images) -> dict:
+    """{"head": what branch I is handed, "sides": what branch II is handed} in one forward pass."""
     seen = {}
-    model.branch_throttle_brake.register_forward_pre_hook(lambda m, args: seen.update(head=args[0]))
-    model.branch_steer.register_forward_pre_hook(lambda m, args: seen.update(sides=args[0]))
+    hooks = [model.branch_throttle_brake.register_forward_pre_hook(lambda m, args: seen.update(head=args[0])),
+             model.branch_steer.register_forward_pre_hook(lambda m, args: seen.update(sides=args[0]))]
+    outputs = _run(model, images)
+    for hook in hooks:
+        hook.remove()
+    return {**seen, "outputs": outputs}
+
+
+def test_branches_see_their_cameras_in_order():
     images = _images(2)
-    _run(model, images)
+    seen = _branch_inputs(build_model(SMALL, seed=0), images)
     normalised = images.float() / 127.5 - 1
     assert torch.allclose(seen["head"], normalised[:, 0].permute(0, 3, 1, 2), atol=1e-6)
     for k, camera in enumerate((1, 2, 3)):  # CamF, CamL, CamR -> channels 0-2, 3-5, 6-8
@@ -399,15 +406,11 @@ def test_group_norm_on_bfloat16_channels_last_follows_float32():
 
 
 def test_under_autocast_the_branches_see_bfloat16_images_equal_to_the_float32_ones_rounded():
-    model = build_model(SMALL, seed=0)
-    seen = {}
-    model.branch_throttle_brake.register_forward_pre_hook(lambda m, args: seen.update(head=args[0]))
-    model.branch_steer.register_forward_pre_hook(lambda m, args: seen.update(sides=args[0]))
-    images = _images(2)
-    _run(model, images)
-    float32 = dict(seen)
+    model, images = build_model(SMALL, seed=0), _images(2)
+    float32 = _branch_inputs(model, images)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        longitudinal, steer_logits = _run(model, images)
+        seen = _branch_inputs(model, images)
+    longitudinal, steer_logits = seen["outputs"]
     for name in ("head", "sides"):
         assert seen[name].dtype == torch.bfloat16
         assert torch.allclose(seen[name].float(), float32[name], atol=4e-3)  # bfloat16 steps near 1: 2**-8
