@@ -120,10 +120,11 @@ class GroupNorm(nn.GroupNorm):
 
     Under bfloat16 autocast the convolutions hand it bfloat16 in channels_last
     layout, for which PyTorch's CPU kernel with float32 affine weights is slow
-    (its backward took a third of a training step); the same input made
+    (its backward took a fifth of a bfloat16 training step); the same input made
     contiguous, with the affine weights cast as autocast casts a convolution's,
-    takes about a quarter of the time (docs/benchmarks.md). Float32 input takes
-    nn.GroupNorm's own path, bit for bit. Input is [B, C, H, W].
+    is faster even with the copy back to channels_last (docs/model.md, "Training
+    in bfloat16"). Float32 input takes nn.GroupNorm's own path, bit for bit.
+    Input is [B, C, H, W].
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -243,7 +244,6 @@ class DrivingModel(nn.Module):
     def forward(
         self, images: torch.Tensor, command: torch.Tensor, speed_mps: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        batch, _, height, width, _ = images.shape
         # Under autocast the images go straight to its dtype (bfloat16 holds 0..255 exactly), so the
         # first convolution is not handed float32 to cast again.
         device = images.device.type
