@@ -141,12 +141,13 @@ def resolved_precision(config: TrainConfig, device: torch.device) -> str:
     return config.precision
 
 
-def forward_precision(config: TrainConfig, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context a training forward pass runs in: bfloat16 autocast for precision "bf16", else none.
+def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """The context a training forward pass runs in: bfloat16 autocast for ``precision`` "bf16"
+    (resolved_precision's answer, decided once per training), else none.
 
     Only the forward pass runs inside it; the losses are taken in float32 from its outputs.
     """
-    if resolved_precision(config, device) == "bf16":
+    if precision == "bf16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
     return contextlib.nullcontext()
 
@@ -228,7 +229,7 @@ class Learner:
             target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
-            with forward_precision(self.config, self.device):
+            with forward_precision(self.precision, self.device):
                 longitudinal, steer_logits = self.model(images, samples.command[indices], samples.speed_mps[indices])
             longitudinal, steer_logits = longitudinal.float(), steer_logits.float()
             loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, steer_class, weight)
@@ -311,7 +312,7 @@ def _train_vehicles_vmap(
 ) -> tuple[list[State], list[list[Metrics]]]:
     """All vehicles in one vmapped step; Adam on stacked tensors, identical to torch.optim.Adam's update."""
     device = resolve_device(config.device)
-    resolved_precision(config, device)  # warns once where bfloat16 is emulated
+    precision = resolved_precision(config, device)
     num_vehicles, batch_size = len(states), config.batch_size
     # A weightless copy of the network for functional_call: its parameters are replaced on each call.
     with torch.device("meta"):
@@ -353,7 +354,7 @@ def _train_vehicles_vmap(
         weight: torch.Tensor,
         class_weight: torch.Tensor,
     ):
-        with forward_precision(config, device):
+        with forward_precision(precision, device):
             longitudinal, steer_logits = functional_call(template, p, (images, command, speed_mps))
         longitudinal, steer_logits = longitudinal.float(), steer_logits.float()
         per_sample_tb = (longitudinal - target).square().mean(dim=1)
