@@ -16,7 +16,7 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
-from crchfl_sumo.core.cpus import choose_wait_policy, settle_native_libraries
+from crchfl_sumo.core.cpus import available_cpus, choose_wait_policy, settle_native_libraries
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
     MAX_DRIVE_S,
@@ -663,7 +663,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = parser.parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
-        choose_wait_policy()  # before any command imports torch: OpenMP reads it once
+        # Before any command imports torch (OpenMP reads it once); --jobs 0 is a part per CPU.
+        choose_wait_policy(parts=getattr(args, "jobs", 1) or available_cpus())
         settle_native_libraries()  # OpenCV's threads, numpy's hugepages; spawned parts inherit them
         return int(args.run(args) or 0)
     except CrchflError as exc:

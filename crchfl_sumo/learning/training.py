@@ -44,6 +44,7 @@ from torch.nn import functional as F
 
 from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest, remove_stale_temporaries
 from crchfl_sumo.core.config import to_mapping
+from crchfl_sumo.core.cpus import pinned_threads
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress, report
@@ -173,6 +174,7 @@ def branch_losses(
     return F.mse_loss(longitudinal, longitudinal_target), steer_loss
 
 
+@pinned_threads()  # each torch thread on a CPU of its own (core/cpus.py)
 def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
     """``model``'s test metrics on ``samples`` (evaluation.py), in batches of ``config.eval_batch_size``."""
     return evaluate_model(model, samples, config.eval_batch_size)
@@ -209,6 +211,7 @@ class Learner:
     def state(self) -> State:
         return {name: t.detach().cpu().clone() for name, t in self.model.state_dict().items()}
 
+    @pinned_threads()  # each torch thread on a CPU of its own (core/cpus.py)
     def train_epoch(self, samples: Samples, generator: torch.Generator, progress: Progress | None = None) -> Metrics:
         """One pass over ``samples`` in shuffled batches; metrics are those of the batches as trained.
 
@@ -302,6 +305,7 @@ def train_vehicles(
     return [state for state, _ in results], [metrics for _, metrics in results]
 
 
+@pinned_threads()  # each torch thread on a CPU of its own (core/cpus.py)
 def _train_vehicles_vmap(
     states: Sequence[State],
     vehicle_samples: Sequence[Samples],

@@ -2,6 +2,7 @@
 
 import os
 import sys
+import time
 
 import pytest
 
@@ -60,16 +61,37 @@ def torch_not_loaded(monkeypatch):
     monkeypatch.setattr(cpus, "available_cpus", lambda: 2)
 
 
-def test_waiting_threads_sleep_when_other_processes_keep_a_cpu_busy(torch_not_loaded):
+@pytest.fixture
+def no_pinning(torch_not_loaded, monkeypatch):
+    monkeypatch.setattr(cpus, "can_pin_threads", lambda: False)
+
+
+def test_unpinnable_waiting_threads_sleep_when_other_processes_keep_a_cpu_busy(no_pinning):
     environ = {}
     assert cpus.choose_wait_policy(environ, busy=1.0) == "PASSIVE"
     assert environ == {"OMP_WAIT_POLICY": "PASSIVE"}
 
 
-def test_waiting_threads_keep_spinning_on_an_idle_machine(torch_not_loaded):
+def test_waiting_threads_keep_spinning_on_an_idle_machine(no_pinning):
     environ = {}
     assert cpus.choose_wait_policy(environ, busy=0.2) is None
     assert environ == {}
+
+
+def test_pinned_threads_keep_spinning_beside_busy_processes(torch_not_loaded, monkeypatch):
+    monkeypatch.setattr(cpus, "can_pin_threads", lambda: True)
+    environ = {}
+    assert cpus.choose_wait_policy(environ, busy=1.0) is None  # one part on both CPUs: pinned
+    assert environ == {}
+    assert cpus.choose_wait_policy(environ, busy=1.0, parts=2) is None  # a thread a part: nothing waits
+
+
+def test_parts_sharing_the_cpus_with_several_threads_each_sleep_when_busy(torch_not_loaded, monkeypatch):
+    monkeypatch.setattr(cpus, "can_pin_threads", lambda: True)
+    monkeypatch.setattr(cpus, "available_cpus", lambda: 4)
+    environ = {}
+    assert cpus.choose_wait_policy(environ, busy=1.0, parts=2) == "PASSIVE"  # 2 threads a part, not pinned
+    assert environ == {"OMP_WAIT_POLICY": "PASSIVE"}
 
 
 @pytest.mark.parametrize("setting", [{"OMP_WAIT_POLICY": "ACTIVE"}, {"OMP_NUM_THREADS": "2"}])
@@ -117,3 +139,45 @@ def test_native_libraries_already_loaded_are_told_directly(user_threads, threads
         env["OPENCV_FOR_THREADS_NUM"] = user_threads
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.split() == [str(threads), str(hugepages)]
+
+
+def test_pin_plan_puts_the_main_thread_first_and_the_others_in_turn_on_the_rest():
+    assert cpus.pin_plan(10, [30, 20], [4, 7]) == {10: {4}, 20: {7}, 30: {7}}
+    # Three CPUs: any two threads in a row of id (OpenMP's workers) land on different ones.
+    plan = cpus.pin_plan(1, [5, 2, 3, 4], [0, 1, 2])
+    assert plan == {1: {0}, 2: {1}, 3: {2}, 4: {1}, 5: {2}}
+
+
+@pytest.mark.skipif(not cpus.can_pin_threads() or cpus.available_cpus() < 2, reason="needs 2 CPUs and affinity calls")
+def test_pinned_threads_pins_while_inside_and_gives_every_thread_its_cpus_back():
+    import threading
+
+    import torch
+
+    mask = os.sched_getaffinity(0)
+    before = torch.get_num_threads()
+    torch.set_num_threads(len(mask))
+    started: list[int] = []
+    try:
+        with cpus.pinned_threads() as pinned:
+            assert pinned
+            assert os.sched_getaffinity(0) == {min(mask)}  # the main thread on the first CPU
+            python = {t.native_id for t in threading.enumerate()}
+            native = [int(t) for t in os.listdir(cpus.TASKS_PATH) if int(t) not in python]
+            assert native  # OpenMP's workers, started for the pinning
+            assert all(len(os.sched_getaffinity(t)) == 1 and os.sched_getaffinity(t) != {min(mask)} for t in native)
+            with cpus.pinned_threads() as inner:
+                assert not inner  # already pinned
+            thread = threading.Thread(target=lambda: started.append(threading.get_native_id()) or time.sleep(0.5))
+            thread.start()  # inherits the pinned main thread's CPU
+            while not started:
+                time.sleep(0.01)
+        assert os.sched_getaffinity(0) == mask
+        assert all(os.sched_getaffinity(t) == mask for t in native)
+        assert os.sched_getaffinity(started[0]) == mask  # a thread started inside gets the main thread's CPUs
+        thread.join()
+        torch.set_num_threads(1)
+        with cpus.pinned_threads() as pinned:
+            assert not pinned and os.sched_getaffinity(0) == mask  # one thread: nothing to pin
+    finally:
+        torch.set_num_threads(before)
