@@ -20,12 +20,15 @@ with bf16. Compilation happens in the warm-up run, which is not timed; its
 seconds are printed apart.
 
 Then, in fresh processes, one centralized training at a time (``--busy-s``
-seconds each, best epoch kept): one thread on the otherwise idle machine
-(solo1); the product's defaults beside one busy process, which leaves one of
-the two cores free (busy: the threads the affinity mask gives, and the wait
-policy ``crchfl_sumo.core.cpus.choose_wait_policy`` picks as every command
-starts); and the same beside the busy process with OpenMP's spinning wait
-(before). It prints ``busy/solo1 = X.XX`` and ``before/solo1 = X.XX``.
+seconds each, best epoch kept, the default precision): one thread on the
+otherwise idle machine (solo1); the product's defaults beside one busy process,
+which leaves one of the two cores free (busy: the threads the affinity mask
+gives, pinned one to a CPU while they train, ``crchfl_sumo.core.cpus
+.pinned_threads``, and the wait policy ``choose_wait_policy`` picks as every
+command starts); beside the same process, threads left unpinned with sleeping
+waits (unpinned, the product before the pinning) and unpinned with OpenMP's
+spinning wait (before: the product before either). It prints
+``busy/solo1 = X.XX``, ``unpinned/solo1 = X.XX`` and ``before/solo1 = X.XX``.
 
 Usage: python tools/bench_train.py [--scale 0.05] [--height 64] [--width 128] [--repeats 5] [--busy-s 25]
        [--busy-only | --levers-only]
@@ -113,9 +116,11 @@ def best_seconds(runs: dict, repeats: int, warmup_s: dict[str, float] | None = N
 # One centralized training in a fresh process: the wait policy is chosen as a command would, before torch loads.
 EPOCH_RATE_CHILD = """
 import sys, time
-from crchfl_sumo.core.cpus import choose_wait_policy
+from crchfl_sumo.core import cpus
 if sys.argv[1] == "product":
-    choose_wait_policy()
+    cpus.choose_wait_policy()
+else:
+    cpus.can_pin_threads = lambda: False  # the threads as the kernel places them
 import numpy as np, torch
 sys.path.insert(0, {tools!r})
 from bench_train import synthetic_samples
@@ -136,7 +141,8 @@ print(len(samples) / best_s, torch.get_num_threads())
 
 
 def epoch_rate(mode: str, environ: dict[str, str], args) -> tuple[float, int]:
-    """(samples/s, torch threads) of a fresh process's centralized training; mode "product" picks the policy."""
+    """(samples/s, torch threads) of a fresh process's centralized training; mode "product" pins the threads
+    and picks the wait policy, "plain" does neither (the policy is then ``environ``'s)."""
     code = EPOCH_RATE_CHILD.format(tools=os.path.dirname(os.path.abspath(__file__)), height=args.height,
                                    width=args.width, seconds=args.busy_s)
     out = subprocess.run([sys.executable, "-c", code, mode], env=environ, check=True, capture_output=True, text=True)
@@ -152,14 +158,16 @@ def busy_against_solo(args) -> None:
     try:
         time.sleep(1.0)  # the spinner is on its core before the product looks at the load
         busy, threads = epoch_rate("product", plain, args)
+        unpinned, _ = epoch_rate("plain", {**plain, "OMP_WAIT_POLICY": "PASSIVE"}, args)
         before, _ = epoch_rate("plain", plain, args)
     finally:
         spinner.kill()
         spinner.wait()
     print(f"centralized training, {args.busy_s:g} s each, best epoch of 320 samples; one busy process beside:")
     print(f"solo1 {solo1:.1f} samples/s (1 thread, idle machine); busy {busy:.1f} ({threads} threads, "
-          f"product defaults); before {before:.1f} ({threads} threads, spinning wait)")
+          f"product defaults); unpinned {unpinned:.1f} (sleeping wait); before {before:.1f} (spinning wait)")
     print(f"busy/solo1 = {busy / solo1:.2f}")
+    print(f"unpinned/solo1 = {unpinned / solo1:.2f}")
     print(f"before/solo1 = {before / solo1:.2f}")
 
 

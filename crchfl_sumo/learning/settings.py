@@ -230,10 +230,10 @@ class TrainConfig:
     multi_vehicle: "sequential" (fastest on CPU, measured) or "vmap".
     sampling: "uniform", "class_balanced", "command_balanced" or "pedal_balanced" (balance.py).
     class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
-    precision: "fp32" (default: float32 throughout), "bf16" (the forward pass under bfloat16
-        autocast, on CPU or CUDA; weights, gradients and Adam stay float32) or "auto" ("bf16" where
-        the device has bfloat16 arithmetic, AVX-512 BF16 or AMX on a CPU, else "fp32"). docs/model.md
-        measures both, and why bf16 is not the default (a busy machine).
+    precision: "auto" (default: "bf16" where the device has bfloat16 arithmetic, AVX-512 BF16 or AMX
+        on a CPU, else "fp32"), "fp32" (float32 throughout) or "bf16" (the forward pass under
+        bfloat16 autocast, on CPU or CUDA; weights, gradients and Adam stay float32). docs/model.md
+        measures both.
     """
 
     learning_rate: float = 1e-3
@@ -248,7 +248,7 @@ class TrainConfig:
     multi_vehicle: Literal["sequential", "vmap"] = "sequential"
     sampling: Literal["uniform", "class_balanced", "command_balanced", "pedal_balanced"] = "uniform"
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
-    precision: Literal["auto", "fp32", "bf16"] = "fp32"
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
 
     def __post_init__(self) -> None:
         if not 0 < self.learning_rate <= 10:

@@ -335,7 +335,9 @@ def _environment(summary: Mapping[str, Any], results: Mapping[str, Any], figures
         "", "## Environment and running time", "",
         f"Python {env.get('python', '-')}, {env.get('platform', '-')}, {env.get('cpu_count', '-')} CPUs "
         f"({env.get('available_cpus', '-')} available), {env.get('torch_threads', '-')} torch threads "
-        f"(OMP_WAIT_POLICY {env.get('omp_wait_policy', '-')}), CUDA {_fmt(env.get('cuda'))}.",
+        f"(OMP_WAIT_POLICY {env.get('omp_wait_policy', '-')}), CUDA {_fmt(env.get('cuda'))}, "
+        f"bfloat16 arithmetic on the CPU {_fmt(env.get('bfloat16_cpu'))} (train.precision \"auto\" trains in "
+        "bfloat16 where it is there).",
         "",
     ]
     lines += _table(["package", "version"], [[k, _fmt(v)] for k, v in (env.get("versions") or {}).items()])

@@ -179,6 +179,8 @@ def environment() -> dict[str, Any]:
 
     import torch
 
+    from crchfl_sumo.learning.training import native_bfloat16
+
     versions = {}
     packages = ("crchfl-sumo", "torch", "numpy", "matplotlib", "cvxpy", "eclipse-sumo", "libsumo", "h5py",
                 "opencv-python-headless")
@@ -195,6 +197,7 @@ def environment() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "omp_wait_policy": os.environ.get(WAIT_POLICY, "default"),
         "cuda": torch.cuda.is_available(),
+        "bfloat16_cpu": native_bfloat16("cpu"),  # where train.precision "auto" trains in bfloat16
         "versions": versions,
     }
 

@@ -291,8 +291,8 @@ def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch
     monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
     training.native_bfloat16.cache_clear()
     try:
-        assert TrainConfig().precision == "fp32"
-        trainer = Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="auto"))
+        assert TrainConfig().precision == "auto"
+        trainer = Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu"))
         assert trainer.precision == expected
         seen = []
         trainer.model.branch_steer.register_forward_pre_hook(lambda m, args: seen.append(args[0].dtype))

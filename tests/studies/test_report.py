@@ -160,7 +160,8 @@ def results(tmp_path) -> Path:
                {"route": "town01_right_left", "completion": completion, "collisions": 0, "end_reason": "completed"})
     _write(out / "reproduce.json", {"config": {"name": "test", "seeds": 2}, "seeds": [0, 1], "ablation_seeds": [0],
                                     "started_utc": "2026-11-23T00:00:00Z",
-                                    "environment": {"python": "3.x", "versions": {"torch": "2.13.0"}}})
+                                    "environment": {"python": "3.x", "bfloat16_cpu": True,
+                                                    "versions": {"torch": "2.13.0"}}})
     _write(out / "timings.json", {
         "data": {"wall_s": 1.0, "cpu_s": 1.5},
         "runs/crchfl/seed-0": {"wall_s": 10.0, "cpu_s": 19.0, "start_unix": 1000.0, "jobs": 2},
@@ -199,7 +200,8 @@ def test_report_of_a_folder(results):
     for path in summary["figures"].values():
         assert (results / path).read_bytes()[:8] == PNG_MAGIC
         assert path in report
-    for text in ("+10.33 %", "+12.41 %", "+10.00 %", "+20.00 %", "0.6600 ± 0.0283", "town01_right_left", "2.13.0"):
+    for text in ("+10.33 %", "+12.41 %", "+10.00 %", "+20.00 %", "0.6600 ± 0.0283", "town01_right_left", "2.13.0",
+                 "bfloat16 arithmetic on the CPU true"):
         assert text in report, text
     assert not list(results.rglob(".*.partial-*"))
     # balanced accuracy beside accuracy, the baseline on the same test set, what the best models learned
