@@ -13,7 +13,7 @@ kernel sometimes put two of them on one core beside another process's work,
 and a thread that spins at a barrier (OpenMP's wait, oneDNN's bfloat16 weight
 gradients) then holds the core that the thread it waits for needs; beside one
 busy process bfloat16 training fell to 0.4 of one thread alone, and pinned it
-keeps about 0.8 to 0.9 (docs/benchmarks.md). Pinned threads keep OpenMP's
+keeps 0.7 to 0.85 (docs/benchmarks.md). Pinned threads keep OpenMP's
 spinning wait, which is the faster one on an idle machine and, pinned, beside
 a busy one too. Where threads cannot be pinned (no affinity calls, or parts
 that share the CPUs with 2 or more threads each) and other processes keep at
