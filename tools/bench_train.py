@@ -78,22 +78,24 @@ def train_flops_per_sample(model_config: ModelConfig, batch_size: int) -> float:
     return counter.get_total_flops() / batch_size
 
 
-def matmul_gflops(size: int = 2048, trials: int = 5, repeats: int = 3) -> float:
-    """Best float32 GFLOP/s of a size^3 matmul over a few short trials."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_gflops(device: torch.device, size: int = 2048, trials: int = 5, repeats: int = 3) -> float:
+    """Best float32 GFLOP/s of a size^3 matmul on ``device`` over a few short trials."""
+    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
     a @ b
     best = 0.0
     for _ in range(trials):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            a @ b
-        best = max(best, 2 * size**3 * repeats / (time.perf_counter() - start) / 1e9)
+        seconds = timed(lambda: [a @ b for _ in range(repeats)])
+        best = max(best, 2 * size**3 * repeats / seconds / 1e9)
     return best
 
 
 def timed(function) -> float:
+    """Wall seconds of ``function()``, queued GPU work included (CUDA runs asynchronously)."""
+    synchronize = torch.cuda.synchronize if torch.cuda.is_initialized() else (lambda: None)
+    synchronize()
     start = time.perf_counter()
     function()
+    synchronize()
     return time.perf_counter() - start
 
 
@@ -270,7 +272,7 @@ def main() -> None:
     best_s = best_seconds(runs, args.repeats)
 
     flops = train_flops_per_sample(model_config, TrainConfig().batch_size)
-    peak = matmul_gflops()
+    peak = matmul_gflops(device)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
     print(f"vehicles {counts} = {total} samples, image {args.height}x{args.width}, batch 32, 1 epoch, best of {args.repeats}")
     print(f"train FLOPs per sample {flops / 1e9:.3f} GFLOP; float32 matmul 2048^3: {peak:.1f} GFLOP/s")

@@ -56,7 +56,7 @@ def pedal_states(
     throttle above PRESSED_MIN; BRAKE: moving with brake above it; CRUISE: the rest.
     """
     throttle, brake = actions[:, 0], actions[:, 2]
-    states = torch.full((len(actions),), CRUISE, dtype=torch.int64)
+    states = torch.full((len(actions),), CRUISE, dtype=torch.int64, device=actions.device)
     states[(speed_mps >= stop_speed_mps) & (brake > PRESSED_MIN)] = BRAKE
     states[(speed_mps < stop_speed_mps) & (throttle <= PRESSED_MIN)] = HOLD
     states[throttle > PRESSED_MIN] = THROTTLE

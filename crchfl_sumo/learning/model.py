@@ -123,12 +123,13 @@ class GroupNorm(nn.GroupNorm):
     (its backward took a fifth of a bfloat16 training step); the same input made
     contiguous, with the affine weights cast as autocast casts a convolution's,
     is faster even with the copy back to channels_last (docs/model.md, "Training
-    in bfloat16"). Float32 input takes nn.GroupNorm's own path, bit for bit.
+    in bfloat16"). Float32 input takes nn.GroupNorm's own path, bit for bit, and so
+    does input on a GPU (CUDA's autocast runs group_norm in float32 itself).
     Input is [B, C, H, W].
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.dtype == self.weight.dtype:
+        if x.dtype == self.weight.dtype or x.device.type != "cpu":  # CUDA's autocast runs group_norm in fp32
             return super().forward(x)
         weight, bias = self.weight.to(x.dtype), self.bias.to(x.dtype)
         y = nn.functional.group_norm(x.contiguous(), self.num_groups, weight, bias, self.eps)
