@@ -30,6 +30,7 @@ from crchfl_sumo.learning.training import (
     configure_determinism,
     evaluate,
     resolve_device,
+    resolved_multi_vehicle,
     train_vehicle,
     train_vehicles,
     vehicle_seed,
@@ -52,8 +53,8 @@ class TorchTrainer:
 
     def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
         """Each vehicle's new state, in order, trained when it is asked for: vehicle i with
-        ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (``multi_vehicle = "vmap"``: all at once)."""
-        if self.config.multi_vehicle == "vmap":
+        ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (vmap: all at once)."""
+        if resolved_multi_vehicle(self.config, self.model_config, self.device) == "vmap":
             new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
             return iter(new)
         return (

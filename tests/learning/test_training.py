@@ -300,3 +300,29 @@ def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch
         assert seen == [torch.bfloat16 if expected == "bf16" else torch.float32]
     finally:
         training.native_bfloat16.cache_clear()
+
+
+@pytest.mark.parametrize(
+    "method,device,norm,expected",
+    [
+        ("auto", "cpu", "group", "sequential"),  # faster on a CPU (docs/model.md)
+        ("auto", "cuda", "group", "vmap"),  # one launch of a step's kernels for all vehicles
+        ("auto", "cuda", "batch", "sequential"),  # BatchNorm cannot be vmapped
+        ("vmap", "cpu", "group", "vmap"),  # an explicit choice stands
+        ("sequential", "cuda", "group", "sequential"),
+    ],
+)
+def test_auto_multi_vehicle_vmaps_on_a_gpu_only(method, device, norm, expected):
+    from crchfl_sumo.learning.training import resolved_multi_vehicle
+
+    model_config = ModelConfig("compact", 48, 64, norm=norm)
+    assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method), model_config, torch.device(device)) == expected
+
+
+def test_auto_multi_vehicle_on_the_cpu_trains_as_the_sequential_loop_bit_for_bit():
+    vehicles = [_samples(40, seed=3), _samples(24, seed=4)]
+    state = build_model(SMALL, seed=0).state_dict()
+    run = lambda method: train_vehicles([state, state], vehicles, 1, SMALL,
+                                        TrainConfig(device="cpu", multi_vehicle=method), seed=7)[0]
+    auto, sequential = run("auto"), run("sequential")
+    assert all(_max_difference(a, b) == 0 for a, b in zip(auto, sequential))
