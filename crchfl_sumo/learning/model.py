@@ -349,7 +349,12 @@ def model_from_state(
     """A model holding a copy of ``state`` on ``device``; the caller's tensors and RNG are untouched."""
     with torch.device("meta"):  # no random init: every weight comes from ``state``
         model = DrivingModel(config)
-    weights = {name: t.detach().to(device=device, dtype=torch.float32, copy=True) for name, t in state.items()}
+    # Weights in float32 (states averaged by FedAvg may arrive in another float type); counters such
+    # as BatchNorm's num_batches_tracked keep their integer type, which checkpoints are checked against.
+    weights = {
+        name: t.detach().to(device=device, dtype=torch.float32 if t.is_floating_point() else t.dtype, copy=True)
+        for name, t in state.items()
+    }
     model.load_state_dict(weights, assign=True)
     return model
 

@@ -415,3 +415,16 @@ def test_under_autocast_the_branches_see_bfloat16_images_equal_to_the_float32_on
         assert seen[name].dtype == torch.bfloat16
         assert torch.allclose(seen[name].float(), float32[name], atol=4e-3)  # bfloat16 steps near 1: 2**-8
     assert torch.isfinite(steer_logits.float()).all() and torch.isfinite(longitudinal.float()).all()
+
+
+def test_model_from_state_keeps_batch_norm_counters_integer_so_its_checkpoint_loads(tmp_path):
+    # BatchNorm's num_batches_tracked is int64; cast to float32 it failed the checkpoint's weight check.
+    from crchfl_sumo.learning.checkpoint import load_model, save_checkpoint
+
+    config = ModelConfig("compact", 48, 64, norm="batch")
+    state = build_model(config, seed=0).state_dict()
+    copied = model_from_state(config, state).state_dict()
+    assert {k: v.dtype for k, v in copied.items()} == {k: v.dtype for k, v in state.items()}
+    assert copied["branch_steer.features.1.num_batches_tracked"].dtype == torch.int64
+    save_checkpoint(tmp_path / "model.pt", config, copied)
+    assert all(torch.equal(load_model(tmp_path / "model.pt").state_dict()[k], v) for k, v in copied.items())
