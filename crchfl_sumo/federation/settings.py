@@ -6,7 +6,7 @@ No torch here: every config that names a federation reads this module.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
 from crchfl_sumo.core.errors import CrchflError
@@ -27,6 +27,10 @@ SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs o
 
 # Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
 DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
+
+
+# The four hyper-parameters of the paper's problem P: with use_plan the optimizer's, else the config's.
+PLANNED_BY_THE_OPTIMIZER = ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,17 @@ class FederationConfig:
             )
         if self.use_plan and self.scheme != "crchfl":
             raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
+        if self.use_plan:
+            # The plan replaces these four: a value set beside it would be ignored (a sweep over one would
+            # run the same plan at every point), so it is refused. One set to its default is not seen.
+            defaults = {f.name: f.default for f in fields(self)}
+            for key in PLANNED_BY_THE_OPTIMIZER:
+                if getattr(self, key) != defaults[key]:
+                    raise CrchflError(
+                        f"federation.{key}: {getattr(self, key)} is not used with use_plan = true (the optimizer "
+                        f"picks {', '.join(PLANNED_BY_THE_OPTIMIZER)}); remove it, or set use_plan = false to choose "
+                        "all four yourself (allocation.fix_edge_interval fixes edge_interval inside the plan)"
+                    )
         check_range(self.pretrain_batch, "federation.pretrain_batch", 0, MAX_SAMPLES,
                     "a number of samples (0 = no stage I)")
         if self.pretrain_batch > 0 and self.scheme != "crchfl":

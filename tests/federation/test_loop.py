@@ -497,6 +497,15 @@ def test_wireless_transfer_asks_the_clock_for_more_time_until_it_settles():
     assert out.ok and out.end_s == pytest.approx(120.0) and out.site == 1
 
 
+@pytest.mark.parametrize("key,value", [("pretrain_batch", 100), ("edge_interval", 4), ("cloud_interval", 2),
+                                       ("cloud_rounds", 1)])
+def test_a_hyper_parameter_set_beside_use_plan_is_refused_naming_it(key, value):
+    # The optimizer's plan replaces it: silently ignored, a sweep over it would repeat one run.
+    with pytest.raises(CrchflError, match=f"federation.{key}: {value} is not used with use_plan = true"):
+        FederationConfig(scheme="crchfl", use_plan=True, **{key: value})
+    assert getattr(FederationConfig(scheme="crchfl", use_plan=False, **{key: value}), key) == value
+
+
 def test_config_rejects_impossible_combinations():
     with pytest.raises(CrchflError, match="cloud_interval"):
         FederationConfig(scheme="sfl", cloud_interval=2)

@@ -127,7 +127,7 @@ def test_config_errors_name_the_key(tmp_path, dataset):
 
 
 def test_use_plan_asks_the_optimizer_for_this_runs_topology(tmp_path, dataset):
-    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, edge_interval=2, cloud_rounds=0),
                                       "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0}})
     summary = run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())
     plan = json.loads((tmp_path / "out" / "config.json").read_text())["plan"]
@@ -241,7 +241,7 @@ def test_online_mode_grows_the_vehicles_data_and_resumes_exactly(tmp_path):
 def test_a_planned_run_reads_the_calibration_file(tmp_path, dataset):
     calibration = tmp_path / "calibration.toml"
     calibration.write_text("[allocation]\nalpha = 0.0\ngamma = 0.5\nd = 1.0\n")  # uploaded samples worth nothing
-    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, cloud_rounds=0),
+    config = from_mapping(RunConfig, {**run_config(dataset, scheme="crchfl", use_plan=True, edge_interval=2, cloud_rounds=0),
                                       "ledger": {"nominal_model_mb": 150.0, "budget_gb": 5.0},
                                       "allocation": {"calibration_file": str(calibration)}})
     run_federation_dir(config, read_inputs(config), tmp_path / "out", trainer=SumTrainer())
