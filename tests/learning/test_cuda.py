@@ -47,7 +47,11 @@ def test_auto_precision_is_bfloat16_on_a_gpu_that_has_it():
 
 
 def test_bf16_group_norm_on_cuda_is_nn_group_norm():
+    # Affine weights that bfloat16 cannot hold exactly: the CPU's fast path (weights cast to bfloat16)
+    # would give other values.
     norm = GroupNorm(4, 16).cuda()
+    torch.nn.init.normal_(norm.weight, 1.0, 0.3, generator=torch.Generator("cuda").manual_seed(0))
+    torch.nn.init.normal_(norm.bias, 0.0, 0.3, generator=torch.Generator("cuda").manual_seed(1))
     x = torch.randn(3, 16, 6, 8, device="cuda")
     with torch.autocast("cuda", dtype=torch.bfloat16):
         ours = norm(x.to(torch.bfloat16))
