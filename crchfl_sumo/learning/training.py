@@ -35,7 +35,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -570,6 +570,14 @@ def train_centralized(
 RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
 
 
+def _centralized_settings(train_config: Any) -> Any:
+    """The train settings a centralized training depends on: all but multi_vehicle, which only says how
+    a federated run trains its vehicles (its default changed; checkpoints written before still resume)."""
+    if not isinstance(train_config, dict):
+        return train_config
+    return {key: value for key, value in train_config.items() if key != "multi_vehicle"}
+
+
 def _resume_training(
     path: Path, trainer: Learner, generator: torch.Generator, seed: int, epochs: int, samples: tuple[int, int]
 ) -> list[dict]:
@@ -581,7 +589,8 @@ def _resume_training(
     checkpoint, used = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
     extra, state = checkpoint.extra, checkpoint.extra["resume"]
     if (checkpoint.model_config != trainer.model.config or extra.get("seed") != seed
-            or extra.get("train_config") != to_mapping(trainer.config) or list(state["samples"]) != list(samples)):
+            or _centralized_settings(extra.get("train_config")) != _centralized_settings(to_mapping(trainer.config))
+            or list(state["samples"]) != list(samples)):
         raise CrchflError(
             f"{used}: written by a training with other settings or data; resume with the original command "
             "(model, seed, data set) or choose another --out"

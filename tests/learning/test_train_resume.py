@@ -131,3 +131,15 @@ def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, cap
     assert _without_rates(records[1]) == _without_rates(records[0])
     # the folder now holds a 3-epoch training: the same settings as the uninterrupted one's
     assert marker.read_bytes() == (whole / ".crchfl-sumo-train.json").read_bytes()
+
+
+def test_a_checkpoint_of_the_former_multi_vehicle_default_resumes(data, whole, tmp_path):
+    # multi_vehicle only says how a federated run trains its vehicles; its default changed from
+    # "sequential" to "auto", and a centralized training's checkpoint written before must still resume.
+    import dataclasses
+
+    train_centralized(*data, 2, tmp_path, SMALL, dataclasses.replace(CPU, multi_vehicle="sequential"), seed=5)
+    records = train_centralized(*data, 3, tmp_path, SMALL, CPU, seed=5, resume=True)
+    _assert_same_as_whole(records, tmp_path, whole)
+    with pytest.raises(CrchflError, match="other settings or data"):  # a setting training depends on still counts
+        train_centralized(*data, 4, tmp_path, SMALL, dataclasses.replace(CPU, learning_rate=1e-4), seed=5, resume=True)
