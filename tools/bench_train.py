@@ -3,8 +3,8 @@
 In one run, on the same synthetic samples (vehicle sizes in the proportions of
 the paper's data set, FACTS.md), measures one epoch of training throughput of
   (a) train_vehicles, our multi-vehicle trainer, with each multi_vehicle method
-      ("sequential", the default, and "vmap": functional_call + vmap over
-      stacked parameters),
+      ("sequential", which "auto" picks on a CPU, and "vmap", on a GPU:
+      functional_call + vmap over stacked parameters),
   (b) the plain sequential per-vehicle loop (a fresh model and optimizers per
       vehicle, written out here without train_vehicles),
   (c) one centralized model on all samples,
@@ -49,7 +49,9 @@ from torch.utils.flop_counter import FlopCounterMode
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.model import DrivingModel, build_model, longitudinal_target
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import Learner, branch_losses, resolve_device, train_vehicles
+from crchfl_sumo.learning.training import (
+    Learner, branch_losses, resolve_device, resolved_multi_vehicle, train_vehicles,
+)
 
 PAPER_VEHICLE_SAMPLES = (2928, 2928, 2586, 2587, 1555)
 
@@ -284,7 +286,8 @@ def main() -> None:
     for method in ("sequential", "vmap"):
         a = rate[f"a {method}"]
         print(f"a={method:10s}  a/c = {a / c:.3f}   a/b = {a / b:.3f}")
-    print(f"b/c = {b / c:.3f}; train_vehicles default method: {TrainConfig().multi_vehicle}")
+    default = resolved_multi_vehicle(TrainConfig(), model_config, device.type)
+    print(f"b/c = {b / c:.3f}; train_vehicles default method here: {default}")
     print_levers(everything_on_device, model_config, device, args.repeats)
     if args.busy_s > 0:
         busy_against_solo(args)

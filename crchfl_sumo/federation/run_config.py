@@ -115,12 +115,29 @@ def load_run_config(path: str | Path) -> RunConfig:
 
 
 def resolved_config(config: RunConfig) -> dict:
-    """The settings a run's results depend on: all but [backend] (where it runs), and [sumo] only when set."""
+    """The settings a run's results depend on: all but [backend] (where it runs), and [sumo] only when set;
+    train.multi_vehicle as the method the run trains its vehicles with here ("auto" decided)."""
     mapping = to_mapping(config)
+    mapping["train"]["multi_vehicle"] = multi_vehicle_method(config)
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
     return mapping
+
+
+def multi_vehicle_method(config: RunConfig) -> str:
+    """"sequential" or "vmap": how the run trains its vehicles on this machine. Ray trains each vehicle
+    as its own task on a CPU; "auto" is vmap on a GPU only (learning.training.resolved_multi_vehicle)."""
+    from crchfl_sumo.learning.training import resolved_multi_vehicle
+
+    if config.backend.kind == "ray":
+        return "sequential"
+    device = config.train.device
+    if device == "auto" and config.train.multi_vehicle == "auto":
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    return resolved_multi_vehicle(config.train, config.model, device)
 
 
 def resolved_as_today(stored: Mapping[str, Any], where: str) -> dict:

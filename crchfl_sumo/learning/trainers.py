@@ -54,7 +54,7 @@ class TorchTrainer:
     def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
         """Each vehicle's new state, in order, trained when it is asked for: vehicle i with
         ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (vmap: all at once)."""
-        if resolved_multi_vehicle(self.config, self.model_config, self.device) == "vmap":
+        if resolved_multi_vehicle(self.config, self.model_config, self.device.type) == "vmap":
             new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
             return iter(new)
         return (

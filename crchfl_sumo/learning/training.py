@@ -142,7 +142,7 @@ def resolved_precision(config: TrainConfig, device: torch.device) -> str:
     return config.precision
 
 
-def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, device: torch.device) -> str:
+def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, device_type: str) -> str:
     """"sequential" or "vmap": ``config.multi_vehicle``, with "auto" decided by the device.
 
     On a GPU one vectorised step for all vehicles launches a step's kernels once instead of once a
@@ -152,7 +152,7 @@ def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, devic
     if config.multi_vehicle != "auto":
         return config.multi_vehicle
     batch_norm = model_config.norm == "batch" and model_config.arch == "cil"
-    return "vmap" if device.type == "cuda" and not batch_norm else "sequential"
+    return "vmap" if device_type == "cuda" and not batch_norm else "sequential"
 
 
 def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
@@ -309,7 +309,7 @@ def train_vehicles(
             "train.multi_vehicle: 'vmap' cannot train BatchNorm (its running statistics are updated in place); "
             "use multi_vehicle = 'sequential' or model.norm = 'group'"
         )
-    if resolved_multi_vehicle(config, model_config, resolve_device(config.device)) == "vmap" and states:
+    if states and resolved_multi_vehicle(config, model_config, resolve_device(config.device).type) == "vmap":
         return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed)
     results = [
         train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i))

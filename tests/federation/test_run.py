@@ -400,3 +400,19 @@ def test_settings_stored_before_newer_options_read_back_as_today():
     stored["federation"]["deadline_s"] = 60.0  # a setting that does differ still differs
     assert resolved_as_today(stored, "test") != today
     assert resolved_as_today({"federation": {"no_such_key": 1}}, "test") == {"federation": {"no_such_key": 1}}
+
+
+def test_a_run_records_the_multi_vehicle_method_it_trains_with_so_former_folders_resume():
+    # "auto" replaced "sequential" as the default; on a CPU it trains the same, so a folder written
+    # under the former default compares equal (run --resume, sweep points) and config.json says the method.
+    from crchfl_sumo.federation.run_config import resolved_as_today, resolved_config
+
+    on_cpu = lambda **train: from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "train": {"device": "cpu", **train}})
+    today = json.loads(json.dumps(resolved_config(on_cpu())))
+    assert today["train"]["multi_vehicle"] == "sequential"
+    former = {**today, "train": {**today["train"], "multi_vehicle": "sequential"}}
+    assert resolved_as_today(former, "config.json") == today
+    assert resolved_config(on_cpu(multi_vehicle="vmap"))["train"]["multi_vehicle"] == "vmap"  # chosen: it stands
+    assert resolved_as_today({**today, "train": {**today["train"], "multi_vehicle": "vmap"}}, "config.json") != today
+    ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
+    assert resolved_config(ray)["train"]["multi_vehicle"] == "sequential"  # one task a vehicle, on a CPU

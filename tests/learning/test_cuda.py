@@ -6,6 +6,8 @@ run in TF32 by default and in another summation order, so the tolerances are
 those of the bfloat16 tests in test_training.py, not bit equality.
 """
 
+import os
+
 import pytest
 import torch
 
@@ -16,6 +18,8 @@ from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import Learner, evaluate, resolved_precision, train_vehicles
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+# As a command's parts have it: set before this process's first cuBLAS call (torch reads it once).
+os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
 
 SMALL = ModelConfig("compact", 48, 64)
 
@@ -78,10 +82,11 @@ def test_the_vmap_trainer_follows_the_sequential_loop_on_cuda(precision):
     assert _flat_difference(results["vmap"][0][2], start[2], start[2]).max() == 0  # the idle vehicle
 
 
-def test_deterministic_cuda_training_repeats_bit_for_bit():
+@pytest.mark.parametrize("method", ["sequential", "vmap"])
+def test_deterministic_cuda_training_repeats_bit_for_bit(method):
     vehicles = [_samples(40, seed=3), _samples(24, seed=4)]
     state = build_model(SMALL, seed=0).state_dict()
-    config = TrainConfig(device="cuda", deterministic=True)
+    config = TrainConfig(device="cuda", deterministic=True, multi_vehicle=method)
     first, again = (train_vehicles([state, state], vehicles, 1, SMALL, config, seed=7)[0] for _ in range(2))
     assert all(torch.equal(a[k], b[k]) for a, b in zip(first, again) for k in state)
 

@@ -316,7 +316,7 @@ def test_auto_multi_vehicle_vmaps_on_a_gpu_only(method, device, norm, expected):
     from crchfl_sumo.learning.training import resolved_multi_vehicle
 
     model_config = ModelConfig("compact", 48, 64, norm=norm)
-    assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method), model_config, torch.device(device)) == expected
+    assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method), model_config, device) == expected
 
 
 def test_auto_multi_vehicle_on_the_cpu_trains_as_the_sequential_loop_bit_for_bit():
