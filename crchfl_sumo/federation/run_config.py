@@ -128,15 +128,11 @@ def resolved_config(config: RunConfig) -> dict:
 def multi_vehicle_method(config: RunConfig) -> str:
     """"sequential" or "vmap": how the run trains its vehicles on this machine. Ray trains each vehicle
     as its own task on a CPU; "auto" is vmap on a GPU only (learning.training.resolved_multi_vehicle)."""
-    from crchfl_sumo.learning.training import resolved_multi_vehicle
+    from crchfl_sumo.learning.training import resolve_device, resolved_multi_vehicle
 
-    if config.backend.kind == "ray":
-        return "sequential"
-    device = config.train.device
-    if device == "auto" and config.train.multi_vehicle == "auto":
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = "cpu" if config.backend.kind == "ray" else config.train.device  # Ray tasks train on CPUs
+    if device == "auto" and config.train.multi_vehicle == "auto":  # the device matters only then
+        device = resolve_device(device).type
     return resolved_multi_vehicle(config.train, config.model, device)
 
 

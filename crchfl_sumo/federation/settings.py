@@ -29,10 +29,6 @@ SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs o
 DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
 
 
-# The four hyper-parameters of the paper's problem P: with use_plan the optimizer's, else the config's.
-PLANNED_BY_THE_OPTIMIZER = ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")
-
-
 @dataclass(frozen=True)
 class FederationConfig:
     """The scheme and its four hyper-parameters (TOML table ``[federation]``).
@@ -160,3 +156,7 @@ class HyperParameters:
     edge_interval: int
     cloud_interval: int
     cloud_rounds: int  # 0 = until the budget is spent
+
+
+# The four hyper-parameters of the paper's problem P: with use_plan the optimizer's, else the config's.
+PLANNED_BY_THE_OPTIMIZER = tuple(f.name for f in fields(HyperParameters))

@@ -151,8 +151,12 @@ def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, devic
     """
     if config.multi_vehicle != "auto":
         return config.multi_vehicle
-    batch_norm = model_config.norm == "batch" and model_config.arch == "cil"
-    return "vmap" if device_type == "cuda" and not batch_norm else "sequential"
+    return "vmap" if device_type == "cuda" and vmappable(model_config) else "sequential"
+
+
+def vmappable(model_config: ModelConfig) -> bool:
+    """Whether vmap can train the network: not BatchNorm, whose running statistics update in place."""
+    return not (model_config.norm == "batch" and model_config.arch == "cil")
 
 
 def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
@@ -304,7 +308,7 @@ def train_vehicles(
         raise ValueError(f"train_vehicles: {len(states)} states for {len(vehicle_samples)} vehicles")
     check_range(epochs, "train_vehicles: epochs", 0, MAX_EPOCHS, "a number of epochs")  # seed: as train_vehicle's
     configure_determinism(config.deterministic)
-    if config.multi_vehicle == "vmap" and model_config.norm == "batch" and model_config.arch == "cil":
+    if config.multi_vehicle == "vmap" and not vmappable(model_config):
         raise CrchflError(
             "train.multi_vehicle: 'vmap' cannot train BatchNorm (its running statistics are updated in place); "
             "use multi_vehicle = 'sequential' or model.norm = 'group'"

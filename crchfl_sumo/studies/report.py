@@ -22,6 +22,7 @@ from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
+from crchfl_sumo.federation.settings import PLANNED_BY_THE_OPTIMIZER
 from crchfl_sumo.studies.report_figures import (
     FIGURES,
     NAMES,
@@ -35,7 +36,7 @@ from crchfl_sumo.studies.statistics import PAPER_GAINS_PERCENT, build_summary
 
 log = logging.getLogger(__name__)
 
-HYPER = ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")
+HYPER = PLANNED_BY_THE_OPTIMIZER  # the four hyper-parameters, in the report's column order
 DRIVE_COLUMNS = (
     "completion", "end_reason", "duration_s", "mean_speed_mps", "collisions", "lane_departures",
     "off_road_s", "red_light_violations", "max_abs_offset_m",
