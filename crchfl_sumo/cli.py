@@ -352,7 +352,8 @@ def _run_train(args) -> int:
     from crchfl_sumo.learning.settings import ModelConfig
     from crchfl_sumo.learning.training import train_centralized
 
-    with _output_folder(args, "train", extendable=("epochs",)):  # --resume --epochs N continues to N
+    # --resume --epochs N continues to N; the precision a resume trains in is checked against the epochs' own
+    with _output_folder(args, "train", extendable=("epochs", "precision")):
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         manifest = read_manifest(args.dataset)
         model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)

@@ -363,13 +363,29 @@ def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Mar
     """
     payload, path = read_latest(path, _read_checkpoint, "checkpoint", "delete the folder to start afresh")
     stored = payload["resolved"]
-    if {**stored, "config": resolved_as_today(stored.get("config", {}), f"{path}: config")} != resolved:
-        raise CrchflError(
+    stored_config = resolved_as_today(stored.get("config", {}), f"{path}: config")
+    if {**stored, "config": stored_config} != resolved:
+        raise CrchflError(_precision_refusal(path, stored, stored_config, resolved) or (
             f"{path}: written by a run with other settings or data; resume with the original config "
             "(see config.json there) or choose another --out"
-        )
+        ))
     marks = payload["logs"]
     return FederationState.from_payload(payload["state"], *restore_logs(path.parent, marks, sizes)), marks
+
+
+def _precision_refusal(path: Path, stored: dict, stored_config: Any, resolved: dict) -> str | None:
+    """The refusal of a run that differs from the stored one in its training precision alone ("auto"
+    decided on another machine, or another precision asked for); None when something else differs."""
+    train = stored_config.get("train") if isinstance(stored_config, dict) else None
+    here = resolved["config"]["train"]["precision"]
+    if not isinstance(train, dict) or train.get("precision") == here:
+        return None
+    if {**stored, "config": {**stored_config, "train": {**train, "precision": here}}} != resolved:
+        return None
+    return (
+        f"{path}: the run trained in {train.get('precision')}; with these settings this machine would continue "
+        f"it in {here}. Set [train] precision = \"{train.get('precision')}\" to continue it, or choose another --out"
+    )
 
 
 def _write_outputs(

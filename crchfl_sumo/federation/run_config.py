@@ -116,9 +116,11 @@ def load_run_config(path: str | Path) -> RunConfig:
 
 def resolved_config(config: RunConfig) -> dict:
     """The settings a run's results depend on: all but [backend] (where it runs), and [sumo] only when set;
-    train.multi_vehicle as the method the run trains its vehicles with here ("auto" decided)."""
+    train.multi_vehicle and train.precision as the run trains with here ("auto" decided), so that a run
+    started in bfloat16 is not continued in float32 on a machine where "auto" means float32."""
     mapping = to_mapping(config)
     mapping["train"]["multi_vehicle"] = multi_vehicle_method(config)
+    mapping["train"]["precision"] = training_precision(config)
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
@@ -126,14 +128,33 @@ def resolved_config(config: RunConfig) -> dict:
 
 
 def multi_vehicle_method(config: RunConfig) -> str:
-    """"sequential" or "vmap": how the run trains its vehicles on this machine. Ray trains each vehicle
-    as its own task on a CPU; "auto" is vmap on a GPU only (learning.training.resolved_multi_vehicle)."""
-    from crchfl_sumo.learning.training import resolve_device, resolved_multi_vehicle
+    """"sequential" or "vmap": how the run trains its vehicles on this machine; "auto" is vmap on a GPU
+    only (learning.training.resolved_multi_vehicle)."""
+    from crchfl_sumo.learning.training import resolved_multi_vehicle
 
-    device = "cpu" if config.backend.kind == "ray" else config.train.device  # Ray tasks train on CPUs
-    if device == "auto" and config.train.multi_vehicle == "auto":  # the device matters only then
-        device = resolve_device(device).type
-    return resolved_multi_vehicle(config.train, config.model, device)
+    if config.train.multi_vehicle != "auto":
+        return config.train.multi_vehicle
+    return resolved_multi_vehicle(config.train, config.model, _training_device(config).type)
+
+
+def training_precision(config: RunConfig) -> str:
+    """"fp32" or "bf16": the arithmetic the run's vehicles train in on this machine; "auto" is bf16 where
+    the training device multiplies bfloat16 in hardware (learning.training.resolved_precision)."""
+    from crchfl_sumo.learning.training import resolved_precision
+
+    if config.train.precision != "auto":
+        return config.train.precision
+    return resolved_precision(config.train, _training_device(config))
+
+
+def _training_device(config: RunConfig):
+    """The torch device the run's vehicles train on ("auto" decided): Ray tasks train on CPUs."""
+    import torch
+
+    from crchfl_sumo.learning.training import resolve_device
+
+    name = "cpu" if config.backend.kind == "ray" else config.train.device
+    return resolve_device(name) if name == "auto" else torch.device(name)
 
 
 def resolved_as_today(stored: Mapping[str, Any], where: str) -> dict:

@@ -575,11 +575,12 @@ RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
 
 
 def _centralized_settings(train_config: Any) -> Any:
-    """The train settings a centralized training depends on: all but multi_vehicle, which only says how
-    a federated run trains its vehicles (its default changed; checkpoints written before still resume)."""
+    """The train settings a centralized checkpoint must match: all but multi_vehicle, which only says how
+    a federated run trains its vehicles (its default changed; checkpoints written before still resume),
+    and precision, which is checked as resolved against the precision the epochs trained in."""
     if not isinstance(train_config, dict):
         return train_config
-    return {key: value for key, value in train_config.items() if key != "multi_vehicle"}
+    return {key: value for key, value in train_config.items() if key not in ("multi_vehicle", "precision")}
 
 
 def _resume_training(
@@ -600,6 +601,14 @@ def _resume_training(
             "(model, seed, data set) or choose another --out"
         )
     records = list(state["records"])
+    # Epochs recorded before train.precision existed trained in float32.
+    trained_in = records[-1].get("precision", "fp32") if records else trainer.precision
+    if trained_in != trainer.precision:  # "auto" decided on another machine, or another precision asked for
+        raise CrchflError(
+            f"{used}: its epochs trained in {trained_in}; this training would continue in {trainer.precision} "
+            f"(train.precision {trainer.config.precision!r} on this machine); resume with --precision {trained_in} "
+            "or choose another --out"
+        )
     if len(records) > epochs:
         raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
     trainer.model.load_state_dict(checkpoint.state_dict)

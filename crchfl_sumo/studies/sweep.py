@@ -52,6 +52,7 @@ from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,
     resolve_config_path,
+    resolved_as_today,
     resolved_config,
     with_backend,
 )
@@ -244,7 +245,7 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
     if not summary.get("stop_reason"):
         return None
     wanted = json.loads(json.dumps(resolved_config(from_mapping(RunConfig, mapping))))
-    if recorded != wanted:
+    if resolved_as_today(recorded, str(run_dir / "config.json")) != wanted:  # a folder of an older version too
         raise CrchflError(
             f"{run_dir} holds a run made with other settings than this sweep's point (see its config.json); "
             "sweep into another --out or delete that folder"

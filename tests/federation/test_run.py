@@ -111,6 +111,22 @@ def test_resume_with_other_settings_is_refused(tmp_path, dataset):
         run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
 
 
+def test_a_run_is_not_continued_in_another_precision(tmp_path, dataset):
+    # config.json records the precision the run trains in ("auto" decided), so a run started in one
+    # precision is not continued in the other, e.g. on a machine where "auto" means the other.
+    mapping = run_config(dataset)
+    trained = from_mapping(RunConfig, {**mapping, "train": {**mapping["train"], "precision": "fp32"}})
+    inputs = read_inputs(trained)
+    with pytest.raises(Killed):
+        run_federation_dir(trained, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=kill_after(1))
+    assert json.loads((tmp_path / "out" / "config.json").read_text())["config"]["train"]["precision"] == "fp32"
+    other = from_mapping(RunConfig, {**mapping, "train": {**mapping["train"], "precision": "bf16"}})
+    with pytest.raises(CrchflError, match=r'trained in fp32; .* continue it in bf16\. Set \[train\] precision = "fp32"'):
+        run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
+    run_federation_dir(trained, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)  # the same: it goes on
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["stop_reason"]
+
+
 def test_config_errors_name_the_key(tmp_path, dataset):
     with pytest.raises(CrchflError, match="data_mode"):
         from_mapping(RunConfig, {**run_config(dataset), "data_mode": "online"})  # needs the SUMO clock
@@ -416,3 +432,20 @@ def test_a_run_records_the_multi_vehicle_method_it_trains_with_so_former_folders
     assert resolved_as_today({**today, "train": {**today["train"], "multi_vehicle": "vmap"}}, "config.json") != today
     ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
     assert resolved_config(ray)["train"]["multi_vehicle"] == "sequential"  # one task a vehicle, on a CPU
+
+
+def test_a_run_records_the_precision_it_trains_in_so_former_folders_resume():
+    # "auto" is stored decided: bf16 where the CPU multiplies bfloat16, else fp32. A folder written
+    # before, which holds "auto", reads back as this machine decides it, and a named precision stands.
+    from crchfl_sumo.federation.run_config import resolved_as_today, resolved_config
+    from crchfl_sumo.learning.training import native_bfloat16
+
+    on_cpu = lambda **train: from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "train": {"device": "cpu", **train}})
+    today = json.loads(json.dumps(resolved_config(on_cpu())))
+    assert today["train"]["precision"] == ("bf16" if native_bfloat16("cpu") else "fp32")
+    former = {**today, "train": {**today["train"], "precision": "auto"}}
+    assert resolved_as_today(former, "config.json") == today
+    for named in ("fp32", "bf16"):
+        assert resolved_config(on_cpu(precision=named))["train"]["precision"] == named
+    ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
+    assert resolved_config(ray)["train"]["precision"] == today["train"]["precision"]  # Ray tasks train on CPUs

@@ -122,6 +122,12 @@ def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, cap
     assert main([*argv, "--epochs", "1", "--out", str(cut), "--resume"]) == 2
     assert "holds 2 epochs already; ask for --epochs 2 or more" in capsys.readouterr().err
     assert marker.read_bytes() == two_epochs
+    # --precision may be named on a resume, but the epochs' own precision is checked: the other is refused
+    trained_in = json.loads((cut / "metrics.jsonl").read_text().splitlines()[-1])["precision"]
+    other = "fp32" if trained_in == "bf16" else "bf16"
+    assert main([*argv, "--epochs", "3", "--out", str(cut), "--resume", "--precision", other]) == 2
+    assert f"its epochs trained in {trained_in}; this training would continue in {other}" in capsys.readouterr().err
+    assert marker.read_bytes() == two_epochs
     assert main([*argv, "--epochs", "3", "--out", str(cut), "--resume"]) == 0
     a = load_checkpoint(whole / "checkpoint.pt").state_dict
     b = load_checkpoint(cut / "checkpoint.pt").state_dict
@@ -143,3 +149,29 @@ def test_a_checkpoint_of_the_former_multi_vehicle_default_resumes(data, whole, t
     _assert_same_as_whole(records, tmp_path, whole)
     with pytest.raises(CrchflError, match="other settings or data"):  # a setting training depends on still counts
         train_centralized(*data, 4, tmp_path, SMALL, dataclasses.replace(CPU, learning_rate=1e-4), seed=5, resume=True)
+
+
+def test_a_checkpoint_is_not_continued_in_another_precision(data, tmp_path):
+    # The precision each epoch trained in is in its record; a resume that would train in the other one
+    # ("auto" decided on another machine, or another --precision) is refused and names the fix.
+    import dataclasses
+
+    from crchfl_sumo.learning.checkpoint import save_checkpoint
+
+    fp32 = dataclasses.replace(CPU, precision="fp32")
+    train_centralized(*data, 2, tmp_path / "a", SMALL, fp32, seed=5)
+    with pytest.raises(CrchflError, match=r"its epochs trained in fp32; this training would continue in bf16 .*--precision fp32"):
+        train_centralized(*data, 3, tmp_path / "a", SMALL, dataclasses.replace(CPU, precision="bf16"), seed=5, resume=True)
+    whole = train_centralized(*data, 3, tmp_path / "whole", SMALL, fp32, seed=5)
+    # A checkpoint written before train.precision existed (float32 then) names it nowhere: it continues in fp32.
+    checkpoint = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    extra = checkpoint.extra
+    del extra["train_config"]["precision"]
+    for record in [extra["metrics"], *extra["resume"]["records"]]:
+        record.pop("precision", None)  # the last record is the metrics too
+    save_checkpoint(tmp_path / "a" / "checkpoint.pt", checkpoint.model_config, checkpoint.state_dict, extra)
+    records = train_centralized(*data, 3, tmp_path / "a", SMALL, fp32, seed=5, resume=True)
+    assert _without_rates(records[2:]) == _without_rates(whole[2:])
+    state = load_checkpoint(tmp_path / "a" / "checkpoint.pt").state_dict
+    expected = load_checkpoint(tmp_path / "whole" / "checkpoint.pt").state_dict
+    assert all(torch.equal(state[k], expected[k]) for k in state)

@@ -141,6 +141,13 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
     before = {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points}
     run_sweep(base, params, out, BackendConfig(num_cpus=2))
     assert {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points} == before
+    # a point finished by a version that stored train.precision undecided ("auto") is still this sweep's
+    stored_path = runs / points[0].name / "config.json"
+    stored = json.loads(stored_path.read_text())
+    stored["config"]["train"]["precision"] = "auto"
+    stored_path.write_text(json.dumps(stored))
+    run_sweep(base, params, out, BackendConfig(num_cpus=2))
+    assert {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points} == before
     # the same folder with another base config: its finished runs are not taken for this sweep's
     other = {**base, "ledger": {"nominal_model_mb": 20.0}}
     with pytest.raises(CrchflError, match="other settings"):
