@@ -350,7 +350,7 @@ def _run_train(args) -> int:
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.data.shards import read_manifest
     from crchfl_sumo.learning.settings import ModelConfig
-    from crchfl_sumo.learning.training import train_centralized
+    from crchfl_sumo.learning.centralized import train_centralized
 
     # --resume --epochs N continues to N; the precision a resume trains in is checked against the epochs' own
     with _output_folder(args, "train", extendable=("epochs", "precision")):

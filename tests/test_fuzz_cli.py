@@ -32,7 +32,6 @@ import traceback
 import typing
 from pathlib import Path
 
-import pytest
 import tomli_w
 
 from crchfl_sumo.cli import build_parser, main

@@ -32,7 +32,8 @@ def test_build_model_takes_every_seed_of_the_range_and_numpy_integers():
 
 
 def test_training_entry_points_refuse_bad_epochs_and_seeds(tmp_path):
-    from crchfl_sumo.learning.training import train_centralized, train_vehicle, train_vehicles
+    from crchfl_sumo.learning.centralized import train_centralized
+    from crchfl_sumo.learning.training import train_vehicle, train_vehicles
 
     args = (None, None)  # samples: never reached, the arguments are checked first
     with pytest.raises(CrchflError, match=r"train_centralized: epochs: 100001 is out of range; give a number of"):

@@ -29,7 +29,7 @@ from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import train_centralized
+from crchfl_sumo.learning.centralized import train_centralized
 
 MODEL_KEYS = {f.name for f in dataclasses.fields(ModelConfig)}
 TRAIN_KEYS = {f.name for f in dataclasses.fields(TrainConfig)}

@@ -49,9 +49,8 @@ from torch.utils.flop_counter import FlopCounterMode
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.model import DrivingModel, build_model, longitudinal_target
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import (
-    Learner, branch_losses, resolve_device, resolved_multi_vehicle, train_vehicles,
-)
+from crchfl_sumo.learning.devices import resolve_device, resolved_multi_vehicle
+from crchfl_sumo.learning.training import Learner, branch_losses, train_vehicles
 
 PAPER_VEHICLE_SAMPLES = (2928, 2928, 2586, 2587, 1555)
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 
 MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk (98 KB each)

@@ -42,7 +42,7 @@ from crchfl_sumo.driving.drive_command import single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
-from crchfl_sumo.learning.training import CHECKPOINT_FILE, train_centralized
+from crchfl_sumo.learning.centralized import CHECKPOINT_FILE, train_centralized
 from crchfl_sumo.sumo.route import inside_crossing, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES

@@ -129,8 +129,8 @@ def resolved_config(config: RunConfig) -> dict:
 
 def multi_vehicle_method(config: RunConfig) -> str:
     """"sequential" or "vmap": how the run trains its vehicles on this machine; "auto" is vmap on a GPU
-    only (learning.training.resolved_multi_vehicle)."""
-    from crchfl_sumo.learning.training import resolved_multi_vehicle
+    only (learning.devices.resolved_multi_vehicle)."""
+    from crchfl_sumo.learning.devices import resolved_multi_vehicle
 
     if config.train.multi_vehicle != "auto":
         return config.train.multi_vehicle
@@ -139,8 +139,8 @@ def multi_vehicle_method(config: RunConfig) -> str:
 
 def training_precision(config: RunConfig) -> str:
     """"fp32" or "bf16": the arithmetic the run's vehicles train in on this machine; "auto" is bf16 where
-    the training device multiplies bfloat16 in hardware (learning.training.resolved_precision)."""
-    from crchfl_sumo.learning.training import resolved_precision
+    the training device multiplies bfloat16 in hardware (learning.devices.resolved_precision)."""
+    from crchfl_sumo.learning.devices import resolved_precision
 
     if config.train.precision != "auto":
         return config.train.precision
@@ -151,7 +151,7 @@ def _training_device(config: RunConfig):
     """The torch device the run's vehicles train on ("auto" decided): Ray tasks train on CPUs."""
     import torch
 
-    from crchfl_sumo.learning.training import resolve_device
+    from crchfl_sumo.learning.devices import resolve_device
 
     name = "cpu" if config.backend.kind == "ray" else config.train.device
     return resolve_device(name) if name == "auto" else torch.device(name)

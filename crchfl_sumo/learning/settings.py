@@ -1,7 +1,7 @@
 """The settings of the network and of its training, apart from the network itself so that a config (RunConfig, ReproduceConfig) reads without torch.
 
 ModelConfig is model.py's config (nanoGPT keeps it beside the network; here it sits one file away for that
-reason); TrainConfig is training.py's.
+reason); TrainConfig is training.py's and centralized.py's.
 """
 
 from __future__ import annotations
@@ -205,9 +205,9 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
 # Arithmetic of training's forward pass (TrainConfig.precision): weights and optimiser stay float32 in each;
-# "auto" is bf16 where the device multiplies bfloat16 in hardware, else fp32 (training.resolved_precision).
+# "auto" is bf16 where the device multiplies bfloat16 in hardware, else fp32 (devices.resolved_precision).
 PRECISIONS = ("auto", "fp32", "bf16")
-# How train_vehicles trains many vehicles (TrainConfig.multi_vehicle; training.resolved_multi_vehicle).
+# How train_vehicles trains many vehicles (TrainConfig.multi_vehicle; devices.resolved_multi_vehicle).
 MULTI_VEHICLE_METHODS = ("auto", "sequential", "vmap")
 
 

@@ -26,15 +26,8 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight
 from crchfl_sumo.learning.model import DrivingModel, build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import (
-    configure_determinism,
-    evaluate,
-    resolve_device,
-    resolved_multi_vehicle,
-    train_vehicle,
-    train_vehicles,
-    vehicle_seed,
-)
+from crchfl_sumo.learning.devices import configure_determinism, resolve_device, resolved_multi_vehicle
+from crchfl_sumo.learning.training import evaluate, train_vehicle, train_vehicles, vehicle_seed
 
 
 class TorchTrainer:

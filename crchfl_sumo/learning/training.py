@@ -1,4 +1,4 @@
-"""Local training and evaluation of driving models: one vehicle, many vehicles, or centralized.
+"""Local training and evaluation of driving models: one model (Learner), one vehicle, or many vehicles at once.
 
 Training settings follow the paper's Table II: branch I (throttle, brake) is
 trained with MSE, branch II (steer class) with cross-entropy, each branch by its
@@ -25,49 +25,39 @@ seed and the vehicle's index, so the result does not depend on the method.
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import functools
-import json
-import logging
 import math
-import os
-import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
-from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest, remove_stale_temporaries
-from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.cpus import pinned_threads
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.balance import class_weights, epoch_batches
-from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
-from crchfl_sumo.learning.evaluation import Evaluation, always_straight, evaluate_model
+from crchfl_sumo.learning.devices import (
+    configure_determinism,
+    forward_precision,
+    resolve_device,
+    resolved_multi_vehicle,
+    resolved_precision,
+    vmappable,
+)
+from crchfl_sumo.learning.evaluation import Evaluation, evaluate_model
 from crchfl_sumo.learning.model import (
     DrivingModel,
     State,
-    build_model,
     longitudinal_target,
     model_from_state,
     paper_class_of_bin,
     steer_targets,
 )
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-
-log = logging.getLogger(__name__)
-
-
-METRICS_FILE = "metrics.jsonl"
-CHECKPOINT_FILE = "checkpoint.pt"
 
 
 @dataclass(frozen=True)
@@ -91,83 +81,6 @@ class Metrics:
         loss_tb, loss_steer = loss_tb_sum / count, loss_steer_sum / count
         return Metrics(loss_tb + loss_steer, correct / count, loss_tb, loss_steer, count)
 
-
-def resolve_device(name: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; "cuda" without a GPU is a CrchflError."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise CrchflError("train.device: 'cuda' was asked for but no CUDA device is available; use 'auto' or 'cpu'")
-    return torch.device(name)
-
-
-def configure_determinism(enabled: bool) -> None:
-    """Turn on deterministic algorithms (process-wide); does nothing when ``enabled`` is False."""
-    if not enabled:
-        return
-    # cuBLAS needs a fixed workspace to be deterministic; it reads this before its first use.
-    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-    torch.backends.cudnn.benchmark = False
-    torch.use_deterministic_algorithms(True)
-
-
-@functools.cache
-def native_bfloat16(device_type: str) -> bool:
-    """Whether this machine multiplies bfloat16 in hardware: AVX-512 BF16 or AMX on a CPU, a GPU that does.
-
-    Elsewhere bfloat16 is emulated, slower than float32 (measured by capping oneDNN's instruction set
-    here: 0.60x with AVX-512 and 0.12x with AVX2; docs/model.md).
-    """
-    if device_type == "cuda":
-        return torch.cuda.is_bf16_supported(including_emulation=False)
-    # torch's own probes of the CPU (private names: a torch without them counts as no bfloat16)
-    probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
-    return any(probe() for probe in probes if probe is not None)
-
-
-@functools.cache
-def _warn_emulated_bfloat16(device_type: str) -> None:
-    log.warning(
-        "train.precision = 'bf16' on a %s without bfloat16 arithmetic: it is emulated and slower than float32 "
-        "(0.12 to 0.60x measured); set train.precision = 'fp32' (train --precision fp32)", device_type.upper()
-    )
-
-
-def resolved_precision(config: TrainConfig, device: torch.device) -> str:
-    """"fp32" or "bf16": ``config.precision``, with "auto" decided by the device's bfloat16 arithmetic."""
-    if config.precision == "auto":
-        return "bf16" if native_bfloat16(device.type) else "fp32"
-    if config.precision == "bf16" and not native_bfloat16(device.type):
-        _warn_emulated_bfloat16(device.type)
-    return config.precision
-
-
-def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, device_type: str) -> str:
-    """"sequential" or "vmap": ``config.multi_vehicle``, with "auto" decided by the device.
-
-    On a GPU one vectorised step for all vehicles launches a step's kernels once instead of once a
-    vehicle (a step there is bound by launching, not arithmetic: 1.42x on an H200); on a CPU the
-    sequential loop is faster (docs/benchmarks.md). BatchNorm cannot be vmapped, so it stays sequential.
-    """
-    if config.multi_vehicle != "auto":
-        return config.multi_vehicle
-    return "vmap" if device_type == "cuda" and vmappable(model_config) else "sequential"
-
-
-def vmappable(model_config: ModelConfig) -> bool:
-    """Whether vmap can train the network: not BatchNorm, whose running statistics update in place."""
-    return not (model_config.norm == "batch" and model_config.arch == "cil")
-
-
-def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context a training forward pass runs in: bfloat16 autocast for ``precision`` "bf16"
-    (resolved_precision's answer, decided once per training), else none.
-
-    Only the forward pass runs inside it; the losses are taken in float32 from its outputs.
-    """
-    if precision == "bf16":
-        return torch.autocast(device.type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
 
 
 def vehicle_seed(seed: int, vehicle_index: int) -> int:
@@ -466,178 +379,3 @@ def _stacked_adam_step(
             params[name][rows] = p
             exp_avg[name][rows] = m
             exp_avg_sq[name][rows] = v
-
-
-def train_centralized(
-    train: Samples,
-    test: Samples,
-    epochs: int,
-    out_dir: str | Path,
-    model_config: ModelConfig,
-    config: TrainConfig,
-    seed: int,
-    progress: Progress | None = None,
-    initial_state: State | None = None,
-    drive_settings: dict | None = None,
-    resume: bool = False,
-) -> list[dict]:
-    """Train one model on all samples (the upper bound of the federated schemes).
-
-    ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
-    kept in the checkpoint's extra so that a drive renders and steers as the model learned.
-
-    After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
-    (one line per epoch: epoch and the test metrics of evaluation.py: loss,
-    accuracy, balanced_accuracy, loss_throttle_brake, loss_steer, steer_error,
-    throttle_error, brake_error, recall, confusion; test_samples;
-    always_straight (accuracy and balanced_accuracy of the constant straight
-    prediction on the test set); train_loss, train_accuracy, train_samples;
-    samples_per_s) and ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
-    samples trained so far, epochs x samples). Returns the metric records.
-
-    The checkpoint also holds what a resume needs (extra "resume": both Adams'
-    state, the shuffling generator's, the records), and the one it replaces
-    becomes checkpoint.prev.pt (core.atomic). ``resume``: continue from the
-    checkpoint in ``out_dir``, or from checkpoint.prev.pt (the epoch before)
-    when checkpoint.pt is damaged; the run then ends with the weights and
-    records of an uninterrupted one (samples_per_s aside, a wall-clock rate).
-    """
-    check_range(epochs, "train_centralized: epochs", 1, MAX_EPOCHS, "a number of epochs")
-    check_seed(seed, "train_centralized: seed")
-    if len(train) == 0 or len(test) == 0:
-        raise CrchflError("train: the training or test set is empty; check the data set folder")
-    if train.image_hw != (model_config.image_height, model_config.image_width):
-        raise CrchflError(
-            f"model.image_height/image_width: {model_config.image_height} x {model_config.image_width} does not "
-            f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
-        )
-    configure_determinism(config.deterministic)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out_dir)  # what a killed training's atomic writes left
-    device = resolve_device(config.device)
-    model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
-    trainer = Learner(model.to(device), config)
-    generator = torch.Generator().manual_seed(seed)
-    checkpoint_path = out_dir / CHECKPOINT_FILE
-    records: list[dict] = []
-    if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
-        records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))
-        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
-    train_on_device, test_on_device = train.to(device), test.to(device)
-    baseline = always_straight(test)
-    for epoch in range(len(records) + 1, epochs + 1):
-        start_s = time.perf_counter()
-        offset = (epoch - 1) * len(train)
-        per_epoch = None if progress is None else (
-            lambda u, offset=offset: progress(dataclasses.replace(u, done=offset + u.done, total=epochs * len(train)))
-        )
-        train_metrics = trainer.train_epoch(train_on_device, generator, per_epoch)
-        train_time_s = time.perf_counter() - start_s
-        test_metrics = evaluate(trainer.model, test_on_device, config).record()
-        record = {
-            "epoch": epoch,
-            **{k: v for k, v in test_metrics.items() if k != "samples"},
-            "test_samples": test_metrics["samples"],
-            "always_straight": baseline,
-            "train_loss": train_metrics.loss,
-            "train_accuracy": train_metrics.accuracy,
-            "train_samples": train_metrics.num_samples,
-            "samples_per_s": len(train) / train_time_s,
-            "precision": trainer.precision,
-        }
-        records.append(record)
-        log.info(
-            "epoch %d: test loss %.4f, accuracy %.3f, balanced accuracy %.3f (always straight %.3f)",
-            epoch, record["loss"], record["accuracy"], record["balanced_accuracy"], baseline["balanced_accuracy"],
-        )
-        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
-        resume_state = {
-            "optimizers": [optimizer.state_dict() for optimizer in trainer.optimizers],
-            "generator": generator.get_state(),
-            "records": records,
-            "samples": [len(train), len(test)],
-        }
-        save_checkpoint(
-            checkpoint_path,
-            model_config,
-            trainer.model.state_dict(),
-            {
-                "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
-                "resume": resume_state, **(drive_settings or {}),
-            },
-            keep_previous=True,
-        )
-    return records
-
-
-RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
-
-
-def _centralized_settings(train_config: Any) -> Any:
-    """The train settings a centralized checkpoint must match: all but multi_vehicle, which only says how
-    a federated run trains its vehicles (its default changed; checkpoints written before still resume),
-    and precision, which is checked as resolved against the precision the epochs trained in."""
-    if not isinstance(train_config, dict):
-        return train_config
-    return {key: value for key, value in train_config.items() if key not in ("multi_vehicle", "precision")}
-
-
-def _resume_training(
-    path: Path, trainer: Learner, generator: torch.Generator, seed: int, epochs: int, samples: tuple[int, int]
-) -> list[dict]:
-    """Load the checkpoint at ``path`` (or its previous copy) into ``trainer`` and ``generator``; its records.
-
-    Refused: a checkpoint of other settings (model, training, seed) or data (sample counts), or
-    of more epochs than ``epochs``.
-    """
-    checkpoint, used = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
-    extra, state = checkpoint.extra, checkpoint.extra["resume"]
-    if (checkpoint.model_config != trainer.model.config or extra.get("seed") != seed
-            or _centralized_settings(extra.get("train_config")) != _centralized_settings(to_mapping(trainer.config))
-            or list(state["samples"]) != list(samples)):
-        raise CrchflError(
-            f"{used}: written by a training with other settings or data; resume with the original command "
-            "(model, seed, data set) or choose another --out"
-        )
-    records = list(state["records"])
-    # Epochs recorded before train.precision existed trained in float32.
-    trained_in = records[-1].get("precision", "fp32") if records else trainer.precision
-    if trained_in != trainer.precision:  # "auto" decided on another machine, or another precision asked for
-        raise CrchflError(
-            f"{used}: its epochs trained in {trained_in}; this training would continue in {trainer.precision} "
-            f"(train.precision {trainer.config.precision!r} on this machine); resume with --precision {trained_in} "
-            "or choose another --out"
-        )
-    if len(records) > epochs:
-        raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
-    trainer.model.load_state_dict(checkpoint.state_dict)
-    try:
-        for optimizer, optimizer_state in zip(trainer.optimizers, state["optimizers"]):
-            optimizer.load_state_dict(optimizer_state)
-        generator.set_state(state["generator"])
-    except (KeyError, ValueError, RuntimeError, TypeError) as exc:
-        raise CrchflError(f"{used}: its optimizer or generator state does not fit ({exc}); delete the folder") from None
-    log.info("resuming %s after epoch %d", path.parent, len(records))
-    return records
-
-
-def _resumable_checkpoint(path: Path) -> Checkpoint:
-    """A training checkpoint with its resume state, checked; a CrchflError if missing, damaged or without one."""
-    checkpoint = load_checkpoint(path)
-    check_weights(checkpoint.model_config, checkpoint.state_dict, str(path))
-    state = checkpoint.extra.get("resume")
-    if not (
-        isinstance(state, dict) and set(state) == RESUME_KEYS
-        and isinstance(state["optimizers"], list) and len(state["optimizers"]) == 2
-        and all(isinstance(o, dict) for o in state["optimizers"])
-        and isinstance(state["generator"], torch.Tensor) and state["generator"].dtype == torch.uint8
-        and isinstance(state["records"], list) and all(isinstance(r, dict) for r in state["records"])
-        and len(state["records"]) == checkpoint.extra.get("epoch")
-        and isinstance(state["samples"], list) and len(state["samples"]) == 2
-    ):
-        raise CrchflError(
-            f"{path}: holds no resume state (written before `train --resume` existed, or damaged); "
-            "delete the folder to train afresh"
-        )
-    return checkpoint

@@ -19,7 +19,6 @@ from typing import Literal
 
 import numpy as np
 
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_SIMULATED_S, check_range
 from crchfl_sumo.links.channel import WirelineConfig
 

@@ -2,7 +2,7 @@
 
 Reads only what the runs wrote (studies/reproduce.py lays the folder out):
 ``runs/SCHEME/seed-S/`` and ``ablation/ie-K/seed-S/`` (federation/run.py: summary.json,
-metrics.jsonl, config.json), ``centralized/seed-S/`` (learning/training.py's
+metrics.jsonl, config.json), ``centralized/seed-S/`` (learning/centralized.py's
 metrics.jsonl and studies/reproduce.py's summary.json), ``drives/ROUTE/LABEL/``
 (driving/drive.py: metrics.json, trajectory.csv), ``reproduce.json`` and
 ``timings.json``. Writes ``figures/*.png``, ``report.md`` and

@@ -6,7 +6,7 @@ One results folder holds every part (each written by its owning module):
   timings.json                wall and CPU seconds of every finished part (also: which parts are finished)
   data/                       the data set, generated once and shared by every run
   configs/NAME.toml           the run config each federated run was started with
-  centralized/seed-S/         the centralized upper bound (learning.training.train_centralized)
+  centralized/seed-S/         the centralized upper bound (learning.centralized.train_centralized)
   runs/SCHEME/seed-S/         experiment B: CRCHFL, HFL and SFL under one budget (federation/run.py's folder)
   ablation/ie-K/seed-S/       experiment D: CRCHFL with edge_interval fixed to K
   drives/ROUTE/LABEL/         closed loop: each scheme's best model, the centralized
@@ -179,7 +179,7 @@ def environment() -> dict[str, Any]:
 
     import torch
 
-    from crchfl_sumo.learning.training import native_bfloat16
+    from crchfl_sumo.learning.devices import native_bfloat16
 
     versions = {}
     packages = ("crchfl-sumo", "torch", "numpy", "matplotlib", "cvxpy", "eclipse-sumo", "libsumo", "h5py",
@@ -266,10 +266,10 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
 
 
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
-    """The upper bound: one model trained on every vehicle's data; summary.json beside learning/training.py's files."""
+    """The upper bound: one model trained on every vehicle's data; summary.json beside learning/centralized.py's files."""
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.data.shards import read_manifest
-    from crchfl_sumo.learning.training import train_centralized
+    from crchfl_sumo.learning.centralized import train_centralized
 
     run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
     train = load_samples(out_dir / "data", "train")

@@ -20,7 +20,7 @@ from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import train_centralized
+from crchfl_sumo.learning.centralized import train_centralized
 
 from helpers import PAPER_VEHICLES, random_samples, write_dataset
 

@@ -438,7 +438,7 @@ def test_a_run_records_the_precision_it_trains_in_so_former_folders_resume():
     # "auto" is stored decided: bf16 where the CPU multiplies bfloat16, else fp32. A folder written
     # before, which holds "auto", reads back as this machine decides it, and a named precision stands.
     from crchfl_sumo.federation.run_config import resolved_as_today, resolved_config
-    from crchfl_sumo.learning.training import native_bfloat16
+    from crchfl_sumo.learning.devices import native_bfloat16
 
     on_cpu = lambda **train: from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "train": {"device": "cpu", **train}})
     today = json.loads(json.dumps(resolved_config(on_cpu())))

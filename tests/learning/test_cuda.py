@@ -15,7 +15,8 @@ from helpers import random_samples as _samples
 from crchfl_sumo.learning.checkpoint import load_model, save_checkpoint
 from crchfl_sumo.learning.model import GroupNorm, build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import Learner, evaluate, resolved_precision, train_vehicles
+from crchfl_sumo.learning.devices import resolved_precision
+from crchfl_sumo.learning.training import Learner, evaluate, train_vehicles
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 # As a command's parts have it: set before this process's first cuBLAS call (torch reads it once).

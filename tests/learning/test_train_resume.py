@@ -1,4 +1,4 @@
-"""`train --resume` (learning.training.train_centralized, resume=True): stopped after an epoch and resumed, the
+"""`train --resume` (learning.centralized.train_centralized, resume=True): stopped after an epoch and resumed, the
 training ends with the weights and records of an uninterrupted one; a damaged checkpoint.pt falls back to
 checkpoint.prev.pt, the epoch before (core.atomic.read_latest, as a federated run's resume does)."""
 
@@ -7,16 +7,14 @@ from __future__ import annotations
 import json
 import logging
 
-import numpy as np
 import pytest
 import torch
 
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import train_centralized
+from crchfl_sumo.learning.centralized import train_centralized
 
 from helpers import PAPER_VEHICLES, random_samples as _samples, write_dataset
 

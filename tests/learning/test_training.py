@@ -8,13 +8,14 @@ import torch
 from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.samples import Samples
 from helpers import random_samples as _samples
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.training import Learner, evaluate, resolve_device, train_centralized, train_vehicles
+from crchfl_sumo.learning.centralized import train_centralized
+from crchfl_sumo.learning.devices import resolve_device
+from crchfl_sumo.learning.training import Learner, evaluate, train_vehicles
 
 SMALL = ModelConfig("compact", 48, 64)
 CPU = TrainConfig(device="cpu")
@@ -264,32 +265,32 @@ def test_an_unknown_precision_is_refused_naming_the_key():
 
 
 def test_bf16_on_a_cpu_without_bfloat16_arithmetic_warns_once_naming_the_fix(monkeypatch, caplog):
-    from crchfl_sumo.learning import training
+    from crchfl_sumo.learning import devices
 
     # Isolates the probe: this machine's CPU answers for itself, the test asks for one without bfloat16.
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
     monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
-    training.native_bfloat16.cache_clear()
-    training._warn_emulated_bfloat16.cache_clear()
+    devices.native_bfloat16.cache_clear()
+    devices._warn_emulated_bfloat16.cache_clear()
     try:
-        with caplog.at_level("WARNING", logger=training.log.name):
+        with caplog.at_level("WARNING", logger=devices.log.name):
             Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="bf16"))
             Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="bf16"))
             Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="fp32"))
         warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
         assert len(warnings) == 1 and "emulated" in warnings[0] and "train.precision = 'fp32'" in warnings[0]
     finally:
-        training.native_bfloat16.cache_clear()
-        training._warn_emulated_bfloat16.cache_clear()
+        devices.native_bfloat16.cache_clear()
+        devices._warn_emulated_bfloat16.cache_clear()
 
 
 @pytest.mark.parametrize("has_bfloat16,expected", [(True, "bf16"), (False, "fp32")])
 def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch, has_bfloat16, expected):
-    from crchfl_sumo.learning import training
+    from crchfl_sumo.learning import devices
 
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: has_bfloat16, raising=False)
     monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
-    training.native_bfloat16.cache_clear()
+    devices.native_bfloat16.cache_clear()
     try:
         assert TrainConfig().precision == "auto"
         trainer = Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu"))
@@ -299,7 +300,7 @@ def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch
         trainer.train_epoch(_samples(8, seed=1), torch.Generator().manual_seed(0))
         assert seen == [torch.bfloat16 if expected == "bf16" else torch.float32]
     finally:
-        training.native_bfloat16.cache_clear()
+        devices.native_bfloat16.cache_clear()
 
 
 @pytest.mark.parametrize(
@@ -313,7 +314,7 @@ def test_auto_precision_trains_in_bfloat16_only_where_the_cpu_has_it(monkeypatch
     ],
 )
 def test_auto_multi_vehicle_vmaps_on_a_gpu_only(method, device, norm, expected):
-    from crchfl_sumo.learning.training import resolved_multi_vehicle
+    from crchfl_sumo.learning.devices import resolved_multi_vehicle
 
     model_config = ModelConfig("compact", 48, 64, norm=norm)
     assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method), model_config, device) == expected

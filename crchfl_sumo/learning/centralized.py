@@ -1,0 +1,206 @@
+"""Centralized training: one model on every vehicle's samples (the federated schemes' upper bound),
+epoch by epoch into a folder, with ``train --resume`` continuing after the last checkpointed epoch."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from crchfl_sumo.core.atomic import atomic_write_text, previous_path, read_latest, remove_stale_temporaries
+from crchfl_sumo.core.config import to_mapping
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
+from crchfl_sumo.core.progress import Progress
+from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
+from crchfl_sumo.learning.devices import configure_determinism, resolve_device
+from crchfl_sumo.learning.evaluation import always_straight
+from crchfl_sumo.learning.model import State, build_model, model_from_state
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.training import Learner, evaluate
+
+log = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
+def train_centralized(
+    train: Samples,
+    test: Samples,
+    epochs: int,
+    out_dir: str | Path,
+    model_config: ModelConfig,
+    config: TrainConfig,
+    seed: int,
+    progress: Progress | None = None,
+    initial_state: State | None = None,
+    drive_settings: dict | None = None,
+    resume: bool = False,
+) -> list[dict]:
+    """Train one model on all samples (the upper bound of the federated schemes).
+
+    ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
+    kept in the checkpoint's extra so that a drive renders and steers as the model learned.
+
+    After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
+    (one line per epoch: epoch and the test metrics of evaluation.py: loss,
+    accuracy, balanced_accuracy, loss_throttle_brake, loss_steer, steer_error,
+    throttle_error, brake_error, recall, confusion; test_samples;
+    always_straight (accuracy and balanced_accuracy of the constant straight
+    prediction on the test set); train_loss, train_accuracy, train_samples;
+    samples_per_s) and ``out_dir/checkpoint.pt``, both atomically. ``progress`` hears ("train",
+    samples trained so far, epochs x samples). Returns the metric records.
+
+    The checkpoint also holds what a resume needs (extra "resume": both Adams'
+    state, the shuffling generator's, the records), and the one it replaces
+    becomes checkpoint.prev.pt (core.atomic). ``resume``: continue from the
+    checkpoint in ``out_dir``, or from checkpoint.prev.pt (the epoch before)
+    when checkpoint.pt is damaged; the run then ends with the weights and
+    records of an uninterrupted one (samples_per_s aside, a wall-clock rate).
+    """
+    check_range(epochs, "train_centralized: epochs", 1, MAX_EPOCHS, "a number of epochs")
+    check_seed(seed, "train_centralized: seed")
+    if len(train) == 0 or len(test) == 0:
+        raise CrchflError("train: the training or test set is empty; check the data set folder")
+    if train.image_hw != (model_config.image_height, model_config.image_width):
+        raise CrchflError(
+            f"model.image_height/image_width: {model_config.image_height} x {model_config.image_width} does not "
+            f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
+        )
+    configure_determinism(config.deterministic)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out_dir)  # what a killed training's atomic writes left
+    device = resolve_device(config.device)
+    model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
+    trainer = Learner(model.to(device), config)
+    generator = torch.Generator().manual_seed(seed)
+    checkpoint_path = out_dir / CHECKPOINT_FILE
+    records: list[dict] = []
+    if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
+        records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))
+        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
+    train_on_device, test_on_device = train.to(device), test.to(device)
+    baseline = always_straight(test)
+    for epoch in range(len(records) + 1, epochs + 1):
+        start_s = time.perf_counter()
+        offset = (epoch - 1) * len(train)
+        per_epoch = None if progress is None else (
+            lambda u, offset=offset: progress(dataclasses.replace(u, done=offset + u.done, total=epochs * len(train)))
+        )
+        train_metrics = trainer.train_epoch(train_on_device, generator, per_epoch)
+        train_time_s = time.perf_counter() - start_s
+        test_metrics = evaluate(trainer.model, test_on_device, config).record()
+        record = {
+            "epoch": epoch,
+            **{k: v for k, v in test_metrics.items() if k != "samples"},
+            "test_samples": test_metrics["samples"],
+            "always_straight": baseline,
+            "train_loss": train_metrics.loss,
+            "train_accuracy": train_metrics.accuracy,
+            "train_samples": train_metrics.num_samples,
+            "samples_per_s": len(train) / train_time_s,
+            "precision": trainer.precision,
+        }
+        records.append(record)
+        log.info(
+            "epoch %d: test loss %.4f, accuracy %.3f, balanced accuracy %.3f (always straight %.3f)",
+            epoch, record["loss"], record["accuracy"], record["balanced_accuracy"], baseline["balanced_accuracy"],
+        )
+        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
+        resume_state = {
+            "optimizers": [optimizer.state_dict() for optimizer in trainer.optimizers],
+            "generator": generator.get_state(),
+            "records": records,
+            "samples": [len(train), len(test)],
+        }
+        save_checkpoint(
+            checkpoint_path,
+            model_config,
+            trainer.model.state_dict(),
+            {
+                "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
+                "resume": resume_state, **(drive_settings or {}),
+            },
+            keep_previous=True,
+        )
+    return records
+
+
+RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
+
+
+def _centralized_settings(train_config: Any) -> Any:
+    """The train settings a centralized checkpoint must match: all but multi_vehicle, which only says how
+    a federated run trains its vehicles (its default changed; checkpoints written before still resume),
+    and precision, which is checked as resolved against the precision the epochs trained in."""
+    if not isinstance(train_config, dict):
+        return train_config
+    return {key: value for key, value in train_config.items() if key not in ("multi_vehicle", "precision")}
+
+
+def _resume_training(
+    path: Path, trainer: Learner, generator: torch.Generator, seed: int, epochs: int, samples: tuple[int, int]
+) -> list[dict]:
+    """Load the checkpoint at ``path`` (or its previous copy) into ``trainer`` and ``generator``; its records.
+
+    Refused: a checkpoint of other settings (model, training, seed) or data (sample counts), or
+    of more epochs than ``epochs``.
+    """
+    checkpoint, used = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
+    extra, state = checkpoint.extra, checkpoint.extra["resume"]
+    if (checkpoint.model_config != trainer.model.config or extra.get("seed") != seed
+            or _centralized_settings(extra.get("train_config")) != _centralized_settings(to_mapping(trainer.config))
+            or list(state["samples"]) != list(samples)):
+        raise CrchflError(
+            f"{used}: written by a training with other settings or data; resume with the original command "
+            "(model, seed, data set) or choose another --out"
+        )
+    records = list(state["records"])
+    # Epochs recorded before train.precision existed trained in float32.
+    trained_in = records[-1].get("precision", "fp32") if records else trainer.precision
+    if trained_in != trainer.precision:  # "auto" decided on another machine, or another precision asked for
+        raise CrchflError(
+            f"{used}: its epochs trained in {trained_in}; this training would continue in {trainer.precision} "
+            f"(train.precision {trainer.config.precision!r} on this machine); resume with --precision {trained_in} "
+            "or choose another --out"
+        )
+    if len(records) > epochs:
+        raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
+    trainer.model.load_state_dict(checkpoint.state_dict)
+    try:
+        for optimizer, optimizer_state in zip(trainer.optimizers, state["optimizers"]):
+            optimizer.load_state_dict(optimizer_state)
+        generator.set_state(state["generator"])
+    except (KeyError, ValueError, RuntimeError, TypeError) as exc:
+        raise CrchflError(f"{used}: its optimizer or generator state does not fit ({exc}); delete the folder") from None
+    log.info("resuming %s after epoch %d", path.parent, len(records))
+    return records
+
+
+def _resumable_checkpoint(path: Path) -> Checkpoint:
+    """A training checkpoint with its resume state, checked; a CrchflError if missing, damaged or without one."""
+    checkpoint = load_checkpoint(path)
+    check_weights(checkpoint.model_config, checkpoint.state_dict, str(path))
+    state = checkpoint.extra.get("resume")
+    if not (
+        isinstance(state, dict) and set(state) == RESUME_KEYS
+        and isinstance(state["optimizers"], list) and len(state["optimizers"]) == 2
+        and all(isinstance(o, dict) for o in state["optimizers"])
+        and isinstance(state["generator"], torch.Tensor) and state["generator"].dtype == torch.uint8
+        and isinstance(state["records"], list) and all(isinstance(r, dict) for r in state["records"])
+        and len(state["records"]) == checkpoint.extra.get("epoch")
+        and isinstance(state["samples"], list) and len(state["samples"]) == 2
+    ):
+        raise CrchflError(
+            f"{path}: holds no resume state (written before `train --resume` existed, or damaged); "
+            "delete the folder to train afresh"
+        )
+    return checkpoint
