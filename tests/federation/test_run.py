@@ -449,3 +449,18 @@ def test_a_run_records_the_precision_it_trains_in_so_former_folders_resume():
         assert resolved_config(on_cpu(precision=named))["train"]["precision"] == named
     ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
     assert resolved_config(ray)["train"]["precision"] == today["train"]["precision"]  # Ray tasks train on CPUs
+
+
+def test_the_trainer_trains_as_config_json_records(dataset):
+    # "auto" is decided once, where the run starts, and handed to the trainer (a Ray worker does not decide again).
+    from crchfl_sumo.core.backend import BackendConfig, Executor
+    from crchfl_sumo.federation.run import make_trainer
+    from crchfl_sumo.federation.run_config import resolved_config
+
+    config = from_mapping(RunConfig, run_config(dataset))
+    assert config.train.precision == config.train.multi_vehicle == "auto"
+    with Executor(BackendConfig()) as executor:
+        trainer = make_trainer(config, read_inputs(config), executor)
+    recorded = resolved_config(config)["train"]
+    assert (trainer.config.precision, trainer.config.multi_vehicle) == (recorded["precision"], recorded["multi_vehicle"])
+    assert trainer.config.precision in ("fp32", "bf16") and trainer.config.multi_vehicle == "sequential"
