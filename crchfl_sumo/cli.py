@@ -140,10 +140,14 @@ def _overwrite_argument(p: argparse.ArgumentParser, file: bool = False) -> None:
                    "write into --out even if it holds earlier results (files of the same names are replaced)")
 
 
-def _output_folder(args, command: str, out: Path | None = None, resumable: bool = False, beside=(), extendable=()):
+def _output_folder(
+    args, command: str, out: Path | None = None, resumable: bool = False, beside=(), extendable=(), formerly_kept=()
+):
     """``with`` this around a command's work: core.outputs.output_dir checks --out (or ``out``) with its settings.
 
     ``extendable``: arguments a ``--resume`` may change (train's --epochs); every other setting it must keep.
+    ``formerly_kept``: (argument, its choices) of extendable arguments that earlier versions kept, so
+    that their folders still resume (whatever value they were run with).
     """
     from crchfl_sumo.core.outputs import fingerprint, output_dir
 
@@ -151,10 +155,12 @@ def _output_folder(args, command: str, out: Path | None = None, resumable: bool 
     config = getattr(args, "config", None)
     files = [config] if config is not None and Path(config).is_file() else []
     kept = {k: v for k, v in settings.items() if k not in extendable}
+    earlier = tuple(fingerprint({**kept, name: value}, files) for name, choices in formerly_kept for value in choices)
     return output_dir(
         args.out if out is None else out, command, fingerprint(settings, files), flag=f"{args.command} --out",
         replace=getattr(args, "overwrite", False), resumable=resumable, beside=beside,
-        resume_fingerprint=fingerprint(kept, files) if extendable else None, resuming=getattr(args, "resume", False),
+        resume_fingerprint=fingerprint(kept, files) if extendable else None, earlier_resume_fingerprints=earlier,
+        resuming=getattr(args, "resume", False),
     )
 
 
@@ -343,7 +349,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
                    f"bfloat16 arithmetic, else fp32 (default {TrainConfig.precision}; docs/model.md measures both)")
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
-                   "--epochs may be raised)")
+                   "--epochs may be raised, and --precision named to continue in the precision the epochs trained in)")
 
 
 def _run_train(args) -> int:
@@ -352,8 +358,9 @@ def _run_train(args) -> int:
     from crchfl_sumo.learning.settings import ModelConfig
     from crchfl_sumo.learning.centralized import train_centralized
 
-    # --resume --epochs N continues to N; the precision a resume trains in is checked against the epochs' own
-    with _output_folder(args, "train", extendable=("epochs", "precision")):
+    # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
+    # precision its epochs trained in), which folders marked while it was kept still allow
+    with _output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         manifest = read_manifest(args.dataset)
         model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)

@@ -79,6 +79,7 @@ def prepare_output_dir(
     resumable: bool = False,
     beside: tuple[str, ...] = (),
     resume_fingerprint: str | None = None,
+    earlier_resume_fingerprints: tuple[str, ...] = (),
     resuming: bool = False,
 ) -> Path:
     """Check (and create) ``path`` as ``command``'s output folder before any work; leave its marker.
@@ -90,7 +91,9 @@ def prepare_output_dir(
     writes beside its data set); files without a marker are then expected too.
     ``resume_fingerprint``: the settings a continuation must keep, kept in the
     marker; ``resuming``: this call continues the folder's results, so a marker
-    with the same ``resume_fingerprint`` is this command's too.
+    with the same ``resume_fingerprint`` is this command's too, and so is one with
+    a fingerprint of ``earlier_resume_fingerprints`` (what earlier versions kept
+    for these settings, before an argument became one a resume may change).
     """
     path = Path(path)
     where = f"{flag} {path}"
@@ -111,7 +114,9 @@ def prepare_output_dir(
     if not resumable and not replace:
         if command in found:
             stored = found[command]
-            continues = resuming and resume_fingerprint is not None and stored.get("resume_fingerprint") == resume_fingerprint
+            continues = resuming and resume_fingerprint is not None and (
+                stored.get("resume_fingerprint") in (resume_fingerprint, *earlier_resume_fingerprints)
+            )
             if stored.get("fingerprint") != settings_fingerprint and not continues:
                 raise CrchflError(
                     f"{where}: holds results of `crchfl-sumo {command}` with other settings; "

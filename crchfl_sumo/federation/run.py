@@ -50,7 +50,7 @@ from crchfl_sumo.core.atomic import (
     remove_stale_temporaries,
 )
 from crchfl_sumo.core.background import BackgroundSaver
-from crchfl_sumo.core.backend import Executor
+from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
@@ -205,7 +205,7 @@ def _run_with_trainer(
         )
         state = None
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
-            state, marks = _load_state(checkpoint_path, resolved, sizes)
+            state, marks = _load_state(checkpoint_path, resolved, sizes, config.backend)
             if state.done:  # finished before: only the derived files may be missing
                 _write_outputs(out_dir, config, setup, state, settings, _handovers(clock, state), baseline)
                 return summarize(config, setup, state, _handovers(clock, state), baseline)
@@ -359,7 +359,7 @@ def _is_marks(marks: Any) -> bool:
     )
 
 
-def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Marks]:
+def _load_state(path: Path, resolved: dict, sizes, backend: BackendConfig) -> tuple[FederationState, Marks]:
     """The checkpointed state, its history read back from the logs (cut back to their marks), and the marks.
 
     A checkpoint.pt that is missing, empty, truncated or malformed is refused
@@ -368,7 +368,7 @@ def _load_state(path: Path, resolved: dict, sizes) -> tuple[FederationState, Mar
     """
     payload, path = read_latest(path, _read_checkpoint, "checkpoint", "delete the folder to start afresh")
     stored = payload["resolved"]
-    stored_config = resolved_as_today(stored.get("config", {}), f"{path}: config")
+    stored_config = resolved_as_today(stored.get("config", {}), f"{path}: config", backend)
     if {**stored, "config": stored_config} != resolved:
         raise CrchflError(_precision_refusal(path, stored, stored_config, resolved) or (
             f"{path}: written by a run with other settings or data; resume with the original config "

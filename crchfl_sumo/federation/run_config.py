@@ -157,12 +157,15 @@ def _training_device(config: RunConfig):
     return resolve_device(name) if name == "auto" else torch.device(name)
 
 
-def resolved_as_today(stored: Mapping[str, Any], where: str) -> dict:
+def resolved_as_today(stored: Mapping[str, Any], where: str, backend: BackendConfig = BackendConfig()) -> dict:
     """A stored run's resolved settings read back with today's defaults: a key added since the
     run was written takes its default, so the folder resumes when nothing else differs. Settings
-    today's config cannot read come back unchanged (they then differ, and resuming is refused)."""
+    today's config cannot read come back unchanged (they then differ, and resuming is refused).
+
+    ``backend``: where the run goes on (the stored settings leave it out), which decides where a
+    setting stored as "auto" by an earlier version is decided: Ray tasks train on CPUs."""
     try:
-        config = from_mapping(RunConfig, stored, where)
+        config = from_mapping(RunConfig, {**stored, "backend": to_mapping(backend)}, where)
     except CrchflError:
         return dict(stored)
     return json.loads(json.dumps(resolved_config(config)))  # inf and tuples as JSON reads them back

@@ -151,8 +151,9 @@ def _resume_training(
 ) -> list[dict]:
     """Load the checkpoint at ``path`` (or its previous copy) into ``trainer`` and ``generator``; its records.
 
-    Refused: a checkpoint of other settings (model, training, seed) or data (sample counts), or
-    of more epochs than ``epochs``.
+    Refused: a checkpoint of other settings (model, training, seed) or data (sample counts), one
+    whose epochs trained in another precision than this training would, or one of more epochs
+    than ``epochs``.
     """
     checkpoint, used = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
     extra, state = checkpoint.extra, checkpoint.extra["resume"]
@@ -164,13 +165,12 @@ def _resume_training(
             "(model, seed, data set) or choose another --out"
         )
     records = list(state["records"])
-    # Epochs recorded before train.precision existed trained in float32.
-    trained_in = records[-1].get("precision", "fp32") if records else trainer.precision
-    if trained_in != trainer.precision:  # "auto" decided on another machine, or another precision asked for
+    trained_in = _trained_precision(records, extra.get("train_config"))
+    if trained_in not in (None, trainer.precision):  # "auto" decided on another machine, or another precision
         raise CrchflError(
             f"{used}: its epochs trained in {trained_in}; this training would continue in {trainer.precision} "
-            f"(train.precision {trainer.config.precision!r} on this machine); resume with --precision {trained_in} "
-            "or choose another --out"
+            f"(train.precision {trainer.config.precision!r} on this machine); continue it with train.precision "
+            f"= {trained_in!r} (train --precision {trained_in}) or choose another --out"
         )
     if len(records) > epochs:
         raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
@@ -183,6 +183,16 @@ def _resume_training(
         raise CrchflError(f"{used}: its optimizer or generator state does not fit ({exc}); delete the folder") from None
     log.info("resuming %s after epoch %d", path.parent, len(records))
     return records
+
+
+def _trained_precision(records: list[dict], train_config: Any) -> str | None:
+    """The precision the checkpointed epochs trained in (None: no epoch yet). Records name it since
+    "auto" exists; before, the train config named it, and before train.precision existed it was fp32."""
+    if not records:
+        return None
+    if "precision" in records[-1]:
+        return records[-1]["precision"]
+    return train_config.get("precision", "fp32") if isinstance(train_config, dict) else "fp32"
 
 
 def _resumable_checkpoint(path: Path) -> Checkpoint:

@@ -206,7 +206,8 @@ SAMPLINGS = ("uniform", "class_balanced", "command_balanced", "pedal_balanced")
 CLASS_WEIGHTINGS = ("none", "inverse", "sqrt_inverse")
 # Arithmetic of training's forward pass (TrainConfig.precision): weights and optimiser stay float32 in each;
 # "auto" is bf16 where the device multiplies bfloat16 in hardware, else fp32 (devices.resolved_precision).
-PRECISIONS = ("auto", "fp32", "bf16")
+RESOLVED_PRECISIONS = ("fp32", "bf16")  # what a training runs in, "auto" decided
+PRECISIONS = ("auto", *RESOLVED_PRECISIONS)
 # How train_vehicles trains many vehicles (TrainConfig.multi_vehicle; devices.resolved_multi_vehicle).
 MULTI_VEHICLE_METHODS = ("auto", "sequential", "vmap")
 

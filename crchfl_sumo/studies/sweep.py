@@ -56,6 +56,7 @@ from crchfl_sumo.federation.run_config import (
     resolved_config,
     with_backend,
 )
+from crchfl_sumo.learning.settings import RESOLVED_PRECISIONS
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -244,8 +245,14 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
         return None  # not finished writing: the run resumes and rewrites them
     if not summary.get("stop_reason"):
         return None
-    wanted = json.loads(json.dumps(resolved_config(from_mapping(RunConfig, mapping))))
-    if resolved_as_today(recorded, str(run_dir / "config.json")) != wanted:  # a folder of an older version too
+    point = from_mapping(RunConfig, mapping)
+    wanted = json.loads(json.dumps(resolved_config(point)))
+    finished = resolved_as_today(recorded, str(run_dir / "config.json"), point.backend)  # an older version's too
+    train = finished.get("train")
+    if point.train.precision == "auto" and isinstance(train, dict) and train.get("precision") in RESOLVED_PRECISIONS:
+        # "auto" was decided where the point ran (a Ray worker's CPU may differ from this one's): it stands
+        wanted["train"]["precision"] = train["precision"]
+    if finished != wanted:
         raise CrchflError(
             f"{run_dir} holds a run made with other settings than this sweep's point (see its config.json); "
             "sweep into another --out or delete that folder"

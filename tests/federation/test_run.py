@@ -123,6 +123,10 @@ def test_a_run_is_not_continued_in_another_precision(tmp_path, dataset):
     other = from_mapping(RunConfig, {**mapping, "train": {**mapping["train"], "precision": "bf16"}})
     with pytest.raises(CrchflError, match=r'trained in fp32; .* continue it in bf16\. Set \[train\] precision = "fp32"'):
         run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
+    both = from_mapping(RunConfig, {**mapping, "train": {**mapping["train"], "precision": "bf16"},
+                                    "federation": {**mapping["federation"], "edge_interval": 3}})
+    with pytest.raises(CrchflError, match="written by a run with other settings or data"):  # not only the precision
+        run_federation_dir(both, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
     run_federation_dir(trained, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)  # the same: it goes on
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["stop_reason"]
 
@@ -449,6 +453,24 @@ def test_a_run_records_the_precision_it_trains_in_so_former_folders_resume():
         assert resolved_config(on_cpu(precision=named))["train"]["precision"] == named
     ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
     assert resolved_config(ray)["train"]["precision"] == today["train"]["precision"]  # Ray tasks train on CPUs
+
+
+def test_a_former_ray_folder_reads_back_as_decided_on_the_cpus_its_tasks_train_on(monkeypatch):
+    # An earlier version stored "auto"; on a GPU machine whose CPU lacks bfloat16, a Ray run trains in
+    # fp32 (tasks on CPUs) and a local one in the GPU's bf16. The stored settings leave the backend out,
+    # so the backend the run goes on decides how "auto" reads back.
+    from crchfl_sumo.core.backend import BackendConfig
+    from crchfl_sumo.federation.run_config import resolved_as_today, resolved_config
+    from crchfl_sumo.learning import devices
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(devices, "native_bfloat16", lambda device_type: device_type == "cuda")
+    ray = from_mapping(RunConfig, {"federation": {"scheme": "hfl"}, "backend": {"kind": "ray"}})
+    today = json.loads(json.dumps(resolved_config(ray)))
+    assert today["train"]["precision"] == "fp32"
+    former = {**today, "train": {**today["train"], "precision": "auto"}}
+    assert resolved_as_today(former, "config.json", ray.backend) == today
+    assert resolved_as_today(former, "config.json", BackendConfig())["train"]["precision"] == "bf16"
 
 
 def test_the_trainer_trains_as_config_json_records(dataset):

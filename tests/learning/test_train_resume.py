@@ -137,6 +137,25 @@ def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, cap
     assert marker.read_bytes() == (whole / ".crchfl-sumo-train.json").read_bytes()
 
 
+def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(tmp_path):
+    # Before --precision could be named on a resume, the marker's resume fingerprint held it;
+    # such a folder still resumes to more epochs.
+    from crchfl_sumo.cli import _NOT_SETTINGS, build_parser
+    from crchfl_sumo.core.outputs import fingerprint
+
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--deterministic", "--out", str(tmp_path / "out")]
+    assert main([*argv, "--epochs", "1"]) == 0
+    marker = tmp_path / "out" / ".crchfl-sumo-train.json"
+    args = vars(build_parser().parse_args([*argv, "--epochs", "1"]))
+    formerly = {k: v for k, v in sorted(args.items()) if k not in _NOT_SETTINGS and k != "epochs"}
+    stored = json.loads(marker.read_text())
+    assert stored["resume_fingerprint"] != fingerprint(formerly)  # today's leaves precision out
+    marker.write_text(json.dumps({**stored, "resume_fingerprint": fingerprint(formerly)}))
+    assert main([*argv, "--epochs", "2", "--resume"]) == 0
+    assert [json.loads(line)["epoch"] for line in (tmp_path / "out" / "metrics.jsonl").read_text().splitlines()] == [1, 2]
+
+
 def test_a_checkpoint_of_the_former_multi_vehicle_default_resumes(data, whole, tmp_path):
     # multi_vehicle only says how a federated run trains its vehicles; its default changed from
     # "sequential" to "auto", and a centralized training's checkpoint written before must still resume.
@@ -158,7 +177,7 @@ def test_a_checkpoint_is_not_continued_in_another_precision(data, tmp_path):
 
     fp32 = dataclasses.replace(CPU, precision="fp32")
     train_centralized(*data, 2, tmp_path / "a", SMALL, fp32, seed=5)
-    with pytest.raises(CrchflError, match=r"its epochs trained in fp32; this training would continue in bf16 .*--precision fp32"):
+    with pytest.raises(CrchflError, match=r"its epochs trained in fp32; this training would continue in bf16 .*train --precision fp32"):
         train_centralized(*data, 3, tmp_path / "a", SMALL, dataclasses.replace(CPU, precision="bf16"), seed=5, resume=True)
     whole = train_centralized(*data, 3, tmp_path / "whole", SMALL, fp32, seed=5)
     # A checkpoint written before train.precision existed (float32 then) names it nowhere: it continues in fp32.
@@ -170,6 +189,11 @@ def test_a_checkpoint_is_not_continued_in_another_precision(data, tmp_path):
     save_checkpoint(tmp_path / "a" / "checkpoint.pt", checkpoint.model_config, checkpoint.state_dict, extra)
     records = train_centralized(*data, 3, tmp_path / "a", SMALL, fp32, seed=5, resume=True)
     assert _without_rates(records[2:]) == _without_rates(whole[2:])
+    # Between the option and "auto" the train config named the precision and the records did not.
+    extra["train_config"]["precision"] = "bf16"
+    save_checkpoint(tmp_path / "b" / "checkpoint.pt", checkpoint.model_config, checkpoint.state_dict, extra)
+    with pytest.raises(CrchflError, match="its epochs trained in bf16; this training would continue in fp32"):
+        train_centralized(*data, 3, tmp_path / "b", SMALL, fp32, seed=5, resume=True)
     state = load_checkpoint(tmp_path / "a" / "checkpoint.pt").state_dict
     expected = load_checkpoint(tmp_path / "whole" / "checkpoint.pt").state_dict
     assert all(torch.equal(state[k], expected[k]) for k in state)

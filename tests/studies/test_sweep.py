@@ -144,7 +144,13 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
     # a point finished by a version that stored train.precision undecided ("auto") is still this sweep's
     stored_path = runs / points[0].name / "config.json"
     stored = json.loads(stored_path.read_text())
+    decided_here = stored["config"]["train"]["precision"]
     stored["config"]["train"]["precision"] = "auto"
+    stored_path.write_text(json.dumps(stored))
+    run_sweep(base, params, out, BackendConfig(num_cpus=2))
+    assert {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points} == before
+    # and so is one whose "auto" was decided otherwise where it ran (a Ray worker with another CPU)
+    stored["config"]["train"]["precision"] = "fp32" if decided_here == "bf16" else "bf16"
     stored_path.write_text(json.dumps(stored))
     run_sweep(base, params, out, BackendConfig(num_cpus=2))
     assert {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points} == before
