@@ -60,11 +60,10 @@ from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,
-    multi_vehicle_method,
     resolve_config_path,
     resolved_as_today,
     resolved_config,
-    training_precision,
+    resolved_train,
     with_backend,
 )
 from crchfl_sumo.federation.run_data import RunData, make_clock, read_inputs
@@ -91,9 +90,7 @@ PREVIOUS_CHECKPOINT = previous_path(CHECKPOINT).name  # checkpoint.prev.pt: the 
 def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
     """The run's Trainer: in this process (local backend) or as tasks (ray). It trains with the precision
     and multi-vehicle method config.json records ("auto" decided here, not again on each Ray worker)."""
-    train = dataclasses.replace(config.train, precision=training_precision(config),
-                                multi_vehicle=multi_vehicle_method(config))
-    args = (config.model, train, inputs.test, config.federation.seed)
+    args = (config.model, resolved_train(config), inputs.test, config.federation.seed)
     return RayTrainer(*args, executor) if executor.is_ray else TorchTrainer(*args)
 
 

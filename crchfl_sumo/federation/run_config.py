@@ -119,12 +119,16 @@ def resolved_config(config: RunConfig) -> dict:
     train.multi_vehicle and train.precision as the run trains with here ("auto" decided), so that a run
     started in bfloat16 is not continued in float32 on a machine where "auto" means float32."""
     mapping = to_mapping(config)
-    mapping["train"]["multi_vehicle"] = multi_vehicle_method(config)
-    mapping["train"]["precision"] = training_precision(config)
+    mapping["train"] = to_mapping(resolved_train(config))
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
     return mapping
+
+
+def resolved_train(config: RunConfig) -> TrainConfig:
+    """[train] as the run trains: multi_vehicle and precision decided here; config.json records it."""
+    return dataclasses.replace(config.train, precision=training_precision(config), multi_vehicle=multi_vehicle_method(config))
 
 
 def multi_vehicle_method(config: RunConfig) -> str:
