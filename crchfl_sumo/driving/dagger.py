@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -47,9 +48,26 @@ from crchfl_sumo.sumo.route import inside_crossing, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
+log = logging.getLogger(__name__)
+
+
+# The expert hands the wheel back once the ego's centre is this fraction of a lane width from the
+# centre line (it took it when the centre left the lane, half a width out).
+TAKEOVER_RETURN_FRACTION = 0.25
+
 
 class ExpertLabelled:
-    """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step."""
+    """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step.
+
+    While the learner keeps its centre in the planned lane it drives and its states are labelled.
+    Once its centre leaves the lane the expert takes the wheel and drives until the centre is back
+    within ``TAKEOVER_RETURN_FRACTION`` of a lane width of the centre line; those states are not
+    labelled (HG-DAgger, Kelly et al. 2019: the expert takes over where the learner fails). An
+    off-lane state, such as a learner that took the wrong branch of a junction, is labelled with a
+    hard recovery steer under the route's command; a few dozen such labels taught the "straight"
+    head to steer left and drove a model off 20 of 20 straight routes (docs/model.md, "DAgger's
+    off-lane labels").
+    """
 
     def __init__(
         self, learner: ModelPolicy, expert: RoutePolicy, every: int = 1, corrections_only: bool = False
@@ -60,6 +78,8 @@ class ExpertLabelled:
         self.corrections_only = corrections_only
         self.horizon = dataclasses.replace(expert.expert, speed_horizon_s=learner.model.config.speed_horizon_s)
         self.steps = 0
+        self.expert_driving = False
+        self.takeovers = 0
         self.images: list[np.ndarray] = []
         self.actions: list[Action] = []
         self.commands: list[int] = []
@@ -67,6 +87,15 @@ class ExpertLabelled:
         self.target_speeds: list[float] = []
 
     def __call__(self, observation: Observation) -> Action:
+        offset = abs(observation.offset_m)
+        if self.expert_driving and offset <= TAKEOVER_RETURN_FRACTION * observation.lane_width_m:
+            self.expert_driving = False
+        elif not self.expert_driving and offset > observation.lane_width_m / 2.0:
+            self.expert_driving = True
+            self.takeovers += 1
+        if self.expert_driving:
+            self.steps += 1
+            return self.expert(observation)
         action = self.learner(observation)
         if self.steps % self.every == 0:
             self._record(observation, action)
@@ -180,6 +209,8 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
                 expert=driver.expert(), keep_frames=False,
             )
             parts.append(policy.arrays())
+            log.info("%s %s %d: %d states labelled, the expert took the wheel %d times",
+                     town, episode.task, episode.index, len(parts[-1]["actions"]), policy.takeovers)
     return parts
 
 

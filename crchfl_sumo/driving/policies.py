@@ -48,6 +48,8 @@ class Observation:
     ego_row: int
     progress_m: float  # the ego centre's arc position on the route
     images: np.ndarray | None  # uint8 [4, H, W, 3] when the loop renders, else None
+    offset_m: float = 0.0  # the ego centre's signed distance from the route's centre line (LEFT +)
+    lane_width_m: float = math.inf  # the planned lane's width there
 
 
 Policy = Callable[[Observation], Action]

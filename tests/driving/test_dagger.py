@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,10 +14,12 @@ import torch
 
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import FIELDS
-from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, collect, dagger_iterations
+from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, ExpertLabelled, collect, dagger_iterations
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.driving.policies import Observation
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
@@ -128,3 +131,45 @@ def test_the_command_runs_an_iteration_and_overwrite_starts_afresh(ladder, tmp_p
     (tmp_path / "out" / "iteration-1" / EXPERT_SAMPLES_FILE).write_bytes(b"left from another run")
     assert main([*argv, "--overwrite"]) == 0
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["iterations"] == [record]
+
+
+class _Learner:
+    """ModelPolicy's face: steers right, command 3."""
+
+    model = SimpleNamespace(config=SimpleNamespace(speed_horizon_s=1.0))
+    action = (0.5, 0.3, 0.0)
+
+    def __call__(self, observation):
+        return self.action
+
+    def command(self, observation):
+        return 3
+
+
+class _Expert:
+    """RoutePolicy's face: steers hard left back to the lane."""
+
+    expert = ExpertConfig()
+    action = (0.2, -0.9, 0.0)
+
+    def decide(self, observation):
+        return self.action, 0.5
+
+    def __call__(self, observation):
+        return self.decide(observation)[0]
+
+
+def test_the_expert_takes_the_wheel_off_the_lane_and_those_states_are_not_labelled():
+    policy = ExpertLabelled(_Learner(), _Expert(), every=1)
+    frame = SimpleNamespace(speed_mps=np.array([5.0]))
+    images = np.zeros((4, 48, 64, 3), np.uint8)
+    # a 3.5 m lane: the expert takes over beyond 1.75 m and hands back within 0.875 m
+    offsets = [0.0, -1.0, 1.8, 1.0, -0.9, 0.8, 0.3]
+    acted = [policy(Observation(frame, "ego", 0, 10.0 * i, images, offset, 3.5)) for i, offset in enumerate(offsets)]
+    learner, expert = _Learner.action, _Expert.action
+    assert acted == [learner, learner, expert, expert, expert, learner, learner]
+    assert policy.takeovers == 1
+    arrays = policy.arrays()
+    # the learner's four states, each labelled with the expert's action; none of the expert's own
+    assert len(arrays["actions"]) == 4 and arrays["command"].tolist() == [3, 3, 3, 3]
+    assert np.allclose(arrays["actions"], np.array([expert] * 4, np.float32))
