@@ -30,6 +30,7 @@ from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.core.schemes import REFERENCE
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.driving.bench_behaviour import ABILITIES, behaviour
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
 from crchfl_sumo.driving.bench_tasks import (
@@ -59,7 +60,9 @@ PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
 # An episode ends when the ego has not moved on for one signal cycle of the towns (90 s):
 # longer than any red (50 s) with a queue to start, shorter than the long time limits.
 STUCK_S = 90.0
-SUMMARY_KEYS = ("episodes", "success_rate", "route_completion", "driving_score", "infractions_per_km")
+SUMMARY_KEYS = ("episodes", "success_rate", "route_completion", "driving_score", "infractions_per_km",
+                "strict_success_rate", "red_lights_per_km", "efficiency", "smoothness", "driving_score_lb2",
+                "agent_blocked", "route_timeouts")
 
 
 @dataclass(frozen=True)
@@ -201,6 +204,8 @@ def episode_record(episode: Episode, result, finish_before_end_m: float, step_s:
     completion = route_completion(
         log.progress_m, log.on_road, float(log.progress_m[0]), result.route.length_m - finish_before_end_m
     )
+    extra = behaviour(log, result.route.crossings, float(log.progress_m[0]),
+                      result.route.length_m - finish_before_end_m, step_s)
     every = max(1, round(PATH_EVERY_S / step_s))
     keep = list(range(0, len(log), every)) + ([len(log) - 1] if (len(log) - 1) % every else [])
     return {
@@ -208,7 +213,8 @@ def episode_record(episode: Episode, result, finish_before_end_m: float, step_s:
         "edges": list(episode.edges),
         **{k: metrics[k] for k in ("end_reason", "completion", "duration_s", "distance_m", "mean_speed_mps",
                                    "max_abs_offset_m", *INFRACTIONS)},
-        **score_episode(metrics, completion),
+        **score_episode(metrics, completion, extra["min_speed_penalty"]),
+        **extra,
         "path_xy": [[round(float(log.x_m[i]), 2), round(float(log.y_m[i]), 2)] for i in keep],
         "route_xy": [[round(float(x), 2), round(float(y), 2)] for x, y in result.route.xy_m],
     }
@@ -326,22 +332,48 @@ def results_table(summary: dict) -> str:
     lines = [
         f"Driver: {summary['driver']}; {summary['episodes_per_task']} episodes per task, seed {summary['seed']}.",
         "",
-        "| town | task | episodes | success | route completion | driving score | infractions / km |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+        "| town | task | episodes | success [95 % CI] | strict success | route completion | driving score "
+        "| infractions / km | red lights / km | efficiency | smoothness |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for town, task, r in _rows(summary):
+        ci = r.get("success_ci95")  # summaries written before it have none
+        interval = f" [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]" if ci else ""
         lines.append(
-            f"| {town} | {task} | {r['episodes']} | {100 * r['success_rate']:.0f} % | "
-            f"{100 * r['route_completion']:.1f} % | {100 * r['driving_score']:.1f} | {_per_km(r['infractions_per_km'])} |"
+            f"| {town} | {task} | {r['episodes']} | {100 * r['success_rate']:.0f} %{interval} | "
+            f"{_percent(r.get('strict_success_rate'))} | {100 * r['route_completion']:.1f} % | "
+            f"{100 * r['driving_score']:.1f} | {_per_km(r['infractions_per_km'])} | {_per_km(r.get('red_lights_per_km'))} | "
+            f"{_percent(r.get('efficiency'), 0.01)} | {_percent(r.get('smoothness'))} |"
         )
-    return "\n".join(lines)
+    abilities = _ability_lines(summary)
+    return "\n".join(lines + ([""] + abilities if abilities else []))
+
+
+def _percent(value, scale: float = 1.0) -> str:
+    return "n/a" if value is None else f"{100 * scale * value:.0f} %"
+
+
+def _ability_lines(summary: dict) -> list[str]:
+    """Per town, each ability's successes of attempts over all its tasks."""
+    lines = []
+    for town, tasks in summary["results"].items():
+        if not all("abilities" in r for r in tasks.values()):
+            continue
+        parts = []
+        for name in ABILITIES:
+            attempts = sum(r["abilities"][name]["attempts"] for r in tasks.values())
+            ok = sum(r["abilities"][name]["successes"] for r in tasks.values())
+            parts.append(f"{name.replace('_', ' ')} {ok} of {attempts}")
+        lines.append(f"Abilities in {town}: " + ", ".join(parts) + ".")
+    return lines
 
 
 def results_csv(summary: dict) -> str:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["town", "task", *SUMMARY_KEYS])
+    writer.writerow(["town", "task", *SUMMARY_KEYS, "success_ci_lo", "success_ci_hi"])
     for town, task, r in _rows(summary):
-        writer.writerow([town, task, *("" if r[k] is None else r[k] for k in SUMMARY_KEYS)])
+        values = [r.get(k) for k in SUMMARY_KEYS] + list(r.get("success_ci95", (None, None)))
+        writer.writerow([town, task, *("" if v is None else v for v in values)])
     return buffer.getvalue()
 

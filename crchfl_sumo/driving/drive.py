@@ -64,6 +64,10 @@ DRIVE_SUMO_OPTIONS = (
     "--collision.mingap-factor=0",
     "--time-to-teleport=-1",
 )
+# Traffic around the ego (surroundings): the radius of the vehicles whose speed the ego's is compared
+# with (CARLA's Background Activity keeps its traffic about this close), and how far ahead a leader counts.
+TRAFFIC_RADIUS_M = 50.0
+LEADER_RANGE_M = 50.0
 STUCK_PROGRESS_M = 1.0  # progress that counts as moving on (creeping adds up to it)
 _SEARCH_BACK_M = 10.0  # the ego's progress is searched this far behind ...
 _SEARCH_AHEAD_M = 25.0  # ... and this far ahead of the last step's (routes may cross themselves)
@@ -189,6 +193,8 @@ class DriveLog:
     signal_letter: np.ndarray
     signal_dist_m: np.ndarray
     crossing_ahead: np.ndarray
+    traffic_speed_mps: np.ndarray  # mean speed of the other vehicles within TRAFFIC_RADIUS_M (NaN: none)
+    leader_gap_m: np.ndarray  # bumper gap to the vehicle ahead in the ego's lane within LEADER_RANGE_M (inf: none)
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -282,6 +288,7 @@ def drive(
                 "colliding": colliding, "red_light": red, "signal_letter": letter,
                 "signal_dist_m": route.crossings[index].s_start_m - (s + length / 2.0) if index >= 0 else math.inf,
                 "crossing_ahead": index,
+                **surroundings(frame, row, route, s, length),
             }
             if removed:
                 end = "removed by SUMO"
@@ -334,6 +341,24 @@ def drive(
         route.edges[0], end, drive_log.t_s[-1], metrics["completion"],
     )
     return DriveResult(drive_log, metrics, frames, route, ego, length, width)
+
+
+def surroundings(frame: Frame, row: int, route: RouteGeometry, s_m: float, length_m: float) -> dict[str, float]:
+    """The traffic around the ego at one step: the mean speed of the other vehicles within
+    TRAFFIC_RADIUS_M (the Leaderboard's minimum-speed test and Bench2Drive's efficiency compare the
+    ego's speed with it) and the bumper gap to the nearest vehicle ahead in the ego's lane on its
+    route within LEADER_RANGE_M (in the lane as the reference driver counts it)."""
+    others = np.flatnonzero(np.arange(len(frame)) != row)
+    distance = np.hypot(frame.x_m[others] - frame.x_m[row], frame.y_m[others] - frame.y_m[row])
+    near = others[distance < TRAFFIC_RADIUS_M]
+    traffic = float(np.mean(frame.speed_mps[near])) if len(near) else math.nan
+    gap = math.inf
+    if len(near):
+        s_o, off_o, width_o = project_points(route, frame.x_m[near], frame.y_m[near], s_m, s_m + LEADER_RANGE_M)
+        ahead = (s_o > s_m) & (np.abs(off_o) < width_o / 2.0 + frame.width_m[near] / 2.0 - 0.3)
+        if ahead.any():
+            gap = float(np.min((s_o - s_m - frame.length_m[near] / 2.0 - length_m / 2.0)[ahead]))
+    return {"traffic_speed_mps": traffic, "leader_gap_m": gap}
 
 
 def _touches_another(frame: Frame, ego: str, state: VehicleState, length_m: float, width_m: float) -> bool:

@@ -165,7 +165,8 @@ def read_trajectory_csv(path: Path) -> DriveLog:
     kinds = {"on_road": bool, "colliding": bool, "red_light": bool, "signal_letter": str, "crossing_ahead": np.int64}
     values = {}
     for name in DriveLog.__dataclass_fields__:
-        raw = [r[name] for r in rows]
+        # columns added later (traffic_speed_mps, leader_gap_m) read as unknown in older folders
+        raw = [r.get(name, "nan") for r in rows]
         kind = kinds.get(name, np.float64)
         values[name] = (
             np.array([v == "1" for v in raw], dtype=bool) if kind is bool else np.array(raw, dtype=kind)

@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.intervals import wilson_interval
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.bench_behaviour import ABILITIES
 from crchfl_sumo.driving.bench_score import (
     penalty,
     pool_task_summaries,
@@ -66,10 +68,13 @@ def test_route_completion_leaves_out_progress_made_off_the_road_and_going_back()
     assert route_completion([2, 30, 50], [1, 1, 1], 2.0, 42.0) == 1.0
 
 
-def _record(end, completion, distance_m, collisions=0, red=0, off_road=0, departures=0):
+def _record(end, completion, distance_m, collisions=0, red=0, off_road=0, departures=0, min_speed=1.0,
+            efficiency=None, smoothness=None, turns=(0, 0)):
     metrics = {"end_reason": end, "collisions": collisions, "red_light_violations": red,
                "off_road_events": off_road, "lane_departures": departures}
-    return {**metrics, "distance_m": distance_m, **score_episode(metrics, completion)}
+    abilities = {name: [0, 0] for name in ABILITIES} | {"turn_at_junction": list(turns)}
+    return {**metrics, "distance_m": distance_m, **score_episode(metrics, completion, min_speed),
+            "efficiency": efficiency, "smoothness": smoothness, "abilities": abilities}
 
 
 def test_task_summary_of_scripted_episodes_by_hand():
@@ -91,6 +96,28 @@ def test_task_summary_of_scripted_episodes_by_hand():
     assert summarize_task([_record("time limit", 0.0, 0.0)])["infractions_per_km"] is None  # never moved
 
 
+def test_the_leaderboard_2_keys_of_a_cell_by_hand():
+    records = [
+        _record("completed", 1.0, 400.0, efficiency=80.0, smoothness=1.0, turns=(2, 2)),  # strict success
+        _record("completed", 1.0, 300.0, red=1, min_speed=0.85, efficiency=120.0, turns=(1, 1)),  # success, not strict
+        _record("stuck", 0.5, 200.0, min_speed=0.7, smoothness=0.5, turns=(1, 0)),  # blocked
+        _record("time limit", 0.8, 100.0, red=2, turns=(1, 0)),
+    ]
+    assert [r["strict_success"] for r in records] == [True, False, False, False]
+    assert [r["driving_score_lb2"] for r in records] == pytest.approx([1.0, 0.7 * 0.85, 0.5 * 0.7, 0.8 * 0.49])
+    s = summarize_task(records)
+    assert s["success_rate"] == 0.5 and s["strict_success_rate"] == 0.25
+    assert s["success_ci95"] == list(wilson_interval(2, 4)) and s["strict_success_ci95"] == list(wilson_interval(1, 4))
+    assert s["red_lights_per_km"] == pytest.approx(3.0)  # 3 red lights over 1 km
+    assert (s["efficiency"], s["efficiency_episodes"]) == (100.0, 2)  # the mean of the episodes that have one
+    assert (s["smoothness"], s["smoothness_episodes"]) == (0.75, 2)
+    assert s["agent_blocked"] == 1 and s["route_timeouts"] == 1
+    turn = s["abilities"]["turn_at_junction"]
+    assert (turn["attempts"], turn["successes"], turn["success_rate"]) == (5, 3, 0.6)
+    assert s["abilities"]["stop_at_red"] == {"attempts": 0, "successes": 0, "success_rate": None,
+                                             "success_ci95": [0.0, 1.0]}
+
+
 def test_pooled_task_summaries_equal_the_summary_of_all_episodes():
     first = [_record("completed", 1.0, 400.0), _record("completed", 1.0, 300.0, collisions=1, red=1)]
     second = [_record("time limit", 0.8, 200.0, red=2, departures=1), _record("left the route", 0.25, 100.0, off_road=1),
@@ -98,7 +125,10 @@ def test_pooled_task_summaries_equal_the_summary_of_all_episodes():
     pooled = pool_task_summaries([summarize_task(first), summarize_task(second)])
     together = summarize_task(first + second)
     assert pooled.pop("infractions") == together.pop("infractions")
-    assert pooled == pytest.approx(together)
+    assert pooled.pop("abilities") == together.pop("abilities")
+    assert pooled.keys() == together.keys()
+    for key, value in together.items():
+        assert pooled[key] == (value if value is None else pytest.approx(value)), key
     # by hand: 2 of 5 succeed; 1 + 1 + 2 + 1 + 1 = 6 infractions over 1.5 km
     assert pooled["episodes"] == 5 and pooled["success_rate"] == pytest.approx(0.4)
     assert pooled["infractions_per_km"] == pytest.approx(4.0)
@@ -245,7 +275,12 @@ def test_reference_driver_scores_full_marks_and_hard_steer_fails(ladder, tmp_pat
     assert len(rows) == 3 and float(rows[0]["success_rate"]) == 1.0
     assert len(json.loads((tmp_path / "ref" / "episodes.json").read_text())) == 6
     assert (tmp_path / "ref" / "trajectories.png").stat().st_size > 10_000
-    assert "| ladder | navigation | 2 | 100 % |" in (tmp_path / "ref" / "results.md").read_text()
+    assert "| ladder | navigation | 2 | 100 % [34, 100] | 100 % |" in (tmp_path / "ref" / "results.md").read_text()
+    for task, r in results.items():  # no signal on the ladder: every success is strict, every turn taken
+        assert r["strict_success_rate"] == 1.0 and r["red_lights_per_km"] == 0.0, task
+        turns = r["abilities"]["turn_at_junction"]
+        assert turns["successes"] == turns["attempts"] and r["abilities"]["stop_at_red"]["attempts"] == 0, task
+    assert results["one_turn"]["abilities"]["turn_at_junction"]["attempts"] >= 2
 
     bad = run_benchmark(None, tmp_path / "bad", episodes=2, towns=(cfg,), config=SUITE, seed=3,
                         driver=HardSteerDriver())
@@ -309,7 +344,7 @@ def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tm
     cfg = str(ladder / "ladder.sumocfg")
     assert main(["drive-bench", "reference", "--out", str(tmp_path / "b"), "--episodes", "1",
                  "--towns", cfg, "--tasks", "straight"]) == 0
-    assert "| ladder | straight | 1 | 100 % |" in capsys.readouterr().out
+    assert "| ladder | straight | 1 | 100 % [21, 100] | 100 % |" in capsys.readouterr().out
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["results"]["ladder"]["straight"]["episodes"] == 1
     assert main(["drive-bench", "reference", "--out", str(tmp_path / "c"), "--episodes", "0", "--towns", cfg]) == 2
     err = capsys.readouterr().err

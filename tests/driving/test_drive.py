@@ -164,7 +164,8 @@ def test_pick_moments_finds_red_then_green_at_the_same_line():
         progress_m=np.array([0.0, 10, 20, 20, 25, 40]), offset_m=np.zeros(n), lane_width_m=np.full(n, 4.0),
         on_road=np.ones(n, bool), colliding=np.zeros(n, bool), red_light=np.zeros(n, bool),
         signal_letter=letters, signal_dist_m=np.array([40.0, 15, 5, 5, 1, np.inf]),
-        crossing_ahead=np.array([0, 0, 0, 0, 0, -1]),
+        crossing_ahead=np.array([0, 0, 0, 0, 0, -1]), traffic_speed_mps=np.full(n, np.nan),
+        leader_gap_m=np.full(n, np.inf),
     )
     assert pick_moments(log) == {"red_light": 1, "green_light": 3}
     waiting = dataclasses.replace(log, brake=np.array([0.0, 0.9, 0.9, 0.9, 0.0, np.nan]))
