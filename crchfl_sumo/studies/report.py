@@ -20,6 +20,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
+from crchfl_sumo.core.intervals import distinguishable
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.federation.settings import PLANNED_BY_THE_OPTIMIZER
@@ -81,9 +82,13 @@ def _percent(value: float | None) -> str:
 
 
 def _pm(stats: Mapping[str, Any], digits: int = 4, scale: float = 1.0) -> str:
+    """The mean with its 95 % interval over seeds (summaries written before intervals: ± the std)."""
     if stats["mean"] is None:
         return "-"
     text = f"{stats['mean'] * scale:.{digits}f}"
+    if stats.get("ci95"):
+        lo, hi = stats["ci95"]
+        return text + f" [{lo * scale:.{digits}f}, {hi * scale:.{digits}f}]"
     return text + (f" ± {stats['std'] * scale:.{digits}f}" if stats["std"] is not None else "")
 
 
@@ -119,7 +124,8 @@ def _header(summary: Mapping[str, Any], results: Mapping[str, Any]) -> list[str]
         f"seeds {summary['seeds']}, ablation seeds {reproduce.get('ablation_seeds')}. "
         f"Running time: {total['elapsed_s'] / 60:.1f} min elapsed (the parts' wall times sum to "
         f"{total['wall_s'] / 60:.1f} min, CPU {total['cpu_s'] / 60:.1f} min). "
-        "Every ± is the sample standard deviation over seeds (none with one seed).",
+        "Every [lo, hi] is the 95 % confidence interval of a mean over seeds (Student t; none with one seed), "
+        "or of a success rate over episodes (Wilson).",
     ]
 
 
@@ -160,6 +166,7 @@ def _experiment_b(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
     if network:
         lines += ["", "Network: " + ", ".join(f"{k} {v}" for k, v in network.items()) + " (model.* of the run configs)."]
     lines += _gains(summary["gains"])
+    lines += _differences(summary.get("differences") or {}, summary["schemes"])
     lines += _learning(summary)
     for key, caption in (
         ("fig3", "Fig. 3: Accuracy and Loss against FL rounds (round 0: CRCHFL's pretrained model)"),
@@ -202,6 +209,38 @@ def _learning(summary: Mapping[str, Any]) -> list[str]:
                       ""]
             rows = [[c, *map(str, row)] for c, row in zip(classes, s["confusion"])]
             lines += _table(["true / predicted", *classes], rows)
+    return lines
+
+
+def _difference_words(d: Mapping[str, Any], scale: float = 100.0) -> str:
+    """'+1.60 points [-0.5, 3.7], p 0.12: not distinguishable at 95 %' of a paired difference."""
+    if d.get("mean") is None:
+        return "-"
+    text = f"{scale * d['mean']:+.2f} points"
+    if d.get("ci95"):
+        lo, hi = d["ci95"]
+        text += f" [{scale * lo:+.2f}, {scale * hi:+.2f}]"
+    if d.get("p") is not None:
+        text += f", p {d['p']:.3g}"
+    if not distinguishable(d.get("ci95")):
+        text += ": not distinguishable at 95 %"
+    return text
+
+
+def _differences(diff: Mapping[str, Any], schemes: Mapping[str, Any]) -> list[str]:
+    """CRCHFL against each scheme, paired by seed, in words; and when HFL's models are SFL's."""
+    if not diff:
+        return []
+    lines = ["", "CRCHFL minus each other scheme, paired by seed (the same data, start and traffic), with the "
+             "paired-t 95 % interval and p-value:", ""]
+    for pair, keys in diff.items():
+        other = NAMES.get(pair.split("-", 1)[1], pair)
+        parts = [f"{key.replace('_', ' ')} {_difference_words(d)}" for key, d in keys.items()]
+        lines.append(f"- over {other} ({keys[next(iter(keys))]['n']} seeds): " + "; ".join(parts) + ".")
+    if ((schemes.get("hfl") or {}).get("hyper") or {}).get("cloud_interval") == 1 and "sfl" in schemes:
+        lines += ["", "HFL runs here with cloud_interval 1: its two-tier sample-weighted average is then the flat "
+                  "one of SFL, so the two train the same models round for round and differ only in the bytes "
+                  "they spend, and so in their rounds (docs/federation.md)."]
     return lines
 
 
@@ -278,8 +317,9 @@ def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
     lines = [
         "", "## Closed-loop benchmark (`drive-bench`)", "",
         "Each model drives the CoRL2017-style suites of start/goal routes drawn apart from the data vehicles' "
-        "routes (docs/drive.md). A cell: success rate / route completion / driving score (route completion "
-        "x the CARLA Leaderboard's infraction penalty), each in %; infractions per km after the bar.",
+        "routes (docs/drive.md). A cell: success rate [its Wilson 95 % interval over the cell's episodes] / "
+        "route completion / driving score (route completion x the CARLA Leaderboard's infraction penalty), "
+        "each in %; infractions per km after the bar.",
     ]
     if spread:
         lines += [
@@ -297,8 +337,11 @@ def _drive_bench(summary: Mapping[str, Any]) -> list[str]:
             for task in tasks:
                 r = results.get(town, {}).get(task)
                 s = spread.get(label, {}).get(town, {}).get(task)
+                ci = None if r is None else r.get("success_ci95")
+                wilson = f" [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]" if ci else ""
                 cells.append("-" if r is None else (
-                    f"{100 * r['success_rate']:.0f}{_seed_std(s, 'success_rate')} / {100 * r['route_completion']:.0f} / "
+                    f"{100 * r['success_rate']:.0f}{wilson}{_seed_std(s, 'success_rate')} / "
+                    f"{100 * r['route_completion']:.0f} / "
                     f"{100 * r['driving_score']:.0f}{_seed_std(s, 'driving_score')} | {_fmt(r['infractions_per_km'], 2)}"
                 ))
             rows.append([NAMES.get(label, label), *cells])

@@ -9,6 +9,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from crchfl_sumo.accounting.schedules import STAGES
+from crchfl_sumo.core.intervals import paired_difference, t_interval
 from crchfl_sumo.driving.bench_score import pool_task_summaries
 
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
@@ -21,15 +22,39 @@ LEARNING_KEYS = ("balanced_accuracy", "final_balanced_accuracy", "best_steer_err
 
 
 def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
-    """Mean and sample standard deviation (ddof = 1) of the values that are not None.
+    """Mean, sample standard deviation (ddof = 1) and the mean's 95 % t interval of the values that are not None.
 
-    ``std`` is None with fewer than two values, ``mean`` None with none.
+    ``std`` and ``ci95`` are None with fewer than two values, ``mean`` None with none.
     """
     kept = [float(v) for v in values if v is not None]
     n = len(kept)
     mean = float(np.mean(kept)) if n else None
     std = float(np.std(kept, ddof=1)) if n >= 2 else None
-    return {"mean": mean, "std": std, "n": n}
+    ci = t_interval(kept)
+    return {"mean": mean, "std": std, "n": n, "ci95": list(ci) if ci else None}
+
+
+# The schemes CRCHFL is compared with, seed by seed, and the figures compared (summary.json "differences").
+DIFFERENCE_KEYS = ("balanced_accuracy", "best_accuracy")
+
+
+def differences(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") -> dict[str, Any]:
+    """``differences["crchfl-hfl"][KEY]`` = {mean, ci95, p, n}: ours - theirs, paired by seed
+    (the same seed: the same data, start and traffic), with the paired-t 95 % interval and p-value."""
+    out: dict[str, Any] = {}
+    if ours not in schemes:
+        return out
+    for other, stats in schemes.items():
+        if other == ours:
+            continue
+        pair: dict[str, Any] = {}
+        for key in DIFFERENCE_KEYS:
+            mine = dict(zip(schemes[ours]["seeds"], schemes[ours][key]["values"]))
+            theirs = dict(zip(stats["seeds"], stats[key]["values"]))
+            seeds = [s for s in mine if s in theirs and mine[s] is not None and theirs[s] is not None]
+            pair[key] = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+        out[f"{ours}-{other}"] = pair
+    return out
 
 
 def relative_gain_percent(ours: float | None, theirs: float | None) -> float | None:
@@ -233,6 +258,7 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "seeds": reproduce.get("seeds"),
         "schemes": schemes,
         "gains": gains(schemes),
+        "differences": differences(schemes),
         "baselines": baselines(results),
         "model": next((run["summary"].get("model") for runs in results["schemes"].values() for run in runs.values()),
                       None),

@@ -28,8 +28,10 @@ def test_mean_std_by_hand():
     stats = mean_std([0.5, 0.7, None])
     assert stats["n"] == 2 and stats["mean"] == pytest.approx(0.6)
     assert stats["std"] == pytest.approx(math.sqrt(0.02))  # ((0.1^2 + 0.1^2) / (2 - 1)) ** 0.5
-    assert mean_std([0.3]) == {"mean": 0.3, "std": None, "n": 1}
-    assert mean_std([]) == {"mean": None, "std": None, "n": 0}
+    # t(0.975, 1 dof) = 12.706205: mean 0.6 +- 12.706 * 0.1
+    assert stats["ci95"] == pytest.approx([0.6 - 1.2706205, 0.6 + 1.2706205])
+    assert mean_std([0.3]) == {"mean": 0.3, "std": None, "n": 1, "ci95": None}
+    assert mean_std([]) == {"mean": None, "std": None, "n": 0, "ci95": None}
 
 
 def test_relative_gain_percent():
@@ -200,7 +202,18 @@ def test_report_of_a_folder(results):
     for path in summary["figures"].values():
         assert (results / path).read_bytes()[:8] == PNG_MAGIC
         assert path in report
-    for text in ("+10.33 %", "+12.41 %", "+10.00 %", "+20.00 %", "0.6600 ± 0.0283", "town01_right_left", "2.13.0",
+    # seed by seed: over HFL +0.06 twice (a point interval); over SFL +0.14 and +0.08: mean 0.11, sem 0.03,
+    # t(0.975, 1 dof) = 12.706205, and on 1 dof (Cauchy) p = 1 - 2 atan(0.11 / 0.03) / pi
+    over_hfl, over_sfl = (summary["differences"][f"crchfl-{o}"]["best_accuracy"] for o in ("hfl", "sfl"))
+    assert over_hfl["mean"] == pytest.approx(0.06) and over_hfl["ci95"] == pytest.approx([0.06, 0.06])
+    assert over_hfl["n"] == 2 and over_hfl["p"] == 0.0
+    assert over_sfl["mean"] == pytest.approx(0.11)
+    assert over_sfl["ci95"] == pytest.approx([0.11 - 12.706205 * 0.03, 0.11 + 12.706205 * 0.03], abs=1e-5)
+    assert over_sfl["p"] == pytest.approx(1 - 2 * math.atan(0.11 / 0.03) / math.pi)
+    assert summary["differences"]["crchfl-sfl"]["balanced_accuracy"]["mean"] == pytest.approx(0.055)
+    assert "over SFL (2 seeds): balanced accuracy +5.50 points" in report and "not distinguishable at 95 %" in report
+    # t(0.975, 1 dof) * 0.02 either side of 0.66
+    for text in ("+10.33 %", "+12.41 %", "+10.00 %", "+20.00 %", "0.6600 [0.4059, 0.9141]", "town01_right_left", "2.13.0",
                  "bfloat16 arithmetic on the CPU true"):
         assert text in report, text
     assert not list(results.rglob(".*.partial-*"))
