@@ -12,7 +12,9 @@ client selection predicts how long it stays in its cell (links/residence.py).
   federated vehicles. The series is a pure function of the scenario, the
   seed and the link settings: the bandwidth of a cell is shared among the
   federated vehicles it serves (all marked transmitting), not among the ones
-  that happen to transmit at that moment. That keeps the clock independent
+  that happen to transmit at that moment, and among the background users
+  that ``[mobility]`` puts in it (a share of the other vehicles there, and a
+  fixed number per cell). That keeps the clock independent
   of the learning loop, so a resumed run that re-runs SUMO from the start
   (libsumo is deterministic) sees exactly the same links.
 * ``ScriptedClock`` plays fixed per-vehicle tracks: tests and the
@@ -37,7 +39,7 @@ import numpy as np
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig, macro_link_model
-from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, background_users
 from crchfl_sumo.links.residence import Pose
 from crchfl_sumo.links.transfer import TransferConfig, TransferResult, transfer, wireline_transfer_time_s
 from crchfl_sumo.sumo.scenario import Scenario
@@ -193,8 +195,11 @@ class SumoClock:
         self.step_s = scenario.step_length_s
         # The link models need only the federated vehicles; the online collector also what their cameras see.
         around_m = 0.0 if collector is None else collector.neighbourhood_m
+        # Background vehicles that load the cells (mobility.background_active_share) need every vehicle's position.
+        self._loaded = mobility.background_active_share > 0 or mobility.cell_background_users > 0
+        focus = None if mobility.background_active_share > 0 else self.vehicles
         self._sim = Simulation(
-            scenario, seed=seed, watch=(), keep_demand=self.vehicles, focus=self.vehicles, around_m=around_m
+            scenario, seed=seed, watch=(), keep_demand=self.vehicles, focus=focus, around_m=around_m
         )
         # Separate seeds per link kind, so adding the macro link leaves the edge link unchanged.
         seeds = np.random.SeedSequence([seed, 7919]).spawn(2)
@@ -243,8 +248,10 @@ class SumoClock:
         self._t[row] = float(frame.t_s)
         columns = [self._column[str(v)] for v in mine.ids]  # absent vehicles keep 0 bit/s and no site
         self._pose[row, columns] = np.stack([mine.x_m, mine.y_m, mine.speed_mps, mine.heading_rad], axis=1)
+        others = frame.select(~keep)
         for kind, links in self._links.items():
-            snapshot = links.step(mine)
+            users = background_users(links.sites, others.x_m, others.y_m, links.mobility) if self._loaded else None
+            snapshot = links.step(mine, background_users=users)
             self._handover_t[kind].extend(
                 h.t_s for h in snapshot.handovers if h.from_site != NO_SITE and h.to_site != NO_SITE
             )

@@ -57,6 +57,11 @@ class MobilityConfig:
     time_to_trigger_s: float = 2.56  # TS 38.331 TimeToTrigger ms2560
     l3_filter_s: float = L3_FILTER_FC4_S  # time constant of the layer-3 filter on the compared power; 0 = off
     radio_link_failure_s: float = 1.0  # TS 38.331 T310 ms1000: how long a site may stay below min_rx_power_dbm
+    # Other users of a cell's bandwidth besides the federated vehicles (docs/links.md, "Cells that the
+    # traffic loads"): each background vehicle within a site's coverage, served by its nearest site, is an
+    # active user with this probability (its expected load), and every cell has this many other users.
+    background_active_share: float = 0.0
+    cell_background_users: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.coverage_radius_m > 0:
@@ -85,6 +90,15 @@ class MobilityConfig:
         for key in ("time_to_trigger_s", "l3_filter_s", "radio_link_failure_s"):
             if getattr(self, key) > 3600.0:
                 raise CrchflError(f"mobility.{key} must be at most 3600 s, got {getattr(self, key)}")
+        if not (isinstance(self.background_active_share, (int, float)) and 0.0 <= self.background_active_share <= 1.0):
+            raise CrchflError(
+                f"mobility.background_active_share must be a share in [0, 1], got {self.background_active_share!r}"
+            )
+        # a cell of more than 10000 other users leaves the federated vehicles nothing to measure
+        if not (isinstance(self.cell_background_users, (int, float)) and 0.0 <= self.cell_background_users <= 1e4):
+            raise CrchflError(
+                f"mobility.cell_background_users must be a number of users in [0, 10000], got {self.cell_background_users!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -231,13 +245,16 @@ class LinkModel:
         self._state = _State.empty(len(self.sites), channel.fading_max_blocks_per_step)
         self._t_prev_s: float | None = None
 
-    def step(self, frame: Frame, active: np.ndarray | None = None) -> LinkSnapshot:
+    def step(
+        self, frame: Frame, active: np.ndarray | None = None, background_users: np.ndarray | None = None
+    ) -> LinkSnapshot:
         """Advance to ``frame`` and return every vehicle's link.
 
         ``active`` (bool [V], default all) marks the vehicles that currently
         transmit: a cell's bandwidth is split equally among its active
-        vehicles; an inactive vehicle is quoted the rate it would get by
-        joining them.
+        vehicles and its ``background_users`` (float [S], expected users of
+        each site other than the frame's vehicles; default none); an inactive
+        vehicle is quoted the rate it would get by joining them.
         """
         t_s = float(frame.t_s)
         if self._t_prev_s is not None and t_s < self._t_prev_s - _EPS_S:
@@ -291,9 +308,15 @@ class LinkModel:
         rx_serving = np.where(has_site, rx_dbm[rows, site_col], np.nan)
         snr_serving_db = ch.snr_db(rx_serving, cfg)
 
+        background = np.zeros(n_sites) if background_users is None else np.asarray(background_users, np.float64)
+        if background.shape != (n_sites,):
+            raise ValueError(f"LinkModel.step: background_users has shape {background.shape}, expected ({n_sites},)")
         load = np.bincount(serving[has_site & active], minlength=n_sites)
         cell_load = np.where(has_site, load[site_col] + (~active), 0)
-        share = np.where(has_site, 1.0 / np.maximum(cell_load, 1), 0.0)
+        # Equal shares of the cell's time-frequency resources (round robin; a proportional-fair scheduler
+        # over users of i.i.d. fading gives each user the same long-run share): 1 / (users in the cell).
+        users = cell_load + np.where(has_site, background[site_col], 0.0)
+        share = np.where(has_site, 1.0 / np.maximum(users, 1.0), 0.0)
 
         gains, blocks, until_s = self._fading(prev, is_new, serving, frame.speed_mps, t_s, dt_s)
         snr_lin = np.where(has_site, ch.db_to_linear(np.nan_to_num(snr_serving_db, nan=-np.inf)), 0.0)
@@ -353,6 +376,23 @@ class LinkModel:
         blocks = np.where(redraw, fresh_blocks, prev.fade_blocks)
         until_s = np.where(redraw, t_s + fresh_blocks * coherence_s, prev.fade_until_s)
         return gains, blocks, until_s
+
+
+def background_users(
+    sites: Sequence[EdgeSite], x_m: np.ndarray, y_m: np.ndarray, config: MobilityConfig
+) -> np.ndarray:
+    """Expected other users per site, float [S]: ``config.background_active_share`` of the background
+    vehicles at (x_m, y_m) within a site's coverage, each counted at its nearest site (the strongest
+    mean power where masts and channels are alike), plus ``config.cell_background_users`` everywhere."""
+    extra = np.full(len(sites), float(config.cell_background_users))
+    if config.background_active_share == 0.0 or len(x_m) == 0:
+        return extra
+    site_x = np.array([s.x_m for s in sites])
+    site_y = np.array([s.y_m for s in sites])
+    d_m = np.hypot(np.asarray(x_m, np.float64)[:, None] - site_x, np.asarray(y_m, np.float64)[:, None] - site_y)
+    nearest = d_m.argmin(axis=1)
+    covered = d_m[np.arange(len(nearest)), nearest] <= config.coverage_radius_m
+    return extra + config.background_active_share * np.bincount(nearest[covered], minlength=len(sites))
 
 
 def l3_filter(previous_dbm: np.ndarray, measured_dbm: np.ndarray, dt_s: float, time_constant_s: float) -> np.ndarray:

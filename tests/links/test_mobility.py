@@ -18,6 +18,7 @@ from crchfl_sumo.links.mobility import (
     LinkModel,
     MobilityConfig,
     associate,
+    background_users,
     l3_filter,
     ping_pongs,
     rate_series,
@@ -170,6 +171,33 @@ def test_inactive_vehicles_do_not_take_a_share_but_are_quoted_one():
     snap = LinkModel(TWO_SITES, PLAIN).step(frame, active=np.array([True, True, False]))
     assert snap.cell_load.tolist() == [2, 2, 3]
     assert snap.rate_bps[0] == pytest.approx(snap.rate_bps[2] * 3 / 2)
+
+
+def test_one_cell_with_background_users_shares_its_bandwidth_among_all_of_them():
+    # one site, 3 federated vehicles at one spot, 5 background vehicles in coverage of which 0.4 are
+    # active (2 users) and 1 more user per cell: each federated vehicle gets 20 MHz x 5.55 / (3 + 2 + 1)
+    one = (EdgeSite("A", 0.0, 0.0),)
+    config = MobilityConfig(background_active_share=0.4, cell_background_users=1.0)
+    far = [50.0, -80.0, 120.0, 0.0, 299.0, 301.0, 900.0]  # the last two beyond the 300 m coverage
+    users = background_users(one, np.array(far), np.zeros(7), config)
+    assert users.tolist() == pytest.approx([0.4 * 5 + 1.0])
+    frame = make_frame(ids=["a", "b", "c"], x_m=[100.0] * 3)
+    snap = LinkModel(one, PLAIN, config).step(frame, background_users=users)
+    assert snap.rate_bps == pytest.approx([20e6 * 5.55 / 6] * 3)
+    assert snap.cell_load.tolist() == [3, 3, 3]  # the federated vehicles; the background is not listed
+    # without background users it is the federated vehicles' share alone
+    assert LinkModel(one, PLAIN).step(frame).rate_bps == pytest.approx([20e6 * 5.55 / 3] * 3)
+
+
+def test_background_vehicles_count_at_their_nearest_site():
+    config = MobilityConfig(background_active_share=0.5)
+    users = background_users(TWO_SITES, np.array([10.0, 150.0, 210.0, 390.0, 1000.0]), np.zeros(5), config)
+    assert users.tolist() == pytest.approx([0.5 * 2, 0.5 * 2])  # 1000 m is beyond either site's coverage
+    assert background_users(TWO_SITES, np.array([10.0]), np.zeros(1), MobilityConfig()).tolist() == [0.0, 0.0]
+    with pytest.raises(CrchflError, match="background_active_share"):
+        MobilityConfig(background_active_share=1.5)
+    with pytest.raises(CrchflError, match="cell_background_users"):
+        MobilityConfig(cell_background_users=float("nan"))
 
 
 def test_state_follows_vehicle_ids_between_frames():
