@@ -193,6 +193,8 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
     p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="parts run at a time, each in its own process (default 1; the number of cores is fastest)")
+    _backend_arguments(p, "where the parts run: processes of this machine (local, --jobs at a time) or Ray tasks "
+                          "of one CPU each (every node must see --out at the same path)")
 
 
 def _run_reproduce(args) -> int:
@@ -200,7 +202,8 @@ def _run_reproduce(args) -> int:
     from crchfl_sumo.studies.reproduce import reproduce_command
 
     with ProgressBars("part") as bars:
-        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, bars, args.jobs)
+        out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, bars, args.jobs,
+                                         args.backend, args.address)
     print(format_summary(summary, out))
     return 0
 
@@ -556,9 +559,11 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     _backend_arguments(p)
 
 
-def _backend_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--backend", choices=("local", "ray"), default=None,
-                   help="where training runs: in this process (local) or as Ray tasks; overrides [backend] kind")
+def _backend_arguments(
+    p: argparse.ArgumentParser,
+    what: str = "where training runs: in this process (local) or as Ray tasks; overrides [backend] kind",
+) -> None:
+    p.add_argument("--backend", choices=("local", "ray"), default=None, help=what)
     p.add_argument("--address", default=None,
                    help="Ray cluster to join: 'auto' (this machine's) or HOST:PORT; default: start a local Ray runtime")
 

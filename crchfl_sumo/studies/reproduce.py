@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
+from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
@@ -73,6 +74,7 @@ def reproduce(
     resume: bool = False,
     progress: Progress | None = None,
     jobs: int = 1,
+    backend: BackendConfig | None = None,
 ) -> dict[str, Any]:
     """Run (or finish) every part of ``config`` into ``out_dir``, then write the report; returns summary.json.
 
@@ -82,9 +84,15 @@ def reproduce(
     and experiment D parts, then the drives. The results are those of
     ``jobs`` = 1 (each part is seeded on its own), except that training
     drifts a little when the thread count differs (float sums in another order).
+
+    ``backend`` of kind "ray" runs every part as a Ray task (one CPU, one torch thread each;
+    ``jobs`` is ignored) on a local Ray runtime or the cluster at ``backend.address``; every
+    node must see ``out_dir`` at the same path (a shared file system). The folders, resume and
+    results are the local backend's with one thread per part.
     """
     if jobs < 1:
         raise CrchflError(f"--jobs: {jobs} must be >= 1 (parts run at a time)")
+    on_ray = backend is not None and backend.kind == "ray"
     out_dir = Path(out_dir).resolve()
     _start(config, out_dir, resume)
     parts = plan_parts(config)
@@ -94,14 +102,6 @@ def reproduce(
     def run_stage(stage: list[ReproductionPart]) -> None:
         nonlocal done
         todo = [part for part in stage if not _finished(part, out_dir)]
-        done += len(stage) - len(todo)
-        if jobs == 1 or len(todo) < 2:
-            for part in todo:
-                report(progress, "part", done, total, part=part.key)
-                _record(out_dir, part, _timed_part(config, out_dir, part, 1))
-                done += 1
-            return
-        from crchfl_sumo.core.backend import BackendConfig, Executor
 
         def finished(i: int, elapsed: dict[str, float]) -> None:
             nonlocal done
@@ -109,6 +109,19 @@ def reproduce(
             done += 1
             report(progress, "part", done, total, part=todo[i].key)
 
+        done += len(stage) - len(todo)
+        if on_ray and todo:
+            report(progress, "part", done, total, part=f"{len(todo)} parts as Ray tasks")
+            with Executor(backend) as executor:
+                executor.map(_timed_part, [(config, out_dir, p, RAY_PART) for p in todo], isolate=True,
+                             on_result=finished)
+            return
+        if jobs == 1 or len(todo) < 2:
+            for part in todo:
+                report(progress, "part", done, total, part=part.key)
+                _record(out_dir, part, _timed_part(config, out_dir, part, 1))
+                done += 1
+            return
         report(progress, "part", done, total, part=f"{len(todo)} parts, {jobs} at a time")
         with Executor(BackendConfig(num_cpus=jobs)) as executor:  # a killed part is retried (resumed) twice
             executor.map(_timed_part, [(config, out_dir, p, jobs) for p in todo], isolate=True, on_result=finished)
@@ -131,17 +144,23 @@ def reproduce_command(
     config_path: str | Path | None = None,
     progress: Progress | None = None,
     jobs: int = 1,
+    backend: str | None = None,
+    address: str | None = None,
 ) -> tuple[Path, dict[str, Any]]:
-    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML] [--jobs N]` does.
+    """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML] [--jobs N]
+    [--backend local|ray] [--address A]` does.
 
     ``config_path`` replaces the preset; DIR defaults to results/NAME (NAME: the config's name).
     Returns the results folder and its summary.json.
     """
+    if address is not None and backend != "ray":
+        raise CrchflError("--address joins a Ray cluster: give it with --backend ray")
+    chosen = BackendConfig(kind=backend or "local", address=address or "")
     preset = "quick" if quick else "full"
     config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
     out_dir = Path(out_dir) if out_dir is not None else Path("results") / config.name
     prepare_output_dir(out_dir, "reproduce", flag="reproduce --out", resumable=True)
-    return out_dir, reproduce(config, out_dir, resume, progress, jobs)
+    return out_dir, reproduce(config, out_dir, resume, progress, jobs, chosen)
 
 
 def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
@@ -215,12 +234,18 @@ def _finished(part: ReproductionPart, out_dir: Path) -> bool:
     return False
 
 
+# The ``jobs`` a part runs with as a Ray task (recorded in timings.json as such).
+RAY_PART = 0
+
+
 def _timed_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart, jobs: int) -> dict[str, float]:
-    """Run one part (in this process, or as a worker process of ``jobs`` > 1); its wall and CPU seconds."""
-    if jobs > 1:
+    """Run one part (in this process, as a worker process of ``jobs`` > 1, or as a Ray task: ``jobs``
+    RAY_PART); its wall and CPU seconds."""
+    if jobs > 1 or jobs == RAY_PART:
         import torch
 
-        torch.set_num_threads(threads_per_part(jobs))  # the parts share the cores
+        # the parts share the cores; a Ray task holds one CPU
+        torch.set_num_threads(1 if jobs == RAY_PART else threads_per_part(jobs))
     log.info("%s: starting", part.key)
     if (out_dir / part.key).is_dir():  # a part killed earlier starts again (or resumes) without its temporaries
         remove_stale_temporaries(out_dir / part.key, recursive=True)

@@ -10,7 +10,7 @@ import pytest
 
 from crchfl_sumo.core.config import deep_merge, toml_text
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.studies.reproduce import best_seed, reproduce, reproduce_command
+from crchfl_sumo.studies.reproduce import RAY_PART, best_seed, reproduce, reproduce_command
 from crchfl_sumo.studies.reproduce_plan import (
     ReproduceConfig,
     load_reproduce_config,
@@ -279,3 +279,23 @@ def test_parts_run_side_by_side_give_the_same_results(tmp_path):
     assert total["elapsed_s"] <= total["wall_s"] + 1e-9  # side by side: elapsed time below the sum of the parts
     with pytest.raises(CrchflError, match="--jobs"):
         reproduce(load_reproduce_config(path), tmp_path / "three", jobs=0)
+
+
+@pytest.mark.slow
+def test_ray_tasks_give_the_local_backends_summary(tmp_path):
+    # one seed, no ablation, no drives: the data set, then the centralized and the three schemes' parts
+    text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
+    text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []").replace("bench_episodes = 1", "bench_episodes = 0")
+    text = text.replace("dagger_iterations = 1", "dagger_iterations = 0")
+    path = tmp_path / "tiny.toml"
+    path.write_text(text)
+    _, local = reproduce_command(out_dir=tmp_path / "local", config_path=path)
+    _, on_ray = reproduce_command(out_dir=tmp_path / "ray", config_path=path, backend="ray")
+    # the same parts, the same folders, the same figures (one torch thread a part either way)
+    for key in ("schemes", "differences", "gains", "baselines", "centralized", "ablation", "closed_loop"):
+        assert on_ray[key] == local[key], key
+    timings = json.loads((tmp_path / "ray" / "timings.json").read_text())
+    assert sorted(timings) == sorted(json.loads((tmp_path / "local" / "timings.json").read_text()))
+    assert {t["jobs"] for t in timings.values()} == {RAY_PART}
+    with pytest.raises(CrchflError, match="--address"):
+        reproduce_command(out_dir=tmp_path / "x", config_path=path, address="auto")
