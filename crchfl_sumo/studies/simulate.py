@@ -24,6 +24,7 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.numbers import MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.progress import Progress, report
@@ -234,6 +235,11 @@ def run_simulate_command(
     if duration_s is None:
         duration_s = scenario.length_s or DEFAULT_DURATION_S
     check_range(duration_s, "simulate --duration-s", 0.0, MAX_SIMULATED_S, "simulated seconds", lo_open=True)
+    if duration_s < scenario.step_length_s:
+        raise CrchflError(
+            f"simulate --duration-s: {duration_s:g} s is shorter than one step of {scenario.name} "
+            f"({scenario.step_length_s:g} s); simulate at least one step"
+        )
     trace = simulate(scenario, duration_s, cfg, progress=progress)
     summary = summarize(trace, scenario, duration_s, cfg)
     write_outputs(trace, scenario, summary, out_dir)

@@ -3,7 +3,8 @@
 Every command takes either a built-in scenario name (a folder under
 ``scenarios/`` holding ``scenario.toml``) or a path to any
 ``.sumocfg``. A user's configuration is read, not trusted blindly: options that
-only sumo-gui knows are dropped (sumo would refuse them), file options are made
+only sumo-gui knows are dropped (sumo would refuse them), and so are the TraCI
+server's (a remote port would make sumo wait for a client), file options are made
 absolute (so relative paths keep working from any directory), and output-file
 options are dropped (so running here never overwrites the user's own results).
 What remains becomes command-line options for sumo/libsumo.
@@ -201,10 +202,10 @@ def load_scenario(
         described = None
     if described is not None:
         spec = from_mapping(ScenarioFile, read_toml(described), where=str(described))
-        cfg_path = (described.parent / spec.sumocfg).resolve()
+        cfg_path = resolved_path(described.parent / spec.sumocfg)
         description, towns, sites = spec.description, spec.towns, spec.edge_sites
     elif text.endswith(".sumocfg") or Path(text).is_file():
-        cfg_path = Path(text).resolve()
+        cfg_path = resolved_path(Path(text))
         name, description, towns, sites = cfg_path.stem.removesuffix(".sumo"), "", (), ()
     else:
         raise CrchflError(
@@ -217,7 +218,12 @@ def load_scenario(
         raise CrchflError(f"{cfg_path}: no <net-file> in the configuration; add one under <input>")
     bounds = read_net_bounds(net_path)
     step = _option_value(options, "step-length")
-    step_length_s = float(step) if step else 1.0
+    step_length_s = sumo_time_s(step, cfg_path, "step-length") if step else 1.0
+    if not 0.0 < step_length_s <= MAX_STEP_LENGTH_S:
+        raise CrchflError(
+            f"{cfg_path}: <step-length> {step!r} must lie in (0, {MAX_STEP_LENGTH_S:g}] s; give the simulation "
+            "step in seconds (the towns use 0.25)"
+        )
     end = _option_value(options, "end")
     length_s = None if end is None else sumo_time_s(end, cfg_path, "end") - sumo_time_s(
         _option_value(options, "begin") or "0", cfg_path, "begin"
@@ -254,6 +260,13 @@ def load_scenario(
 
 
 # --- reading a .sumocfg -------------------------------------------------------------------
+
+
+# A SUMO step longer than this is no traffic simulation a vehicle's link or camera can follow.
+MAX_STEP_LENGTH_S = 60.0
+# Option sections a run here leaves out: sumo-gui's own, and the TraCI server's (remote-port,
+# num-clients): with a port, sumo waits for a client that never connects.
+DROPPED_SECTIONS = ("gui_only", "traci_server")
 
 
 @dataclass(frozen=True)
@@ -301,14 +314,17 @@ def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
             continue
         name = synonyms.get(element.tag, element.tag)
         spec = specs.get(name)
-        if spec is None or spec.section == "gui_only":
+        if spec is None or spec.section in DROPPED_SECTIONS:
             dropped.append(name)
+            if spec is not None and spec.section == "traci_server":
+                log.warning("%s: ignoring <%s>: a TraCI server would wait for a client that never connects "
+                            "(crchfl-sumo drives SUMO itself)", cfg_path.name, element.tag)
             continue
         if spec.type == "FILE":
             if spec.section in ("output", "report") or name in ("save-configuration", "save-template", "save-schema"):
                 dropped.append(name)
                 continue
-            value = ",".join(str((base / p).resolve()) for p in _split_files(value))
+            value = ",".join(str(resolved_path(base / p)) for p in _split_files(value))
             missing = [p for p in value.split(",") if p and spec.section == "input" and not Path(p).exists()]
             if missing:
                 raise CrchflError(
@@ -316,8 +332,16 @@ def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
                 )
         options.append(f"--{name}={value}")
     if dropped:
-        log.info("%s: ignoring options %s (GUI-only, unknown, or output files)", cfg_path.name, dropped)
+        log.info("%s: ignoring options %s (GUI-only, TraCI server, unknown, or output files)", cfg_path.name, dropped)
     return options, dropped
+
+
+def resolved_path(path: Path) -> Path:
+    """``path`` made absolute with its links followed; a loop of symbolic links is a CrchflError."""
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError) as exc:  # Python 3.11/3.12 raise RuntimeError for a loop, 3.13 OSError
+        raise CrchflError(f"{path}: cannot be followed ({exc}); point to the file itself, not to a loop of links") from None
 
 
 def _config_value(element: ET.Element) -> str | None:

@@ -159,6 +159,10 @@ def test_missing_config_and_negative_duration_exit_2(tmp_path, capsys):
     assert "config file not found" in capsys.readouterr().err
     assert main(["simulate", "town01", "--duration-s", "-1", "--out", str(tmp_path / "o")]) == 2
     assert "simulate --duration-s: -1 is out of range; give simulated seconds in (0, 86400]" in capsys.readouterr().err
+    # shorter than one step of the town (0.25 s): refused before anything is written
+    assert main(["simulate", "town01", "--duration-s", "0.1", "--out", str(tmp_path / "short")]) == 2
+    assert "shorter than one step of town01 (0.25 s)" in capsys.readouterr().err
+    assert not (tmp_path / "short").exists()
 
 
 def test_plan_json_has_the_four_hyper_parameters(capsys):

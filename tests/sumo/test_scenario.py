@@ -1,3 +1,6 @@
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -142,3 +145,36 @@ def test_edge_sites_out_of_any_network_are_refused(site, message):
     with pytest.raises(CrchflError, match=message):
         EdgeSite(**site)
     assert EdgeSite("a", -9.9e6, 5e6, 999.0).x_m == -9.9e6  # the edges of the range still pass
+
+
+@pytest.mark.parametrize("step, message", [("0", "step-length"), ("nan", "not a finite time"), ("fast", "not a time"),
+                                           ("1e9", "step-length")])
+def test_a_bad_step_length_is_refused_by_name(grid_dir, tmp_path, step, message):
+    path = tmp_path / "step.sumocfg"
+    path.write_text(f'<configuration><input><net-file value="{grid_dir / "grid.net.xml"}"/></input>'
+                    f'<time><step-length value="{step}"/></time></configuration>')
+    with pytest.raises(CrchflError, match=message):
+        load_scenario(path)
+
+
+def test_a_loop_of_symbolic_links_is_refused_by_name(tmp_path):
+    (tmp_path / "a.sumocfg").symlink_to(tmp_path / "b.sumocfg")
+    (tmp_path / "b.sumocfg").symlink_to(tmp_path / "a.sumocfg")
+    with pytest.raises(CrchflError, match="a.sumocfg: cannot be followed"):
+        load_scenario(tmp_path / "a.sumocfg")
+
+
+def test_a_traci_server_port_is_dropped_and_the_simulation_finishes(grid_dir, tmp_path):
+    # with <remote-port> sumo would wait for a TraCI client for ever; in a child process with a deadline
+    path = tmp_path / "server.sumocfg"
+    path.write_text(f'<configuration><input><net-file value="{grid_dir / "grid.net.xml"}"/>'
+                    f'<route-files value="{grid_dir / "routes.rou.xml"}"/></input>'
+                    '<traci_server><remote-port value="8873"/><num-clients value="2"/></traci_server>'
+                    '<time><step-length value="0.5"/></time></configuration>')
+    assert {"remote-port", "num-clients"} <= set(load_scenario(path).dropped_options)
+    done = subprocess.run(
+        [sys.executable, "-m", "crchfl_sumo.cli", "simulate", str(path), "--duration-s", "5", "--out",
+         str(tmp_path / "out")], capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "out" / "summary.json").is_file()
