@@ -22,6 +22,7 @@ import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import read_json_object
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
 from crchfl_sumo.sumo.maps import draw_network
@@ -160,17 +161,22 @@ def read_trajectory_csv(path: Path) -> DriveLog:
     path = Path(path)
     if not path.is_file():
         raise CrchflError(f"{path}: no trajectory.csv; point to a folder written by `crchfl-sumo drive`")
-    with path.open(newline="", encoding="utf-8") as handle:
-        rows = list(csv.DictReader(handle))
     kinds = {"on_road": bool, "colliding": bool, "red_light": bool, "signal_letter": str, "crossing_ahead": np.int64}
     values = {}
-    for name in DriveLog.__dataclass_fields__:
-        # columns added later (traffic_speed_mps, leader_gap_m) read as unknown in older folders
-        raw = [r.get(name, "nan") for r in rows]
-        kind = kinds.get(name, np.float64)
-        values[name] = (
-            np.array([v == "1" for v in raw], dtype=bool) if kind is bool else np.array(raw, dtype=kind)
-        )
+    try:
+        with path.open(newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+        for name in DriveLog.__dataclass_fields__:
+            # columns added later (traffic_speed_mps, leader_gap_m) read as unknown in older folders
+            raw = [r.get(name, "nan") for r in rows]
+            kind = kinds.get(name, np.float64)
+            values[name] = (
+                np.array([v == "1" for v in raw], dtype=bool) if kind is bool else np.array(raw, dtype=kind)
+            )
+    except (OSError, UnicodeDecodeError, csv.Error, ValueError, TypeError) as exc:
+        raise CrchflError(f"{path}: damaged ({exc}); drive the route again into this folder") from None
+    if not rows:
+        raise CrchflError(f"{path}: holds no step; drive the route again into this folder")
     return DriveLog(**values)
 
 
@@ -307,7 +313,9 @@ def compare_runs(run_dirs: Sequence[str | Path], labels: Sequence[str] | None, o
         metrics_path = folder / "metrics.json"
         if not metrics_path.is_file():
             raise CrchflError(f"{folder}: no metrics.json; point to folders written by `crchfl-sumo drive`")
-        metrics = json.loads(metrics_path.read_text(encoding="utf-8"))
+        metrics = read_json_object(metrics_path, ("scenario", "edges"), "drive the route again into this folder")
+        if not (isinstance(metrics["scenario"], str) and isinstance(metrics["edges"], list)):
+            raise CrchflError(f"{metrics_path}: its scenario or edges are damaged; drive the route again into this folder")
         key = (metrics["scenario"], tuple(metrics["edges"]))
         if first is None:
             first = key

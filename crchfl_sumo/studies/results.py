@@ -7,15 +7,13 @@ import json
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from crchfl_sumo.core import json_files
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
 
 
 def read_json(path: Path) -> Any:
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CrchflError(f"{path}: not readable JSON ({exc}); rerun the part that writes it") from None
+    return json_files.read_json(path, "rerun the part that writes it")
 
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:

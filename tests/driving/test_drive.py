@@ -516,6 +516,18 @@ def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
     assert out.stat().st_size > 0
     with pytest.raises(CrchflError, match="one per folder"):
         compare_runs([tmp_path / "script"], ["a", "b"], tmp_path / "x.png")
+    # damaged result files are refused by name, with the fix
+    metrics_path = tmp_path / "model" / "metrics.json"
+    for damage, message in (('{"scenario": "x"', "not readable JSON"), ('{"scenario": "x"}', "lacks edges"),
+                            ('[1, 2]', "lacks scenario, edges"), ('{"scenario": 3, "edges": "AB"}', "damaged")):
+        metrics_path.write_text(damage)
+        with pytest.raises(CrchflError, match=f"metrics.json: .*{message}.*drive the route again"):
+            compare_runs([tmp_path / "script", tmp_path / "model"], None, tmp_path / "y.png")
+    trajectory = tmp_path / "script" / "trajectory.csv"
+    trajectory.write_text(trajectory.read_text().replace("0.25", "x", 1))
+    with pytest.raises(CrchflError, match="trajectory.csv: damaged"):
+        read_trajectory_csv(trajectory)
+    assert not (tmp_path / "y.png").exists()
 
 
 def test_one_pedal_keeps_the_stronger_pedal():
