@@ -372,6 +372,7 @@ def _run_train(args) -> int:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
                 drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"), resume=args.resume,
+                overwrite=args.overwrite,
             )
         last = records[-1]
         straight = last["always_straight"]

@@ -97,7 +97,7 @@ def main() -> None:
             ModelConfig(**{"image_height": 64, "image_width": 128, "speed_horizon_s": manifest.speed_horizon_s,
                            **model_overrides}),
             TrainConfig(**train_overrides), args.seed,
-            drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"),
+            drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"), overwrite=True,
         )
         best = records[-1]
         summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.episodes, jobs=args.jobs,

@@ -70,7 +70,8 @@ def atomic_path_keeping_previous(path: str | Path) -> Iterator[Path]:
 
 def read_latest(path: str | Path, read: Callable[[Path], T], what: str, fix: str) -> tuple[T, Path]:
     """``(read(path), path)``; when ``read`` refuses ``path`` (a CrchflError: missing, empty, truncated,
-    damaged) and the previous copy exists, ``(read(previous), previous)`` with a warning naming both.
+    damaged) and the previous copy exists, ``(read(previous), previous)`` with a warning naming both,
+    and the refused file is removed (a resume leaves no damaged file behind).
 
     With neither readable, a CrchflError gives both reasons and ``fix``; ``what`` names the file's kind.
     """
@@ -85,7 +86,10 @@ def read_latest(path: str | Path, read: Callable[[Path], T], what: str, fix: str
             value = read(previous)
         except CrchflError as before:
             raise CrchflError(f"{latest}; the previous {what} is no better ({before}); {fix}") from None
-        log.warning("%s; resuming from %s (the %s before it)", latest, previous, what)
+        # The damaged file goes: the next save keeping its previous copy would otherwise rename it over
+        # the good one, and a later resume would find two damaged files.
+        path.unlink(missing_ok=True)
+        log.warning("%s; removed it and resuming from %s (the %s before it)", latest, previous, what)
         return value, previous
 
 

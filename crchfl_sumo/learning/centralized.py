@@ -43,6 +43,7 @@ def train_centralized(
     initial_state: State | None = None,
     drive_settings: dict | None = None,
     resume: bool = False,
+    overwrite: bool = False,
 ) -> list[dict]:
     """Train one model on all samples (the upper bound of the federated schemes).
 
@@ -64,6 +65,8 @@ def train_centralized(
     checkpoint in ``out_dir``, or from checkpoint.prev.pt (the epoch before)
     when checkpoint.pt is damaged; the run then ends with the weights and
     records of an uninterrupted one (samples_per_s aside, a wall-clock rate).
+    Without ``resume``, a folder that holds a checkpoint is refused unless ``overwrite``
+    (then the training starts afresh and replaces it): a finished training is not lost to a rerun.
     """
     check_range(epochs, "train_centralized: epochs", 1, MAX_EPOCHS, "a number of epochs")
     check_seed(seed, "train_centralized: seed")
@@ -83,6 +86,11 @@ def train_centralized(
     trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
     checkpoint_path = out_dir / CHECKPOINT_FILE
+    if not (resume or overwrite) and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
+        raise CrchflError(
+            f"{out_dir}: holds a training's checkpoint; pass --resume to continue it, --overwrite to train "
+            "afresh over it, or choose another --out"
+        )
     records: list[dict] = []
     if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
         records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))

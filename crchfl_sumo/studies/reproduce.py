@@ -304,6 +304,7 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
     records = train_centralized(
         train, test, config.centralized_epochs, folder, run.model, run.train, seed,
         drive_settings=manifest.drive_settings(str(out_dir / "data" / "manifest.json")),
+        resume=True,  # a part killed after some epochs continues from its checkpoint
     )
     # the best epoch as the federation ranks its models: balanced accuracy, then accuracy, then loss
     best = max(records, key=lambda r: (r["balanced_accuracy"], r["accuracy"], -r["loss"]))

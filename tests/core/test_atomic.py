@@ -43,6 +43,11 @@ def test_keeping_previous_renames_the_replaced_file_aside_and_read_latest_falls_
     assert read_latest(path, read, "checkpoint", "start afresh") == ("three", path)
     path.write_text("thr\0")
     assert read_latest(path, read, "checkpoint", "start afresh") == ("two", previous_path(path))
+    # the damaged file is gone, so the next save cannot rename it over the good previous copy
+    assert not path.exists()
+    with atomic_path_keeping_previous(path) as tmp:
+        tmp.write_text("four")
+    assert path.read_text() == "four" and previous_path(path).read_text() == "two"
     path.unlink()  # killed between the two renames
     assert read_latest(path, read, "checkpoint", "start afresh") == ("two", previous_path(path))
     previous_path(path).write_text("")

@@ -135,6 +135,16 @@ def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, cap
     assert _without_rates(records[1]) == _without_rates(records[0])
     # the folder now holds a 3-epoch training: the same settings as the uninterrupted one's
     assert marker.read_bytes() == (whole / ".crchfl-sumo-train.json").read_bytes()
+    # the same command again would start afresh over the finished checkpoint: refused without
+    # --resume or --overwrite, the checkpoint untouched; --overwrite trains afresh (the same weights)
+    finished = (cut / "checkpoint.pt").read_bytes()
+    capsys.readouterr()
+    assert main([*argv, "--epochs", "3", "--out", str(cut)]) == 2
+    assert "holds a training's checkpoint; pass --resume to continue it, --overwrite" in capsys.readouterr().err
+    assert (cut / "checkpoint.pt").read_bytes() == finished
+    assert main([*argv, "--epochs", "3", "--out", str(cut), "--overwrite"]) == 0
+    c = load_checkpoint(cut / "checkpoint.pt").state_dict
+    assert all(torch.equal(a[k], c[k]) for k in a)
 
 
 def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(tmp_path):
