@@ -16,6 +16,7 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
+from crchfl_sumo import __version__
 from crchfl_sumo.core.cpus import available_cpus, choose_wait_policy, settle_native_libraries
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
@@ -48,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical federated learning for end-to-end driving on SUMO.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, help_text, add_arguments, run in _commands():
         command = sub.add_parser(name, help=help_text, description=help_text)

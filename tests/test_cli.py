@@ -19,6 +19,13 @@ def test_help_lists_every_subcommand():
         assert name in text
 
 
+def test_version_prints_the_package_version():
+    from crchfl_sumo import __version__
+
+    done = subprocess.run([sys.executable, "-m", "crchfl_sumo.cli", "--version"], capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == f"crchfl-sumo {__version__}"
+
+
 def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
     assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "2", "--seed", "3"]) == 0
