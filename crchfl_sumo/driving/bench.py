@@ -282,10 +282,14 @@ def run_benchmark(
         (r for group in grouped for r in group),
         key=lambda r: (town_names.index(r["town"]), config.tasks.index(r["task"]), r["index"]),
     )
+    drawn_tasks = {scenarios[name].name: {e.task for e in town_episodes} for name, town_episodes in drawn.items()}
+    # a task without a candidate route in a town is left out of its results and listed as skipped
+    skipped = [{"town": town, "task": task, "reason": "no candidate route"}
+               for town in town_names for task in config.tasks if task not in drawn_tasks[town]]
     results = {
         town: {
             task: summarize_task([r for r in records if r["town"] == town and r["task"] == task])
-            for task in config.tasks
+            for task in config.tasks if task in drawn_tasks[town]
         }
         for town in town_names
     }
@@ -297,6 +301,7 @@ def run_benchmark(
         "towns": town_names,
         "tasks": list(config.tasks),
         "results": results,
+        "skipped": skipped,
         "jobs": jobs,
         "wall_s": round(time.perf_counter() - started, 1),
     }
@@ -346,7 +351,8 @@ def results_table(summary: dict) -> str:
             f"{_percent(r.get('efficiency'), 0.01)} | {_percent(r.get('smoothness'))} |"
         )
     abilities = _ability_lines(summary)
-    return "\n".join(lines + ([""] + abilities if abilities else []))
+    skipped = [f"Skipped: {s['task']} in {s['town']} ({s['reason']})." for s in summary.get("skipped", [])]
+    return "\n".join(lines + ([""] + abilities if abilities else []) + ([""] + skipped if skipped else []))
 
 
 def _percent(value, scale: float = 1.0) -> str:

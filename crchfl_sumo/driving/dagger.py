@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -44,29 +45,41 @@ from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, Route
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.centralized import CHECKPOINT_FILE, train_centralized
-from crchfl_sumo.sumo.route import inside_crossing, read_net, route_geometry
+from crchfl_sumo.sumo.route import inside_crossing, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)
 
 
-# The expert hands the wheel back once the ego's centre is this fraction of a lane width from the
-# centre line (it took it when the centre left the lane, half a width out).
+# The expert takes the wheel when the ego's centre leaves its lane (half a lane width out) or its
+# heading is more than TAKEOVER_HEADING_DEG off the route's: beyond the data set's recovery
+# samples (DatasetConfig.recovery_yaw_deg, 15 degrees), whose labels the model learned to follow.
+# It hands the wheel back once the centre is within TAKEOVER_RETURN_FRACTION of a lane width of the
+# centre line and the heading within half the angle.
+TAKEOVER_HEADING_DEG = 15.0
 TAKEOVER_RETURN_FRACTION = 0.25
+
+
+def heading_error_rad(observation: Observation, route) -> float:
+    """The ego's heading minus the route's at its progress, wrapped to (-pi, pi]."""
+    route_heading = point_at(route, observation.progress_m)[2]
+    error = float(observation.frame.heading_rad[observation.ego_row]) - route_heading
+    return math.atan2(math.sin(error), math.cos(error))
 
 
 class ExpertLabelled:
     """A policy that acts as ``learner`` and records what ``expert`` would do, every ``every``-th step.
 
-    While the learner keeps its centre in the planned lane it drives and its states are labelled.
-    Once its centre leaves the lane the expert takes the wheel and drives until the centre is back
-    within ``TAKEOVER_RETURN_FRACTION`` of a lane width of the centre line; those states are not
-    labelled (HG-DAgger, Kelly et al. 2019: the expert takes over where the learner fails). An
-    off-lane state, such as a learner that took the wrong branch of a junction, is labelled with a
-    hard recovery steer under the route's command; a few dozen such labels taught the "straight"
-    head to steer left and drove a model off 20 of 20 straight routes (docs/model.md, "DAgger's
-    off-lane labels").
+    While the learner keeps its centre in the planned lane and its heading within
+    ``TAKEOVER_HEADING_DEG`` of the route's, it drives and its states are labelled. Beyond either,
+    the expert takes the wheel and drives until the centre is back within
+    ``TAKEOVER_RETURN_FRACTION`` of a lane width of the centre line and the heading within half the
+    angle; those states are not labelled (HG-DAgger, Kelly et al. 2019: the expert takes over where
+    the learner fails). Such a state, a learner that turned into the wrong branch of a junction,
+    is labelled with a hard recovery steer under the route's command; a few dozen such labels
+    taught the "straight" head to steer left and drove a model off 20 of 20 straight routes
+    (docs/model.md, "DAgger's off-route labels").
     """
 
     def __init__(
@@ -88,9 +101,12 @@ class ExpertLabelled:
 
     def __call__(self, observation: Observation) -> Action:
         offset = abs(observation.offset_m)
-        if self.expert_driving and offset <= TAKEOVER_RETURN_FRACTION * observation.lane_width_m:
+        heading_off = abs(math.degrees(heading_error_rad(observation, self.expert.route)))
+        if self.expert_driving and (offset <= TAKEOVER_RETURN_FRACTION * observation.lane_width_m
+                                    and heading_off <= TAKEOVER_HEADING_DEG / 2.0):
             self.expert_driving = False
-        elif not self.expert_driving and offset > observation.lane_width_m / 2.0:
+        elif not self.expert_driving and (offset > observation.lane_width_m / 2.0
+                                          or heading_off > TAKEOVER_HEADING_DEG):
             self.expert_driving = True
             self.takeovers += 1
         if self.expert_driving:

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +12,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import LinkModel, MobilityConfig
-from crchfl_sumo.sumo.sites import MAX_HEIGHT_M, EdgeSite
+from crchfl_sumo.sumo.sites import MAX_HEIGHT_M, EdgeSite, hex_lattice
 
 
 @dataclass(frozen=True)
@@ -84,27 +83,11 @@ class MacroLinkConfig:
 def hex_grid_sites(
     bounds_m: tuple[float, float, float, float], spacing_m: float, height_m: float, prefix: str = "macro"
 ) -> tuple[EdgeSite, ...]:
-    """Sites on a hexagonal lattice (neighbours ``spacing_m`` apart) centred on the bounds.
-
-    Every point of the bounds is within one spacing of a site; sites are
-    named ``{prefix}{i}`` in row-major order.
-    """
-    xmin, ymin, xmax, ymax = bounds_m
-    if not (xmax >= xmin and ymax >= ymin and spacing_m > 0):
-        raise CrchflError(f"hex_grid_sites: bad bounds {bounds_m} or spacing {spacing_m}")
-    cx, cy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0
-    row_m = spacing_m * math.sqrt(3.0) / 2.0
-    n_rows = math.ceil((ymax - cy) / row_m) + 1
-    n_cols = math.ceil((xmax - cx) / spacing_m) + 1
-    sites = []
-    for r in range(-n_rows, n_rows + 1):
-        offset = spacing_m / 2.0 if r % 2 else 0.0
-        for c in range(-n_cols, n_cols + 1):
-            x, y = cx + c * spacing_m + offset, cy + r * row_m
-            # keep sites whose cell can touch the bounds
-            if xmin - spacing_m <= x <= xmax + spacing_m and ymin - spacing_m <= y <= ymax + spacing_m:
-                sites.append((x, y))
-    return tuple(EdgeSite(f"{prefix}{i}", x, y, height_m) for i, (x, y) in enumerate(sites))
+    """Sites on a hexagonal lattice (neighbours ``spacing_m`` apart) centred on the bounds
+    (sites.hex_lattice), named ``{prefix}{i}`` in row-major order."""
+    return tuple(
+        EdgeSite(f"{prefix}{i}", float(x), float(y), height_m) for i, (x, y) in enumerate(hex_lattice(bounds_m, spacing_m))
+    )
 
 
 def macro_link_model(

@@ -29,7 +29,14 @@ from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.resources import scenarios_dir
-from crchfl_sumo.sumo.sites import MAX_COORDINATE_M, MAX_SITES, EdgeSite, place_edge_site_count, place_edge_sites
+from crchfl_sumo.sumo.sites import (
+    MAX_COORDINATE_M,
+    MAX_SITES,
+    SITE_PLACEMENTS,
+    EdgeSite,
+    place_edge_site_count,
+    place_edge_sites,
+)
 
 log = logging.getLogger(__name__)
 
@@ -137,12 +144,19 @@ class SumoConfig:
         network's lanes instead of the scenario's (0 = the scenario's).
         A run with other sites than the data set's maps each vehicle to the
         site nearest its first recorded sample (run.read_inputs).
+    site_placement: how a scenario without sites (a plain .sumocfg) gets them:
+        "hex" (default: TR 38.901's hexagonal layout, city scale) or "kmeans"
+        (fewest sites, small networks); sites.place_edge_sites.
+    inter_site_distance_m: the hexagonal layout's spacing (0 = sqrt(3) x the
+        coverage radius, the largest that covers every road point).
     """
 
     scale: float = 1.0
     speed_limit_mps: float = math.inf
     edge_sites: tuple[EdgeSite, ...] = ()
     edge_site_count: int = 0
+    site_placement: str = "hex"
+    inter_site_distance_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.scale) and 0 < self.scale <= MAX_DEMAND_SCALE):
@@ -155,6 +169,12 @@ class SumoConfig:
                     "a number of sites (0 = the scenario's)")
         if self.edge_sites and self.edge_site_count:
             raise CrchflError("sumo: give either edge_sites or edge_site_count, not both")
+        if self.site_placement not in SITE_PLACEMENTS:
+            raise CrchflError(
+                f"sumo.site_placement: {self.site_placement!r} is unknown; use one of {', '.join(SITE_PLACEMENTS)}"
+            )
+        check_range(self.inter_site_distance_m, "sumo.inter_site_distance_m", 0, 1e5,
+                    "metres (0 = from the coverage radius)")
         names = [site.name for site in self.edge_sites]
         if len(set(names)) != len(names):
             raise CrchflError(f"sumo.edge_sites: site names must be distinct, got {names}")
@@ -166,7 +186,8 @@ class SumoConfig:
 
 def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_radius_m: float) -> Scenario:
     """The scenario as ``sumo`` changes it: its edge sites, traffic density and speed cap."""
-    scenario = load_scenario(name_or_path, sumo.edge_sites or None, coverage_radius_m)
+    scenario = load_scenario(name_or_path, sumo.edge_sites or None, coverage_radius_m, sumo.site_placement,
+                             sumo.inter_site_distance_m or None)
     if sumo.edge_site_count:
         sites = place_edge_site_count(lane_points(scenario.net_path), sumo.edge_site_count)
         scenario = dataclasses.replace(scenario, edge_sites=sites)
@@ -181,6 +202,8 @@ def load_scenario(
     name_or_path: str | Path,
     edge_sites: tuple[EdgeSite, ...] | None = None,
     coverage_radius_m: float = 250.0,
+    site_placement: str = "hex",
+    inter_site_distance_m: float | None = None,
 ) -> Scenario:
     """Resolve a built-in name, a folder laid out as a built-in one, or a .sumocfg path into a runnable Scenario.
 
@@ -190,7 +213,9 @@ def load_scenario(
 
     ``edge_sites`` (from an experiment config) override the scenario's own; a
     user's .sumocfg without sites gets them placed automatically so that every
-    road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites).
+    road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites, by
+    ``site_placement``: "hex", TR 38.901's hexagonal layout of ``inter_site_distance_m``
+    (default sqrt(3) x the radius), or "kmeans").
     """
     text = str(name_or_path)
     builtin, own = scenarios_dir() / text / "scenario.toml", Path(text) / "scenario.toml"
@@ -232,16 +257,17 @@ def load_scenario(
         raise CrchflError(f"{cfg_path}: <end> is not after <begin>; set a later end or remove it")
     if edge_sites is not None:
         sites = tuple(edge_sites)
-    if not sites:
-        sites = place_edge_sites(lane_points(net_path), coverage_radius_m)
-        log.info("placed %d edge sites automatically over %s", len(sites), net_path.name)
-    for site in sites:
+    for site in sites:  # given by hand; a placed site may stand beyond the network's edge
         if not bounds.contains(site.x_m, site.y_m):
             raise CrchflError(
                 f"edge site '{site.name}' at ({site.x_m:.1f}, {site.y_m:.1f}) m is off the map "
                 f"{net_path.name} (x {bounds.xmin_m:.1f}..{bounds.xmax_m:.1f}, "
                 f"y {bounds.ymin_m:.1f}..{bounds.ymax_m:.1f}); move it inside"
             )
+    if not sites:
+        sites = place_edge_sites(lane_points(net_path), coverage_radius_m, method=site_placement,
+                                 inter_site_distance_m=inter_site_distance_m)
+        log.info("placed %d edge sites automatically over %s", len(sites), net_path.name)
     if not towns:
         towns = (Town(name, bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m),)
     return Scenario(

@@ -27,6 +27,7 @@ from crchfl_sumo.driving.bench_score import (
 from crchfl_sumo.driving.bench_tasks import (
     TASKS,
     TIME_BUDGET_SPEED_MPS,
+    TaskConfig,
     Candidate,
     apart_from_data,
     candidate_routes,
@@ -201,6 +202,36 @@ def test_episodes_are_drawn_by_seed_into_their_suites(ladder):
     # Without replacement while routes last: the straight suite's three routes differ.
     assert len({e.edges for e in by_task["straight"]}) == 3
     assert all(20.0 <= e.warmup_s <= 110.0 for e in first)
+
+
+def test_bounded_searches_find_the_shortest_routes_of_the_pairs_they_reach(ladder, monkeypatch):
+    from crchfl_sumo.driving import bench_tasks
+
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    net = read_net(Path(scenario.net_path))
+    # from AB within 250 m: AB alone (100 m), on to BC or BE (200 m each; the ladder has no U-turns)
+    paths = bench_tasks.shortest_paths_from(net.getEdge("AB"), 250.0)
+    assert {goal: [e.getID() for e in path] for goal, path in paths.items()} == {
+        "AB": ["AB"], "BC": ["AB", "BC"], "BE": ["AB", "BE"]}
+    every = {c.edges: c for c in bench_tasks.candidate_routes(scenario)}
+    # as on a large network: sampled starts, a few goals each; each a shortest route of its pair
+    monkeypatch.setattr(bench_tasks, "ALL_PAIRS_MAX_EDGES", 0)
+    monkeypatch.setattr(bench_tasks, "BOUNDED_STARTS", 5)
+    monkeypatch.setattr(bench_tasks, "BOUNDED_GOALS", 3)
+    bounded = bench_tasks.candidate_routes(scenario)
+    assert 0 < len(bounded) <= 15 and bounded == bench_tasks.candidate_routes(scenario)
+    by_pair = {(c.edges[0], c.edges[-1]): c for c in every.values()}
+    for c in bounded:
+        assert c.length_m == pytest.approx(by_pair[(c.edges[0], c.edges[-1])].length_m)
+
+
+def test_a_task_without_a_route_is_skipped_and_the_rest_runs(ladder, tmp_path):
+    # on the ladder a straight route (two 100 m edges) fits in 250 m, a route of two turns does not
+    config = BenchConfig(tasks=("straight", "navigation"), routes=TaskConfig(max_route_m=250.0))
+    summary = run_benchmark(None, tmp_path / "b", episodes=1, towns=(str(ladder / "ladder.sumocfg"),), config=config)
+    assert list(summary["results"]["ladder"]) == ["straight"]
+    assert summary["skipped"] == [{"town": "ladder", "task": "navigation", "reason": "no candidate route"}]
+    assert "Skipped: navigation in ladder (no candidate route)." in (tmp_path / "b" / "results.md").read_text()
 
 
 def test_data_vehicle_routes_are_left_out():

@@ -14,7 +14,6 @@ the suite's 20 episodes, its bfloat16 start model 11.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -147,9 +148,10 @@ class _Learner:
 
 
 class _Expert:
-    """RoutePolicy's face: steers hard left back to the lane."""
+    """RoutePolicy's face: steers hard left back to the lane, on a straight route along +x."""
 
     expert = ExpertConfig()
+    route = SimpleNamespace(s_m=np.array([0.0, 1000.0]), xy_m=np.array([[0.0, 0.0], [1000.0, 0.0]]))
     action = (0.2, -0.9, 0.0)
 
     def decide(self, observation):
@@ -159,17 +161,22 @@ class _Expert:
         return self.decide(observation)[0]
 
 
-def test_the_expert_takes_the_wheel_off_the_lane_and_those_states_are_not_labelled():
+def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states_are_not_labelled():
     policy = ExpertLabelled(_Learner(), _Expert(), every=1)
-    frame = SimpleNamespace(speed_mps=np.array([5.0]))
     images = np.zeros((4, 48, 64, 3), np.uint8)
-    # a 3.5 m lane: the expert takes over beyond 1.75 m and hands back within 0.875 m
-    offsets = [0.0, -1.0, 1.8, 1.0, -0.9, 0.8, 0.3]
-    acted = [policy(Observation(frame, "ego", 0, 10.0 * i, images, offset, 3.5)) for i, offset in enumerate(offsets)]
+    # a 3.5 m lane: the expert takes over beyond 1.75 m or 15 degrees off the route's heading, and
+    # hands back within 0.875 m and 7.5 degrees
+    steps = [(0.0, 0), (-1.0, 10), (1.8, 0), (1.0, 0), (-0.9, 0), (0.8, 0), (0.3, 0),  # off the lane
+             (0.2, 16), (0.2, 10), (0.2, -7), (0.0, 0)]  # in the lane, its heading off
+    acted = [
+        policy(Observation(SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([math.radians(deg)])),
+                           "ego", 0, 10.0 * i, images, offset, 3.5))
+        for i, (offset, deg) in enumerate(steps)
+    ]
     learner, expert = _Learner.action, _Expert.action
-    assert acted == [learner, learner, expert, expert, expert, learner, learner]
-    assert policy.takeovers == 1
+    assert acted == [learner, learner, expert, expert, expert, learner, learner, expert, expert, learner, learner]
+    assert policy.takeovers == 2
     arrays = policy.arrays()
-    # the learner's four states, each labelled with the expert's action; none of the expert's own
-    assert len(arrays["actions"]) == 4 and arrays["command"].tolist() == [3, 3, 3, 3]
-    assert np.allclose(arrays["actions"], np.array([expert] * 4, np.float32))
+    # the learner's six states, each labelled with the expert's action; none of the expert's own
+    assert len(arrays["actions"]) == 6 and arrays["command"].tolist() == [3] * 6
+    assert np.allclose(arrays["actions"], np.array([expert] * 6, np.float32))

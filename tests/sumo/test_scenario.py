@@ -90,16 +90,44 @@ def test_malformed_net_is_refused(tmp_path):
         load_scenario(tmp_path / "x.sumocfg")
 
 
-def test_site_placement_covers_all_points_with_few_sites():
+def _farthest(points, sites):
+    centres = np.array([(s.x_m, s.y_m) for s in sites])
+    return np.sqrt(((points[:, None] - centres[None]) ** 2).sum(-1)).min(axis=1).max()
+
+
+def test_kmeans_site_placement_covers_all_points_with_few_sites():
     # Points along a 1000 m x 200 m strip: a 250 m radius needs 3 sites, not 1 or 10.
     xs, ys = np.meshgrid(np.linspace(0, 1000, 51), np.linspace(0, 200, 11))
     points = np.stack([xs.ravel(), ys.ravel()], axis=1)
-    sites = place_edge_sites(points, 250.0)
-    centres = np.array([(s.x_m, s.y_m) for s in sites])
-    nearest = np.sqrt(((points[:, None] - centres[None]) ** 2).sum(-1)).min(axis=1)
-    assert nearest.max() <= 250.0
+    sites = place_edge_sites(points, 250.0, method="kmeans")
+    assert _farthest(points, sites) <= 250.0
     assert len(sites) == 3
-    assert place_edge_sites(points, 250.0) == sites  # deterministic
+    assert place_edge_sites(points, 250.0, method="kmeans") == sites  # deterministic
+
+
+def test_hexagonal_site_placement_by_hand():
+    # A straight 1000 m road on y = 0, radius 100 m: inter-site distance 100 sqrt(3) = 173.2 m, the
+    # lattice centred on the road's middle; the row on the road holds every nearest site, at
+    # x = 500 + 173.2 k for k = -3 .. 3 (the road's ends 19.6 m from the outer two): 7 sites.
+    road = np.stack([np.linspace(0.0, 1000.0, 1001), np.zeros(1001)], axis=1)
+    sites = place_edge_sites(road, 100.0)
+    assert [round(s.x_m, 1) for s in sites] == [round(500 + 173.2051 * k, 1) for k in range(-3, 4)]
+    assert all(s.y_m == 0.0 for s in sites) and [s.name for s in sites][:2] == ["edge00", "edge01"]
+    assert _farthest(road, sites) == pytest.approx(173.2051 / 2, abs=0.1)
+    # a denser layout, and one too sparse to cover the road
+    assert len(place_edge_sites(road, 100.0, inter_site_distance_m=100.0)) == 11
+    with pytest.raises(CrchflError, match="inter_site_distance_m.*at most sqrt\\(3\\)"):
+        place_edge_sites(road, 100.0, inter_site_distance_m=200.0)
+
+
+def test_hexagonal_placement_covers_every_point_of_a_scattered_network():
+    rng = np.random.default_rng(4)
+    points = np.concatenate([rng.uniform(0, 3000, (2000, 2)), rng.uniform(5000, 6000, (500, 2))])
+    sites = place_edge_sites(points, 250.0)
+    assert _farthest(points, sites) <= 250.0
+    # only the sites that cover a road: none over the empty 3 to 5 km gap
+    assert not any(3250 < s.x_m < 4750 and 3250 < s.y_m < 4750 for s in sites)
+    assert place_edge_sites(points, 250.0) == sites
 
 
 @pytest.mark.parametrize("name", ["town01", "town02", "paper", "paper_linked"])
