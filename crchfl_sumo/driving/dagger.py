@@ -33,7 +33,7 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, check_range, check_seed
-from crchfl_sumo.data.expert import target_speed_from_accel
+from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
@@ -205,6 +205,17 @@ class DaggerConfig:
         check_range(self.max_s, "dagger.max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
 
 
+def labeller_config(route_expert: RoutePolicyConfig, data_expert: ExpertConfig) -> RoutePolicyConfig:
+    """The route expert as a labeller: it steers by the pure pursuit of the data set's expert (its look-ahead,
+    and through ``data_expert`` its steering rack), so a DAgger label asks for the steer the data set's
+    labels would. The reference driver's own look-ahead is shorter (4 m and 0.5 s against the data's 5 m
+    and 0.8 s): its labels steered about twice as hard back to the line as the data set's recovery
+    samples, and fine-tuned on both a model learned to over-steer (docs/model.md, "DAgger's labels")."""
+    return dataclasses.replace(
+        route_expert, lookahead_min_m=data_expert.lookahead_min_m, lookahead_time_s=data_expert.lookahead_time_s
+    )
+
+
 def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> list[dict]:
     """Drive ``episodes`` with the learner, labelled by the expert; each episode's arrays, in their order."""
     scenario = load_scenario(town)
@@ -215,8 +226,7 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
     with single_torch_thread(True):
         for episode in episodes:
             route = route_geometry(net, episode.edges)
-            # the route expert labels through the rack the learner's data were labelled with
-            expert = RoutePolicy(route, config.expert, expert=driver.expert())
+            expert = RoutePolicy(route, labeller_config(config.expert, driver.expert()), expert=driver.expert())
             policy = ExpertLabelled(driver.policy(route, net), expert, config.every, config.corrections_only)
             drive(
                 scenario if traffic[episode.task] else without_traffic(scenario), route, policy,

@@ -180,3 +180,15 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
     # the learner's six states, each labelled with the expert's action; none of the expert's own
     assert len(arrays["actions"]) == 6 and arrays["command"].tolist() == [3] * 6
     assert np.allclose(arrays["actions"], np.array([expert] * 6, np.float32))
+
+
+def test_the_labeller_steers_by_the_data_sets_pursuit():
+    from crchfl_sumo.driving.dagger import labeller_config
+    from crchfl_sumo.driving.policies import RoutePolicyConfig
+
+    data = ExpertConfig(lookahead_min_m=6.0, lookahead_time_s=0.9)
+    labeller = labeller_config(RoutePolicyConfig(hold_short_m=10.0), data)
+    assert (labeller.lookahead_min_m, labeller.lookahead_time_s) == (6.0, 0.9)
+    assert labeller.hold_short_m == 10.0  # the rest is the route expert's
+    # the reference driver itself keeps its own, shorter look-ahead
+    assert (RoutePolicyConfig().lookahead_min_m, RoutePolicyConfig().lookahead_time_s) == (4.0, 0.5)
