@@ -78,13 +78,15 @@ def simulate(
 ) -> Trace:
     """Run ``scenario`` for ``duration_s`` with the link model stepping on every frame."""
     links = LinkModel(scenario.edge_sites, cfg.channel, cfg.mobility, seed=cfg.seed)
+    cell_users = np.full(len(scenario.edge_sites), float(cfg.mobility.cell_background_users))
     columns: dict[str, list[np.ndarray]] = {k: [] for k in ("t_s", "vehicle", "x_m", "y_m", "speed_mps", "site", "rate_bps")}
     handovers = []
     total_steps = int(round(duration_s / scenario.step_length_s))
     # Positions and speeds are all the links and the trace read: no lanes, signals ahead or signal states.
     with Simulation(scenario, seed=cfg.seed, watch=(), signals=False) as sim:
         for frame in sim.run(duration_s):
-            snapshot = links.step(frame)
+            # every vehicle here is a user already: of the background load only the cells' other users
+            snapshot = links.step(frame, background_users=cell_users)
             columns["t_s"].append(np.full(len(frame), frame.t_s))
             columns["vehicle"].append(frame.ids)
             columns["x_m"].append(frame.x_m)
