@@ -251,14 +251,20 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     assert "runs/hfl/seed-0" in json.loads((out / "timings.json").read_text())
 
 
-@pytest.mark.slow
-def test_parts_run_side_by_side_give_the_same_results(tmp_path):
-    # one seed, no ablation, no drives: the data set, then 4 parts that --jobs 2 runs two at a time
+def _training_parts_only(folder):
+    """The tiny preset with one seed, no ablation, no DAgger and no drives, written to folder/tiny.toml."""
     text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
     text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []").replace("bench_episodes = 1", "bench_episodes = 0")
     text = text.replace("dagger_iterations = 1", "dagger_iterations = 0")
-    path = tmp_path / "tiny.toml"
+    path = folder / "tiny.toml"
     path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+def test_parts_run_side_by_side_give_the_same_results(tmp_path):
+    # one seed, no ablation, no drives: the data set, then 4 parts that --jobs 2 runs two at a time
+    path = _training_parts_only(tmp_path)
     seen = []
     _, alone = reproduce_command(out_dir=tmp_path / "one", config_path=path)
     _, paired = reproduce_command(
@@ -283,12 +289,8 @@ def test_parts_run_side_by_side_give_the_same_results(tmp_path):
 
 @pytest.mark.slow
 def test_ray_tasks_give_the_local_backends_summary(tmp_path):
-    # one seed, no ablation, no drives: the data set, then the centralized and the three schemes' parts
-    text = TINY.replace("seeds = 2", "seeds = 1").replace("ablation_edge_intervals = [2, 3]", "ablation_edge_intervals = []")
-    text = text.replace('drive_routes = ["town01_right_left"]', "drive_routes = []").replace("bench_episodes = 1", "bench_episodes = 0")
-    text = text.replace("dagger_iterations = 1", "dagger_iterations = 0")
-    path = tmp_path / "tiny.toml"
-    path.write_text(text)
+    # the data set, then the centralized and the three schemes' parts
+    path = _training_parts_only(tmp_path)
     _, local = reproduce_command(out_dir=tmp_path / "local", config_path=path)
     _, on_ray = reproduce_command(out_dir=tmp_path / "ray", config_path=path, backend="ray")
     # the same parts, the same folders, the same figures (one torch thread a part either way)
