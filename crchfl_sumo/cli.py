@@ -480,6 +480,7 @@ def _run_drive_bench(args) -> int:
                 BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain), bars,
             )
     print(results_table(summary))
+    print(f"SUMO's warnings: {summary['sumo_warnings']}, in {args.out / 'sumo-logs'}")
     print(f"{summary['wall_s']:.0f} s wall -> {args.out}")
     return 0
 

@@ -43,7 +43,7 @@ from crchfl_sumo.driving.bench_tasks import (
     task_by_name,
     without_traffic,
 )
-from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.drive import DriveConfig, drive, sumo_warnings
 from crchfl_sumo.driving.drive_command import model_expert, model_renderer, single_torch_thread
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import (
@@ -172,8 +172,16 @@ def driver_for(
 # --- one group of episodes (runs in a worker process) -------------------------------------------------
 
 
-def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], config: BenchConfig) -> list[dict]:
-    """Drive ``episodes`` (all in one town) one after the other; one record per episode."""
+# SUMO's warnings of a benchmark's drives (collisions it saw, vehicles moved by TraCI): a file an episode
+# in this folder of --out instead of the console; summary.json counts them.
+SUMO_LOG_DIR = "sumo-logs"
+
+
+def drive_episodes(
+    driver, scenario_name: str, episodes: Sequence[Episode], config: BenchConfig, log_dir: Path | None = None
+) -> list[dict]:
+    """Drive ``episodes`` (all in one town) one after the other; one record per episode. SUMO's warnings go
+    to ``log_dir``/TOWN-TASK-INDEX.log when given."""
     scenario = load_scenario(scenario_name)
     empty = without_traffic(scenario)
     traffic_of = {t.name: t.traffic for t in TASKS}
@@ -193,6 +201,7 @@ def drive_episodes(driver, scenario_name: str, episodes: Sequence[Episode], conf
                 renderer=renderer,
                 expert=driver.expert(),
                 keep_frames=False,
+                sumo_log=None if log_dir is None else Path(log_dir) / f"{episode.town}-{episode.task}-{episode.index}.log",
             )
             records.append(episode_record(episode, result, config.drive.finish_before_end_m, scenario.step_length_s))
     return records
@@ -262,10 +271,13 @@ def run_benchmark(
         except CrchflError as exc:
             raise CrchflError(f"--towns: {exc}") from None
     drawn = {name: draw_episodes(s, tasks, episodes, seed, config.routes) for name, s in scenarios.items()}
+    for stale in (Path(out_dir) / SUMO_LOG_DIR).glob("*.log"):  # an earlier run's, in a folder run again
+        stale.unlink()
     calls = []
     for name, town_episodes in drawn.items():
         groups = math.ceil(len(town_episodes) / config.group_episodes)
-        calls += [(driver, name, town_episodes[g::groups], config) for g in range(groups)]  # tasks mixed: even groups
+        log_dir = Path(out_dir) / SUMO_LOG_DIR
+        calls += [(driver, name, town_episodes[g::groups], config, log_dir) for g in range(groups)]  # tasks mixed
     total = sum(len(e) for e in drawn.values())
     done = {"episodes": 0, "successes": 0}
 
@@ -302,6 +314,7 @@ def run_benchmark(
         "tasks": list(config.tasks),
         "results": results,
         "skipped": skipped,
+        "sumo_warnings": sumo_warnings(Path(out_dir) / SUMO_LOG_DIR),
         "jobs": jobs,
         "wall_s": round(time.perf_counter() - started, 1),
     }

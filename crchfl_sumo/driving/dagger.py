@@ -37,7 +37,7 @@ from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
-from crchfl_sumo.driving.bench import STUCK_S, ModelDriver
+from crchfl_sumo.driving.bench import STUCK_S, SUMO_LOG_DIR, ModelDriver
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
@@ -216,8 +216,11 @@ def labeller_config(route_expert: RoutePolicyConfig, data_expert: ExpertConfig) 
     )
 
 
-def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig) -> list[dict]:
-    """Drive ``episodes`` with the learner, labelled by the expert; each episode's arrays, in their order."""
+def labelled_drives(
+    driver: ModelDriver, town: str, episodes: Sequence[Episode], config: DaggerConfig, log_dir: Path | None = None
+) -> list[dict]:
+    """Drive ``episodes`` with the learner, labelled by the expert; each episode's arrays, in their order.
+    SUMO's warnings go to ``log_dir``/TOWN-TASK-INDEX.log when given."""
     scenario = load_scenario(town)
     traffic = {name: task_by_name(name).traffic for name in config.tasks}
     net = read_net(Path(scenario.net_path))
@@ -233,6 +236,7 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
                 seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),
                 config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s), renderer=renderer,
                 expert=driver.expert(), keep_frames=False,
+                sumo_log=None if log_dir is None else Path(log_dir) / f"{scenario.name}-{episode.task}-{episode.index}.log",
             )
             parts.append(policy.arrays())
             log.info("%s %s %d: %d states labelled, the expert took the wheel %d times",
@@ -241,9 +245,11 @@ def labelled_drives(driver: ModelDriver, town: str, episodes: Sequence[Episode],
 
 
 def collect(
-    checkpoint: str | Path, towns: Sequence[str], config: DaggerConfig = DaggerConfig(), jobs: int = 1
+    checkpoint: str | Path, towns: Sequence[str], config: DaggerConfig = DaggerConfig(), jobs: int = 1,
+    log_dir: Path | None = None,
 ) -> Samples:
-    """One round: the checkpoint drives routes of ``towns``; every visited state labelled by the expert."""
+    """One round: the checkpoint drives routes of ``towns``; every visited state labelled by the expert
+    (SUMO's warnings in ``log_dir`` when given)."""
     driver = ModelDriver(str(checkpoint), label=Path(checkpoint).stem)
     driver.model()  # a bad checkpoint fails here, before any drive
     tasks = [task_by_name(name) for name in config.tasks]
@@ -252,7 +258,7 @@ def collect(
         episodes = draw_episodes(load_scenario(town), tasks, config.episodes, config.seed)
         groups = max(1, min(jobs, len(episodes)))
         for g in range(groups):
-            calls.append((driver, town, episodes[g::groups], config))
+            calls.append((driver, town, episodes[g::groups], config, log_dir))
             positions.append([(t, i) for i in range(g, len(episodes), groups)])
     with Executor(BackendConfig(num_cpus=jobs)) as executor:
         groups_done = executor.map(labelled_drives, calls, isolate=jobs > 1)
@@ -286,7 +292,7 @@ def collected_samples(
             raise CrchflError(
                 f"{path}: unreadable expert samples ({exc}); delete the file to collect them again"
             ) from None
-    samples = collect(checkpoint, towns, config, jobs=jobs)
+    samples = collect(checkpoint, towns, config, jobs=jobs, log_dir=Path(folder) / SUMO_LOG_DIR)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as temp, open(temp, "wb") as out:
         np.savez(out, **{name: getattr(samples, name).numpy() for name in FIELDS})

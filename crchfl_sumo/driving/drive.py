@@ -237,11 +237,13 @@ def drive(
     renderer=None,
     expert: ExpertConfig = ExpertConfig(),
     keep_frames: bool = True,
+    sumo_log: Path | None = None,
 ) -> DriveResult:
     """Drive ``route`` in ``scenario`` with ``policy`` for at most ``max_s`` simulated seconds.
 
     ``renderer`` (raster.Renderer of the scenario's world) renders the ego's
     cameras for the policy every step; a policy without images passes None.
+    ``sumo_log``: SUMO's warnings go to this file instead of the console (sumo_warnings counts them).
     """
     if not max_s > 0:
         raise CrchflError(f"--max-s must be > 0, got {max_s}")
@@ -250,7 +252,8 @@ def drive(
     area = road_area(read_net(Path(scenario.net_path)))
     rows: list[dict[str, Any]] = []
     frames: list[Frame] = []
-    with Simulation(scenario, seed=seed, extra_options=DRIVE_SUMO_OPTIONS, watch=[ego]) as sim:
+    quiet = warnings_to(sumo_log)
+    with Simulation(scenario, seed=seed, extra_options=(*DRIVE_SUMO_OPTIONS, *quiet), watch=[ego]) as sim:
         for _ in range(int(round(config.warmup_s / dt))):
             sim.step()
         type_id = config.type_id if config.type_id in sim.vehicle_type_ids() else DEFAULT_TYPE
@@ -341,6 +344,24 @@ def drive(
         route.edges[0], end, drive_log.t_s[-1], metrics["completion"],
     )
     return DriveResult(drive_log, metrics, frames, route, ego, length, width)
+
+
+def warnings_to(sumo_log: Path | None) -> tuple[str, ...]:
+    """SUMO options that send its warnings to ``sumo_log`` instead of the console (its folder made);
+    none for None."""
+    if sumo_log is None:
+        return ()
+    Path(sumo_log).parent.mkdir(parents=True, exist_ok=True)
+    return (f"--error-log={sumo_log}", "--no-warnings=true")
+
+
+def sumo_warnings(folder: Path) -> int:
+    """Warnings SUMO wrote to the *.log files of ``folder`` (drive's ``sumo_log``); 0 without any."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    return sum(line.startswith("Warning:") for path in sorted(folder.glob("*.log"))
+               for line in path.read_text(encoding="utf-8", errors="replace").splitlines())
 
 
 def surroundings(frame: Frame, row: int, route: RouteGeometry, s_m: float, length_m: float) -> dict[str, float]:

@@ -40,7 +40,7 @@ from crchfl_sumo.driving.bench_tasks import (
     time_limit_s,
     without_traffic,
 )
-from crchfl_sumo.driving.drive import DriveConfig, drive, footprints_overlap
+from crchfl_sumo.driving.drive import DriveConfig, drive, footprints_overlap, sumo_warnings, warnings_to
 from crchfl_sumo.driving.policies import ConstantPolicy, RoutePolicy
 from crchfl_sumo.sumo.route import Crossing, RouteGeometry, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
@@ -320,6 +320,23 @@ def test_reference_driver_scores_full_marks_and_hard_steer_fails(ladder, tmp_pat
         assert r["infractions"]["off_road_events"] >= 2, task
     episodes = json.loads((tmp_path / "bad" / "episodes.json").read_text())
     assert {e["end_reason"] for e in episodes} == {"left the route"}
+    # SUMO's log of each episode lies in sumo-logs (these drives gave SUMO nothing to warn of)
+    logs = sorted((tmp_path / "bad" / "sumo-logs").glob("*.log"))
+    assert len(logs) == 6 and logs[0].name == "ladder-navigation-0.log" and bad["sumo_warnings"] == 0
+
+
+def test_sumos_warnings_go_to_the_drives_log_not_the_console(ladder, tmp_path, capfd):
+    # a vehicle of the flow moved about 190 m along its route in one step by TraCI: SUMO warns of the implied speed
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    capfd.readouterr()
+    with Simulation(scenario, seed=1, extra_options=warnings_to(tmp_path / "logs" / "a.log")) as sim:
+        frame = sim.step()
+        while not len(frame.ids):
+            frame = sim.step()
+        sim.place_vehicle(str(frame.ids[0]), 190.0, -1.6, 0.0, 5.0)
+        sim.step()
+    assert sumo_warnings(tmp_path / "logs") >= 1 and "Warning:" not in capfd.readouterr().err
+    assert warnings_to(None) == () and sumo_warnings(tmp_path / "none") == 0
 
 
 def test_a_checkpoint_drives_the_benchmark_with_its_cameras_and_commands(ladder, tmp_path):
