@@ -355,13 +355,13 @@ def warnings_to(sumo_log: Path | None) -> tuple[str, ...]:
     return (f"--error-log={sumo_log}", "--no-warnings=true")
 
 
-def sumo_warnings(folder: Path) -> int:
-    """Warnings SUMO wrote to the *.log files of ``folder`` (drive's ``sumo_log``); 0 without any."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        return 0
-    return sum(line.startswith("Warning:") for path in sorted(folder.glob("*.log"))
-               for line in path.read_text(encoding="utf-8", errors="replace").splitlines())
+def sumo_warnings(path: Path) -> int:
+    """Warnings SUMO wrote (drive's ``sumo_log``) to the file ``path``, or to the *.log files of the folder
+    ``path``; 0 where there is none."""
+    path = Path(path)
+    files = [path] if path.is_file() else sorted(path.glob("*.log")) if path.is_dir() else []
+    return sum(line.startswith("Warning:") for file in files
+               for line in file.read_text(encoding="utf-8", errors="replace").splitlines())
 
 
 def surroundings(frame: Frame, row: int, route: RouteGeometry, s_m: float, length_m: float) -> dict[str, float]:

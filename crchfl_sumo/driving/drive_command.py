@@ -12,7 +12,7 @@ from typing import Any
 
 from crchfl_sumo.data.commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, expert_from_labels
-from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.drive import DriveConfig, drive, sumo_warnings
 from crchfl_sumo.driving.named_routes import resolve_route
 from crchfl_sumo.driving.plots import write_drive_outputs
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
@@ -23,6 +23,9 @@ from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.camera import CameraConfig
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, camera_settings
 from crchfl_sumo.vision.world import build_world
+
+
+SUMO_LOG_FILE = "sumo.log"  # SUMO's warnings of the drive, instead of the console
 
 
 def drive_command(
@@ -69,8 +72,10 @@ def drive_command(
         result = drive(
             loaded, geometry, policy, seed=seed, max_s=max_s, config=config,
             renderer=renderer if model_path is not None else None, expert=expert,
+            sumo_log=Path(out_dir) / SUMO_LOG_FILE,
         )
     metrics = {
+        "sumo_warnings": sumo_warnings(Path(out_dir) / SUMO_LOG_FILE),
         "route": route,
         "scenario": scenario_name,
         "edges": list(edges),

@@ -508,6 +508,9 @@ def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
     for folder, metrics in ((tmp_path / "script", scripted), (tmp_path / "model", learned)):
         assert json.loads((folder / "metrics.json").read_text()) == metrics
         assert (folder / "trajectory.png").stat().st_size > 0 and (folder / "drive.mp4").stat().st_size > 0
+        # SUMO's warnings went to the folder's sumo.log, counted in the metrics
+        assert (folder / "sumo.log").is_file() and metrics["sumo_warnings"] == sum(
+            line.startswith("Warning:") for line in (folder / "sumo.log").read_text().splitlines())
         log = read_trajectory_csv(folder / "trajectory.csv")
         assert len(log) == int(round(metrics["duration_s"] / 0.25)) + 1
     assert scripted["model"] == "" and learned["model"] == str(checkpoint)
