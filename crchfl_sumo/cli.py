@@ -466,18 +466,31 @@ def _add_drive_bench(p: argparse.ArgumentParser) -> None:
     _towns_argument(p)
     p.add_argument("--tasks", default=",".join(TASK_NAMES),
                    help=f"tasks separated by commas (default {','.join(TASK_NAMES)})")
+    p.add_argument("--max-route-m", type=number_arg(0, 1e6, "metres", lo_open=True), default=600.0,
+                   help="longest route drawn (default 600)")
+    p.add_argument("--min-route-m", type=number_arg(0, 1e6, "metres"), default=0.0,
+                   help="shortest route drawn (default 0: any)")
+    p.add_argument("--navigation-turns", default="2,1000",
+                   help="fewest and most turns of a navigation route, FEWEST,MOST (default 2,1000)")
     _decoding_arguments(p)
 
 
 def _run_drive_bench(args) -> int:
     from crchfl_sumo.driving.bench import BenchConfig, results_table, run_benchmark
+    from crchfl_sumo.driving.bench_tasks import TaskConfig
 
     with _output_folder(args, "drive-bench"):
         towns, tasks = _comma_list(args.towns), _comma_list(args.tasks)
+        turns = _comma_list(args.navigation_turns)
+        if len(turns) != 2 or not all(t.isdigit() for t in turns):
+            raise CrchflError(f"--navigation-turns: {args.navigation_turns!r}; give FEWEST,MOST, for example 2,1000")
+        routes = TaskConfig(max_route_m=args.max_route_m, min_route_m=args.min_route_m,
+                            navigation_turns=(int(turns[0]), int(turns[1])))
         with ProgressBars("episode") as bars:
             summary = run_benchmark(
                 args.model, args.out, args.episodes, args.jobs, args.seed, towns,
-                BenchConfig(tasks=tasks, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain), bars,
+                BenchConfig(tasks=tasks, routes=routes, steer_decoding=args.steer_decoding, brake_gain=args.brake_gain),
+                bars,
             )
     print(results_table(summary))
     print(f"SUMO's warnings: {summary['sumo_warnings']}, in {args.out / 'sumo-logs'}")

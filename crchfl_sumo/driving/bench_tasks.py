@@ -68,17 +68,35 @@ class TaskConfig:
     """How routes are drawn.
 
     max_route_m      longest route drawn [m] (keeps an episode within a few simulated minutes)
+    min_route_m      shortest route drawn [m] (0: any; a city's short links make trivial episodes)
+    navigation_turns the turns a navigation route has, (fewest, most); straight routes have none,
+                     one-turn routes one (CoRL2017's suites)
     warmup_range_s   each episode's warm-up is drawn from this range: traffic gets moving, and
                      a range wider than a signal cycle (90 s in the towns) lets the ego meet
                      every phase of the lights
     """
 
     max_route_m: float = 600.0
+    min_route_m: float = 0.0
+    navigation_turns: tuple[int, int] = (2, 1_000)
     warmup_range_s: tuple[float, float] = (20.0, 110.0)
 
     def __post_init__(self) -> None:
         if not self.max_route_m > 0:
             raise CrchflError(f"bench.max_route_m must be > 0, got {self.max_route_m}")
+        if not 0 <= self.min_route_m < self.max_route_m:
+            raise CrchflError(
+                f"bench.min_route_m must lie in [0, max_route_m = {self.max_route_m:g}), got {self.min_route_m}"
+            )
+        fewest, most = self.navigation_turns
+        if not 2 <= fewest <= most:
+            raise CrchflError(
+                f"bench.navigation_turns must be (fewest, most) with 2 <= fewest <= most, got {self.navigation_turns}"
+            )
+
+    def turns(self, task: Task) -> tuple[int, int]:
+        """(fewest, most) turns of ``task``'s routes: its own, the navigation suites' from this config."""
+        return self.navigation_turns if task.name in ("navigation", "navigation_traffic") else (task.min_turns, task.max_turns)
         low, high = self.warmup_range_s
         if not 0 <= low <= high:
             raise CrchflError(f"bench.warmup_range_s must be (low, high) with 0 <= low <= high, got {self.warmup_range_s}")
@@ -279,7 +297,9 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
             geometry = route_geometry(net, ids)
         except CrchflError:  # a route needing a lane change: the loop drives one lane sequence only
             continue
-        if geometry.length_m > config.max_route_m or any(c.direction in U_TURN_DIRECTIONS for c in geometry.crossings):
+        if not config.min_route_m <= geometry.length_m <= config.max_route_m or any(
+            c.direction in U_TURN_DIRECTIONS for c in geometry.crossings
+        ):
             continue
         candidates.append(Candidate(ids, geometry.length_m, count_turns(geometry), time_limit_s(geometry, waits)))
     return candidates
@@ -304,13 +324,12 @@ def draw_episodes(
     out = []
     for task in tasks:
         source = task_by_name(task.routes_of) if task.routes_of else task
-        pool = sorted(
-            (c for c in candidates if source.min_turns <= c.turns <= source.max_turns), key=lambda c: c.edges
-        )
+        fewest, most = config.turns(source)
+        pool = sorted((c for c in candidates if fewest <= c.turns <= most), key=lambda c: c.edges)
         if not pool:  # the rest of the benchmark runs; bench.run_benchmark lists the task as skipped
             log.warning(
                 "town '%s' has no route for task '%s' (%d to %d turns, at most %g m, apart from the data vehicles' "
-                "routes): skipped", town, task.name, source.min_turns, source.max_turns, config.max_route_m,
+                "routes): skipped", town, task.name, fewest, most, config.max_route_m,
             )
             continue
         rng = np.random.default_rng([seed, zlib.crc32(town.encode()), zlib.crc32(source.name.encode())])

@@ -225,6 +225,21 @@ def test_bounded_searches_find_the_shortest_routes_of_the_pairs_they_reach(ladde
         assert c.length_m == pytest.approx(by_pair[(c.edges[0], c.edges[-1])].length_m)
 
 
+def test_the_suites_length_and_turn_limits_are_settings(ladder):
+    scenario = load_scenario(ladder / "ladder.sumocfg")
+    tasks = [task_by_name(n) for n in ("straight", "navigation", "navigation_traffic")]
+    limited = TaskConfig(min_route_m=250.0, navigation_turns=(3, 3))
+    drawn = draw_episodes(scenario, tasks, 4, seed=1, config=limited)
+    navigation = [e for e in drawn if e.task == "navigation"]
+    assert navigation and all(e.turns == 3 for e in navigation)
+    assert all(e.length_m >= 250.0 for e in drawn)
+    assert [e.edges for e in navigation] == [e.edges for e in drawn if e.task == "navigation_traffic"]
+    for bad, key in (({"min_route_m": 700.0}, "min_route_m"), ({"navigation_turns": (1, 3)}, "navigation_turns"),
+                     ({"navigation_turns": (4, 3)}, "navigation_turns")):
+        with pytest.raises(CrchflError, match=key):
+            TaskConfig(**bad)
+
+
 def test_a_task_without_a_route_is_skipped_and_the_rest_runs(ladder, tmp_path):
     # on the ladder a straight route (two 100 m edges) fits in 250 m, a route of two turns does not
     config = BenchConfig(tasks=("straight", "navigation"), routes=TaskConfig(max_route_m=250.0))
@@ -397,6 +412,12 @@ def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tm
     assert main(["drive-bench", "reference", "--out", str(tmp_path / "c"), "--episodes", "0", "--towns", cfg]) == 2
     err = capsys.readouterr().err
     assert "drive-bench --episodes: 0 is out of range; give a number of episodes in 1 .. 10000" in err
+    for option, value, message in (("--navigation-turns", "2", "--navigation-turns: '2'; give FEWEST,MOST"),
+                                   ("--navigation-turns", "1,5", "bench.navigation_turns"),
+                                   ("--min-route-m", "900", "bench.min_route_m")):
+        assert main(["drive-bench", "reference", "--out", str(tmp_path / "d"), "--towns", cfg, option, value]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
 
 
 def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
