@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.studies.simulate import run_simulate_command
@@ -69,8 +70,6 @@ def main() -> None:
                 continue
             times[method] = time.perf_counter() - start
             centres = np.array([(s.x_m, s.y_m) for s in scenario.edge_sites])
-            from scipy.spatial import cKDTree
-
             farthest = float(cKDTree(centres).query(points)[0].max())
             print(f"placement {method}: {len(centres)} sites in {times[method]:.2f} s, farthest road point "
                   f"{farthest:.1f} m (radius {args.radius:g} m)")

@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -26,6 +25,7 @@ from typing import Any, Sequence
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.core.schemes import REFERENCE
 from crchfl_sumo.data.commands import RouteCommands
@@ -177,6 +177,11 @@ def driver_for(
 SUMO_LOG_DIR = "sumo-logs"
 
 
+def episode_log(log_dir: Path | None, town: str, task: str, index: int) -> Path | None:
+    """The file SUMO's warnings of one episode go to (None without ``log_dir``: the console)."""
+    return None if log_dir is None else Path(log_dir) / f"{town}-{task}-{index}.log"
+
+
 def drive_episodes(
     driver, scenario_name: str, episodes: Sequence[Episode], config: BenchConfig, log_dir: Path | None = None
 ) -> list[dict]:
@@ -201,7 +206,7 @@ def drive_episodes(
                 renderer=renderer,
                 expert=driver.expert(),
                 keep_frames=False,
-                sumo_log=None if log_dir is None else Path(log_dir) / f"{episode.town}-{episode.task}-{episode.index}.log",
+                sumo_log=episode_log(log_dir, episode.town, episode.task, episode.index),
             )
             records.append(episode_record(episode, result, config.drive.finish_before_end_m, scenario.step_length_s))
     return records
@@ -271,12 +276,12 @@ def run_benchmark(
         except CrchflError as exc:
             raise CrchflError(f"--towns: {exc}") from None
     drawn = {name: draw_episodes(s, tasks, episodes, seed, config.routes) for name, s in scenarios.items()}
-    for stale in (Path(out_dir) / SUMO_LOG_DIR).glob("*.log"):  # an earlier run's, in a folder run again
+    log_dir = Path(out_dir) / SUMO_LOG_DIR
+    for stale in log_dir.glob("*.log"):  # an earlier run's, in a folder run again
         stale.unlink()
     calls = []
     for name, town_episodes in drawn.items():
         groups = math.ceil(len(town_episodes) / config.group_episodes)
-        log_dir = Path(out_dir) / SUMO_LOG_DIR
         calls += [(driver, name, town_episodes[g::groups], config, log_dir) for g in range(groups)]  # tasks mixed
     total = sum(len(e) for e in drawn.values())
     done = {"episodes": 0, "successes": 0}
@@ -314,7 +319,7 @@ def run_benchmark(
         "tasks": list(config.tasks),
         "results": results,
         "skipped": skipped,
-        "sumo_warnings": sumo_warnings(Path(out_dir) / SUMO_LOG_DIR),
+        "sumo_warnings": sumo_warnings(log_dir),
         "jobs": jobs,
         "wall_s": round(time.perf_counter() - started, 1),
     }
@@ -327,8 +332,8 @@ def run_benchmark(
 
 def write_outputs(out: Path, summary: dict, records: list[dict], scenarios: dict[str, Scenario]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    atomic_write_text(out / "episodes.json", json.dumps(records, indent=1) + "\n")
+    write_json(out / "summary.json", summary)
+    write_json(out / "episodes.json", records, indent=1)
     atomic_write_text(out / "results.md", results_table(summary) + "\n")
     atomic_write_text(out / "results.csv", results_csv(summary))
     plot_benchmark(records, {s.name: Path(s.net_path) for s in scenarios.values()}, summary["tasks"],

@@ -15,6 +15,7 @@ docs/drive.md describes the suites, the exclusion and the time limit.
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import itertools
 import logging
 import xml.etree.ElementTree as ET
@@ -233,8 +234,6 @@ BOUNDED_GOALS = 12
 def shortest_paths_from(start, max_length_m: float) -> dict[str, tuple]:
     """Shortest paths (by edge length, passenger class) from ``start`` to every edge whose path is at
     most ``max_length_m`` long, start included: goal id -> edges. Dijkstra cut at the bound."""
-    import heapq
-
     best = {start.getID(): start.getLength()}
     previous: dict[str, Any] = {start.getID(): None}
     by_id = {start.getID(): start}

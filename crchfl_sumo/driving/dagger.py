@@ -19,7 +19,6 @@ is not trained on the episodes it is scored on.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 from dataclasses import dataclass, field
@@ -28,16 +27,17 @@ from typing import Sequence
 
 import numpy as np
 
-from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
-from crchfl_sumo.driving.bench import STUCK_S, SUMO_LOG_DIR, ModelDriver
+from crchfl_sumo.driving.bench import STUCK_S, SUMO_LOG_DIR, ModelDriver, episode_log
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drive import DriveConfig, drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
@@ -79,7 +79,7 @@ class ExpertLabelled:
     the learner fails). Such a state, a learner that turned into the wrong branch of a junction,
     is labelled with a hard recovery steer under the route's command; a few dozen such labels
     taught the "straight" head to steer left and drove a model off 20 of 20 straight routes
-    (docs/model.md, "DAgger's off-route labels").
+    (docs/model.md, "DAgger's labels").
     """
 
     def __init__(
@@ -236,7 +236,7 @@ def labelled_drives(
                 seed=episode.sumo_seed, max_s=min(config.max_s, episode.time_limit_s),
                 config=dataclasses.replace(config.drive, warmup_s=episode.warmup_s), renderer=renderer,
                 expert=driver.expert(), keep_frames=False,
-                sumo_log=None if log_dir is None else Path(log_dir) / f"{scenario.name}-{episode.task}-{episode.index}.log",
+                sumo_log=episode_log(log_dir, scenario.name, episode.task, episode.index),
             )
             parts.append(policy.arrays())
             log.info("%s %s %d: %d states labelled, the expert took the wheel %d times",
@@ -362,5 +362,5 @@ def dagger_iterations(
         "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "learning_rate": learning_rate, "seed": seed,
         "iterations": records,
     }
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_json(out_dir / "summary.json", summary)
     return records

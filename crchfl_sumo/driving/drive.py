@@ -37,7 +37,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, check_range
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals, bicycle_step
-from crchfl_sumo.driving.policies import Observation, Policy
+from crchfl_sumo.driving.policies import Observation, Policy, leader_gap_m
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
     RED_LETTERS,
@@ -373,13 +373,8 @@ def surroundings(frame: Frame, row: int, route: RouteGeometry, s_m: float, lengt
     distance = np.hypot(frame.x_m[others] - frame.x_m[row], frame.y_m[others] - frame.y_m[row])
     near = others[distance < TRAFFIC_RADIUS_M]
     traffic = float(np.mean(frame.speed_mps[near])) if len(near) else math.nan
-    gap = math.inf
-    if len(near):
-        s_o, off_o, width_o = project_points(route, frame.x_m[near], frame.y_m[near], s_m, s_m + LEADER_RANGE_M)
-        ahead = (s_o > s_m) & (np.abs(off_o) < width_o / 2.0 + frame.width_m[near] / 2.0 - 0.3)
-        if ahead.any():
-            gap = float(np.min((s_o - s_m - frame.length_m[near] / 2.0 - length_m / 2.0)[ahead]))
-    return {"traffic_speed_mps": traffic, "leader_gap_m": gap}
+    return {"traffic_speed_mps": traffic,
+            "leader_gap_m": leader_gap_m(frame, near, route, s_m, length_m / 2.0, LEADER_RANGE_M)}
 
 
 def _touches_another(frame: Frame, ego: str, state: VehicleState, length_m: float, width_m: float) -> bool:

@@ -109,6 +109,21 @@ class RoutePolicyConfig:
             check_range(getattr(self, name), f"route_policy.{name}", 0, hi, what)
 
 
+def leader_gap_m(
+    frame: Frame, rows: np.ndarray, route: RouteGeometry, s_m: float, half_length_m: float, ahead_m: float
+) -> float:
+    """Bumper gap to the nearest of the vehicles ``rows`` that is ahead on ``route`` within ``ahead_m`` of
+    the ego's progress ``s_m`` and in its lane (its side within the lane, 0.3 m of overlap allowed);
+    inf without one."""
+    if len(rows) == 0:
+        return math.inf
+    s_o, off_o, width_o = project_points(route, frame.x_m[rows], frame.y_m[rows], s_m, s_m + ahead_m)
+    ahead = (s_o > s_m) & (np.abs(off_o) < width_o / 2.0 + frame.width_m[rows] / 2.0 - 0.3)
+    if not ahead.any():
+        return math.inf
+    return float((s_o - s_m - frame.length_m[rows] / 2.0 - half_length_m)[ahead].min())
+
+
 class RoutePolicy:
     """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane.
 
@@ -148,12 +163,9 @@ class RoutePolicy:
         others = np.flatnonzero(
             (np.arange(len(frame)) != row) & (np.hypot(frame.x_m - frame.x_m[row], frame.y_m - frame.y_m[row]) < 60.0)
         )
-        if len(others):
-            s_o, off_o, width_o = project_points(self.route, frame.x_m[others], frame.y_m[others], s, s + 50.0)
-            ahead = (s_o > s) & (np.abs(off_o) < width_o / 2.0 + frame.width_m[others] / 2.0 - 0.3)
-            if ahead.any():
-                gap = (s_o - s - frame.length_m[others] / 2.0 - half_length)[ahead].min()
-                wanted = min(wanted, max(0.0, (gap - cfg.standstill_gap_m) / max(cfg.headway_s, 1e-3)))
+        gap = leader_gap_m(frame, others, self.route, s, half_length, 50.0)
+        if gap < math.inf:
+            wanted = min(wanted, max(0.0, (gap - cfg.standstill_gap_m) / max(cfg.headway_s, 1e-3)))
         accel = cfg.speed_gain_per_s * (wanted - v)
         index = next_crossing(self.route.crossings, s + half_length)
         if index >= 0:

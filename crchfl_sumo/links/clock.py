@@ -248,9 +248,9 @@ class SumoClock:
         self._t[row] = float(frame.t_s)
         columns = [self._column[str(v)] for v in mine.ids]  # absent vehicles keep 0 bit/s and no site
         self._pose[row, columns] = np.stack([mine.x_m, mine.y_m, mine.speed_mps, mine.heading_rad], axis=1)
-        others = frame.select(~keep)
+        others = frame.select(~keep) if self._loaded else None  # a copy a step: only when the traffic loads
         for kind, links in self._links.items():
-            users = background_users(links.sites, others.x_m, others.y_m, links.mobility) if self._loaded else None
+            users = None if others is None else background_users(links.sites, others.x_m, others.y_m, links.mobility)
             snapshot = links.step(mine, background_users=users)
             self._handover_t[kind].extend(
                 h.t_s for h in snapshot.handovers if h.from_site != NO_SITE and h.to_site != NO_SITE
