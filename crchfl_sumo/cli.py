@@ -355,6 +355,11 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
                    "--epochs may be raised, and --precision named to continue in the precision the epochs trained in)")
+    p.add_argument("--red-weight", type=float, default=TrainConfig.red_weight,
+                   help="draw samples at a red or yellow signal within --red-window-m this many times as often "
+                   f"(default {TrainConfig.red_weight:g}: off; needs a data set of format 5)")
+    p.add_argument("--red-window-m", type=float, default=TrainConfig.red_window_m,
+                   help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
 
 
 def _run_train(args) -> int:
@@ -365,11 +370,14 @@ def _run_train(args) -> int:
 
     # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
     # precision its epochs trained in), which folders marked while it was kept still allow
+    config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
+                         red_weight=args.red_weight, red_window_m=args.red_window_m)  # refused before any file
+    if args.red_weight == TrainConfig.red_weight:  # off: a folder trained before these options existed still resumes
+        del args.red_weight, args.red_window_m
     with _output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
         manifest = read_manifest(args.dataset)
         model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
-        config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision)
         with ProgressBars("sample") as bars:
             records = train_centralized(
                 train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,

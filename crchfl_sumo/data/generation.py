@@ -51,7 +51,7 @@ from crchfl_sumo.data.expert import (
     target_speeds,
     tracks_from_frames,
 )
-from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.recovery import (
     FORWARD_M,
     camera_pose,
@@ -302,6 +302,7 @@ def generate_dataset(
                 x_m=track.x_m[rows],
                 y_m=track.y_m[rows],
                 heading_rad=track.heading_rad[rows],
+                **signal_columns([frames[i] for i in sampled[vehicle]], vehicle, labels.perturbation[:, FORWARD_M]),
             )
             edge = nearest_site(scenario.edge_sites, data.x_m, data.y_m)
             with clock("write"):
@@ -309,6 +310,19 @@ def generate_dataset(
             done += len(rows)
             report(progress, "write", done, total)
     return writer.manifest
+
+
+def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray) -> dict[str, np.ndarray]:
+    """Per sample (one frame each): the next signal's state code and stop-line distance, and the yield gap
+    (ShardData's signal_state, signal_distance_m, yield_gap_m). A sample drawn ``forward_m`` ahead of its
+    track (a queue sample) is that much nearer the stop line."""
+    rows = [frame.index_of(vehicle) for frame in frames]
+    distance = np.array([frame.tls_ahead_dist_m[r] for frame, r in zip(frames, rows)], dtype=np.float64)
+    return {
+        "signal_state": signal_codes([frame.tls_ahead_state[r] for frame, r in zip(frames, rows)]),
+        "signal_distance_m": np.maximum(distance - np.asarray(forward_m, dtype=np.float64), 0.0).astype(np.float32),
+        "yield_gap_m": np.array([frame.foe_gap_m[r] for frame, r in zip(frames, rows)], dtype=np.float32),
+    }
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,10 @@ Route command (Conditional Imitation Learning, Codevilla et al. 2018): what
 the vehicle's route does at the next junction within the command look-ahead
 (data/commands.py): follow the lane (no junction near), turn left, turn right,
 or go straight across. Code k is COMMAND_NAMES[k].
+
+Signal ahead (data set format 5): the state of the next signal on the sample's
+route for its link, code k = SIGNAL_NAMES[k] ("unknown" where the data does not
+say: shards of format 4, DAgger's samples), with the distance to its stop line.
 """
 
 from __future__ import annotations
@@ -23,6 +27,23 @@ NUM_STEER_CLASSES = len(STEER_CLASS_VALUES)
 COMMAND_NAMES = ("follow", "left", "right", "straight")
 FOLLOW, LEFT, RIGHT, STRAIGHT = range(len(COMMAND_NAMES))
 NUM_COMMANDS = len(COMMAND_NAMES)
+
+
+SIGNAL_NAMES = ("unknown", "none", "red", "yellow", "green", "green_minor", "off")
+SIGNAL_UNKNOWN, SIGNAL_NONE, SIGNAL_RED, SIGNAL_YELLOW, SIGNAL_GREEN, SIGNAL_GREEN_MINOR, SIGNAL_OFF = range(
+    len(SIGNAL_NAMES)
+)
+# SUMO's signal letters: r red, u red-yellow, s stop sign (stop, then go), y/Y yellow, G major green,
+# g minor green (go, but yield), o/O off (blinking / no signal)
+_SIGNAL_OF_LETTER = {
+    "": SIGNAL_NONE, "r": SIGNAL_RED, "u": SIGNAL_RED, "s": SIGNAL_RED, "y": SIGNAL_YELLOW, "Y": SIGNAL_YELLOW,
+    "G": SIGNAL_GREEN, "g": SIGNAL_GREEN_MINOR, "o": SIGNAL_OFF, "O": SIGNAL_OFF,
+}
+
+
+def signal_codes(letters) -> np.ndarray:
+    """int8 [N] SIGNAL_NAMES codes of SUMO signal letters ('' = no signal ahead; an unknown letter: off)."""
+    return np.array([_SIGNAL_OF_LETTER.get(str(letter), SIGNAL_OFF) for letter in letters], dtype=np.int8)
 
 
 def digitize_steer(steer: np.ndarray | float) -> np.ndarray:

@@ -4,7 +4,9 @@ One sample is one time step of one vehicle: the four camera images (order
 ``CAMERA_NAMES`` = CamH, CamF, CamL, CamR; HWC RGB, uint8), the action
 vector (throttle, steer, brake), the steer class (``labels.digitize_steer``),
 the route command (``labels.COMMAND_NAMES``), the vehicle's speed [m/s] and its
-target speed [m/s] (its speed ``ExpertConfig.speed_horizon_s`` later, data/expert.py).
+target speed [m/s] (its speed ``ExpertConfig.speed_horizon_s`` later, data/expert.py),
+and the next signal on its route (labels.SIGNAL_NAMES) with its stop line's distance
+[m] (inf: none), which training may weigh (learning/balance.py).
 Images stay uint8 in memory (4x smaller than float32); the model normalises them.
 """
 
@@ -16,13 +18,14 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_NAMES, SIGNAL_UNKNOWN
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3
 # The tensors, in constructor order.
-FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps")
+FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps", "signal_state",
+          "signal_distance_m")
 
 
 @dataclass(frozen=True)
@@ -30,7 +33,9 @@ class Samples:
     """N samples as torch tensors on the CPU (or any one device).
 
     images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N];
-    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N].
+    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N];
+    signal_state: int64 [N] (labels.SIGNAL_NAMES; None: all unknown); signal_distance_m: float32 [N]
+    (inf: none; None: all inf).
     """
 
     images: torch.Tensor
@@ -39,9 +44,16 @@ class Samples:
     command: torch.Tensor
     speed_mps: torch.Tensor
     target_speed_mps: torch.Tensor
+    signal_state: torch.Tensor | None = None
+    signal_distance_m: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.images.shape[0] if self.images.dim() else -1
+        device = self.images.device
+        if self.signal_state is None:
+            object.__setattr__(self, "signal_state", torch.full((max(n, 0),), SIGNAL_UNKNOWN, dtype=torch.int64, device=device))
+        if self.signal_distance_m is None:
+            object.__setattr__(self, "signal_distance_m", torch.full((max(n, 0),), float("inf"), device=device))
         if self.images.dtype != torch.uint8 or self.images.dim() != 5:
             raise ValueError(f"images must be uint8 [N, 4, H, W, 3], got {self.images.dtype} {tuple(self.images.shape)}")
         if self.images.shape[1] != NUM_CAMERAS or self.images.shape[4] != 3:
@@ -66,6 +78,15 @@ class Samples:
                 raise ValueError(f"{name} must be float32 [{n}], got {speed.dtype} {tuple(speed.shape)}")
             if n and not bool(torch.isfinite(speed).all() and (speed >= 0).all()):
                 raise ValueError(f"{name} values must be finite and >= 0")
+        if self.signal_state.dtype != torch.int64 or tuple(self.signal_state.shape) != (n,):
+            raise ValueError(f"signal_state must be int64 [{n}], got {self.signal_state.dtype} {tuple(self.signal_state.shape)}")
+        if n and (int(self.signal_state.min()) < 0 or int(self.signal_state.max()) >= len(SIGNAL_NAMES)):
+            raise ValueError(f"signal_state values must lie in 0..{len(SIGNAL_NAMES) - 1}")
+        distance = self.signal_distance_m
+        if distance.dtype != torch.float32 or tuple(distance.shape) != (n,):
+            raise ValueError(f"signal_distance_m must be float32 [{n}], got {distance.dtype} {tuple(distance.shape)}")
+        if n and not bool((distance >= 0).all()):  # NaN fails this too
+            raise ValueError("signal_distance_m values must be >= 0 (inf: no signal ahead)")
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -103,8 +124,11 @@ class Samples:
         command: np.ndarray,
         speed_mps: np.ndarray,
         target_speed_mps: np.ndarray,
+        signal_state: np.ndarray | None = None,
+        signal_distance_m: np.ndarray | None = None,
     ) -> Samples:
-        """Build from numpy arrays (images are not copied when already uint8 and contiguous)."""
+        """Build from numpy arrays (images are not copied when already uint8 and contiguous; no signal
+        columns: unknown)."""
         return Samples(
             torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8)),
             torch.from_numpy(np.ascontiguousarray(actions, dtype=np.float32)),
@@ -112,6 +136,8 @@ class Samples:
             torch.from_numpy(np.ascontiguousarray(command, dtype=np.int64)),
             torch.from_numpy(np.ascontiguousarray(speed_mps, dtype=np.float32)),
             torch.from_numpy(np.ascontiguousarray(target_speed_mps, dtype=np.float32)),
+            None if signal_state is None else torch.from_numpy(np.ascontiguousarray(signal_state, dtype=np.int64)),
+            None if signal_distance_m is None else torch.from_numpy(np.ascontiguousarray(signal_distance_m, dtype=np.float32)),
         )
 
     @staticmethod

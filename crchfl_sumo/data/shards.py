@@ -9,7 +9,9 @@ Layout of a data set folder::
                           [N,3], steer_class int64 [N], command int64 [N],
                           speed_mps, target_speed_mps float32 [N], perturbation float32 [N,3]
                           (lateral_m, yaw_deg, forward_m of a recovery sample's pose), t_s,
-                          x_m, y_m, heading_rad float64 [N]; attributes
+                          x_m, y_m, heading_rad float64 [N], signal_state int8 [N]
+                          (labels.SIGNAL_NAMES), signal_distance_m, yield_gap_m
+                          float32 [N] (inf: none; format 5); attributes
                           vehicle, town, edge, split
 
 Both files are plain formats (h5py / json suffice to read them). Every file is
@@ -38,7 +40,9 @@ from crchfl_sumo.core.atomic import atomic_path, atomic_write_text, remove_stale
 from crchfl_sumo.core.config import MAX_DEPTH, from_mapping, nesting_depth, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig, expert_from_labels
-from crchfl_sumo.data.labels import ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import (
+    ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_NAMES, SIGNAL_UNKNOWN, STEER_CLASS_VALUES,
+)
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S
 from crchfl_sumo.vision.camera import CAMERA_NAMES, MAX_HEIGHT_PX, MAX_WIDTH_PX
 from crchfl_sumo.vision.raster import camera_settings
@@ -47,7 +51,8 @@ log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "crchfl-sumo-dataset"
-FORMAT_VERSION = 4  # 2: command, speed_mps and perturbation per sample; 3: target_speed_mps; 4: forward_m
+FORMAT_VERSION = 5  # 2: command, speed_mps, perturbation; 3: target_speed_mps; 4: forward_m; 5: signal_*, yield_gap_m
+READ_VERSIONS = (4, 5)  # a format-4 data set loads: its samples' signal is "unknown"
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
 # positive = the rendered pose is left of / turned left of / ahead of the track (data/recovery.py)
@@ -64,7 +69,14 @@ LABEL_DATASETS = {
     "x_m": np.float64,
     "y_m": np.float64,
     "heading_rad": np.float64,
+    "signal_state": np.int8,
+    "signal_distance_m": np.float32,
+    "yield_gap_m": np.float32,
 }
+# Datasets format 5 added, and what a format-4 shard's samples read as (signal unknown, no gap known).
+ADDED_IN_5 = {"signal_state": SIGNAL_UNKNOWN, "signal_distance_m": np.inf, "yield_gap_m": np.inf}
+# Distances where inf means "none": finite otherwise, never NaN.
+INF_IS_NONE = ("signal_distance_m", "yield_gap_m")
 LABEL_SHAPES = {"actions": (len(ACTION_NAMES),), "perturbation": (len(PERTURBATION_NAMES),)}  # per sample; others []
 # Deflate cannot shrink data by more than about 1032:1 (LZF by less): a shard file of n bytes holds at most
 # this many times n bytes of a compressed dataset. A larger declared shape is refused before any allocation.
@@ -84,6 +96,7 @@ def label_schema() -> dict[str, Any]:
         "throttle_brake_range": [0.0, 1.0],
         "commands": list(COMMAND_NAMES),
         "perturbation": list(PERTURBATION_NAMES),
+        "signal_state": list(SIGNAL_NAMES),
     }
 
 
@@ -102,9 +115,17 @@ class ShardData:
     x_m: np.ndarray  # float64 [N] vehicle centre
     y_m: np.ndarray
     heading_rad: np.ndarray
+    # the next signal on the route (labels.SIGNAL_NAMES) and its stop line's distance, the gap of the nearest
+    # junction foe to yield to (sim.yield_gap_m); None: unknown for every sample (int8 / float32 [N], inf: none)
+    signal_state: np.ndarray | None = None
+    signal_distance_m: np.ndarray | None = None
+    yield_gap_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.images)
+        for name, unknown in ADDED_IN_5.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(n, unknown, dtype=LABEL_DATASETS[name]))
         shape = self.images.shape
         if self.images.dtype != np.uint8 or len(shape) != 5 or shape[1] != len(CAMERA_NAMES) or shape[4] != 3:
             raise ValueError(f"images must be uint8 [N, 4, H, W, 3], got {self.images.dtype} {self.images.shape}")
@@ -112,7 +133,8 @@ class ShardData:
             raise ValueError(f"actions must be [{n}, 3], got {self.actions.shape}")
         if self.perturbation.shape != (n, len(PERTURBATION_NAMES)):
             raise ValueError(f"perturbation must be [{n}, {len(PERTURBATION_NAMES)}], got {self.perturbation.shape}")
-        for name in ("steer_class", "command", "speed_mps", "target_speed_mps", "t_s", "x_m", "y_m", "heading_rad"):
+        for name in ("steer_class", "command", "speed_mps", "target_speed_mps", "t_s", "x_m", "y_m", "heading_rad",
+                     *ADDED_IN_5):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be [{n}], got {getattr(self, name).shape}")
 
@@ -226,9 +248,10 @@ class Manifest:
             raise CrchflError(f"{where}: nested too deeply to be a data set manifest; {fix}")
         if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
             raise CrchflError(f"{where}: not a crchfl-sumo data set manifest")
-        if data.get("version") != FORMAT_VERSION:
+        if data.get("version") not in READ_VERSIONS:
             raise CrchflError(
-                f"{where}: format version {data.get('version')}, this code reads {FORMAT_VERSION}; regenerate the data set"
+                f"{where}: format version {data.get('version')}, this code reads "
+                f"{' and '.join(map(str, READ_VERSIONS))}; regenerate the data set"
             )
         known = {f.name for f in dataclasses.fields(Manifest)}
         missing = sorted(known - set(data))
@@ -361,6 +384,7 @@ def write_shard(
             f.attrs["actions"] = ",".join(ACTION_NAMES)
             f.attrs["commands"] = ",".join(COMMAND_NAMES)
             f.attrs["perturbation"] = ",".join(PERTURBATION_NAMES)
+            f.attrs["signals"] = ",".join(SIGNAL_NAMES)
     return ShardEntry(
         file=path.name,
         vehicle=vehicle,
@@ -442,8 +466,11 @@ def open_shard(
     fix = regenerate_fix(root, path)
     try:
         with h5py.File(path, "r") as f:
-            _check_layout(f, path, entry, image_hw, fix)
-            labels = {name: f[name][()] for name in LABEL_DATASETS}
+            present = _check_layout(f, path, entry, image_hw, fix)
+            labels = {
+                name: f[name][()] if name in present else np.full(entry.samples, ADDED_IN_5[name], LABEL_DATASETS[name])
+                for name in LABEL_DATASETS
+            }
             check_label_values(labels, str(path), fix)
             yield f, labels
     except CrchflError:
@@ -458,9 +485,13 @@ def _one_line(exc: Exception) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def _check_layout(f: h5py.File, path: Path, entry: ShardEntry, image_hw: tuple[int, int] | None, fix: str) -> None:
-    """Names, dtypes and shapes of the shard's datasets, and what the file can hold; reads no data."""
-    missing = [name for name in ("images", *LABEL_DATASETS) if name not in f]
+def _check_layout(
+    f: h5py.File, path: Path, entry: ShardEntry, image_hw: tuple[int, int] | None, fix: str
+) -> tuple[str, ...]:
+    """Names, dtypes and shapes of the shard's datasets, and what the file can hold; reads no data.
+    Returns the label datasets present (a format-4 shard lacks those of ADDED_IN_5)."""
+    optional = [] if all(name in f for name in ADDED_IN_5) else list(ADDED_IN_5)  # all of them, or none
+    missing = [name for name in ("images", *LABEL_DATASETS) if name not in f and name not in optional]
     if missing:
         raise CrchflError(
             f"{path}: shard has no {', '.join(missing)} (written by an older version of crchfl-sumo or damaged); "
@@ -468,7 +499,8 @@ def _check_layout(f: h5py.File, path: Path, entry: ShardEntry, image_hw: tuple[i
         )
     n = entry.samples
     expected = {name: (np.dtype(dtype), (n, *LABEL_SHAPES.get(name, ()))) for name, dtype in LABEL_DATASETS.items()}
-    for name in ("images", *LABEL_DATASETS):
+    present = tuple(name for name in LABEL_DATASETS if name not in optional)
+    for name in ("images", *present):
         link = f.get(name, getlink=True)
         ds = f.get(name)
         if not isinstance(link, h5py.HardLink) or not isinstance(ds, h5py.Dataset) or ds.is_virtual or ds.external:
@@ -490,12 +522,17 @@ def _check_layout(f: h5py.File, path: Path, entry: ShardEntry, image_hw: tuple[i
             raise CrchflError(
                 f"{path}: {name} declares {declared} bytes, more than a {path.stat().st_size}-byte file can hold; {fix}"
             )
+    return present
 
 
 def check_label_values(labels: dict[str, np.ndarray], where: str, fix: str) -> None:
     """Refuse label values a sample cannot have: NaN or inf anywhere, pedals outside [0, 1], steer outside
     [-1, 1], steer classes outside 0..6, commands outside 0..3, negative speeds."""
     for name, values in labels.items():
+        if name in INF_IS_NONE:  # inf says "none"
+            if np.isnan(values).any() or (values == -np.inf).any():
+                raise CrchflError(f"{where}: {name} holds NaN or -inf; distances are finite, or inf for none; {fix}")
+            continue
         if values.dtype.kind == "f" and not np.isfinite(values).all():
             raise CrchflError(f"{where}: {name} holds {values[~np.isfinite(values)][0]}; labels must be finite; {fix}")
     ranges = (
@@ -506,6 +543,13 @@ def check_label_values(labels: dict[str, np.ndarray], where: str, fix: str) -> N
         ("command", labels["command"], 0, NUM_COMMANDS - 1, f"commands are 0..{NUM_COMMANDS - 1}"),
         ("speed_mps", labels["speed_mps"], 0.0, np.inf, "speeds are >= 0"),
         ("target_speed_mps", labels["target_speed_mps"], 0.0, np.inf, "speeds are >= 0"),
+    ) + tuple(
+        (name, labels[name], low, high, rule)
+        for name, low, high, rule in (
+            ("signal_state", 0, len(SIGNAL_NAMES) - 1, f"signal codes are 0..{len(SIGNAL_NAMES) - 1}"),
+            ("signal_distance_m", 0.0, np.inf, "distances to a stop line are >= 0"),
+        )
+        if name in labels
     )
     for name, values, low, high, rule in ranges:
         bad = values[(values < low) | (values > high)]

@@ -34,7 +34,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
-from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
 from crchfl_sumo.driving.bench import STUCK_S, SUMO_LOG_DIR, ModelDriver, episode_log
@@ -45,7 +45,7 @@ from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, Route
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.centralized import CHECKPOINT_FILE, train_centralized
-from crchfl_sumo.sumo.route import inside_crossing, point_at, read_net, route_geometry
+from crchfl_sumo.sumo.route import inside_crossing, point_at, read_net, route_geometry, signal_letter
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -98,6 +98,7 @@ class ExpertLabelled:
         self.commands: list[int] = []
         self.speeds: list[float] = []
         self.target_speeds: list[float] = []
+        self.signals: list[tuple[str, float]] = []  # (letter, distance) of the next signal, per sample
 
     def __call__(self, observation: Observation) -> Action:
         offset = abs(observation.offset_m)
@@ -120,8 +121,8 @@ class ExpertLabelled:
 
     def _record(self, observation: Observation, action: Action) -> None:
         expert_action, wanted = self.expert.decide(observation)
+        length_m = float(observation.frame.length_m[observation.ego_row])
         if self.corrections_only:
-            length_m = float(observation.frame.length_m[observation.ego_row])
             inside = inside_crossing(self.expert.route.crossings, observation.progress_m, length_m)
             if not is_correction(action, expert_action, inside):
                 return
@@ -133,6 +134,8 @@ class ExpertLabelled:
         # No recorded future here: the speed the expert's wanted acceleration leads to, over the
         # learner's own horizon.
         self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
+        self.signals.append(signal_ahead(self.expert.route.crossings, observation.progress_m + length_m / 2.0,
+                                         observation.frame.tls_states))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
@@ -147,7 +150,18 @@ class ExpertLabelled:
             "command": np.asarray(self.commands, dtype=np.int64),
             "speed_mps": np.asarray(self.speeds, dtype=np.float32),
             "target_speed_mps": np.asarray(self.target_speeds, dtype=np.float32),
+            "signal_state": signal_codes([letter for letter, _ in self.signals]).astype(np.int64),
+            "signal_distance_m": np.asarray([d for _, d in self.signals], dtype=np.float32).reshape(-1),
         }
+
+
+def signal_ahead(crossings, front_s_m: float, tls_states) -> tuple[str, float]:
+    """The letter of the first signalised stop line at or ahead of the front bumper, and its distance
+    ('' and inf if none): what the data set stores of SUMO's next signal (Frame.tls_ahead_*)."""
+    for crossing in crossings:
+        if crossing.tls_id and crossing.s_start_m >= front_s_m:
+            return signal_letter(crossing, tls_states), crossing.s_start_m - front_s_m
+    return "", math.inf
 
 
 # A learner standing within this of a stop line it must stop at is labelled to hold: the data set's
@@ -287,7 +301,7 @@ def collected_samples(
     if path.is_file():
         try:
             with np.load(path, allow_pickle=False) as stored:
-                return Samples.from_numpy(**{name: stored[name] for name in FIELDS})
+                return Samples.from_numpy(**{name: stored[name] for name in FIELDS if name in stored.files})
         except (OSError, ValueError, KeyError) as exc:
             raise CrchflError(
                 f"{path}: unreadable expert samples ({exc}); delete the file to collect them again"

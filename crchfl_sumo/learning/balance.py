@@ -15,6 +15,12 @@ Sampling (``TrainConfig.sampling``), one epoch = N draws for N samples:
   still, throttle, cruising, braking) in place of the class. Standing at red
   and cruising make most samples; pulling away and braking are rare.
 
+Signal emphasis (``TrainConfig.red_weight``, ``red_window_m``): on top of any
+sampling, a sample whose next signal shows red or yellow within the window
+(approaching it, or standing at it) is drawn ``red_weight`` times as often.
+Such samples are few (they decide the red-light runs of docs/measurements.md);
+1 leaves the draws exactly as without it.
+
 Loss weighting (``TrainConfig.class_weighting``), per steer class c with n_c of N samples
 and K classes present:
 
@@ -32,7 +38,7 @@ from __future__ import annotations
 import torch
 
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_RED, SIGNAL_YELLOW
 from crchfl_sumo.data.samples import Samples
 
 
@@ -63,20 +69,37 @@ def pedal_states(
     return states
 
 
-def epoch_batches(samples: Samples, batch_size: int, sampling: str, generator: torch.Generator) -> list[torch.Tensor]:
-    """Index batches (CPU int64) of one epoch by ``sampling``; the last batch may be shorter."""
+def near_red(samples: Samples, window_m: float) -> torch.Tensor:
+    """bool [N] (CPU): the next signal shows red or yellow and its stop line lies within ``window_m``."""
+    state = samples.signal_state.cpu()
+    red = (state == SIGNAL_RED) | (state == SIGNAL_YELLOW)
+    return red & (samples.signal_distance_m.cpu() <= window_m)
+
+
+def epoch_batches(
+    samples: Samples, batch_size: int, sampling: str, generator: torch.Generator,
+    red_weight: float = 1.0, red_window_m: float = 30.0,
+) -> list[torch.Tensor]:
+    """Index batches (CPU int64) of one epoch by ``sampling`` and the signal emphasis; the last batch
+    may be shorter."""
     n = len(samples)
     if n == 0:
         return []
-    if sampling == "uniform":
+    if sampling == "uniform" and red_weight == 1.0:
         order = torch.randperm(n, generator=generator)
     else:
-        codes, num_codes = {
-            "class_balanced": lambda: (samples.steer_class, NUM_STEER_CLASSES),
-            "command_balanced": lambda: (samples.command, NUM_COMMANDS),
-            "pedal_balanced": lambda: (pedal_states(samples.actions, samples.speed_mps), NUM_PEDAL_STATES),
-        }[sampling]()
-        order = torch.multinomial(inverse_frequency(codes, num_codes), n, replacement=True, generator=generator)
+        if sampling == "uniform":
+            weights = torch.ones(n, dtype=torch.float64)
+        else:
+            codes, num_codes = {
+                "class_balanced": lambda: (samples.steer_class, NUM_STEER_CLASSES),
+                "command_balanced": lambda: (samples.command, NUM_COMMANDS),
+                "pedal_balanced": lambda: (pedal_states(samples.actions, samples.speed_mps), NUM_PEDAL_STATES),
+            }[sampling]()
+            weights = inverse_frequency(codes, num_codes)
+        if red_weight != 1.0:
+            weights = torch.where(near_red(samples, red_window_m), weights * red_weight, weights)
+        order = torch.multinomial(weights, n, replacement=True, generator=generator)
     return list(order.split(batch_size))
 
 

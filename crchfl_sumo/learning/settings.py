@@ -219,6 +219,8 @@ MAX_STEER_BINS = 201
 CIL_STEER_BINS = 21
 
 MAX_BATCH_SIZE = 65_536  # samples a batch: four camera images each
+MAX_RED_WEIGHT = 1000.0  # beyond this a few red-light samples would make up nearly every batch
+MAX_RED_WINDOW_M = 500.0  # farther than any camera draws a signal head
 
 
 @dataclass(frozen=True)
@@ -235,6 +237,9 @@ class TrainConfig:
         (1.42x "sequential" on an H200, measured), "sequential" on a CPU (faster there, measured).
     sampling: "uniform", "class_balanced", "command_balanced" or "pedal_balanced" (balance.py).
     class_weighting: steer cross-entropy weights "none", "inverse" or "sqrt_inverse" (balance.py).
+    red_weight, red_window_m: a sample whose next signal shows red or yellow within ``red_window_m``
+        metres (standing at it included) is drawn ``red_weight`` times as often as otherwise (balance.py;
+        1 = off; samples with an unknown signal, a format-4 data set's, never are).
     precision: "auto" (default: "bf16" where the device has bfloat16 arithmetic, AVX-512 BF16 or AMX
         on a CPU, else "fp32"), "fp32" (float32 throughout) or "bf16" (the forward pass under
         bfloat16 autocast, on CPU or CUDA; weights, gradients and Adam stay float32). docs/model.md
@@ -254,8 +259,13 @@ class TrainConfig:
     sampling: Literal["uniform", "class_balanced", "command_balanced", "pedal_balanced"] = "uniform"
     class_weighting: Literal["none", "inverse", "sqrt_inverse"] = "sqrt_inverse"
     precision: Literal["auto", "fp32", "bf16"] = "auto"
+    red_weight: float = 1.0
+    red_window_m: float = 30.0
 
     def __post_init__(self) -> None:
+        check_range(self.red_weight, "train.red_weight", 1, MAX_RED_WEIGHT, "a draw multiplier (1 = off)")
+        check_range(self.red_window_m, "train.red_window_m", 0, MAX_RED_WINDOW_M, "metres before a stop line",
+                    lo_open=True)
         if not 0 < self.learning_rate <= 10:
             raise CrchflError(f"train.learning_rate: {self.learning_rate} must lie in (0, 10] (paper: 1e-4)")
         for key in ("beta1", "beta2"):

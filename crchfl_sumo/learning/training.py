@@ -156,7 +156,8 @@ class Learner:
         weight = None if weight is None else weight.to(self.device)
         sums = torch.zeros(3, dtype=torch.float64, device=self.device)
         done = 0
-        for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator):
+        for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator,
+                                     self.config.red_weight, self.config.red_window_m):
             indices = indices.to(self.device)
             images, steer_class = samples.images[indices], classes[indices]
             target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices])
@@ -262,7 +263,9 @@ def _train_vehicles_vmap(
     for v, samples in enumerate(vehicle_samples):
         generator = torch.Generator().manual_seed(vehicle_seed(seed, v))
         schedules.append(
-            [(e, idx) for e in range(epochs) for idx in epoch_batches(samples, batch_size, config.sampling, generator)]
+            [(e, idx) for e in range(epochs)
+             for idx in epoch_batches(samples, batch_size, config.sampling, generator, config.red_weight,
+                                      config.red_window_m)]
         )
     # Each vehicle's steer-head classes (model.steer_targets), and their weights from its own samples
     # (all ones for "none").

@@ -38,10 +38,13 @@ class Frame:
       tls_ahead_state [V] str   its one-letter state for this vehicle's link
                                 (SUMO letters: r y g G u o O s; '' if none)
       tls_ahead_dist_m [V] f64  distance to its stop line (inf if none)
+      foe_gap_m       [V] f64   at a junction within FOE_RANGE_M ahead (sim.py): the distance
+                                to the conflict point of the nearest vehicle this one
+                                must yield to (SUMO's junction foes; inf if none)
       tls_states      dict tls id -> full SUMO state string (one letter a link;
                                 empty from a Simulation with signals=False)
 
-    The lane and tls_ahead_* columns cost the simulator a route walk a vehicle,
+    The lane, tls_ahead_* and foe_gap_m columns cost the simulator a route walk a vehicle,
     so sim.Simulation fills them only for the vehicles it is told to watch.
     """
 
@@ -61,6 +64,7 @@ class Frame:
     tls_ahead_id: np.ndarray
     tls_ahead_state: np.ndarray
     tls_ahead_dist_m: np.ndarray
+    foe_gap_m: np.ndarray
     tls_states: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -107,6 +111,7 @@ def make_frame(t_s: float = 0.0, tls_states: dict[str, str] | None = None, **col
         "max_decel_mps2": 4.5,
         "lane_pos_m": 0.0,
         "tls_ahead_dist_m": math.inf,
+        "foe_gap_m": math.inf,
     }
     arrays = {}
     for name, default in defaults.items():

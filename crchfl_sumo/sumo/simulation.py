@@ -39,6 +39,7 @@ from crchfl_sumo.sumo.scenario import Scenario, sumo_binary
 log = logging.getLogger(__name__)
 
 _active_libsumo = False  # libsumo holds one simulation per process
+FOE_RANGE_M = 50.0  # how far ahead a watched vehicle's junction foes are looked for (Frame.foe_gap_m)
 
 
 @dataclass(frozen=True)
@@ -320,6 +321,8 @@ class Simulation:
         ahead = [next(iter(vehicle.getNextTLS(v)), ("", -1, np.inf, "")) for v in watched]
         tls_dist = np.full(n, np.inf)
         tls_dist[rows] = [a[2] for a in ahead]
+        foe_gap = np.full(n, np.inf)
+        foe_gap[rows] = [yield_gap_m(vehicle.getJunctionFoes(v, FOE_RANGE_M)) for v in watched]
         tls_results = self._api.trafficlight.getAllSubscriptionResults() if self._tls_ids else {}
         rygs = tc.TL_RED_YELLOW_GREEN_STATE
         return Frame(
@@ -339,8 +342,18 @@ class Simulation:
             tls_ahead_id=_strings(n, rows, [a[0] for a in ahead]),
             tls_ahead_state=_strings(n, rows, [a[3] for a in ahead]),
             tls_ahead_dist_m=tls_dist,
+            foe_gap_m=foe_gap,
             tls_states={tls: tls_results[tls][rygs] for tls in self._tls_ids},
         )
+
+
+def yield_gap_m(foes) -> float:
+    """From SUMO's junction foes of a vehicle (tuples: foe id, ego distance, foe distance, ego exit
+    distance, foe exit distance, ego lane, foe lane, ego must respond, foe must respond): the
+    smallest distance to the conflict point of a foe that this vehicle must yield to and that has
+    not yet cleared the conflict; inf if none."""
+    gaps = [foe[2] for foe in foes if foe[7] and foe[4] > 0.0]
+    return float(min(gaps)) if gaps else math.inf
 
 
 def _strings(n: int, rows: np.ndarray, values: list[str]) -> np.ndarray:

@@ -16,7 +16,7 @@ import torch
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.data.labels import digitize_steer
+from crchfl_sumo.data.labels import SIGNAL_RED, digitize_steer
 from crchfl_sumo.data.samples import FIELDS
 from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, ExpertLabelled, collect, dagger_iterations
 from crchfl_sumo.driving.drive import DriveConfig
@@ -151,7 +151,7 @@ class _Expert:
     """RoutePolicy's face: steers hard left back to the lane, on a straight route along +x."""
 
     expert = ExpertConfig()
-    route = SimpleNamespace(s_m=np.array([0.0, 1000.0]), xy_m=np.array([[0.0, 0.0], [1000.0, 0.0]]))
+    route = SimpleNamespace(s_m=np.array([0.0, 1000.0]), xy_m=np.array([[0.0, 0.0], [1000.0, 0.0]]), crossings=())
     action = (0.2, -0.9, 0.0)
 
     def decide(self, observation):
@@ -169,7 +169,8 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
     steps = [(0.0, 0), (-1.0, 10), (1.8, 0), (1.0, 0), (-0.9, 0), (0.8, 0), (0.3, 0),  # off the lane
              (0.2, 16), (0.2, 10), (0.2, -7), (0.0, 0)]  # in the lane, its heading off
     acted = [
-        policy(Observation(SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([math.radians(deg)])),
+        policy(Observation(SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([math.radians(deg)]),
+                                           length_m=np.array([4.5]), tls_states={}),
                            "ego", 0, 10.0 * i, images, offset, 3.5))
         for i, (offset, deg) in enumerate(steps)
     ]
@@ -180,6 +181,27 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
     # the learner's six states, each labelled with the expert's action; none of the expert's own
     assert len(arrays["actions"]) == 6 and arrays["command"].tolist() == [3] * 6
     assert np.allclose(arrays["actions"], np.array([expert] * 6, np.float32))
+
+
+def test_dagger_samples_carry_the_next_signal_as_the_data_set_does():
+    from crchfl_sumo.driving.dagger import signal_ahead
+    from crchfl_sumo.sumo.route import Crossing
+
+    crossings = (Crossing(40.0, 55.0, "", -1, "s"), Crossing(120.0, 135.0, "J", 1, "s"), Crossing(300.0, 310.0, "K", 0, "l"))
+    # the unsignalised junction is passed over; the distance is from the front bumper to the stop line
+    assert signal_ahead(crossings, 30.0, {"J": "Gr", "K": "G"}) == ("r", 90.0)
+    assert signal_ahead(crossings, 120.0, {"J": "Gy"}) == ("y", 0.0)  # at the line: still ahead
+    assert signal_ahead(crossings, 121.0, {}) == ("", 179.0)  # K's state unknown: no letter
+    assert signal_ahead(crossings, 301.0, {"K": "G"}) == ("", math.inf)
+    policy = ExpertLabelled(_Learner(), _Expert(), every=1)
+    policy.expert.route = SimpleNamespace(**{**vars(_Expert.route), "crossings": crossings})
+    frame = SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([0.0]), length_m=np.array([4.0]),
+                            tls_states={"J": "Gr"})
+    for progress_m in (28.0, 110.0):  # front bumpers at 30 and 112 m
+        policy(Observation(frame, "ego", 0, progress_m, np.zeros((4, 48, 64, 3), np.uint8), 0.0, 3.5))
+    arrays = policy.arrays()
+    assert arrays["signal_state"].tolist() == [SIGNAL_RED, SIGNAL_RED]
+    assert np.allclose(arrays["signal_distance_m"], [90.0, 8.0])
 
 
 def test_the_labeller_steers_by_the_data_sets_pursuit():
