@@ -33,6 +33,11 @@ GIB = 1024 * MIB
 MAX_SIZE = 1e9  # of nominal_model_mb, nominal_sample_kb and budget_gb: beyond it byte counts stop being exact
 
 
+def gb_label(gb: float) -> str:
+    """A budget in GB as summary keys and file names write it: 2.5 -> "2.5", 20.0 -> "20"."""
+    return f"{gb:g}"
+
+
 @dataclass(frozen=True)
 class LedgerConfig:
     """Accounting settings (TOML table ``[ledger]``).
@@ -48,6 +53,10 @@ class LedgerConfig:
         the caller measures on our data set and passes to ``resolve_sizes``.
     nominal_sample_kb: nominal sample size [KB, 1 KB = 1024 bytes].
     budget_gb: the total communication budget U_sum [GB, 1 GB = 1024**3 bytes].
+    marks_gb: smaller budgets [GB] inside this one: for each, the run also keeps the best model among
+        the evaluations made within that many bytes (best_model_within_<B>gb.pt, summary.json
+        ``budget_marks``). What a scheme whose schedule does not depend on the budget (HFL, SFL)
+        reaches under a smaller budget is a prefix of its run under this one (docs/reproduce.md).
     """
 
     rule: Literal["paper", "physical"] = "paper"
@@ -56,6 +65,7 @@ class LedgerConfig:
     sample_size: Literal["nominal", "measured"] = "nominal"
     nominal_sample_kb: float = 1800.0
     budget_gb: float = 20.0
+    marks_gb: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.rule not in RULES:
@@ -68,6 +78,13 @@ class LedgerConfig:
             value = getattr(self, key)
             if not math.isfinite(value) or value <= 0 or value > MAX_SIZE:
                 raise CrchflError(f"ledger.{key} must be a number in (0, {MAX_SIZE:g}], got {value!r}")
+        marks = list(self.marks_gb)
+        if any(not isinstance(m, (int, float)) or isinstance(m, bool) or not math.isfinite(m) or m <= 0 for m in marks) \
+                or marks != sorted(set(marks)):
+            raise CrchflError(f"ledger.marks_gb: {marks}; give positive budgets in GB, increasing, each once")
+        if marks and marks[-1] > self.budget_gb:
+            raise CrchflError(f"ledger.marks_gb: {marks[-1]:g} exceeds budget_gb = {self.budget_gb:g}; "
+                              "a mark lies within the budget")
 
 
 def resolve_sizes(
@@ -101,6 +118,11 @@ def resolve_sizes(
             f"set budget_gb to at least {model_bytes / GIB:.4f} (1 GB = 1024**3 bytes)"
         )
     return ByteSizes(model_bytes=model_bytes, sample_bytes=sample_bytes, budget_bytes=budget_bytes)
+
+
+def budget_marks_bytes(config: LedgerConfig) -> tuple[int, ...]:
+    """The budget marks in bytes (as the budget: whole bytes, rounded down)."""
+    return tuple(math.floor(m * GIB) for m in config.marks_gb)
 
 
 # ---------------------------------------------------------------- topology

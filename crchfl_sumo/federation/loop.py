@@ -365,6 +365,11 @@ class Federation:
 
     def _evaluate_cloud(self, state: FederationState, ledger: Ledger, stage: str, t_s: float, **extra) -> None:
         line = self._line(state, ledger, stage, t_s, self.trainer.evaluate(state.cloud_model), **extra)
+        for mark in self.setup.budget_marks_bytes:  # first evaluation past a mark: the best within it is known
+            if str(mark) not in state.budget_marks and line["consumed_bytes"] > mark:
+                state.budget_marks[str(mark)] = None if state.best is None else dict(state.best)
+                if state.best_model is not None:
+                    state.budget_mark_models[str(mark)] = state.best_model
         if state.best is None or _better(line, state.best):
             state.best, state.best_model = dict(line), state.cloud_model
 

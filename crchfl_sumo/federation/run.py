@@ -12,6 +12,8 @@ DIR receives (every file written atomically):
   stragglers.jsonl every vehicle that missed an aggregation or a download, and why
                    (the three .jsonl logs are append-only: federation/logs.py)
   best_model.pt    the best cloud model so far (checkpoint.save_checkpoint format)
+  best_model_within_<B>gb.pt  per [ledger] marks_gb B: the best cloud model among the evaluations
+                   made within B GB (written once the run has passed B, or at its end)
   final_model.pt   the last cloud model
   summary.json     scheme, cloud_rounds, edge_aggregations, consumed_bytes, budget_bytes,
                    best/final accuracy and loss, sim_time_s, stop_reason, stragglers,
@@ -41,7 +43,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crchfl_sumo.accounting.ledger import GIB, Ledger, resolve_sizes
+from crchfl_sumo.accounting.ledger import GIB, Ledger, budget_marks_bytes, gb_label, resolve_sizes
 from crchfl_sumo.core.atomic import (
     atomic_path_keeping_previous,
     atomic_write_text,
@@ -199,6 +201,7 @@ def _run_with_trainer(
             wireline=config.wireline,
             transfer=config.transfer,
             coverage=_coverage(config, inputs),
+            budget_marks_bytes=budget_marks_bytes(config.ledger),
         )
         state = None
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
@@ -321,7 +324,32 @@ def summarize(
         "hyper": dataclasses.asdict(setup.hyper),
         "vehicles": list(setup.vehicles),
         "samples_per_vehicle": {v: setup.count(v) for v in setup.vehicles},
+        "budget_marks": {
+            gb_label(gb): None if line is None else {k: line.get(k) for k in MARK_KEYS}
+            for gb, (line, _, _) in budget_mark_results(config, setup, state).items()
+        },
     }
+
+
+MARK_KEYS = ("balanced_accuracy", "accuracy", "loss", "consumed_bytes", "cloud_round", "step")
+
+
+def mark_model_file(gb: float) -> str:
+    """The file of the best model within budget mark ``gb`` in a run folder."""
+    return f"best_model_within_{gb_label(gb)}gb.pt"
+
+
+def budget_mark_results(config: RunConfig, setup: LoopInputs, state: FederationState) -> dict[float, tuple]:
+    """Per budget mark [GB]: (the best metrics line within it, its model, whether the run has passed the
+    mark); line and model are None if no evaluation was within it; a mark not passed has the best so far."""
+    results = {}
+    for gb, mark in zip(config.ledger.marks_gb, setup.budget_marks_bytes):
+        key = str(mark)
+        if key in state.budget_marks:
+            results[gb] = (state.budget_marks[key], state.budget_mark_models.get(key), True)
+        else:
+            results[gb] = (state.best, state.best_model, False)
+    return results
 
 
 def _save_state(path: Path, resolved: dict, state: FederationState, marks: Marks) -> None:
@@ -407,6 +435,11 @@ def _write_outputs(
     save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
     if state.best_model is not None:
         save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})
+    for gb, (line, model, passed) in budget_mark_results(config, setup, state).items():
+        path = out_dir / mark_model_file(gb)
+        # a passed mark's model never changes: written once (again if lost), and every mark at the end
+        if model is not None and (state.done or (passed and not path.exists())):
+            save_checkpoint(path, config.model, model, {**extra, "metrics": line})
     summary = summarize(config, setup, state, handovers, baseline)
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
 

@@ -66,6 +66,7 @@ class LoopInputs:
     wireline: WirelineConfig = WirelineConfig()
     transfer: TransferConfig = TransferConfig()
     coverage: Coverage | None = None
+    budget_marks_bytes: tuple[int, ...] = ()  # [ledger] marks_gb in bytes: the best model within each is kept
 
     def __post_init__(self) -> None:
         names = list(self.vehicles) + list(self.edges)
@@ -129,6 +130,10 @@ class FederationState:
     best_model: State | None = None
     best: dict | None = None  # metrics line of the best cloud model
     stop_reason: str | None = None
+    # per budget mark (str of its bytes, LoopInputs.budget_marks_bytes) the run has passed: the best metrics line
+    # and model among the evaluations within it (None: no evaluation was); a mark not yet passed is the best
+    budget_marks: dict[str, dict | None] = field(default_factory=dict)
+    budget_mark_models: dict[str, State] = field(default_factory=dict)
 
     @property
     def done(self) -> bool:
@@ -146,7 +151,8 @@ class FederationState:
 
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
-MODELS = ("vehicle_models", "edge_models")  # name -> State; cloud_model and best_model are one State (or None)
+MODELS = ("vehicle_models", "edge_models", "budget_mark_models")  # name -> State (cloud_model, best_model: one)
+ADDED_LATER = ("budget_marks", "budget_mark_models")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:
@@ -156,7 +162,8 @@ def check_payload(payload: Any, where: str) -> None:
     if not isinstance(payload, Mapping):
         raise CrchflError(f"{where}: malformed federation checkpoint (its state is not a table); {fix}")
     expected = [f.name for f in dataclasses.fields(FederationState) if f.name not in HISTORY]
-    missing, unknown = sorted(set(expected) - set(payload)), sorted(set(payload) - set(expected))
+    missing = sorted(set(expected) - set(payload) - set(ADDED_LATER))
+    unknown = sorted(set(payload) - set(expected))
     if missing or unknown:
         raise CrchflError(
             f"{where}: malformed federation checkpoint (state {'lacks ' + ', '.join(missing) if missing else ''}"
@@ -164,6 +171,8 @@ def check_payload(payload: Any, where: str) -> None:
         )
     hints = typing.get_type_hints(FederationState)
     for name in expected:
+        if name not in payload:  # one of ADDED_LATER: from_payload gives its default
+            continue
         value = payload[name]
         if name in MODELS:
             ok = isinstance(value, dict) and all(isinstance(k, str) and _is_state(m) for k, m in value.items())

@@ -544,3 +544,51 @@ def test_evaluate_every_edge_reports_the_sample_weighted_edge_metrics():
     assert edge_line["stage"] == "II"
     assert edge_line["loss"] == pytest.approx((4 * (1 / 9) + 2 * (1 / 21)) / 6)
     assert cloud_line["loss"] == pytest.approx(1 / (1 + 2 * 6.0))
+
+
+# ------------------------------------------------------------------ budgets: prefixes and marks
+
+
+class WavyTrainer(SumTrainer):
+    """SumTrainer whose balanced accuracy rises and falls, so that the best model is not simply the last."""
+
+    def evaluate(self, state):
+        total = float(state["w"].sum())
+        return {"loss": 1.0 / (1.0 + total), "accuracy": 0.5, "balanced_accuracy": (total % 7.0) / 7.0}
+
+
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_a_smaller_budget_is_a_prefix_of_a_larger_one_and_its_mark_keeps_the_best_within(scheme):
+    from crchfl_sumo.accounting.ledger import GIB, budget_marks_bytes
+
+    config = FederationConfig(scheme=scheme, edge_interval=1, compute_s_per_sample=0.5)
+
+    def run(budget_gb, marks=()):
+        ledger = LedgerConfig(nominal_model_mb=1.0, nominal_sample_kb=512.0, budget_gb=budget_gb, marks_gb=marks)
+        setup = _setup(config, _hyper(config), {"a": 2, "b": 3, "c": 4}, HOME3, ledger=ledger)
+        setup = dataclasses.replace(setup, budget_marks_bytes=budget_marks_bytes(ledger))
+        return _run(setup, ScriptedClock.constant(HOME3, 8e6, step_s=0.25), WavyTrainer())
+
+    small, large = run(0.05), run(0.1, marks=(0.01, 0.05))
+    n = len(small.metrics)
+    # HFL's and SFL's schedules do not depend on the budget: the smaller run is the larger one cut short
+    assert 3 <= n < len(large.metrics)
+    assert small.metrics == large.metrics[:n] and small.records == large.records[: len(small.records)]
+    assert small.metrics[-1]["consumed_bytes"] <= 0.05 * GIB < large.metrics[n]["consumed_bytes"]
+    # the mark at 0.05 GB kept the best of the smaller run, which is not its last model
+    key = str(math.floor(0.05 * GIB))
+    assert large.budget_marks[key] == small.best and small.best != small.metrics[-1]
+    assert torch.equal(large.budget_mark_models[key]["w"], small.best_model["w"])
+    # the best within 0.01 GB, by hand from the larger run's lines
+    within = [m for m in large.metrics if m["consumed_bytes"] <= 0.01 * GIB and m.get("balanced_accuracy") is not None]
+    best = max(within, key=lambda m: (m["balanced_accuracy"], -m["loss"]))  # ties: the lower loss (loop._rank)
+    assert large.budget_marks[str(math.floor(0.01 * GIB))] == best
+    assert set(large.budget_marks) == {str(math.floor(0.01 * GIB)), key}  # both passed
+
+
+def test_budget_marks_must_lie_within_the_budget_and_increase():
+    with pytest.raises(CrchflError, match=r"ledger.marks_gb: 25 exceeds budget_gb = 20"):
+        LedgerConfig(marks_gb=(5.0, 25.0))
+    for bad in ((10.0, 5.0), (5.0, 5.0), (0.0,), (float("nan"),)):
+        with pytest.raises(CrchflError, match="ledger.marks_gb: .* increasing, each once"):
+            LedgerConfig(marks_gb=bad)

@@ -407,6 +407,29 @@ def test_a_run_that_relays_killed_anywhere_resumes_exactly(tmp_path, dataset):
             assert summary["downloads_failed"] >= 1
 
 
+def test_a_run_keeps_the_best_model_within_each_budget_mark(tmp_path, dataset):
+    path = tmp_path / "run.toml"
+    path.write_text(
+        f'dataset = "{dataset}"\n[federation]\nscheme = "hfl"\nedge_interval = 1\n'
+        '[ledger]\nnominal_model_mb = 10.0\nbudget_gb = 0.5\nmarks_gb = [0.01, 0.2, 0.5]\n'
+        '[model]\nimage_height = 48\nimage_width = 64\n[train]\ndevice = "cpu"\n[clock]\nkind = "constant"\n'
+    )
+    summary = run_command(path, tmp_path / "out")
+    out = tmp_path / "out"
+    lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    marks = summary["budget_marks"]
+    assert list(marks) == ["0.01", "0.2", "0.5"]
+    assert marks["0.01"] is None and not (out / "best_model_within_0.01gb.pt").exists()  # no evaluation within
+    evaluated = [m for m in lines if m.get("balanced_accuracy") is not None]
+    within = [m for m in evaluated if m["consumed_bytes"] <= 0.2 * 1024**3]
+    assert 0 < len(within) < len(evaluated)
+    assert marks["0.2"]["step"] in [m["step"] for m in within]
+    assert marks["0.2"]["balanced_accuracy"] == max(m["balanced_accuracy"] for m in within)
+    assert marks["0.5"]["step"] == load_checkpoint(out / "best_model.pt").extra["metrics"]["step"]  # the whole run
+    model = load_checkpoint(out / "best_model_within_0.2gb.pt")
+    assert model.extra["metrics"]["step"] == marks["0.2"]["step"]
+
+
 def test_settings_stored_before_newer_options_read_back_as_today():
     # A folder written before federation.selection and model.steer_speed_input existed holds
     # neither key; read with today's defaults its settings equal a new default run's, so it resumes.
