@@ -29,6 +29,7 @@ from crchfl_sumo.studies.report_figures import (
     NAMES,
     drive_figure,
     plot_ablation,
+    plot_budget_curve,
     plot_centralized,
     plot_metric_curves,
 )
@@ -101,6 +102,7 @@ def report_markdown(summary: Mapping[str, Any], results: Mapping[str, Any], figu
     """report.md: what ran, the tables, every figure, the settings, the versions and the times."""
     lines = _header(summary, results)
     lines += _experiment_b(summary, figures)
+    lines += _experiment_e(summary, figures)
     lines += _experiment_d(summary, figures)
     lines += _closed_loop(summary, figures)
     lines += _drive_bench(summary)
@@ -266,6 +268,70 @@ def _gains(gain: Mapping[str, Any]) -> list[str]:
     ]
 
 
+def _experiment_e(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list[str]:
+    """The budget curve: each scheme's balanced accuracy and driving score per budget, where CRCHFL leads,
+    and the bytes each scheme needed to reach given balanced accuracies."""
+    curve = summary.get("budget_curve") or {}
+    if not curve:
+        return []
+    lines = ["", "## Experiment E: accuracy and driving against the budget", "",
+             "HFL's and SFL's schedules do not depend on the budget: their figure at a smaller budget is the best "
+             "model their full run had made within it. CRCHFL is planned again by the optimizer for each budget "
+             "and runs again. Balanced accuracy and driving score (benchmark, all episodes) are means over seeds "
+             "with their 95 % intervals.", ""]
+    budgets = list(next(iter(curve.values())))
+    rows = []
+    for label in budgets:
+        row = [label]
+        for scheme, points in curve.items():
+            point = points.get(label) or {}
+            row += [_pm(point["balanced_accuracy"], 3) if point else "-",
+                    _pm(point["driving_score"], 1, 100.0) if point else "-"]
+        rows.append(row)
+    header = ["budget (GB)"] + [f"{NAMES.get(s, s)} {what}" for s in curve for what in ("bal. acc.", "driving score")]
+    lines += _table(header, rows)
+    lines += ["", lead_sentence(summary.get("budget_differences") or {})]
+    if "budget" in figures:
+        lines += _figure("Experiment E: balanced accuracy and driving score against the budget", figures["budget"])
+    to_accuracy = summary.get("bytes_to_accuracy") or {}
+    if to_accuracy:
+        targets = list(next(iter(to_accuracy.values())))
+        lines += ["", "GB consumed until the first evaluation at each balanced accuracy (mean over seeds; '-': "
+                  "not every seed reached it):", ""]
+        lines += _table(["scheme", *targets],
+                        [[NAMES.get(s, s), *(_fmt(v, 2) for v in values.values())] for s, values in to_accuracy.items()])
+    return lines
+
+
+def lead_sentence(differences: Mapping[str, Any]) -> str:
+    """One sentence: at which budgets CRCHFL's balanced accuracy is ahead of (or behind) each scheme beyond noise
+    (the paired 95 % interval excludes 0), and where it is not distinguishable."""
+    parts = []
+    for pair, by_budget in differences.items():
+        other = NAMES.get(pair.split("-", 1)[1], pair)
+        ahead, behind, even = [], [], []
+        for label, keys in by_budget.items():
+            d = keys.get("balanced_accuracy") or {}
+            if d.get("mean") is None:
+                continue
+            if not distinguishable(d.get("ci95")):
+                even.append(label)
+            else:
+                (ahead if d["mean"] > 0 else behind).append(label)
+        words = []
+        if ahead:
+            words.append(f"ahead beyond noise at {', '.join(ahead)} GB")
+        if behind:
+            words.append(f"behind beyond noise at {', '.join(behind)} GB")
+        if even:
+            words.append(f"not distinguishable at 95 % at {', '.join(even)} GB")
+        if words:
+            parts.append(f"over {other}, " + "; ".join(words))
+    if not parts:
+        return "CRCHFL against the other schemes by budget: no paired seeds to compare."
+    return "CRCHFL's balanced accuracy, paired by seed: " + "; ".join(parts) + "."
+
+
 def _experiment_d(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list[str]:
     """The edge_interval ablation's table and Fig. 7."""
     if not summary["ablation"]:
@@ -417,6 +483,9 @@ def write_report(out_dir: str | Path) -> dict[str, Any]:
     if summary["ablation"]:
         plot_ablation(summary["ablation"], results["ablation"], figures_dir / FIGURES["fig7"])
         figures["fig7"] = FIGURES["fig7"]
+    if summary.get("budget_curve"):
+        plot_budget_curve(summary["budget_curve"], figures_dir / FIGURES["budget"])
+        figures["budget"] = FIGURES["budget"]
     for route, labels in results["drives"].items():
         path = drive_figure(out_dir, route, list(labels), figures_dir)
         if path is not None:

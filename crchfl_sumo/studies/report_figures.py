@@ -33,6 +33,7 @@ FIGURES = {
     "fig3": "fig3_rounds.png",
     "fig4": "fig4_bytes.png",
     "fig7": "fig7_ablation.png",
+    "budget": "budget_curve.png",
 }
 
 
@@ -163,3 +164,33 @@ def drive_figure(out_dir: Path, route: str, labels: Sequence[str], figures_dir: 
     with atomic_path(path) as tmp:
         compare_runs(folders, [NAMES.get(label, label) for label in labels], tmp)
     return path
+
+
+def plot_budget_curve(curve: Mapping[str, Mapping[str, Any]], path: Path) -> None:
+    """Experiment E: balanced accuracy (left) and driving score (right) against the budget, per scheme,
+    the mean over seeds with its 95 % interval as error bars."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    budgets = sorted({float(label) for points in curve.values() for label in points})
+    for ax, key, scale, title in ((axes[0], "balanced_accuracy", 1.0, "Balanced accuracy"),
+                                  (axes[1], "driving_score", 100.0, "Driving score")):
+        for scheme, points in curve.items():
+            x = [float(label) for label, p in points.items() if p[key]["mean"] is not None]
+            mean = np.array([p[key]["mean"] for p in points.values() if p[key]["mean"] is not None]) * scale
+            if not x:
+                continue
+            ci = [p[key]["ci95"] or [p[key]["mean"]] * 2 for p in points.values() if p[key]["mean"] is not None]
+            ci = np.clip(np.array(ci).T * scale, 0.0, scale)  # neither score leaves [0, scale]
+            error = np.abs(ci - mean)
+            style = STYLES.get(scheme, ("-", "o"))
+            ax.errorbar(x, mean, yerr=error, linestyle=style[0], marker=style[1], capsize=3,
+                        color=COLORS.get(scheme), label=NAMES.get(scheme, scheme))
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(budgets, [f"{b:g}" for b in budgets])
+        ax.minorticks_off()
+        ax.set_xlabel("budget (GB)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    save_figure(fig, path)

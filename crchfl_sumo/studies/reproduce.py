@@ -41,10 +41,12 @@ from crchfl_sumo.studies.reproduce_plan import (
     REFERENCE,
     ReproduceConfig,
     ReproductionPart,
+    budget_key,
     dagger_parts,
     drive_parts,
     load_reproduce_config,
     plan_parts,
+    replanned,
     run_config,
     run_mapping,
 )
@@ -348,7 +350,7 @@ def _federated(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -
     """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
     from crchfl_sumo.federation.run import run_command
 
-    mapping = run_mapping(config, part.scheme, part.seed, out_dir / "data", part.edge_interval)
+    mapping = run_mapping(config, part.scheme, part.seed, out_dir / "data", part.edge_interval, part.budget_gb)
     name = part.key.replace("/", "_")
     config_path = out_dir / "configs" / f"{name}.toml"
     atomic_write_text(config_path, toml_text(mapping))
@@ -369,7 +371,12 @@ def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
     """The closed-loop benchmark for one model (its own process already: the episodes run one by one)."""
     from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 
-    model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme, part.seed)
+    if part.scheme == REFERENCE:
+        model = None
+    elif part.budget_gb is not None:
+        model = budget_model_for(config, out_dir, part.scheme, part.budget_gb, part.seed)
+    else:
+        model = model_for(out_dir, part.scheme, part.seed)
     run_benchmark(
         model, out_dir / part.key, episodes=config.bench_episodes, jobs=1, seed=config.bench_seed,
         towns=config.bench_towns, config=BenchConfig(tasks=config.bench_tasks, steer_decoding=config.steer_decoding),
@@ -393,3 +400,13 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
     if label == CENTRALIZED:
         return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / "checkpoint.pt"
     return folder / f"seed-{best_seed(summaries)}" / "best_model.pt"
+
+
+def budget_model_for(config: ReproduceConfig, out_dir: Path, scheme: str, budget_gb: float, seed: int) -> Path:
+    """The model of a scheme and seed at a budget of the curve below the runs' own: the best model of its run
+    at that budget (a scheme the optimizer plans), else the best within that budget of experiment B's run."""
+    from crchfl_sumo.federation.run import mark_model_file
+
+    if replanned(config, scheme):
+        return Path(out_dir) / budget_key("runs", scheme, budget_gb, seed) / "best_model.pt"
+    return Path(out_dir) / "runs" / scheme / f"seed-{seed}" / mark_model_file(budget_gb)

@@ -5,10 +5,12 @@ Pure planning, no side effects; reproduce.py carries the plan out.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from crchfl_sumo.accounting.ledger import LedgerConfig, gb_label
 from crchfl_sumo.core.config import deep_merge, from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, SEED_MAX, check_range
@@ -57,6 +59,13 @@ class ReproduceConfig:
     bench_all_seeds: the benchmark drives every seed's model (each scheme's best_model.pt of
         every seed, every centralized seed's last epoch), so that the report gives the spread over
         seeds; false: only the model of the seed with the highest balanced accuracy drives.
+    budgets_gb: experiment E, the budget curve: balanced accuracy and driving score against the byte
+        budget, at each of these budgets [GB] (each at most the runs' budget_gb; empty = no curve).
+        A scheme the optimizer plans (CRCHFL) runs again at each smaller budget
+        (``budget_curve/runs/SCHEME/gb-B/seed-S``); the others' schedules do not depend on the
+        budget, so their smaller budgets are read from their full run (its [ledger] marks_gb).
+        With a benchmark, every seed's model at every budget drives (needs bench_all_seeds).
+    accuracy_targets: balanced accuracies whose bytes each scheme's runs needed (bytes-to-accuracy).
     generate: the data set (GenerateConfig: seed, [generate.dataset] sizes, camera, expert).
     run: settings laid over every built-in scheme config (scenarios/experiments/SCHEME.toml):
         a partial run config, e.g. ``[run.ledger]``, ``[run.train]``, ``[run.clock]``.
@@ -86,6 +95,8 @@ class ReproduceConfig:
     bench_seed: int = 0
     bench_all_seeds: bool = False
     steer_decoding: str = DEFAULT_STEER_DECODING
+    budgets_gb: tuple[float, ...] = ()
+    accuracy_targets: tuple[float, ...] = (0.5, 0.6, 0.7)
     generate: GenerateConfig = field(default_factory=GenerateConfig)
     run: dict[str, Any] = field(default_factory=dict)
 
@@ -137,8 +148,24 @@ class ReproduceConfig:
                 raise CrchflError(f"reproduce.run.{key}: set by reproduce itself; remove it (use {instead})")
         if "seed" in self.run.get("federation", {}):
             raise CrchflError("reproduce.run.federation.seed: set per run from reproduce.seeds; remove it")
+        budgets = list(self.budgets_gb)
+        if any(not math.isfinite(b) or b <= 0 for b in budgets) or budgets != sorted(set(budgets)):
+            raise CrchflError(f"reproduce.budgets_gb: {budgets}; give positive budgets in GB, increasing, each once")
+        for target in self.accuracy_targets:
+            check_range(target, "reproduce.accuracy_targets", 0, 1, "a balanced accuracy", lo_open=True)
+        if budgets and self.bench_episodes and not self.bench_all_seeds:
+            raise CrchflError("reproduce.budgets_gb: the budget curve drives every seed's model; set "
+                              "bench_all_seeds = true (or bench_episodes = 0, or budgets_gb = [])")
         for scheme in self.schemes:  # every run config must be valid before anything starts
             run_config(run_mapping(self, scheme, self.first_seed, Path("data")), f"reproduce.run ({scheme})")
+            if budgets and budgets[-1] > run_budget_gb(self, scheme):
+                raise CrchflError(
+                    f"reproduce.budgets_gb: {budgets[-1]:g} exceeds the {scheme} runs' budget_gb = "
+                    f"{run_budget_gb(self, scheme):g}; the curve's budgets lie within it"
+                )
+            for budget in smaller_budgets(self, scheme) if replanned(self, scheme) else ():
+                run_config(run_mapping(self, scheme, self.first_seed, Path("data"), budget_gb=budget),
+                           f"reproduce.budgets_gb ({scheme} at {budget:g} GB)")
 
     @property
     def seed_list(self) -> list[int]:
@@ -159,16 +186,43 @@ def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) 
     return from_mapping(ReproduceConfig, mapping, where=str(path))
 
 
+def _scheme_mapping(config: ReproduceConfig, scheme: str) -> dict[str, Any]:
+    """The built-in scheme config with the overrides laid over it."""
+    return deep_merge(read_toml(experiments_dir() / f"{scheme}.toml"), config.run)
+
+
+def run_budget_gb(config: ReproduceConfig, scheme: str) -> float:
+    """The budget of the scheme's runs of experiment B."""
+    return float(_scheme_mapping(config, scheme).get("ledger", {}).get("budget_gb", LedgerConfig.budget_gb))
+
+
+def replanned(config: ReproduceConfig, scheme: str) -> bool:
+    """Does the optimizer plan the scheme's runs for their budget (CRCHFL: federation.use_plan)?"""
+    return bool(_scheme_mapping(config, scheme).get("federation", {}).get("use_plan", False))
+
+
+def smaller_budgets(config: ReproduceConfig, scheme: str) -> list[float]:
+    """The curve's budgets below the scheme's run budget: a run of their own each (``replanned``), or marks."""
+    return [b for b in config.budgets_gb if b < run_budget_gb(config, scheme)]
+
+
 def run_mapping(
-    config: ReproduceConfig, scheme: str, seed: int, data_dir: Path, fix_edge_interval: int | None = None
+    config: ReproduceConfig, scheme: str, seed: int, data_dir: Path, fix_edge_interval: int | None = None,
+    budget_gb: float | None = None,
 ) -> dict[str, Any]:
-    """The run config of one federated run: the built-in scheme config, the overrides, data, seed."""
-    mapping = deep_merge(read_toml(experiments_dir() / f"{scheme}.toml"), config.run)
+    """The run config of one federated run: the built-in scheme config, the overrides, data, seed; a
+    run of the budget curve at ``budget_gb``; or experiment B's run, which keeps the best model within each
+    of the curve's smaller budgets where the optimizer does not plan the scheme."""
     mapping = deep_merge(
-        mapping, {"scenario": config.scenario, "dataset": str(data_dir), "federation": {"seed": int(seed)}}
+        _scheme_mapping(config, scheme),
+        {"scenario": config.scenario, "dataset": str(data_dir), "federation": {"seed": int(seed)}},
     )
     if fix_edge_interval is not None:
         mapping = deep_merge(mapping, {"allocation": {"fix_edge_interval": int(fix_edge_interval)}})
+    if budget_gb is not None:
+        mapping = deep_merge(mapping, {"ledger": {"budget_gb": float(budget_gb)}})
+    elif fix_edge_interval is None and not replanned(config, scheme) and smaller_budgets(config, scheme):
+        mapping = deep_merge(mapping, {"ledger": {"marks_gb": smaller_budgets(config, scheme)}})
     return mapping
 
 
@@ -186,6 +240,7 @@ class ReproductionPart:
     seed: int | None = None  # None for the data set, the reference, and a benchmark of the best seed only
     edge_interval: int | None = None
     route: str = ""
+    budget_gb: float | None = None  # a point of the budget curve below the runs' budget
 
 
 def plan_parts(config: ReproduceConfig) -> list[ReproductionPart]:
@@ -198,12 +253,26 @@ def plan_parts(config: ReproduceConfig) -> list[ReproductionPart]:
         parts += [ReproductionPart(f"{CENTRALIZED}/seed-{s}", "centralized", CENTRALIZED, s) for s in config.seed_list]
     for seed in config.seed_list:  # seed by seed, so that a partial result already compares the schemes
         parts += [ReproductionPart(f"runs/{scheme}/seed-{seed}", "federated", scheme, seed) for scheme in config.schemes]
+    for seed in config.seed_list:
+        parts += [
+            ReproductionPart(budget_key("runs", scheme, budget, seed), "federated", scheme, seed, budget_gb=budget)
+            for scheme in config.schemes if replanned(config, scheme)
+            for budget in smaller_budgets(config, scheme)
+        ]
     for seed in config.ablation_seed_list:
         parts += [
             ReproductionPart(f"ablation/ie-{k}/seed-{seed}", "ablation", "crchfl", seed, edge_interval=k)
             for k in config.ablation_edge_intervals
         ]
     return parts
+
+
+BUDGET_CURVE_DIR = "budget_curve"
+
+
+def budget_key(kind: str, scheme: str, budget_gb: float, seed: int) -> str:
+    """The folder of a budget-curve part: ``budget_curve/KIND/SCHEME/gb-B/seed-S`` (KIND: runs, drive_bench)."""
+    return f"{BUDGET_CURVE_DIR}/{kind}/{scheme}/gb-{gb_label(budget_gb)}/seed-{seed}"
 
 
 def dagger_parts(config: ReproduceConfig) -> list[ReproductionPart]:
@@ -240,6 +309,11 @@ def bench_parts(config: ReproduceConfig) -> list[ReproductionPart]:
             parts += [ReproductionPart(f"drive_bench/{label}/seed-{s}", "bench", label, s) for s in config.seed_list]
         else:
             parts.append(ReproductionPart(f"drive_bench/{label}", "bench", label))
+    for scheme in config.schemes:  # the budget curve: every seed's model at each smaller budget
+        parts += [
+            ReproductionPart(budget_key("drive_bench", scheme, budget, s), "bench", scheme, s, budget_gb=budget)
+            for budget in smaller_budgets(config, scheme) for s in config.seed_list
+        ]
     return parts
 
 
@@ -252,6 +326,7 @@ def describe(config: ReproduceConfig) -> str:
         f"{list(config.ablation_edge_intervals)} x seeds {config.ablation_seed_list}, centralized "
         f"{config.centralized_epochs} epochs"
         + (f" + {config.dagger_iterations} DAgger iteration(s)" if config.dagger_iterations else "")
+        + (f", budget curve {list(config.budgets_gb)} GB" if config.budgets_gb else "")
         + f", drives {list(config.drive_routes)}, drive-bench "
         f"{config.bench_episodes} episodes per task in {', '.join(config.bench_towns)}"
     )

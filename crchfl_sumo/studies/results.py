@@ -10,6 +10,7 @@ from typing import Any, Iterable, Sequence
 from crchfl_sumo.core import json_files
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
+from crchfl_sumo.studies.reproduce_plan import BUDGET_CURVE_DIR
 
 
 def read_json(path: Path) -> Any:
@@ -68,6 +69,19 @@ def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
     return {label: bench[label] for label in _ordered(bench, MODEL_LABELS)}
 
 
+def read_budget_curve(folder: Path) -> dict[str, Any]:
+    """The budget curve's parts (studies/reproduce_plan.budget_key): ``{"runs": {SCHEME: {"B": {seed: summary}}},
+    "bench": {SCHEME: {"B": {seed: drive-bench summary}}}}``, B as the folder names it (gb-B)."""
+    found: dict[str, Any] = {"runs": {}, "bench": {}}
+    for kind, key in (("runs", "runs"), ("drive_bench", "bench")):
+        for scheme_dir in sorted(p for p in (folder / kind).glob("*") if p.is_dir()):
+            for budget_dir in sorted(p for p in scheme_dir.glob("gb-*") if p.is_dir()):
+                seeds = {seed: read_json(path / "summary.json") for seed, path in seed_folders(budget_dir).items()}
+                if seeds:
+                    found[key].setdefault(scheme_dir.name, {})[budget_dir.name[3:]] = seeds
+    return found
+
+
 def read_results(out_dir: str | Path) -> dict[str, Any]:
     """Everything the report shows, read from the results folder."""
     out_dir = Path(out_dir)
@@ -110,6 +124,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
         "centralized": read_seed_runs(out_dir / "centralized"),
         "drives": drives,
         "drive_bench": bench,
+        "budget_curve": read_budget_curve(out_dir / BUDGET_CURVE_DIR),
         "reproduce": read_json(reproduce_path) if reproduce_path.is_file() else {},
         "timings": read_json(timings_path) if timings_path.is_file() else {},
     }

@@ -8,6 +8,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from crchfl_sumo.accounting.ledger import GIB, gb_label
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.intervals import paired_difference, t_interval
 from crchfl_sumo.driving.bench_score import pool_task_summaries
@@ -235,6 +236,87 @@ def bench_stats(bench: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return {"drive_bench": pooled, "drive_bench_spread": spread}
 
 
+def bench_driving_score(summary: Mapping[str, Any]) -> float | None:
+    """A drive-bench summary's driving score over all its episodes (its cells weighted by their episodes)."""
+    cells = [cell for tasks in summary["results"].values() for cell in tasks.values() if cell.get("episodes")]
+    episodes = sum(cell["episodes"] for cell in cells)
+    return sum(cell["driving_score"] * cell["episodes"] for cell in cells) / episodes if episodes else None
+
+
+def first_bytes_gb(metrics: Sequence[Mapping[str, Any]], target: float) -> float | None:
+    """The consumed GB of the first evaluation that reached balanced accuracy ``target`` (None: none did)."""
+    for line in metrics:
+        value = line.get("balanced_accuracy")
+        if value is not None and value >= target:
+            return line["consumed_bytes"] / GIB
+    return None
+
+
+def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
+    """summary.json's experiment E: ``budget_curve[SCHEME]["B"]`` = {balanced_accuracy, driving_score}, each
+    {mean, std, ci95, n, values, seeds} over seeds; ``budget_differences["crchfl-OTHER"]["B"]`` = CRCHFL minus
+    OTHER, paired by seed, for both; ``bytes_to_accuracy[SCHEME]["T"]`` = the mean GB over seeds that the
+    runs of experiment B consumed until their first evaluation at balanced accuracy T (None unless every seed
+    reached it), with ``bytes_to_accuracy_seeds`` per seed. Budgets below a scheme's run budget come from
+    the curve's own runs where it has them (CRCHFL) or from the run's budget marks (HFL, SFL)."""
+    config = (results["reproduce"] or {}).get("config") or {}
+    budgets = [float(b) for b in config.get("budgets_gb") or []]
+    curve_runs, curve_bench = results["budget_curve"]["runs"], results["budget_curve"]["bench"]
+    bench = results["drive_bench"]
+    per_seed: dict[str, dict[str, dict[str, dict[int, float | None]]]] = {}
+    for scheme, runs in results["schemes"].items():
+        if not budgets:
+            break
+        budget = max(run["summary"]["budget_bytes"] for run in runs.values()) / GIB
+        per_seed[scheme] = {}
+        for gb in budgets:
+            label = gb_label(gb)
+            if gb >= budget:  # experiment B's runs and benchmarks themselves
+                accuracy = {seed: run["summary"].get("balanced_accuracy") for seed, run in runs.items()}
+                driven = (bench.get(scheme) or {}).get("seeds") or {}
+            else:
+                if scheme in curve_runs:
+                    found = curve_runs[scheme].get(label) or {}
+                    accuracy = {seed: summary.get("balanced_accuracy") for seed, summary in found.items()}
+                else:  # a mark with no evaluation within it (None) has no model: no figure
+                    marks = {seed: run["summary"].get("budget_marks") or {} for seed, run in runs.items()}
+                    accuracy = {seed: (m[label] or {}).get("balanced_accuracy") for seed, m in marks.items() if label in m}
+                driven = (curve_bench.get(scheme) or {}).get(label) or {}
+            score = {seed: bench_driving_score(summary) for seed, summary in driven.items()}
+            per_seed[scheme][label] = {"balanced_accuracy": accuracy, "driving_score": score}
+    curve = {
+        scheme: {
+            label: {key: {**mean_std(values.values()), "values": list(values.values()), "seeds": list(values)}
+                    for key, values in point.items()}
+            for label, point in points.items()
+        }
+        for scheme, points in per_seed.items()
+    }
+    differences_by_budget: dict[str, Any] = {}
+    if "crchfl" in per_seed:
+        for other in per_seed:
+            if other == "crchfl":
+                continue
+            pair = differences_by_budget.setdefault(f"crchfl-{other}", {})
+            for label, point in per_seed["crchfl"].items():
+                pair[label] = {}
+                for key, mine in point.items():
+                    theirs = per_seed[other].get(label, {}).get(key, {})
+                    seeds = [s for s in mine if s in theirs and mine[s] is not None and theirs[s] is not None]
+                    pair[label][key] = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+    targets = [float(t) for t in config.get("accuracy_targets") or []]
+    to_accuracy, to_accuracy_seeds = {}, {}
+    for scheme, runs in results["schemes"].items():
+        seeds = {str(t): {seed: first_bytes_gb(run["metrics"], t) for seed, run in runs.items()} for t in targets}
+        to_accuracy_seeds[scheme] = seeds
+        to_accuracy[scheme] = {
+            t: (None if not values or any(v is None for v in values.values()) else float(np.mean(list(values.values()))))
+            for t, values in seeds.items()
+        }
+    return {"budget_curve": curve, "budget_differences": differences_by_budget,
+            "bytes_to_accuracy": to_accuracy, "bytes_to_accuracy_seeds": to_accuracy_seeds}
+
+
 def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
     """summary.json: per scheme cloud_rounds, accuracies and losses (mean, std), bytes, closed loop."""
     schemes = {name: scheme_stats(runs) for name, runs in results["schemes"].items()}
@@ -266,5 +348,6 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "ablation": ablation,
         "closed_loop": results["drives"],
         **bench_stats(results["drive_bench"]),
+        **budget_curve(results),
         "running_time_s": timing_groups(results["timings"]),
     }

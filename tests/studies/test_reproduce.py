@@ -77,6 +77,9 @@ def test_presets_and_seed_override():
     keys = [p.key for p in plan_parts(quick)]
     assert keys == ["data", "centralized/seed-0", "runs/crchfl/seed-0", "runs/hfl/seed-0", "runs/sfl/seed-0"]
     assert [p.key for p in plan_parts(full)][-3:] == ["ablation/ie-2/seed-2", "ablation/ie-3/seed-2", "ablation/ie-4/seed-2"]
+    # the full mode has the budget curve (CRCHFL again at each smaller budget); quick keeps one budget
+    assert full.budgets_gb == (2.5, 5.0, 10.0, 20.0) and quick.budgets_gb == ()
+    assert "budget_curve/runs/crchfl/gb-10/seed-3" in [p.key for p in plan_parts(full)]
 
 
 def test_the_benchmark_drives_the_best_seed_or_every_seed():
@@ -301,3 +304,80 @@ def test_ray_tasks_give_the_local_backends_summary(tmp_path):
     assert {t["jobs"] for t in timings.values()} == {RAY_PART}
     with pytest.raises(CrchflError, match="--address"):
         reproduce_command(out_dir=tmp_path / "x", config_path=path, address="auto")
+
+
+def _budget_curve_preset(folder):
+    """Two seeds of the three schemes at 5 GB, the curve at 2.5 and 5 GB, every seed's model benchmarked once."""
+    text = _training_parts_only(folder).read_text().replace("seeds = 1", "seeds = 2")
+    text = text.replace("centralized_epochs = 1", "centralized_epochs = 0").replace("bench_episodes = 0", "bench_episodes = 1")
+    text = text.replace('name = "tiny"', 'name = "tiny"\nbudgets_gb = [2.5, 5.0]\naccuracy_targets = [0.01, 1.0]\n'
+                        "bench_all_seeds = true")
+    path = folder / "curve.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_budget_curve_plans_crchfl_again_and_reads_hfl_and_sfl_from_their_runs(tmp_path):
+    from crchfl_sumo.studies.reproduce import budget_model_for
+    from crchfl_sumo.studies.reproduce_plan import bench_parts
+
+    config = load_reproduce_config(_budget_curve_preset(tmp_path))
+    keys = [p.key for p in plan_parts(config)]
+    assert keys[:7] == ["data", "runs/crchfl/seed-0", "runs/hfl/seed-0", "runs/sfl/seed-0", "runs/crchfl/seed-1",
+                        "runs/hfl/seed-1", "runs/sfl/seed-1"]
+    assert keys[7:] == ["budget_curve/runs/crchfl/gb-2.5/seed-0", "budget_curve/runs/crchfl/gb-2.5/seed-1"]
+    runs = {scheme: run_config(run_mapping(config, scheme, 0, Path("d")), "t") for scheme in ("crchfl", "hfl", "sfl")}
+    assert runs["crchfl"].ledger.marks_gb == () and runs["hfl"].ledger.marks_gb == runs["sfl"].ledger.marks_gb == (2.5,)
+    assert run_config(run_mapping(config, "crchfl", 1, Path("d"), budget_gb=2.5), "t").ledger.budget_gb == 2.5
+    budget_benches = [p.key for p in bench_parts(config) if p.budget_gb is not None]
+    assert budget_benches == [f"budget_curve/drive_bench/{s}/gb-2.5/seed-{seed}"
+                              for s in ("crchfl", "hfl", "sfl") for seed in (0, 1)]
+    assert budget_model_for(config, Path("r"), "crchfl", 2.5, 1) == Path("r/budget_curve/runs/crchfl/gb-2.5/seed-1/best_model.pt")
+    assert budget_model_for(config, Path("r"), "sfl", 2.5, 0) == Path("r/runs/sfl/seed-0/best_model_within_2.5gb.pt")
+    # the budgets lie within the runs' budget, and every seed's model drives
+    with pytest.raises(CrchflError, match="reproduce.budgets_gb: 10 exceeds the crchfl runs' budget_gb = 5"):
+        ReproduceConfig(budgets_gb=(2.5, 10.0), run={"ledger": {"budget_gb": 5.0}}, bench_all_seeds=True)
+    with pytest.raises(CrchflError, match="set bench_all_seeds = true"):
+        ReproduceConfig(budgets_gb=(2.5,), bench_episodes=1)
+    with pytest.raises(CrchflError, match="increasing, each once"):
+        ReproduceConfig(budgets_gb=(5.0, 2.5), bench_all_seeds=True)
+
+
+@pytest.mark.slow
+def test_tiny_budget_curve_end_to_end(tmp_path):
+    _, summary = reproduce_command(out_dir=tmp_path / "out", config_path=_budget_curve_preset(tmp_path))
+    out = tmp_path / "out"
+    curve = summary["budget_curve"]
+    assert list(curve) == ["crchfl", "hfl", "sfl"] and all(list(points) == ["2.5", "5"] for points in curve.values())
+    for scheme in ("crchfl", "hfl", "sfl"):
+        top = curve[scheme]["5"]
+        # the top of the curve is experiment B itself
+        assert top["balanced_accuracy"]["values"] == summary["schemes"][scheme]["balanced_accuracy"]["values"]
+        assert top["driving_score"]["n"] == 2 and top["balanced_accuracy"]["ci95"] is not None
+        for key in ("balanced_accuracy", "driving_score"):
+            assert set(curve[scheme]["2.5"][key]) >= {"mean", "ci95", "n"}
+    for scheme in ("hfl", "sfl"):  # read from the 5 GB run's mark
+        for seed in (0, 1):
+            run = json.loads((out / "runs" / scheme / f"seed-{seed}" / "summary.json").read_text())
+            mark = run["budget_marks"]["2.5"]
+            index = curve[scheme]["2.5"]["balanced_accuracy"]["seeds"].index(seed)
+            assert curve[scheme]["2.5"]["balanced_accuracy"]["values"][index] == mark["balanced_accuracy"]
+            assert mark["consumed_bytes"] <= 2.5 * 1024**3
+    crchfl_small = json.loads((out / "budget_curve/runs/crchfl/gb-2.5/seed-0/summary.json").read_text())
+    assert crchfl_small["budget_bytes"] == 2.5 * 1024**3 and crchfl_small["consumed_bytes"] <= 2.5 * 1024**3
+    assert set(summary["budget_differences"]) == {"crchfl-hfl", "crchfl-sfl"}
+    assert summary["budget_differences"]["crchfl-hfl"]["2.5"]["balanced_accuracy"]["n"] == 2
+    # bytes to accuracy, by hand from each seed's metrics: the GB of its first evaluation at the target,
+    # the mean over seeds only where both seeds reached it
+    for scheme, targets in summary["bytes_to_accuracy"].items():
+        for target in ("0.01", "1.0"):
+            by_seed = []
+            for seed in (0, 1):
+                lines = (out / "runs" / scheme / f"seed-{seed}" / "metrics.jsonl").read_text().splitlines()
+                reached = [json.loads(line) for line in lines if (json.loads(line).get("balanced_accuracy") or 0) >= float(target)]
+                by_seed.append(reached[0]["consumed_bytes"] / 1024**3 if reached else None)
+            assert list(summary["bytes_to_accuracy_seeds"][scheme][target].values()) == by_seed
+            assert targets[target] == (None if None in by_seed else pytest.approx(sum(by_seed) / 2))
+    report = (out / "report.md").read_text()
+    assert "## Experiment E" in report and "CRCHFL's balanced accuracy, paired by seed: over HFL" in report
+    assert (out / summary["figures"]["budget"]).is_file()
