@@ -21,7 +21,7 @@ import torch
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, MAX_SAMPLES_PER_VEHICLE
+from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, MAX_SAMPLES_PER_VEHICLE, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.data.shards import (
     LABEL_DATASETS,
     LABEL_SHAPES,
@@ -89,7 +89,7 @@ class DatasetConfig:
     (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
     """
 
-    sample_period_s: float = 0.25
+    sample_period_s: float = PAPER_SAMPLE_PERIOD_S
     towns: tuple[TownSplit, ...] = PAPER_TOWNS
     compression: Literal["lzf", "gzip", "none"] = "lzf"
     recovery_share: float = 0.25

@@ -11,6 +11,7 @@ from crchfl_sumo.core.numbers import check_range
 
 MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk (98 KB each)
 MAX_SAMPLE_PERIOD_S = 60.0  # samples a minute apart are no driving sequence (paper: 0.25 s)
+PAPER_SAMPLE_PERIOD_S = 0.25  # the paper's: four samples a second (dataset.DatasetConfig's default)
 
 
 @dataclass(frozen=True)

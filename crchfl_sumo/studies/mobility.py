@@ -33,13 +33,15 @@ from crchfl_sumo.core.config import from_mapping, read_toml, set_path
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.numbers import check_range
+from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 from crchfl_sumo.studies.sweep import Param, Point, absolute_paths, check_values, point_name, run_points, value_label
 
 BASELINE = "base"
 DATA_DIR = "data"
 PRESET_KEYS = {"name", "data", "run", "factor"}
-DATA_KEYS = {"scenario", "train_samples", "test_samples", "seed"}
+DATA_KEYS = {"scenario", "train_samples", "test_samples", "seed", "sample_period_s"}
 FACTOR_KEYS = {"name", "key", "values", "labels"}
 MAX_SAMPLES = 100_000  # per vehicle of the study's data set
 
@@ -55,12 +57,19 @@ class Factor:
 
 @dataclass(frozen=True)
 class StudyData:
-    """The study's data set: ``train_samples`` per data vehicle, ``test_samples`` per test vehicle of ``scenario``."""
+    """The study's data set: ``train_samples`` per data vehicle, ``test_samples`` per test vehicle of ``scenario``,
+    one every ``sample_period_s`` (a multiple of the scenario's step; longer spans more of the route, turns
+    included, for the same training time)."""
 
     scenario: str
     train_samples: int
     test_samples: int
     seed: int = 0
+    sample_period_s: float = PAPER_SAMPLE_PERIOD_S
+
+    def __post_init__(self) -> None:
+        check_range(self.sample_period_s, "sample_period_s", 0, MAX_SAMPLE_PERIOD_S, "simulated seconds",
+                    lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -174,6 +183,7 @@ def make_data(data: StudyData, out_dir: Path) -> Path:
     if not (out_dir / "manifest.json").is_file():
         scenario = load_scenario(data.scenario)
         sizes = DatasetConfig(
+            sample_period_s=data.sample_period_s,
             towns=tuple(
                 TownSplit(t.name, (data.train_samples,) * len(t.data_vehicles), (data.test_samples,) * len(t.test_vehicles))
                 for t in scenario.towns

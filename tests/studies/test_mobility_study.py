@@ -94,6 +94,9 @@ def test_bad_factor_key_or_value_names_the_factor():
     (_raw(), r"no \[\[factor\]\] tables"),
     ({**_raw({"key": "sumo.scale", "values": [1.0]}), "run": {**BASE, "backend": {}}}, r"\[run\]: leave out 'backend'"),
     ({**_raw({"key": "sumo.scale", "values": [1.0]}), "data": {"scenario": "paper"}}, r"\[data\]: 'train_samples' is missing"),
+    ({**_raw({"key": "sumo.scale", "values": [1.0]}),
+      "data": {"scenario": "paper", "train_samples": 1, "test_samples": 1, "sample_period_s": 0.0}},
+     r"\[data\]: sample_period_s: 0 is out of range; give simulated seconds in \(0, 60\]"),
 ])
 def test_bad_preset_is_a_clear_error(raw, message):
     with pytest.raises(CrchflError, match=message):
