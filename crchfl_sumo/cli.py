@@ -640,7 +640,8 @@ def _run_mobility_study(args) -> int:
 
     rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
-    print(f"{len({r['point'] for r in rows})} runs -> {args.out}")
+    seeds = max((r["seeds"] for r in rows), default=0)
+    print(f"{len({r['point'] for r in rows})} points x {seeds} seed(s) -> {args.out}")
     return 0
 
 

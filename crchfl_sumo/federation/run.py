@@ -318,6 +318,7 @@ def summarize(
         "selection": config.federation.selection,
         "skipped_by_selection": state.skipped,
         "wasted_bytes": state.wasted_bytes,
+        "mean_uplink_rate_mbps": mean_uplink_rate_mbps(state.records),
         "handovers": handovers,
         "stop_reason": state.stop_reason,
         "baselines": {"always_straight": dict(baseline)} if baseline is not None else {},
@@ -329,6 +330,14 @@ def summarize(
             for gb, (line, _, _) in budget_mark_results(config, setup, state).items()
         },
     }
+
+
+def mean_uplink_rate_mbps(records) -> float | None:
+    """The mean rate of the wireless uplinks [Mbit/s]: each charged transfer's bytes over its duration (None:
+    none took time). What a loaded cell (links/clock.py) and the traffic density change."""
+    rates = [8.0 * r.size_bytes / (r.end_s - r.start_s) / 1e6 for r in records
+             if r.link == "wireless" and r.direction == "uplink" and r.end_s > r.start_s]
+    return sum(rates) / len(rates) if rates else None
 
 
 MARK_KEYS = ("balanced_accuracy", "accuracy", "loss", "consumed_bytes", "cloud_round", "step")

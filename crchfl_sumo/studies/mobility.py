@@ -36,11 +36,19 @@ from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
-from crchfl_sumo.studies.sweep import Param, Point, absolute_paths, check_values, point_name, run_points, value_label
+from crchfl_sumo.studies.mobility_report import BASELINE
+from crchfl_sumo.studies.sweep import (
+    RUNS_DIR, Param, Point, absolute_paths, check_values, point_name, run_points, value_label,
+)
 
-BASELINE = "base"
 DATA_DIR = "data"
-PRESET_KEYS = {"name", "data", "run", "factor"}
+PRESET_KEYS = {"name", "data", "run", "factor", "seeds", "bench_episodes"}
+BENCH_DIR = "bench"
+# The closed loop each point's models drive: the straight and one-turn suites of both towns, one route draw.
+BENCH_TOWNS = ("town01", "town02")
+BENCH_TASKS = ("straight", "one_turn")
+BENCH_SEED = 0
+MAX_STUDY_SEEDS = 100
 DATA_KEYS = {"scenario", "train_samples", "test_samples", "seed", "sample_period_s"}
 FACTOR_KEYS = {"name", "key", "values", "labels"}
 MAX_SAMPLES = 100_000  # per vehicle of the study's data set
@@ -74,10 +82,16 @@ class StudyData:
 
 @dataclass(frozen=True)
 class Study:
+    """A study: its data set, the baseline run config, the factors; ``seeds`` runs a point (federation.seed
+    = the baseline's, +1, ...), ``bench_episodes`` episodes per suite and town each of their models drives
+    (0: no closed loop)."""
+
     name: str
     data: StudyData
     base: dict
     factors: tuple[Factor, ...]
+    seeds: int = 1
+    bench_episodes: int = 0
 
 
 @dataclass(frozen=True)
@@ -127,7 +141,13 @@ def parse_study(raw: dict, where: str) -> Study:
     names = [f.name for f in factors]
     if len(set(names)) != len(names):
         raise CrchflError(f"{where}: factor names must be distinct, got {names}")
-    return Study(str(raw.get("name", Path(where).stem)), study_data, base, tuple(factors))
+    seeds, episodes = raw.get("seeds", 1), raw.get("bench_episodes", 0)
+    for key, value, lo, hi, what in (("seeds", seeds, 1, MAX_STUDY_SEEDS, "runs a point"),
+                                     ("bench_episodes", episodes, 0, 1000, "episodes per suite and town (0: none)")):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise CrchflError(f"{where}: {key} = {value!r}; give a whole number of {what}")
+        check_range(value, f"{where}: {key}", lo, hi, what)
+    return Study(str(raw.get("name", Path(where).stem)), study_data, base, tuple(factors), int(seeds), int(episodes))
 
 
 def _known(table: Any, keys: set[str], where: str) -> None:
@@ -219,11 +239,54 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
         + "\n",
     )
     make_data(study.data, out_dir / DATA_DIR)
-    points = [Point(p.name, p.values, absolute_paths(p.mapping)) for p in plan.points]
-    summaries = run_points(points, out_dir, backend)
-    rows = study_rows(study.factors, plan, summaries)
+    first = int(base.get("federation", {}).get("seed", 0))
+    seeds = list(range(first, first + study.seeds))
+    runs = [
+        Point(seed_point(p.name, seed), p.values,
+              absolute_paths(set_path(p.mapping, ("federation", "seed"), seed, "seeds")))
+        for p in plan.points for seed in seeds
+    ]
+    summaries = run_points(runs, out_dir, backend)
+    by_point = {p.name: {seed: summaries[seed_point(p.name, seed)] for seed in seeds} for p in plan.points}
+    benches = bench_points(out_dir, [seed_point(p.name, s) for p in plan.points for s in seeds], study.bench_episodes,
+                           backend)
+    by_point_bench = {p.name: {s: benches[seed_point(p.name, s)] for s in seeds if seed_point(p.name, s) in benches}
+                      for p in plan.points}
+    rows = study_rows(study.factors, plan, by_point, by_point_bench)
     write_report(out_dir, study.factors, rows)
     return rows
+
+
+def seed_point(point: str, seed: int) -> str:
+    """A point's run of one seed, as its folder under runs/ (and bench/) names it."""
+    return f"{point}/seed-{seed}"
+
+
+def bench_points(out_dir: Path, names: list[str], episodes: int, backend: BackendConfig) -> dict[str, dict]:
+    """The closed-loop benchmark of each run's best model in ``out_dir/bench/NAME`` (finished ones are read):
+    name -> its summary; none with ``episodes`` 0."""
+    if not episodes:
+        return {}
+    from crchfl_sumo.core.backend import Executor
+
+    paths = {name: out_dir / BENCH_DIR / name / "summary.json" for name in names}
+    done = {name: json.loads(path.read_text(encoding="utf-8")) for name, path in paths.items() if path.is_file()}
+    todo = [name for name in names if name not in done]
+    with Executor(backend) as executor:
+        results = executor.map(bench_point, [(str(out_dir / RUNS_DIR / n / "best_model.pt"), str(out_dir / BENCH_DIR / n),
+                                              episodes) for n in todo], isolate=True)
+    return {**done, **dict(zip(todo, results))}
+
+
+def bench_point(model: str, out: str, episodes: int) -> dict:
+    """One run's best model through the study's benchmark (a backend task, in its own process)."""
+    import torch
+
+    from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+
+    torch.set_num_threads(1)  # several share the machine's cores
+    return run_benchmark(model, out, episodes=episodes, seed=BENCH_SEED, towns=BENCH_TOWNS,
+                         config=BenchConfig(tasks=BENCH_TASKS))
 
 
 def mobility_study_command(quick: bool, out_dir: str | Path, config: str | Path | None = None, jobs: int = 0,

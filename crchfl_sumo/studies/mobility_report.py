@@ -1,7 +1,10 @@
-"""The mobility study's report: one row per factor value, a table and one figure per factor.
+"""The mobility study's report: one row per factor value, a table and one figure per factor, the findings.
 
-Pure up to the writing: rows are made from the runs' summaries (summary.json),
-so the report of hand-made summaries is the report of real runs.
+Pure up to the writing: rows are made from the runs' summaries (summary.json) and
+the benchmarks' (drive-bench summary.json), seed by seed, so the report of
+hand-made summaries is the report of real runs. A row's figures are means over
+the point's seeds; balanced accuracy carries its 95 % interval (Student t).
+The findings compare each factor value with the baseline, paired by seed.
 """
 
 from __future__ import annotations
@@ -15,6 +18,10 @@ from typing import Any
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.intervals import distinguishable, paired_difference
+from crchfl_sumo.studies.statistics import mean_std
+
+from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE
 
 MB = 2**20
 
@@ -30,36 +37,126 @@ METRICS = (
     ("uploads_failed", "failed uploads", 1),
 )
 EXTRA_COLUMNS = ("relayed_transfers", "uploads", "downloads_failed", "edge_aggregations", "sim_time_s", "stop_reason")
-COLUMNS = ("factor", "key", "value", "point", *(m[0] for m in METRICS), *EXTRA_COLUMNS)
+# results.csv's columns other tools read (docs/sweep.md): seeds, the interval, the closed loop, the cells' rate
+STUDY_COLUMNS = ("seeds", "balanced_accuracy_mean", "balanced_accuracy_ci_lo", "balanced_accuracy_ci_hi",
+                 "driving_score_mean", "success_rate_mean", "mean_uplink_rate_mbps")
+COLUMNS = ("factor", "key", "value", "point", *STUDY_COLUMNS, *(m[0] for m in METRICS), *EXTRA_COLUMNS)
+# The outcomes the findings test for a move beyond noise, with how they are written.
+FINDINGS = (
+    ("balanced_accuracy", "balanced accuracy", "{:+.3f}"),
+    ("driving_score", "driving score", "{:+.3f}"),
+    ("success_rate", "success", "{:+.3f}"),
+    ("mean_uplink_rate_mbps", "uplink Mbit/s", "{:+.1f}"),
+    ("cloud_rounds", "cloud rounds", "{:+.1f}"),
+    ("stragglers", "stragglers", "{:+.1f}"),
+    ("wasted_bytes", "wasted MB", "{:+.0f}"),
+)
 
 
-def study_rows(factors: Sequence, plan, summaries: dict[str, dict]) -> list[dict]:
-    """One row per factor value: the factor, the value's label, its run's point and metrics."""
+def bench_figures(summary: dict) -> dict[str, float | None]:
+    """A drive-bench summary's driving score and success rate over all its episodes (cells weighted by episodes)."""
+    cells = [cell for tasks in summary["results"].values() for cell in tasks.values() if cell.get("episodes")]
+    episodes = sum(cell["episodes"] for cell in cells)
+    if not episodes:
+        return {"driving_score": None, "success_rate": None}
+    return {key: sum(cell[key] * cell["episodes"] for cell in cells) / episodes for key in ("driving_score", "success_rate")}
+
+
+def seed_outcomes(summaries: dict[int, dict], benches: dict[int, dict]) -> dict[str, dict[int, Any]]:
+    """Per outcome, per seed: the run's figures, with the benchmark's driving score and success where it drove."""
+    outcomes: dict[str, dict[int, Any]] = {}
+    for seed, summary in summaries.items():
+        for key in (*(m[0] for m in METRICS), *EXTRA_COLUMNS, "mean_uplink_rate_mbps"):
+            outcomes.setdefault(key, {})[seed] = summary.get(key)
+        for key, value in (bench_figures(benches[seed]) if seed in benches else {}).items():
+            outcomes.setdefault(key, {})[seed] = value
+    return outcomes
+
+
+def _mean(values) -> Any:
+    numbers = [v for v in values if _is_number(v)]
+    if len(numbers) == 1:  # one seed: its figure as it is (a count stays a whole number)
+        return numbers[0]
+    if numbers:
+        return sum(numbers) / len(numbers)
+    return next(iter(values), None)  # a text column (stop_reason): the first seed's
+
+
+def study_rows(factors: Sequence, plan, summaries: dict[str, dict[int, dict]],
+               benches: dict[str, dict[int, dict]] | None = None) -> list[dict]:
+    """One row per factor value: the factor, the value's label, its point, the seeds, and each figure's mean over
+    seeds (``summaries[point][seed]``: run summaries; ``benches[point][seed]``: benchmark summaries)."""
+    benches = benches or {}
     rows = []
     for factor in factors:
         for label, name in zip(factor.labels, plan.factor_points[factor.name]):
-            summary = summaries[name]
+            outcomes = seed_outcomes(summaries[name], benches.get(name, {}))
+            accuracy = mean_std(outcomes.get("balanced_accuracy", {}).values())
+            ci = accuracy["ci95"] or [None, None]
             rows.append({
                 "factor": factor.name,
                 "key": factor.param.path,
                 "value": label,
                 "point": name,
-                **{key: summary.get(key) for key, _, _ in METRICS},
-                **{key: summary.get(key) for key in EXTRA_COLUMNS},
+                "seeds": len(summaries[name]),
+                "balanced_accuracy_mean": accuracy["mean"],
+                "balanced_accuracy_ci_lo": ci[0],
+                "balanced_accuracy_ci_hi": ci[1],
+                **{key: _mean(values.values()) for key, values in outcomes.items()},
+                "driving_score_mean": _mean(outcomes.get("driving_score", {}).values()),
+                "success_rate_mean": _mean(outcomes.get("success_rate", {}).values()),
+                "outcomes": outcomes,
             })
     return rows
 
 
+def findings(factors: Sequence, rows: Sequence[dict]) -> list[dict]:
+    """Per factor and outcome: each value against the baseline, paired by seed (paired-t 95 % interval); the
+    outcome moves where an interval excludes 0. ``moved``: the values that did, with their differences."""
+    base = next((r for r in rows if r["point"] == BASELINE), None)
+    found = []
+    for factor in factors:
+        for key, title, spec in FINDINGS:
+            moved, compared = [], 0
+            for row in (r for r in rows if r["factor"] == factor.name and r["point"] != BASELINE):
+                mine, theirs = row["outcomes"].get(key, {}), (base or {"outcomes": {}})["outcomes"].get(key, {})
+                seeds = [s for s in mine if s in theirs and _is_number(mine[s]) and _is_number(theirs[s])]
+                d = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+                compared = max(compared, d["n"])
+                if distinguishable(d["ci95"]):
+                    moved.append((row["value"], d))
+            found.append({"factor": factor.name, "outcome": title, "key": key, "spec": spec, "moved": moved,
+                          "seeds": compared})
+    return found
+
+
+def findings_table(found: Sequence[dict]) -> str:
+    """The findings as markdown: per factor, which outcomes moved beyond their intervals against the baseline."""
+    lines = ["| factor | outcome | against the baseline, paired by seed (95 %) |", "| --- | --- | --- |"]
+    for f in found:
+        if f["seeds"] < 2:
+            verdict = "no interval: fewer than 2 seeds"
+        elif not f["moved"]:
+            verdict = "not distinguishable at any value"
+        else:
+            verdict = "moves: " + "; ".join(
+                f"{value} {f['spec'].format(d['mean'] / (MB if f['key'] == 'wasted_bytes' else 1))}" for value, d in f["moved"]
+            )
+        lines.append(f"| {f['factor']} | {f['outcome']} | {verdict} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list[Path]:
-    """results.csv, results.md and plots/FACTOR.png in ``out_dir``; returns the figures' paths."""
+    """results.csv, results.md (the table, then the findings) and plots/FACTOR.png in ``out_dir``; returns the
+    figures' paths."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     for row in rows:
         writer.writerow(["" if row.get(c) is None else row[c] for c in COLUMNS])
     atomic_write_text(out_dir / "results.csv", buffer.getvalue())
-    atomic_write_text(out_dir / "results.md", markdown_table(rows))
-    base = next((r for r in rows if r["point"] == "base"), None)  # any factor's row of the baseline run
+    atomic_write_text(out_dir / "results.md", markdown_table(rows) + "\n## Findings\n\n" + findings_table(findings(factors, rows)))
+    base = next((r for r in rows if r["point"] == BASELINE), None)  # any factor's row of the baseline run
     return [
         plot_factor(factor, [r for r in rows if r["factor"] == factor.name], base, out_dir / "plots") for factor in factors
     ]
@@ -67,15 +164,22 @@ def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list
 
 def markdown_table(rows: Sequence[dict]) -> str:
     """The table of docs/sweep.md: bytes in MB, the baseline's rows marked with *."""
-    header = ["factor", "value", "best acc", "best bal. acc", "rounds", "handovers", "stragglers", "relayed MB",
-              "wasted MB", "failed uploads", "sim s", "stop"]
+    header = ["factor", "value", "seeds", "best acc", "best bal. acc [95 %]", "driving score", "success",
+              "uplink Mbit/s", "rounds", "handovers", "stragglers", "relayed MB", "wasted MB", "failed uploads",
+              "sim s", "stop"]
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for r in rows:
+        interval = ("" if r.get("balanced_accuracy_ci_lo") is None else
+                    f" [{r['balanced_accuracy_ci_lo']:.3f}, {r['balanced_accuracy_ci_hi']:.3f}]")
         cells = [
             r["factor"],
-            r["value"] + (" *" if r["point"] == "base" else ""),
+            r["value"] + (" *" if r["point"] == BASELINE else ""),
+            _fmt(r.get("seeds")),
             _fmt(r["best_accuracy"], "{:.3f}"),
-            _fmt(r["balanced_accuracy"], "{:.3f}"),
+            _fmt(r["balanced_accuracy"], "{:.3f}") + interval,
+            _fmt(r.get("driving_score_mean"), "{:.3f}"),
+            _fmt(r.get("success_rate_mean"), "{:.3f}"),
+            _fmt(r.get("mean_uplink_rate_mbps"), "{:.1f}"),
             _fmt(r["cloud_rounds"]),
             _fmt(r["handovers"]),
             _fmt(r["stragglers"]),
@@ -86,7 +190,7 @@ def markdown_table(rows: Sequence[dict]) -> str:
             _fmt(r["stop_reason"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n\n* the baseline run\n"
+    return "\n".join(lines) + "\n\n* the baseline run; every figure is the mean over the point's seeds\n"
 
 
 def plot_factor(factor, rows: Sequence[dict], base: dict | None, out_dir: Path) -> Path:

@@ -66,6 +66,7 @@ else:  # pragma: no cover - exercised only on Python 3.10
 log = logging.getLogger(__name__)
 
 RUNS_DIR = "runs"
+BASE_POINT = "base"  # the name of the point that changes nothing (a study's baseline)
 SUMMARY_COLUMNS = (
     "best_accuracy",
     "final_accuracy",
@@ -198,7 +199,7 @@ def point_name(values: dict[str, Any]) -> str:
         if isinstance(value, (list, tuple, dict)) or not re.fullmatch(r"[A-Za-z0-9.+\-_]{1,40}", text):
             text = hashlib.sha1(toml_text({"v": value}).encode()).hexdigest()[:10]
         parts.append(f"{path}={text}")
-    return "__".join(parts) or "base"
+    return "__".join(parts) or BASE_POINT
 
 
 def value_label(value: Any) -> str:

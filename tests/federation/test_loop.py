@@ -592,3 +592,16 @@ def test_budget_marks_must_lie_within_the_budget_and_increase():
     for bad in ((10.0, 5.0), (5.0, 5.0), (0.0,), (float("nan"),)):
         with pytest.raises(CrchflError, match="ledger.marks_gb: .* increasing, each once"):
             LedgerConfig(marks_gb=bad)
+
+
+def test_the_mean_uplink_rate_is_each_wireless_uplinks_bytes_over_its_duration():
+    from crchfl_sumo.federation.run import mean_uplink_rate_mbps
+
+    state = _one_round("hfl", "paper")
+    assert mean_uplink_rate_mbps(state.records) == pytest.approx(8.0)  # 1 MiB in 8 * MIB / 8e6 s: 8 Mbit/s
+    records = [dataclasses.replace(state.records[0], size_bytes=10**6, start_s=0.0, end_s=2.0),  # 4 Mbit/s
+               dataclasses.replace(state.records[1], size_bytes=3 * 10**6, start_s=1.0, end_s=2.0),  # 24 Mbit/s
+               dataclasses.replace(state.records[3], size_bytes=10**9, start_s=0.0, end_s=1.0),  # wireline: not counted
+               dataclasses.replace(state.records[7], size_bytes=10**9, start_s=0.0, end_s=1.0)]  # downlink: not counted
+    assert mean_uplink_rate_mbps(records) == pytest.approx(14.0)
+    assert mean_uplink_rate_mbps(records[2:]) is None

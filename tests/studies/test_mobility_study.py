@@ -94,6 +94,9 @@ def test_bad_factor_key_or_value_names_the_factor():
     (_raw(), r"no \[\[factor\]\] tables"),
     ({**_raw({"key": "sumo.scale", "values": [1.0]}), "run": {**BASE, "backend": {}}}, r"\[run\]: leave out 'backend'"),
     ({**_raw({"key": "sumo.scale", "values": [1.0]}), "data": {"scenario": "paper"}}, r"\[data\]: 'train_samples' is missing"),
+    (_raw({"key": "sumo.scale", "values": [1.0]}, seeds=0), r"study.toml: seeds: 0 is out of range"),
+    (_raw({"key": "sumo.scale", "values": [1.0]}, seeds=1.5), r"study.toml: seeds = 1.5; give a whole number"),
+    (_raw({"key": "sumo.scale", "values": [1.0]}, bench_episodes=-1), r"study.toml: bench_episodes: -1 is out of range"),
     ({**_raw({"key": "sumo.scale", "values": [1.0]}),
       "data": {"scenario": "paper", "train_samples": 1, "test_samples": 1, "sample_period_s": 0.0}},
      r"\[data\]: sample_period_s: 0 is out of range; give simulated seconds in \(0, 60\]"),
@@ -134,7 +137,7 @@ def test_report_rows_table_and_figures_from_hand_made_summaries(tmp_path):
         {"speed": ("s8", "s14", BASELINE), "policy": (BASELINE, "miss")},
     )
     summaries = {BASELINE: _summary(0), "s8": _summary(1), "s14": _summary(2), "miss": _summary(3)}
-    rows = study_rows(study.factors, plan, summaries)
+    rows = study_rows(study.factors, plan, {point: {0: summary} for point, summary in summaries.items()})
     assert [(r["factor"], r["value"], r["point"]) for r in rows] == [
         ("speed", "8.0", "s8"), ("speed", "14.0", "s14"), ("speed", "inf", BASELINE),
         ("policy", "new_edge", BASELINE), ("policy", "miss", "miss"),
@@ -150,9 +153,10 @@ def test_report_rows_table_and_figures_from_hand_made_summaries(tmp_path):
     assert float(table[1]["wasted_bytes"]) == summaries["s14"]["wasted_bytes"]
     assert int(table[4]["handovers"]) == 30 and table[4]["stop_reason"] == "budget"
     md = (tmp_path / "results.md").read_text()
-    assert md == markdown_table(rows)
+    assert md.startswith(markdown_table(rows)) and "## Findings" in md
+    assert "| speed | balanced accuracy | no interval: fewer than 2 seeds |" in md  # one seed each
     # s14: accuracy 0.52, balanced 0.32, 5 rounds, 20 handovers, 2 stragglers, 2 MB relayed, 6 MB wasted, 2/20 failed
-    assert "| speed | 14.0 | 0.520 | 0.320 | 5 | 20 | 2 | 2 | 6 | 2/20 | 200 | budget |" in md
+    assert "| speed | 14.0 | 1 | 0.520 | 0.320 | - | - | - | 5 | 20 | 2 | 2 | 6 | 2/20 | 200 | budget |" in md
     assert "| policy | new_edge * |" in md  # the baseline's rows are marked
 
 
@@ -166,16 +170,62 @@ def test_tiny_study_runs_its_points_and_resumes(tmp_path):
     study = Study("tiny", StudyData("paper", 1, 1, 0), base, parse_study(
         {"data": {"scenario": "paper", "train_samples": 1, "test_samples": 1}, "run": base,
          "factor": [{"name": "edge interval", "key": "federation.edge_interval", "values": [1, 2]}]},
-        "tiny.toml").factors)
+        "tiny.toml").factors, seeds=2, bench_episodes=1)
     rows = run_study(study, out, BackendConfig(num_cpus=2))
+    # two seeds a point, each run's best model benchmarked: straight and one_turn in both towns, one episode each
+    assert all(r["seeds"] == 2 for r in rows)
+    for seed in (0, 1):
+        bench = json.loads((out / "bench" / BASELINE / f"seed-{seed}" / "summary.json").read_text())
+        assert {(town, task) for town, tasks in bench["results"].items() for task in tasks} == {
+            ("town01", "straight"), ("town01", "one_turn"), ("town02", "straight"), ("town02", "one_turn")}
+        assert json.loads((out / "runs" / BASELINE / f"seed-{seed}" / "config.json").read_text()
+                          )["config"]["federation"]["seed"] == seed
+    assert rows[0]["driving_score_mean"] is not None and rows[0]["balanced_accuracy_ci_lo"] is not None
     assert [r["point"] for r in rows] == [BASELINE, "federation.edge_interval=2"]
     for row in rows:
-        summary = json.loads((out / "runs" / row["point"] / "summary.json").read_text())
+        summary = json.loads((out / "runs" / row["point"] / "seed-0" / "summary.json").read_text())
         assert row["cloud_rounds"] == summary["cloud_rounds"] == 2
         assert row["best_accuracy"] == summary["best_accuracy"]
     saved = json.loads((out / "study.json").read_text())
     assert saved["factors"][0]["points"] == [BASELINE, "federation.edge_interval=2"]
     assert (out / "plots" / "edge_interval.png").stat().st_size > 0
-    before = (out / "runs" / BASELINE / "summary.json").stat().st_mtime_ns
+    before = (out / "runs" / BASELINE / "seed-0" / "summary.json").stat().st_mtime_ns
     run_study(study, out, BackendConfig(num_cpus=2))  # a rerun runs nothing again
-    assert (out / "runs" / BASELINE / "summary.json").stat().st_mtime_ns == before
+    assert (out / "runs" / BASELINE / "seed-0" / "summary.json").stat().st_mtime_ns == before
+
+
+def test_rows_over_seeds_carry_intervals_the_closed_loop_and_the_findings(tmp_path):
+    from scipy import stats
+
+    study = _study({"name": "density", "key": "sumo.scale", "values": [0.5, 1.0, 2.0]})
+    plan = Plan((Point(BASELINE, {}, {}),), {"density": ("d05", BASELINE, "d2")})
+    accuracy = {BASELINE: [0.50, 0.52, 0.51], "d05": [0.50, 0.53, 0.49], "d2": [0.30, 0.31, 0.33]}
+    rate = {BASELINE: [20.0, 21.0, 19.0], "d05": [30.0, 29.0, 31.0], "d2": [10.0, 11.0, 9.0]}
+    summaries = {p: {s: {**_summary(1), "balanced_accuracy": accuracy[p][s], "mean_uplink_rate_mbps": rate[p][s]}
+                     for s in range(3)} for p in accuracy}
+
+    def bench(score, success):  # two cells of 2 and 6 episodes
+        return {"results": {"town01": {"straight": {"episodes": 2, "driving_score": score[0], "success_rate": success[0]}},
+                            "town02": {"one_turn": {"episodes": 6, "driving_score": score[1], "success_rate": success[1]}}}}
+
+    benches = {p: {s: bench((0.8, 0.4), (1.0, 0.5)) for s in range(3)} for p in accuracy}
+    rows = study_rows(study.factors, plan, summaries, benches)
+    d2 = next(r for r in rows if r["point"] == "d2")
+    lo, hi = stats.t.interval(0.95, 2, loc=sum(accuracy["d2"]) / 3, scale=stats.sem(accuracy["d2"]))
+    assert d2["seeds"] == 3 and d2["balanced_accuracy_mean"] == pytest.approx(0.94 / 3)
+    assert (d2["balanced_accuracy_ci_lo"], d2["balanced_accuracy_ci_hi"]) == (pytest.approx(lo), pytest.approx(hi))
+    assert d2["driving_score_mean"] == pytest.approx((2 * 0.8 + 6 * 0.4) / 8)  # the cells weighted by episodes
+    assert d2["success_rate_mean"] == pytest.approx((2 * 1.0 + 6 * 0.5) / 8)
+    assert d2["mean_uplink_rate_mbps"] == pytest.approx(10.0)
+    write_report(tmp_path, study.factors, rows)
+    with open(tmp_path / "results.csv", newline="") as handle:
+        table = {t["point"]: t for t in csv.DictReader(handle)}
+    for column in ("seeds", "balanced_accuracy_mean", "balanced_accuracy_ci_lo", "balanced_accuracy_ci_hi",
+                   "driving_score_mean", "success_rate_mean", "mean_uplink_rate_mbps"):
+        assert table["d2"][column] != ""
+    md = (tmp_path / "results.md").read_text()
+    # paired by seed against the baseline: density 2 lowers the accuracy (-0.197) and the rate (-10.0);
+    # density 0.5's accuracy differences (0, +0.01, -0.02) cover 0; the closed loop is the same everywhere
+    assert "| density | balanced accuracy | moves: 2.0 -0.197 |" in md
+    assert "| density | uplink Mbit/s | moves: 0.5 +10.0; 2.0 -10.0 |" in md
+    assert "| density | driving score | not distinguishable at any value |" in md
