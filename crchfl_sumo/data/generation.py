@@ -42,7 +42,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.data.commands import CommandConfig, track_commands
-from crchfl_sumo.data.dataset import DatasetConfig, PlannedShard, shard_plan
+from crchfl_sumo.data.dataset import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
 from crchfl_sumo.data.expert import (
     ExpertConfig,
     Track,
@@ -63,7 +63,7 @@ from crchfl_sumo.data.recovery import (
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
-from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.scenario import DEFAULT_COVERAGE_RADIUS_M, Scenario, SumoConfig, configured_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
 from crchfl_sumo.sumo.turns import choice_junctions
@@ -97,6 +97,8 @@ def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[st
                 fix = (f"put a scenario.toml beside {scenario.sumocfg_path.name} whose [[towns]] name {key}: "
                        "vehicles that stay in the simulation for the whole run, e.g. on looping routes "
                        "(docs/scenarios.md), and pass its folder")
+            elif scenario.injected:
+                fix = "ask for fewer, or add more ([sumo] data_vehicles and test_vehicles of the dataset and run configs, docs/scenarios.md)"
             else:
                 fix = "ask for fewer or name more"
             raise CrchflError(
@@ -157,6 +159,8 @@ def record_run(
     last_xy: dict[str, tuple[float, float]] = {}
     focus = None if around_m is None else set(needed)  # without a radius, no vehicle may go missing
     with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0) as sim:
+        if sim.injection_error is not None and set(needed) & set(scenario.injected):
+            raise CrchflError(f"scenario '{scenario.name}': {sim.injection_error}")
         for step in range(max_steps):
             frame = sim.step()
             frames.append(frame)
@@ -436,7 +440,8 @@ def sample_labels(
 @dataclass(frozen=True)
 class GenerateConfig:
     """Settings of `crchfl-sumo dataset` (TOML: top-level ``seed``, ``[dataset]``,
-    ``[raster]`` (with ``[raster.camera]``), ``[world]``, ``[expert]``, ``[command]``)."""
+    ``[raster]`` (with ``[raster.camera]``), ``[world]``, ``[expert]``, ``[command]``, ``[sumo]`` (the
+    scenario as a run's [sumo] changes it: its vehicles added where it names none, its sites, traffic))."""
 
     seed: int = 0
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
@@ -444,6 +449,7 @@ class GenerateConfig:
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     command: CommandConfig = field(default_factory=CommandConfig)
+    sumo: SumoConfig = field(default_factory=SumoConfig)
 
 
 def load_generate_config(path: str | Path | None, seed: int | None = None) -> GenerateConfig:
@@ -470,6 +476,27 @@ class _StageClock:
                 self._timings_s[stage] = self._timings_s.get(stage, 0.0) + time.perf_counter() - start
 
 
+# A town of a scenario other than the paper's, whose data set config names no towns: samples a vehicle
+# (at the paper's 0.25 s, 2 minutes of driving each).
+DEFAULT_TRAIN_SAMPLES = 500
+DEFAULT_TEST_SAMPLES = 250
+
+
+def sizes_for(sizes: DatasetConfig, scenario: Scenario) -> DatasetConfig:
+    """``sizes`` for ``scenario``: as given, unless they are the default (the paper's towns) and the scenario
+    lacks those towns; then each of its towns' data and test vehicles gets DEFAULT_TRAIN_SAMPLES and
+    DEFAULT_TEST_SAMPLES."""
+    names = {town.name for town in scenario.towns}
+    if sizes.towns != PAPER_TOWNS or {split.town for split in PAPER_TOWNS} <= names:
+        return sizes
+    towns = tuple(
+        TownSplit(town.name, (DEFAULT_TRAIN_SAMPLES,) * len(town.data_vehicles),
+                  (DEFAULT_TEST_SAMPLES,) * len(town.test_vehicles))
+        for town in scenario.towns if town.data_vehicles or town.test_vehicles
+    )
+    return dataclasses.replace(sizes, towns=towns)
+
+
 def run_dataset_command(
     scenario_name: str,
     out_dir: Path,
@@ -479,12 +506,12 @@ def run_dataset_command(
 ) -> Manifest:
     """What `crchfl-sumo dataset SCENARIO --out DIR [--seed S] [--config TOML]` does."""
     config = load_generate_config(config_path, seed)
-    scenario = load_scenario(scenario_name)
+    scenario = configured_scenario(scenario_name, config.sumo, DEFAULT_COVERAGE_RADIUS_M)
     return generate_dataset(
         scenario,
         out_dir,
         config.seed,
-        config.dataset,
+        sizes_for(config.dataset, scenario),
         config.raster,
         config.world,
         config.expert,

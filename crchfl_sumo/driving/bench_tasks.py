@@ -347,6 +347,7 @@ def draw_episodes(
 
 
 def without_traffic(scenario: Scenario) -> Scenario:
-    """The scenario with none of its route files: no vehicle but the ego (vehicle types stay in the additionals)."""
+    """The scenario with none of its route files and none of the vehicles it adds itself: no vehicle but the ego
+    (vehicle types stay in the additionals)."""
     options = tuple(o for o in scenario.sumo_options if not o.startswith("--route-files="))
-    return dataclasses.replace(scenario, sumo_options=options)
+    return dataclasses.replace(scenario, sumo_options=options, injected=())

@@ -27,6 +27,7 @@ import numpy as np
 
 from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.sumo.sites import (
@@ -116,6 +117,9 @@ class Scenario:
     length_s: float | None = None  # the configuration's <end> less its <begin>; None: it sets no end
     demand_scale: float = 1.0  # SumoConfig.scale: applied by sim.Simulation
     speed_limit_mps: float = math.inf  # SumoConfig.speed_limit_mps: applied by sim.Simulation
+    # the towns' vehicles that sim.Simulation adds itself (a scenario that names none: sumo/injection.py)
+    injected: tuple[str, ...] = ()
+    inject_seed: int = 0
 
     def town_of(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
         """Town name per position ('' outside every town)."""
@@ -125,6 +129,7 @@ class Scenario:
         return names.astype(str)
 
 
+DEFAULT_COVERAGE_RADIUS_M = 250.0  # what automatic site placement covers when no run config says otherwise
 MAX_DEMAND_SCALE = 100.0  # SUMO inserts this many times the scenario's vehicles at most
 MAX_SPEED_MPS = 200.0  # 720 km/h: no road vehicle's; a cap above it caps nothing (inf says so)
 
@@ -149,6 +154,9 @@ class SumoConfig:
         (fewest sites, small networks); sites.place_edge_sites.
     inter_site_distance_m: the hexagonal layout's spacing (0 = sqrt(3) x the
         coverage radius, the largest that covers every road point).
+    data_vehicles, test_vehicles, inject_seed: what a scenario that names no
+        vehicle gets (a plain .sumocfg): this many data and test vehicles a
+        town, on random trips of this seed (sumo/injection.py).
     """
 
     scale: float = 1.0
@@ -157,8 +165,12 @@ class SumoConfig:
     edge_site_count: int = 0
     site_placement: str = "hex"
     inter_site_distance_m: float = 0.0
+    data_vehicles: int = InjectConfig.data_vehicles
+    test_vehicles: int = InjectConfig.test_vehicles
+    inject_seed: int = InjectConfig.seed
 
     def __post_init__(self) -> None:
+        self.inject  # checked here: a bad count is named before anything runs
         if not (math.isfinite(self.scale) and 0 < self.scale <= MAX_DEMAND_SCALE):
             raise CrchflError(
                 f"sumo.scale: {self.scale} must be a number in (0, {MAX_DEMAND_SCALE:g}] (1 = the scenario's traffic)"
@@ -180,6 +192,10 @@ class SumoConfig:
             raise CrchflError(f"sumo.edge_sites: site names must be distinct, got {names}")
 
     @property
+    def inject(self) -> InjectConfig:
+        return InjectConfig(self.data_vehicles, self.test_vehicles, self.inject_seed)
+
+    @property
     def replaces_sites(self) -> bool:
         return bool(self.edge_sites) or self.edge_site_count > 0
 
@@ -187,7 +203,7 @@ class SumoConfig:
 def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_radius_m: float) -> Scenario:
     """The scenario as ``sumo`` changes it: its edge sites, traffic density and speed cap."""
     scenario = load_scenario(name_or_path, sumo.edge_sites or None, coverage_radius_m, sumo.site_placement,
-                             sumo.inter_site_distance_m or None)
+                             sumo.inter_site_distance_m or None, sumo.inject)
     if sumo.edge_site_count:
         sites = place_edge_site_count(lane_points(scenario.net_path), sumo.edge_site_count)
         scenario = dataclasses.replace(scenario, edge_sites=sites)
@@ -201,9 +217,10 @@ def builtin_names() -> list[str]:
 def load_scenario(
     name_or_path: str | Path,
     edge_sites: tuple[EdgeSite, ...] | None = None,
-    coverage_radius_m: float = 250.0,
+    coverage_radius_m: float = DEFAULT_COVERAGE_RADIUS_M,
     site_placement: str = "hex",
     inter_site_distance_m: float | None = None,
+    inject: InjectConfig = InjectConfig(),
 ) -> Scenario:
     """Resolve a built-in name, a folder laid out as a built-in one, or a .sumocfg path into a runnable Scenario.
 
@@ -216,6 +233,9 @@ def load_scenario(
     road point lies within ``coverage_radius_m`` of a site (sites.place_edge_sites, by
     ``site_placement``: "hex", TR 38.901's hexagonal layout of ``inter_site_distance_m``
     (default sqrt(3) x the radius), or "kmeans").
+
+    A scenario whose towns name no vehicle (a plain .sumocfg) gets ``inject``'s data and test vehicles in
+    each town, which the Simulation adds on seeded random trips (sumo/injection.py).
     """
     text = str(name_or_path)
     builtin, own = scenarios_dir() / text / "scenario.toml", Path(text) / "scenario.toml"
@@ -270,6 +290,11 @@ def load_scenario(
         log.info("placed %d edge sites automatically over %s", len(sites), net_path.name)
     if not towns:
         towns = (Town(name, bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m),)
+    injected: tuple[str, ...] = ()
+    if not any(town.data_vehicles or town.test_vehicles for town in towns):  # names none: they are added
+        towns = tuple(dataclasses.replace(town, data_vehicles=inject.names(town.name)[0],
+                                          test_vehicles=inject.names(town.name)[1]) for town in towns)
+        injected = tuple(v for town in towns for v in (*town.data_vehicles, *town.test_vehicles))
     return Scenario(
         name=name,
         sumocfg_path=cfg_path,
@@ -282,6 +307,8 @@ def load_scenario(
         description=description,
         dropped_options=tuple(dropped),
         length_s=length_s,
+        injected=injected,
+        inject_seed=inject.seed,
     )
 
 

@@ -34,6 +34,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame, sumo_angle_to_heading_rad
+from crchfl_sumo.sumo.injection import Injector
 from crchfl_sumo.sumo.scenario import Scenario, sumo_binary
 
 log = logging.getLogger(__name__)
@@ -106,6 +107,9 @@ class Simulation:
         self._previous_speed = np.zeros(0)
         self._previous_static = np.zeros((0, 4))
         self._step_s = scenario.step_length_s
+        self._injector: Injector | None = None
+        self.injection_error: str | None = None  # why the scenario's added vehicles could not be added
+        self._present: frozenset[str] = frozenset()  # vehicles in the network after the last step
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -153,6 +157,13 @@ class Simulation:
         self._tls_ids = tuple(sorted(api.trafficlight.getIDList())) if self._signals else ()
         for tls in self._tls_ids:
             api.trafficlight.subscribe(tls, [tc.TL_RED_YELLOW_GREEN_STATE])
+        if self.scenario.injected:  # before the demand scale, which then knows their type and keeps it
+            try:
+                self._injector = Injector(api, self.scenario.injected, self.scenario.inject_seed)
+                self._injector.insert()
+            except CrchflError as exc:  # a run that needs them says so (injection_error); one that does not runs on
+                self.injection_error = str(exc)
+                log.warning("scenario '%s': %s", self.scenario.name, exc)
         if self.scenario.demand_scale != 1.0:
             self._scale_demand(self.scenario.demand_scale)
         if math.isfinite(self.scenario.speed_limit_mps):
@@ -200,6 +211,8 @@ class Simulation:
         """Advance one simulation step and return the state after it."""
         api = self._api
         tc = api.constants
+        if self._injector is not None:
+            self._injector.keep_driving(self._present)
         api.simulationStep()
         self._steps += 1
         sim = api.simulation.getSubscriptionResults()
@@ -219,6 +232,7 @@ class Simulation:
             )
         for vehicle_id in sim[tc.VAR_ARRIVED_VEHICLES_IDS]:
             self._static.pop(vehicle_id, None)
+        self._present = self._present.union(sim[tc.VAR_DEPARTED_VEHICLES_IDS]).difference(sim[tc.VAR_ARRIVED_VEHICLES_IDS])
         self._departed += len(sim[tc.VAR_DEPARTED_VEHICLES_IDS])
         self._arrived += len(sim[tc.VAR_ARRIVED_VEHICLES_IDS])
         self._teleports += sim[tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER]

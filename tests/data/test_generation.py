@@ -35,9 +35,13 @@ def test_vehicles_come_from_the_scenario_towns():
         assign_vehicles(scenario, shard_plan(from_mapping(DatasetConfig, {"towns": [{"town": "Town9", "train_samples": [1]}]})))
 
 
-def test_a_plain_sumocfg_names_no_vehicles_and_the_message_says_how_to(tmp_path):
-    """A .sumocfg without a scenario.toml has one town, the whole network, and no named vehicles."""
+def test_a_plain_sumocfg_gets_data_vehicles_and_a_split_of_its_own(tmp_path):
+    """A .sumocfg without a scenario.toml has one town, the whole network, with vehicles added to it."""
     import shutil
+
+    from crchfl_sumo.data.dataset import PAPER_TOWNS
+    from crchfl_sumo.data.generation import DEFAULT_TEST_SAMPLES, DEFAULT_TRAIN_SAMPLES, sizes_for
+    from crchfl_sumo.sumo.injection import InjectConfig
 
     town01 = load_scenario("town01")
     shutil.copy(town01.net_path, tmp_path / "grid.net.xml")
@@ -45,9 +49,40 @@ def test_a_plain_sumocfg_names_no_vehicles_and_the_message_says_how_to(tmp_path)
         '<configuration><input><net-file value="grid.net.xml"/></input></configuration>'
     )
     plain = load_scenario(tmp_path / "grid.sumocfg")
-    sizes = from_mapping(DatasetConfig, {"towns": [{"town": "grid", "train_samples": [5, 5]}]})
-    with pytest.raises(CrchflError, match=r"2 train vehicles wanted, scenario 'grid' names 0 .* scenario.toml beside grid.sumocfg"):
-        assign_vehicles(plain, shard_plan(sizes))
+    # the default sizes (the paper's towns, which it lacks) become 5 data and 1 test vehicle of its one town
+    sizes = sizes_for(DatasetConfig(), plain)
+    assert [(t.town, t.train_samples, t.test_samples) for t in sizes.towns] == [
+        ("grid", (DEFAULT_TRAIN_SAMPLES,) * 5, (DEFAULT_TEST_SAMPLES,))]
+    assert sorted(assign_vehicles(plain, shard_plan(sizes)).values()) == [
+        "grid_data_0", "grid_data_1", "grid_data_2", "grid_data_3", "grid_data_4", "grid_test_0"]
+    assert sizes_for(DatasetConfig(), paper_scenario()).towns == PAPER_TOWNS  # a scenario that has them keeps them
+    many = from_mapping(DatasetConfig, {"towns": [{"town": "grid", "train_samples": [5] * 6}]})
+    with pytest.raises(CrchflError, match=r"6 train vehicles wanted, scenario 'grid' names 5 .*\[sumo\] data_vehicles"):
+        assign_vehicles(plain, shard_plan(many))
+    none = load_scenario(tmp_path / "grid.sumocfg", inject=InjectConfig(0, 0))
+    with pytest.raises(CrchflError, match=r"names 0 .* scenario.toml beside grid.sumocfg"):
+        assign_vehicles(none, shard_plan(from_mapping(DatasetConfig, {"towns": [{"town": "grid", "train_samples": [5]}]})))
+
+
+@pytest.mark.slow
+def test_dataset_of_a_plain_multi_lane_sumocfg_needs_no_hand_written_file(tmp_path):
+    import subprocess
+
+    from crchfl_sumo.cli import main
+    from crchfl_sumo.sumo.scenario import sumo_binary
+
+    subprocess.run([sumo_binary("netgenerate"), "--grid", "--grid.number=3", "--grid.length=200",
+                    "--default.lanenumber=2", "--default-junction-type=traffic_light", "--no-turnarounds=true",
+                    "-o", str(tmp_path / "city.net.xml")], check=True, capture_output=True)
+    (tmp_path / "city.sumocfg").write_text('<configuration><input><net-file value="city.net.xml"/></input>'
+                                          '<time><step-length value="0.25"/></time></configuration>')
+    (tmp_path / "small.toml").write_text('[dataset]\nsample_period_s = 1.0\n[raster.camera]\nheight_px = 24\nwidth_px = 48\n')
+    # the config names no towns: each added vehicle gets the default split's samples
+    assert main(["dataset", str(tmp_path / "city.sumocfg"), "--out", str(tmp_path / "E"), "--config",
+                 str(tmp_path / "small.toml")]) == 0
+    manifest = read_manifest(tmp_path / "E")
+    assert sorted(s.vehicle for s in manifest.shards) == [f"city_data_{i}" for i in range(5)] + ["city_test_0"]
+    assert all(s.samples == (500 if s.split == "train" else 250) for s in manifest.shards)
 
 
 def test_a_failed_first_run_leaves_no_manifest_that_blocks_a_mended_rerun(tmp_path, monkeypatch):

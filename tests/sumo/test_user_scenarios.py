@@ -12,6 +12,7 @@ import pytest
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.studies.simulate import SimulateConfig, simulate, summarize
+from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "motorway_ramps.osm"
@@ -85,7 +86,8 @@ def test_gzipped_copy_of_a_builtin_town_simulates_like_the_plain_one(tmp_path):
 """
     )
     sites = load_scenario("town01").edge_sites
-    packed = load_scenario(tmp_path / "packed.sumocfg", edge_sites=sites)
+    # none added (a plain .sumocfg names no vehicles and would get some): the built-in's vehicles alone
+    packed = load_scenario(tmp_path / "packed.sumocfg", edge_sites=sites, inject=InjectConfig(0, 0))
     plain = load_scenario("town01")
     assert packed.bounds == plain.bounds
     assert packed.step_length_s == pytest.approx(0.25)
