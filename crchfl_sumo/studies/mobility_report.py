@@ -19,7 +19,7 @@ from typing import Any
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.intervals import distinguishable, paired_difference
-from crchfl_sumo.studies.statistics import mean_std
+from crchfl_sumo.studies.statistics import bench_overall, mean_std
 
 from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE
 
@@ -53,23 +53,14 @@ FINDINGS = (
 )
 
 
-def bench_figures(summary: dict) -> dict[str, float | None]:
-    """A drive-bench summary's driving score and success rate over all its episodes (cells weighted by episodes)."""
-    cells = [cell for tasks in summary["results"].values() for cell in tasks.values() if cell.get("episodes")]
-    episodes = sum(cell["episodes"] for cell in cells)
-    if not episodes:
-        return {"driving_score": None, "success_rate": None}
-    return {key: sum(cell[key] * cell["episodes"] for cell in cells) / episodes for key in ("driving_score", "success_rate")}
-
-
 def seed_outcomes(summaries: dict[int, dict], benches: dict[int, dict]) -> dict[str, dict[int, Any]]:
     """Per outcome, per seed: the run's figures, with the benchmark's driving score and success where it drove."""
     outcomes: dict[str, dict[int, Any]] = {}
     for seed, summary in summaries.items():
         for key in (*(m[0] for m in METRICS), *EXTRA_COLUMNS, "mean_uplink_rate_mbps"):
             outcomes.setdefault(key, {})[seed] = summary.get(key)
-        for key, value in (bench_figures(benches[seed]) if seed in benches else {}).items():
-            outcomes.setdefault(key, {})[seed] = value
+        for key in ("driving_score", "success_rate") if seed in benches else ():
+            outcomes.setdefault(key, {})[seed] = bench_overall(benches[seed], key)
     return outcomes
 
 

@@ -236,11 +236,12 @@ def bench_stats(bench: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return {"drive_bench": pooled, "drive_bench_spread": spread}
 
 
-def bench_driving_score(summary: Mapping[str, Any]) -> float | None:
-    """A drive-bench summary's driving score over all its episodes (its cells weighted by their episodes)."""
+def bench_overall(summary: Mapping[str, Any], key: str) -> float | None:
+    """A drive-bench summary's ``key`` (driving_score, success_rate) over all its episodes (its cells weighted by
+    their episodes); None without episodes."""
     cells = [cell for tasks in summary["results"].values() for cell in tasks.values() if cell.get("episodes")]
     episodes = sum(cell["episodes"] for cell in cells)
-    return sum(cell["driving_score"] * cell["episodes"] for cell in cells) / episodes if episodes else None
+    return sum(cell[key] * cell["episodes"] for cell in cells) / episodes if episodes else None
 
 
 def first_bytes_gb(metrics: Sequence[Mapping[str, Any]], target: float) -> float | None:
@@ -282,7 +283,7 @@ def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
                     marks = {seed: run["summary"].get("budget_marks") or {} for seed, run in runs.items()}
                     accuracy = {seed: (m[label] or {}).get("balanced_accuracy") for seed, m in marks.items() if label in m}
                 driven = (curve_bench.get(scheme) or {}).get(label) or {}
-            score = {seed: bench_driving_score(summary) for seed, summary in driven.items()}
+            score = {seed: bench_overall(summary, "driving_score") for seed, summary in driven.items()}
             per_seed[scheme][label] = {"balanced_accuracy": accuracy, "driving_score": score}
     curve = {
         scheme: {
