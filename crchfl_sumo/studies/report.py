@@ -503,13 +503,25 @@ def report_command(out_dir: str | Path) -> dict[str, Any]:
 
 
 def format_summary(summary: Mapping[str, Any], out_dir: str | Path) -> str:
-    """A few lines for the terminal: each scheme's rounds and accuracy, the gains, where the report is."""
+    """A few lines for the terminal: each scheme's rounds, balanced accuracy (beside accuracy and the
+    always-straight baseline), the paired differences, the gains, where the report is."""
     lines = []
     for name, s in summary["schemes"].items():
         lines.append(
-            f"{NAMES.get(name, name):7s} cloud rounds {_pm(s['cloud_rounds'], 1)}, best accuracy "
-            f"{_pm(s['best_accuracy'])}, final loss {_pm(s['final_loss'])} ({len(s['seeds'])} seeds)"
+            f"{NAMES.get(name, name):7s} cloud rounds {_pm(s['cloud_rounds'], 1)}, balanced accuracy "
+            f"{_pm(s['balanced_accuracy'])}, best accuracy {_pm(s['best_accuracy'])} ({len(s['seeds'])} seeds)"
         )
+    straight = (summary.get("baselines") or {}).get("always_straight") or {}
+    if straight:
+        lines.append(f"always straight: balanced accuracy {_fmt(straight.get('balanced_accuracy'))}, "
+                     f"accuracy {_fmt(straight.get('accuracy'))}")
+    for pair, keys in (summary.get("differences") or {}).items():
+        d = keys.get("balanced_accuracy") or {}
+        if d.get("n", 0) >= 2:
+            lines.append(f"CRCHFL minus {NAMES.get(pair.split('-', 1)[1], pair)}, balanced accuracy: "
+                         f"{_difference_words(d)}")
+    if summary.get("budget_curve"):
+        lines.append(lead_sentence(summary.get("budget_differences") or {}))
     best = summary["gains"].get("best_accuracy", {})
     for other, paper in PAPER_GAINS_PERCENT.items():
         if other in best:

@@ -272,6 +272,7 @@ def test_format_summary_lists_schemes_and_gains(results):
     text = format_summary(report_command(results), results)
     assert "CRCHFL over HFL: +10.00 %" in text and "(paper: +12.41 %)" in text
     assert text.splitlines()[0].startswith("CRCHFL") and str(results / "report.md") in text
+    assert "balanced accuracy" in text.splitlines()[0] and "always straight: balanced accuracy" in text
 
 
 def _fake_bench(folder: Path, success: float, score: float, km: float, collisions: int) -> None:
