@@ -104,3 +104,23 @@ def test_one_file_commands_refuse_an_existing_output_unless_overwrite(tmp_path, 
     assert "the file exists" not in err and "missing" in err
     assert out.read_bytes() == b"earlier result"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.out"]  # no temporary left beside it
+
+
+def test_progress_without_a_terminal_prints_plain_lines_now_and_then(monkeypatch):
+    import io
+
+    from crchfl_sumo.cli import ProgressBars
+    from crchfl_sumo.core.progress import Update
+
+    clock = iter([0.0, 1.0, 2.0, 61.0, 62.0, 63.0, 64.0, 65.0])
+    monkeypatch.setattr("crchfl_sumo.cli.time.monotonic", lambda: next(clock))
+    stream = io.StringIO()  # not a terminal
+    with ProgressBars("episode", stream=stream) as bars:
+        for update in (Update("simulate", 1, 10), Update("simulate", 2, 10), Update("simulate", 3, 10),
+                       Update("simulate", 4, 10, {"success": "3/4"}), Update("simulate", 10, 10),
+                       Update("simulate", 10, 10), Update("render", 0, None), Update("render", 5, None)):
+            bars(update)
+    # a new stage, a minute later, a stage's end (once), the next stage; nothing else
+    assert stream.getvalue().splitlines() == [
+        "simulate: 1/10 episode", "simulate: 4/10 episode, success 3/4", "simulate: 10/10 episode", "render: 0 episode",
+    ]
