@@ -30,7 +30,7 @@ from crchfl_sumo.core.numbers import (
     number_arg,
     seed_arg,
 )
-from crchfl_sumo.learning.settings import ARCHS, PRECISIONS, TrainConfig
+from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, TrainConfig
 
 
 class _Parser(argparse.ArgumentParser):
@@ -379,10 +379,12 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
                    "--epochs may be raised, and --precision named to continue in the precision the epochs trained in)")
-    p.add_argument("--red-weight", type=float, default=TrainConfig.red_weight,
+    p.add_argument("--red-weight", type=number_arg(1, MAX_RED_WEIGHT, "a draw multiplier (1 = off)"),
+                   default=TrainConfig.red_weight,
                    help="draw samples at a red or yellow signal within --red-window-m this many times as often "
                    f"(default {TrainConfig.red_weight:g}: off; needs a data set of format 5)")
-    p.add_argument("--red-window-m", type=float, default=TrainConfig.red_window_m,
+    p.add_argument("--red-window-m", type=number_arg(0, MAX_RED_WINDOW_M, "metres before a stop line", lo_open=True),
+                   default=TrainConfig.red_window_m,
                    help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
 
 
