@@ -123,6 +123,8 @@ def findings(factors: Sequence, rows: Sequence[dict]) -> list[dict]:
 
 def findings_table(found: Sequence[dict]) -> str:
     """The findings as markdown: per factor, which outcomes moved beyond their intervals against the baseline."""
+    if found and all(f["seeds"] < 2 for f in found):
+        return "One seed a point: no intervals, so no findings (a study with `seeds` of 2 or more has them).\n"
     lines = ["| factor | outcome | against the baseline, paired by seed (95 %) |", "| --- | --- | --- |"]
     for f in found:
         if f["seeds"] < 2:

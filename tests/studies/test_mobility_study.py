@@ -154,7 +154,7 @@ def test_report_rows_table_and_figures_from_hand_made_summaries(tmp_path):
     assert int(table[4]["handovers"]) == 30 and table[4]["stop_reason"] == "budget"
     md = (tmp_path / "results.md").read_text()
     assert md.startswith(markdown_table(rows)) and "## Findings" in md
-    assert "| speed | balanced accuracy | no interval: fewer than 2 seeds |" in md  # one seed each
+    assert "One seed a point: no intervals, so no findings" in md
     # s14: accuracy 0.52, balanced 0.32, 5 rounds, 20 handovers, 2 stragglers, 2 MB relayed, 6 MB wasted, 2/20 failed
     assert "| speed | 14.0 | 1 | 0.520 | 0.320 | - | - | - | 5 | 20 | 2 | 2 | 6 | 2/20 | 200 | budget |" in md
     assert "| policy | new_edge * |" in md  # the baseline's rows are marked
