@@ -112,8 +112,12 @@ def test_plan_command_measures_with_the_configs_channel_and_mobility(tmp_path):
         plan_command(config_path=config, scenario="town02")
 
 
-def test_plan_command_refuses_a_scenario_without_data_vehicles(grid_dir):
+def test_plan_command_measures_a_plain_scenario_on_the_vehicles_it_adds(grid_dir):
+    # a plain .sumocfg names no data vehicles: the simulation adds them (sumo/injection.py), and the rate is theirs
     from crchfl_sumo.planning.plan_command import plan_command
+    from crchfl_sumo.planning.timing import scenario_rates_bps
 
-    with pytest.raises(CrchflError, match="data vehicles"):
-        plan_command(scenario=str(grid_dir / "grid.sumocfg"))
+    planned = plan_command(scenario=str(grid_dir / "grid.sumocfg"), as_json=True)
+    rates = scenario_rates_bps(str(grid_dir / "grid.sumocfg"), 0, 60.0)
+    assert sorted(rates) == [f"grid_data_{i}" for i in range(5)] and all(r > 0 for r in rates.values())
+    assert planned["wireless_rate_bps"] > 0
