@@ -217,6 +217,9 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
                    help="seeds per scheme (default: quick 1, full 3)")
     p.add_argument("--resume", action="store_true", help="finish the reproduction in --out; finished parts are kept")
     p.add_argument("--config", type=Path, default=None, help="a reproduce TOML instead of the preset")
+    p.add_argument("--scenario", default=None,
+                   help="run it in this scenario (a built-in name, a folder or a .sumocfg): the preset's samples "
+                   "shared among its vehicles, the benchmark in it (docs/reproduce.md)")
     p.add_argument("--jobs", type=integer_arg(1, MAX_JOBS, "a number of processes"), default=1,
                    help="parts run at a time, each in its own process (default 1; the number of cores is fastest)")
     _backend_arguments(p, "where the parts run: processes of this machine (local, --jobs at a time) or Ray tasks "
@@ -229,7 +232,7 @@ def _run_reproduce(args) -> int:
 
     with ProgressBars("part") as bars:
         out, summary = reproduce_command(args.quick, args.out, args.seeds, args.resume, args.config, bars, args.jobs,
-                                         args.backend, args.address)
+                                         args.backend, args.address, args.scenario)
     print(format_summary(summary, out))
     return 0
 

@@ -44,6 +44,7 @@ from crchfl_sumo.studies.reproduce_plan import (
     budget_key,
     dagger_parts,
     drive_parts,
+    for_scenario,
     load_reproduce_config,
     plan_parts,
     replanned,
@@ -148,11 +149,13 @@ def reproduce_command(
     jobs: int = 1,
     backend: str | None = None,
     address: str | None = None,
+    scenario: str | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """What `crchfl-sumo reproduce [--quick] [--out DIR] [--seeds N] [--resume] [--config TOML] [--jobs N]
     [--backend local|ray] [--address A]` does.
 
-    ``config_path`` replaces the preset; DIR defaults to results/NAME (NAME: the config's name).
+    ``config_path`` replaces the preset; ``scenario`` runs it in another scenario (reproduce_plan.for_scenario);
+    DIR defaults to results/NAME (NAME: the config's name).
     Returns the results folder and its summary.json.
     """
     if address is not None and backend != "ray":
@@ -160,6 +163,8 @@ def reproduce_command(
     chosen = BackendConfig(kind=backend or "local", address=address or "")
     preset = "quick" if quick else "full"
     config = load_reproduce_config(config_path if config_path is not None else preset, seeds)
+    if scenario is not None:
+        config = for_scenario(config, scenario)
     out_dir = Path(out_dir) if out_dir is not None else Path("results") / config.name
     prepare_output_dir(out_dir, "reproduce", flag="reproduce --out", resumable=True)
     return out_dir, reproduce(config, out_dir, resume, progress, jobs, chosen)

@@ -5,6 +5,7 @@ Pure planning, no side effects; reproduce.py carries the plan out.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +17,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, SEED_MAX, check_range
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, REFERENCE, SCHEMES
+from crchfl_sumo.data.dataset import TownSplit
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.dagger import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
@@ -189,6 +191,40 @@ def load_reproduce_config(preset_or_path: str | Path, seeds: int | None = None) 
 def _scheme_mapping(config: ReproduceConfig, scheme: str) -> dict[str, Any]:
     """The built-in scheme config with the overrides laid over it."""
     return deep_merge(read_toml(experiments_dir() / f"{scheme}.toml"), config.run)
+
+
+def for_scenario(config: ReproduceConfig, name_or_path: str) -> ReproduceConfig:
+    """``config`` run in another scenario (`reproduce --scenario S`).
+
+    Where the scenario has the preset's towns, only the scenario changes. Otherwise (a user's
+    network, a plain .sumocfg with the vehicles it gets added): the preset's training and test samples,
+    in total, are shared evenly among the scenario's data and test vehicles; the named drive routes,
+    which run in the built-in towns, are dropped; and the benchmark drives in the scenario itself.
+    """
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    scenario = load_scenario(name_or_path)
+    if Path(name_or_path).exists():  # a path: absolute, so that every part (and a Ray task) finds it
+        name_or_path = str(Path(name_or_path).resolve())
+    sizes = config.generate.dataset
+    names = {town.name for town in scenario.towns}
+    if {split.town for split in sizes.towns} <= names:
+        return dataclasses.replace(config, scenario=str(name_or_path))
+    data = [(town.name, v) for town in scenario.towns for v in town.data_vehicles]
+    tests = [(town.name, v) for town in scenario.towns for v in town.test_vehicles]
+    if not data or not tests:
+        raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
+                          "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
+    train_total = sum(n for split in sizes.towns for n in split.train_samples)
+    test_total = sum(n for split in sizes.towns for n in split.test_samples)
+    towns = tuple(
+        TownSplit(town.name, (max(1, train_total // len(data)),) * len(town.data_vehicles),
+                  (max(1, test_total // len(tests)),) * len(town.test_vehicles))
+        for town in scenario.towns if town.data_vehicles and town.test_vehicles
+    )
+    generate = dataclasses.replace(config.generate, dataset=dataclasses.replace(sizes, towns=towns))
+    return dataclasses.replace(config, scenario=str(name_or_path), generate=generate, drive_routes=(),
+                               bench_towns=(str(name_or_path),))
 
 
 def run_budget_gb(config: ReproduceConfig, scheme: str) -> float:

@@ -381,3 +381,21 @@ def test_tiny_budget_curve_end_to_end(tmp_path):
     report = (out / "report.md").read_text()
     assert "## Experiment E" in report and "CRCHFL's balanced accuracy, paired by seed: over HFL" in report
     assert (out / summary["figures"]["budget"]).is_file()
+
+
+def test_a_reproduction_in_another_scenario_shares_the_samples_among_its_vehicles(grid_dir):
+    from crchfl_sumo.studies.reproduce_plan import for_scenario
+
+    quick = load_reproduce_config("quick")
+    path = str(grid_dir / "grid.sumocfg")
+    config = for_scenario(quick, path)  # a plain .sumocfg: one town, 5 data and 1 test vehicle added
+    assert config.scenario == str(Path(path).resolve())
+    (town,) = config.generate.dataset.towns
+    # the quick preset's 315 training and 208 test samples, shared: 315 // 5 and 208 // 1
+    assert (town.town, town.train_samples, town.test_samples) == ("grid", (63,) * 5, (208,))
+    assert config.drive_routes == () and config.bench_towns == (str(Path(path).resolve()),)
+    assert run_config(run_mapping(config, "hfl", 0, Path("d")), "t").scenario == str(Path(path).resolve())
+    # a scenario with the preset's towns keeps its split, routes and benchmark
+    linked = for_scenario(quick, "paper_linked")
+    assert linked.scenario == "paper_linked" and linked.generate == quick.generate
+    assert linked.drive_routes == quick.drive_routes and linked.bench_towns == quick.bench_towns
