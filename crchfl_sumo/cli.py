@@ -640,13 +640,16 @@ def _add_sweep(p: argparse.ArgumentParser) -> None:
     p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
                    help="a dotted config key and its values, e.g. sumo.scale=0.5,1,2 (repeat for a grid)")
     p.add_argument("--out", type=Path, required=True, help="sweep folder (rerun the same command to resume)")
+    p.add_argument("--seeds", type=integer_arg(1, 100, "a number of seeds a point"), default=1,
+                   help="runs a point, federation.seed the config's +0, +1, ...: the table gives each point's "
+                   "means with their 95 %% intervals (default 1: one run a point)")
     _backend_arguments(p)
 
 
 def _run_sweep(args) -> int:
     from crchfl_sumo.studies.sweep import sweep_command
 
-    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address)  # checks --out after --param
+    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address, args.seeds)  # checks --out after --param
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
     return 0

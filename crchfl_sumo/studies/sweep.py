@@ -69,6 +69,7 @@ RUNS_DIR = "runs"
 BASE_POINT = "base"  # the name of the point that changes nothing (a study's baseline)
 SUMMARY_COLUMNS = (
     "best_accuracy",
+    "balanced_accuracy",
     "final_accuracy",
     "cloud_rounds",
     "edge_aggregations",
@@ -261,8 +262,44 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
     return summary
 
 
-def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: BackendConfig, where: str = "config") -> list[dict]:
-    """Run every point not finished yet, then write the table and the plots; returns the rows."""
+# With several seeds a point: the figures whose 95 % interval over the seeds the table gives.
+INTERVAL_COLUMNS = ("balanced_accuracy", "best_accuracy")
+
+
+def seed_runs(points: list[Point], seeds: int) -> list[Point]:
+    """Each point's run of each seed (``POINT/seed-S``, federation.seed = the point's own, +1, ...); with one
+    seed the points themselves."""
+    if seeds == 1:
+        return points
+    runs = []
+    for point in points:
+        first = int(point.mapping.get("federation", {}).get("seed", 0))
+        runs += [Point(f"{point.name}/seed-{seed}", point.values,
+                       set_path(point.mapping, ("federation", "seed"), seed, "--seeds"))
+                 for seed in range(first, first + seeds)]
+    return runs
+
+
+def seed_row(point: Point, rows: list[dict]) -> dict:
+    """A point's row over its seeds' rows: the mean of each figure (the first seed's text), ``seeds``, and the
+    95 % t interval (``KEY_ci_lo``, ``KEY_ci_hi``) of INTERVAL_COLUMNS."""
+    from crchfl_sumo.core.intervals import t_interval
+
+    row: dict[str, Any] = {"point": point.name, **point.values, "seeds": len(rows)}
+    for key in (*SUMMARY_COLUMNS, "wireless_bytes", "wireline_bytes"):
+        values = [r.get(key) for r in rows]
+        numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        row[key] = sum(numbers) / len(numbers) if numbers else values[0]
+        if key in INTERVAL_COLUMNS:
+            lo_hi = t_interval(numbers) if len(numbers) >= 2 else None
+            row[f"{key}_ci_lo"], row[f"{key}_ci_hi"] = lo_hi or (None, None)
+    return row
+
+
+def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: BackendConfig, where: str = "config",
+              seeds: int = 1) -> list[dict]:
+    """Run every point not finished yet (``seeds`` runs a point), then write the table and the plots; returns
+    the rows (with several seeds: each point's means over them, with intervals)."""
     from crchfl_sumo.studies.sweep_plots import plot_sweep
 
     out_dir = Path(out_dir)
@@ -284,9 +321,14 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
         )
         + "\n",
     )
-    summaries = run_points(points, out_dir, backend)
-    rows = [table_row(p, summaries[p.name]) for p in points]
-    write_table(out_dir, rows, [p.path for p in params])
+    runs = seed_runs(points, seeds)
+    summaries = run_points(runs, out_dir, backend)
+    if seeds == 1:
+        rows = [table_row(p, summaries[p.name]) for p in points]
+    else:
+        rows = [seed_row(p, [table_row(r, summaries[r.name]) for r in runs if r.name.startswith(f"{p.name}/seed-")])
+                for p in points]
+    write_table(out_dir, rows, [p.path for p in params], seeds > 1)
     plot_sweep(rows, params, out_dir / "plots")
     return rows
 
@@ -326,9 +368,10 @@ def table_row(point: Point, summary: dict) -> dict:
     return {"point": point.name, **point.values, **metrics}
 
 
-def write_table(out_dir: Path, rows: list[dict], paths: list[str]) -> None:
-    """results.csv and results.md: one row per point."""
-    columns = ["point", *paths, *SUMMARY_COLUMNS]
+def write_table(out_dir: Path, rows: list[dict], paths: list[str], intervals: bool = False) -> None:
+    """results.csv and results.md: one row per point (``intervals``: its seeds and the intervals over them)."""
+    extra = ["seeds", *(f"{k}_ci_{end}" for k in INTERVAL_COLUMNS for end in ("lo", "hi"))] if intervals else []
+    columns = ["point", *paths, *extra, *SUMMARY_COLUMNS]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
@@ -357,12 +400,13 @@ def sweep_command(
     out_dir: str | Path,
     backend: str | None = None,
     address: str | None = None,
+    seeds: int = 1,
 ) -> list[dict]:
-    """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--backend B] [--address A]` does."""
+    """What `crchfl-sumo sweep CONFIG --param P=V1,V2 ... --out DIR [--seeds N] [--backend B] [--address A]` does."""
     if not param_texts:
         raise CrchflError("sweep: give at least one --param PATH=V1,V2,...")
     config_path = resolve_config_path(config_path)
     base = read_toml(config_path)
     config = with_backend(load_run_config(config_path), backend, address)
     params = [parse_param(text) for text in param_texts]
-    return run_sweep(base, params, out_dir, config.backend, where=str(config_path))
+    return run_sweep(base, params, out_dir, config.backend, where=str(config_path), seeds=seeds)

@@ -277,3 +277,26 @@ def test_sumo_clock_sweep_over_site_counts_reports_handovers(tmp_path, dataset):
     assert resolved["config"]["sumo"]["edge_site_count"] == 6
     assert row["cloud_rounds"] == 1
     assert isinstance(row["handovers"], int) and row["handovers"] > 0  # six small cells: moving vehicles change cells
+
+
+def test_a_sweep_with_seeds_gives_each_point_its_means_and_intervals(tmp_path, dataset):
+    from scipy import stats
+
+    out = tmp_path / "sweep"
+    rows = run_sweep(_base(dataset), [parse_param("federation.edge_interval=1,2")], out, BackendConfig(num_cpus=2),
+                     seeds=2)
+    assert [r["federation.edge_interval"] for r in rows] == [1, 2] and all(r["seeds"] == 2 for r in rows)
+    for row in rows:
+        runs = [json.loads((out / "runs" / row["point"] / f"seed-{s}" / "summary.json").read_text()) for s in (0, 1)]
+        configs = [json.loads((out / "runs" / row["point"] / f"seed-{s}" / "config.json").read_text()) for s in (0, 1)]
+        assert [c["config"]["federation"]["seed"] for c in configs] == [0, 1]
+        values = [r["balanced_accuracy"] for r in runs]
+        assert row["balanced_accuracy"] == pytest.approx(sum(values) / 2)
+        spread = stats.sem(values)
+        lo, hi = stats.t.interval(0.95, 1, loc=sum(values) / 2, scale=spread) if spread else (values[0], values[0])
+        assert (row["balanced_accuracy_ci_lo"], row["balanced_accuracy_ci_hi"]) == (pytest.approx(lo), pytest.approx(hi))
+        assert row["cloud_rounds"] == sum(r["cloud_rounds"] for r in runs) / 2
+    with open(out / "results.csv", newline="") as handle:
+        header = next(csv.reader(handle))
+    assert header[:8] == ["point", "federation.edge_interval", "seeds", "balanced_accuracy_ci_lo",
+                          "balanced_accuracy_ci_hi", "best_accuracy_ci_lo", "best_accuracy_ci_hi", "best_accuracy"]
