@@ -290,6 +290,7 @@ def _templates(tmp: Path) -> dict[str, tuple[list[str], tuple[str, ...]]]:
         "drive-bench": (["drive-bench", "reference", *out], ("is a file",)),
         "dagger": (["dagger", missing, missing, *out], ("is a file",)),
         "mobility-study": (["mobility-study", "--quick", *out], ("is a file",)),
+        "sweep": (["sweep", "crchfl", "--param", "federation.seed=1", *out], ("is a file",)),
         "calibrate": (["calibrate", "--dataset", missing, "--out", str(tmp)], ("is a folder",)),
         "plan": (["plan", "--config", missing], ("config file not found",)),
     }
