@@ -71,13 +71,22 @@ def read_net(net_path: Path):
         raise CrchflError(f"{net_path}: could not read the network ({exc}); rebuild it with netconvert") from None
 
 
+# A planned lane change: a smooth lateral move (smoothstep in the arc length) of this length, finished this far
+# before the edge's end, the stop line; on a shorter edge it takes what the edge has.
+LANE_CHANGE_M = 30.0
+LANE_CHANGE_END_M = 10.0
+LANE_CHANGE_STEP_M = 1.0  # the blended centre line's vertex spacing
+
+
 def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeometry:
     """The centre line of ``edges`` through ``net`` (a sumolib net read with internal lanes).
 
-    Between two edges the route takes the connection from the lane it is on
-    (on the first edge: the rightmost lane that reaches the second edge), then
-    the junction's internal lanes. A single edge is driven on ``lane_index``.
-    Routes that would need a lane change are refused.
+    Lane-level: ``plan_lanes`` takes, on each edge, a lane with a connection to the next edge, with the
+    fewest lane changes (ties: the connection listed first from the lane the vehicle is on; on the first
+    edge the rightmost lane). Where an edge's exit lane differs from the lane the route entered it on,
+    the centre line moves over smoothly (``lane_change_shape``), finished LANE_CHANGE_END_M before
+    the stop line. Between two edges it follows the connection's internal lanes. A single edge is
+    driven on ``lane_index``.
     """
     edges = tuple(edges)
     if not edges:
@@ -89,53 +98,37 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
                 f"route: edge '{edge_id}' is not in the network; check the edge ids (sumo-gui shows them)"
             )
         objects.append(net.getEdge(edge_id))
-    lanes: list[tuple[Any, bool]] = []  # (sumolib lane, inside a junction)
-    # Per crossing: positions in ``lanes`` of its first and last internal lane, and the connection.
+    if len(objects) == 1 and not 0 <= lane_index < objects[0].getLaneNumber():
+        raise CrchflError(f"route: edge '{objects[0].getID()}' has no lane {lane_index}")
+    plan = plan_lanes(objects, lane_index)
+    pieces: list[tuple[np.ndarray, float, bool]] = []  # (shape, lane width, inside a junction)
+    # Per crossing: positions in ``pieces`` of its first and last internal lane, and the connection.
     links: list[tuple[int, int, Any]] = []
-    lane = None
-    for i, edge in enumerate(objects):
-        if i == len(objects) - 1:
-            if lane is None:
-                if not 0 <= lane_index < edge.getLaneNumber():
-                    raise CrchflError(f"route: edge '{edge.getID()}' has no lane {lane_index}")
-                lane = edge.getLanes()[lane_index]
-            lanes.append((lane, False))
+    for (entry, exit_lane, connection) in plan:
+        if entry is exit_lane:
+            pieces.append((np.asarray(entry.getShape(), dtype=np.float64), float(exit_lane.getWidth()), False))
+        else:
+            pieces.append((lane_change_shape(entry, exit_lane), float(exit_lane.getWidth()), False))
+        if connection is None:
             break
-        connections = edge.getConnections(objects[i + 1])
-        if not connections:
-            raise CrchflError(
-                f"route: edge '{edge.getID()}' does not lead to '{objects[i + 1].getID()}'; list edges that connect"
-            )
-        if lane is None:
-            lane = min((c.getFromLane() for c in connections), key=lambda l: l.getIndex())
-        ours = [c for c in connections if c.getFromLane() is lane]
-        if not ours:
-            raise CrchflError(
-                f"route: from lane '{lane.getID()}' no connection leads to '{objects[i + 1].getID()}' "
-                "(the route needs a lane change); drive routes must keep to connected lanes"
-            )
-        connection = ours[0]
-        lanes.append((lane, False))
-        first = len(lanes)
+        first = len(pieces)
         via = connection.getViaLaneID()
         while via:  # an internal lane may continue into another (internal junctions)
             internal = net.getLane(via)
-            lanes.append((internal, True))
+            pieces.append((np.asarray(internal.getShape(), dtype=np.float64), float(internal.getWidth()), True))
             outgoing = internal.getOutgoing()
             via = outgoing[0].getViaLaneID() if outgoing else ""
-        links.append((first, len(lanes) - 1, connection))
-        lane = connection.getToLane()
+        links.append((first, len(pieces) - 1, connection))
     points: list[np.ndarray] = []
     widths: list[float] = []
     junction: list[bool] = []
     lane_end_vertex: list[int] = []  # index of each lane's last vertex in the joined polyline
-    for lane_obj, inside in lanes:
-        shape = np.asarray(lane_obj.getShape(), dtype=np.float64)
+    for shape, width, inside in pieces:
         if points and np.hypot(*(shape[0] - points[-1])) < 1e-3:
             shape = shape[1:]
         for p in shape:
             if points:
-                widths.append(float(lane_obj.getWidth()))
+                widths.append(width)
                 junction.append(inside)
             points.append(p)
         lane_end_vertex.append(len(points) - 1)
@@ -166,6 +159,76 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         in_junction=np.asarray(junction, dtype=bool),
         crossings=tuple(crossings),
     )
+
+
+def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, Any, Any]]:
+    """Per edge of a route (sumolib edges): (the lane it is entered on, the lane it is left from, the connection
+    to the next edge; None on the last), with the fewest lane changes (a change of k lanes counts k).
+
+    Ties go to the rightmost first lane and to the connection listed first, so a route that needs no change
+    keeps the lanes it always had. A route whose edges do not connect is refused.
+    """
+    n = len(objects)
+    options = []
+    for i in range(n - 1):
+        connections = objects[i].getConnections(objects[i + 1])
+        if not connections:
+            raise CrchflError(
+                f"route: edge '{objects[i].getID()}' does not lead to '{objects[i + 1].getID()}'; list edges that connect"
+            )
+        options.append(connections)
+    # cost[i][lane id]: fewest changes from entering edge i on that lane to the route's end (backwards)
+    cost: list[dict[str, int]] = [dict() for _ in range(n)]
+    cost[n - 1] = {lane.getID(): 0 for lane in objects[n - 1].getLanes()}
+
+    def best(i: int, entry_index: int | None):
+        """Edge i's best connection for a vehicle on lane ``entry_index`` (None: free, the first edge)."""
+        ranked = []
+        for order, c in enumerate(options[i]):
+            change = 0 if entry_index is None else abs(c.getFromLane().getIndex() - entry_index)
+            total = change + cost[i + 1][c.getToLane().getID()]
+            ranked.append((total, change, c.getFromLane().getIndex() if entry_index is None else 0, order, c))
+        return min(ranked, key=lambda r: r[:4])
+
+    for i in range(n - 2, -1, -1):
+        cost[i] = {lane.getID(): best(i, lane.getIndex())[0] for lane in objects[i].getLanes()}
+    if n == 1:
+        lane = objects[0].getLanes()[lane_index]
+        return [(lane, lane, None)]
+    plan = []
+    entry = None
+    for i in range(n - 1):
+        connection = best(i, None if entry is None else entry.getIndex())[4]
+        exit_lane = connection.getFromLane()
+        plan.append((entry if entry is not None else exit_lane, exit_lane, connection))
+        entry = connection.getToLane()
+    plan.append((entry, entry, None))
+    return plan
+
+
+def lane_change_shape(entry, exit_lane) -> np.ndarray:
+    """An edge's centre line that starts on lane ``entry`` and ends on ``exit_lane`` (two lanes of one edge): the
+    two lanes' centre lines blended by a smoothstep over LANE_CHANGE_M, finished LANE_CHANGE_END_M before the end
+    (an edge too short for that changes over all it has but the last LANE_CHANGE_END_M, or over all of it)."""
+    a, b = np.asarray(entry.getShape(), np.float64), np.asarray(exit_lane.getShape(), np.float64)
+    length = min(_polyline_length(a), _polyline_length(b))
+    end = length - LANE_CHANGE_END_M if length > LANE_CHANGE_END_M + 2.0 else length
+    start = max(0.0, end - LANE_CHANGE_M)
+    s = np.unique(np.concatenate([np.arange(0.0, length, LANE_CHANGE_STEP_M), [start, end, length]]))
+    t = np.clip((s - start) / max(end - start, 1e-9), 0.0, 1.0)
+    weight = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the move begins or ends
+    return (1.0 - weight)[:, None] * _along(a, s / length) + weight[:, None] * _along(b, s / length)
+
+
+def _polyline_length(xy: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum())
+
+
+def _along(xy: np.ndarray, fraction: np.ndarray) -> np.ndarray:
+    """Points at these fractions of a polyline's length."""
+    cumulative = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    at = fraction * cumulative[-1]
+    return np.stack([np.interp(at, cumulative, xy[:, 0]), np.interp(at, cumulative, xy[:, 1])], axis=1)
 
 
 def project_points(

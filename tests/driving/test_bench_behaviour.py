@@ -39,6 +39,10 @@ def test_speed_ratios_per_checkpoint_reached():
     # past 95 % of the route the last checkpoint counts too
     almost = SimpleNamespace(progress_m=progress[:97], speed_mps=speed[:97], traffic_speed_mps=np.full(97, 10.0))
     assert len(traffic_speed_ratios(almost, 0.0, 100.0, 4)) == 4
+    # traffic that stands (0.01 m/s) gives no ratio in its stretch; traffic at 0.5 m/s does
+    queue = SimpleNamespace(progress_m=progress, speed_mps=speed,
+                            traffic_speed_mps=np.where(progress < 25.0, 0.01, np.where(progress < 50.0, 0.5, 10.0)))
+    assert traffic_speed_ratios(queue, 0.0, 100.0, 4) == pytest.approx([1000.0, 100.0, 100.0])
 
 
 def test_comfort_signals_of_polynomial_motions_are_exact():

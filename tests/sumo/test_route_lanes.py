@@ -1,0 +1,98 @@
+"""Lane-level routes: a hand-made two-lane road whose left turn leaves only from the left lane."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import netconvert
+
+from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.sumo.route import LANE_CHANGE_END_M, LANE_CHANGE_M, plan_lanes, project_points, read_net, route_geometry
+
+WIDTH = 3.2
+
+
+@pytest.fixture(scope="module")
+def fork(tmp_path_factory) -> Path:
+    """Z -> A (one lane), A -> B (two lanes, 200 m), then B -> C left (from the left lane only) or B -> D
+    straight on (from the right lane only)."""
+    folder = tmp_path_factory.mktemp("fork")
+    (folder / "f.nod.xml").write_text(
+        '<nodes><node id="Z" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="B" x="200" y="0"/>'
+        '<node id="C" x="200" y="200"/><node id="D" x="400" y="0"/></nodes>'
+    )
+    (folder / "f.edg.xml").write_text(
+        '<edges><edge id="ZA" from="Z" to="A" numLanes="1" speed="13.89" width="3.2"/>'
+        '<edge id="AB" from="A" to="B" numLanes="2" speed="13.89" width="3.2"/>'
+        '<edge id="BC" from="B" to="C" numLanes="1" speed="13.89" width="3.2"/>'
+        '<edge id="BD" from="B" to="D" numLanes="1" speed="13.89" width="3.2"/></edges>'
+    )
+    (folder / "f.con.xml").write_text(
+        '<connections><connection from="ZA" to="AB" fromLane="0" toLane="0"/>'
+        '<connection from="AB" to="BC" fromLane="1" toLane="0"/>'
+        '<connection from="AB" to="BD" fromLane="0" toLane="0"/></connections>'
+    )
+    netconvert(folder / "f.nod.xml", folder / "f.edg.xml", folder / "f.net.xml", "--connection-files",
+               str(folder / "f.con.xml"))
+    return folder / "f.net.xml"
+
+
+def test_a_turn_from_the_other_lane_plans_a_lane_change_finished_before_the_stop_line(fork):
+    net = read_net(fork)
+    plan = plan_lanes([net.getEdge(e) for e in ("ZA", "AB", "BC")])
+    assert [(entry.getID(), exit_lane.getID()) for entry, exit_lane, _ in plan] == [
+        ("ZA_0", "ZA_0"), ("AB_0", "AB_1"), ("BC_0", "BC_0")]  # enters AB on the right, leaves it on the left
+    route = route_geometry(net, ["ZA", "AB", "BC"])
+    ab = net.getEdge("AB")
+    right, left = (np.asarray(ab.getLane(i).getShape()) for i in (0, 1))
+    # the centre line's sideways offset from AB's right lane: 0 before the change, one lane width after it
+    ab_start = float(route.crossings[0].s_end_m)  # where the route enters AB
+    stop_line = float(route.crossings[1].s_start_m)  # AB's end
+    length = stop_line - ab_start
+    change_end, change_start = length - LANE_CHANGE_END_M, length - LANE_CHANGE_END_M - LANE_CHANGE_M
+    for along, lanes_over in ((5.0, 0.0), (change_start - 1.0, 0.0), (change_end + 1.0, 1.0), (length - 1.0, 1.0)):
+        x, y = route.xy_m[np.searchsorted(route.s_m, ab_start + along)]
+        assert y - right[0, 1] == pytest.approx(lanes_over * WIDTH, abs=0.05), along
+    # smooth: halfway through the change it is halfway across, and the heading never turns by more than 10 deg
+    mid = ab_start + (change_start + change_end) / 2.0
+    x, y = route.xy_m[np.searchsorted(route.s_m, mid)]
+    assert y - right[0, 1] == pytest.approx(WIDTH / 2.0, abs=0.2)
+    on_ab = (route.s_m[:-1] >= ab_start) & (route.s_m[1:] <= stop_line)
+    heading = np.degrees(np.arctan2(*np.diff(route.xy_m, axis=0)[on_ab][:, ::-1].T))
+    assert np.abs(heading).max() < 10.0
+    # and it leaves AB on the left lane's end, into BC
+    assert np.allclose(route.xy_m[np.searchsorted(route.s_m, stop_line)], left[-1], atol=0.05)
+    assert route.crossings[1].direction == "l"
+    # straight on keeps the right lane: no change at all
+    straight = route_geometry(net, ["ZA", "AB", "BD"])
+    s, offset, _ = project_points(straight, right[:, 0], right[:, 1])
+    assert np.abs(offset).max() < 1e-6
+
+
+def test_lane_plans_need_connected_edges(fork):
+    net = read_net(fork)
+    with pytest.raises(CrchflError, match="edge 'BC' does not lead to 'AB'"):
+        route_geometry(net, ["BC", "AB"])
+    with pytest.raises(CrchflError, match="edge 'AB' has no lane 2"):
+        route_geometry(net, ["AB"], lane_index=2)
+    one = route_geometry(net, ["AB"], lane_index=1)  # a single edge on the lane asked for
+    assert one.crossings == () and np.allclose(one.xy_m, np.asarray(net.getEdge("AB").getLane(1).getShape()))
+
+
+@pytest.mark.slow
+def test_the_reference_driver_changes_lane_and_turns(fork):
+    from crchfl_sumo.driving.bench_tasks import without_traffic
+    from crchfl_sumo.driving.drive import DriveConfig, drive
+    from crchfl_sumo.driving.policies import RoutePolicy
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    (fork.parent / "f.sumocfg").write_text('<configuration><input><net-file value="f.net.xml"/></input>'
+                                           '<time><step-length value="0.25"/></time></configuration>')
+    scenario = without_traffic(load_scenario(fork.parent / "f.sumocfg"))
+    route = route_geometry(read_net(fork), ["ZA", "AB", "BC"])
+    result = drive(scenario, route, RoutePolicy(route), max_s=90.0, config=DriveConfig(warmup_s=0.0))
+    assert result.metrics["end_reason"] == "completed"
+    assert result.metrics["max_abs_offset_m"] < 1.0 and result.metrics["lane_departures"] == 0
