@@ -263,14 +263,19 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML with seed, [[edge_sites]], [channel], [mobility] (docs/links.md)")
+    p.add_argument("--sumo-output", default="",
+                   help="SUMO's own outputs to write as OUT/sumo-NAME.xml, separated by commas: fcd, tripinfo, summary")
 
 
 def _run_simulate(args) -> int:
-    from crchfl_sumo.studies.simulate import run_simulate_command
+    from crchfl_sumo.studies.simulate import run_simulate_command, sumo_output_files
 
+    outputs = [name.strip() for name in args.sumo_output.split(",") if name.strip()]
+    sumo_output_files(outputs, args.out)  # an unknown name is refused before --out is touched
     with _output_folder(args, "simulate"):
         with ProgressBars("step") as bars:
-            summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars)
+            summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars,
+                                           outputs)
     print(
         f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
         f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "

@@ -5,6 +5,7 @@ DIR/handovers.csv  every change of serving edge (t_s, vehicle, from, to; '' = no
 DIR/summary.json   vehicles, steps, handovers, ping_pongs, mean_rate_bps, coverage_fraction, ...
 DIR/map.png        network, edge sites with coverage circles, trajectories coloured by edge
 DIR/rate.png       rate over time: each edge's mean and the named data vehicles
+DIR/sumo-NAME.xml  with --sumo-output NAME,...: SUMO's own output (fcd, tripinfo, summary), for sumolib
 (summary.json also holds the settings used, under "config".)
 
 The run itself (``simulate``) returns a ``Trace`` of arrays; summarising is a
@@ -17,6 +18,8 @@ import csv
 import dataclasses
 import io
 import json
+import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,20 +73,40 @@ class Trace:
     collisions: int
 
 
+# SUMO's own outputs a simulation can write beside ours (`--sumo-output`): name -> its option; each file is
+# OUT/sumo-NAME.xml, written under a temporary name and renamed when SUMO has closed it.
+SUMO_OUTPUTS = {"fcd": "--fcd-output", "tripinfo": "--tripinfo-output", "summary": "--summary-output"}
+
+
+def sumo_output_files(names: Sequence[str], out_dir: Path) -> dict[str, Path]:
+    """name -> the file each asked-for SUMO output ends in; an unknown name is refused with the known ones."""
+    unknown = sorted(set(names) - set(SUMO_OUTPUTS))
+    if unknown:
+        raise CrchflError(f"--sumo-output: {', '.join(unknown)} unknown; choose from {', '.join(SUMO_OUTPUTS)}")
+    return {name: Path(out_dir) / f"sumo-{name}.xml" for name in dict.fromkeys(names)}
+
+
 def simulate(
     scenario: Scenario,
     duration_s: float,
     cfg: SimulateConfig,
     progress: Progress | None = None,
+    sumo_outputs: Mapping[str, Path] | None = None,
 ) -> Trace:
-    """Run ``scenario`` for ``duration_s`` with the link model stepping on every frame."""
+    """Run ``scenario`` for ``duration_s`` with the link model stepping on every frame; ``sumo_outputs``
+    (sumo_output_files) are SUMO's own files written as well."""
     links = LinkModel(scenario.edge_sites, cfg.channel, cfg.mobility, seed=cfg.seed)
     cell_users = np.full(len(scenario.edge_sites), float(cfg.mobility.cell_background_users))
     columns: dict[str, list[np.ndarray]] = {k: [] for k in ("t_s", "vehicle", "x_m", "y_m", "speed_mps", "site", "rate_bps")}
     handovers = []
     total_steps = int(round(duration_s / scenario.step_length_s))
     # Positions and speeds are all the links and the trace read: no lanes, signals ahead or signal states.
-    with Simulation(scenario, seed=cfg.seed, watch=(), signals=False) as sim:
+    sumo_outputs = dict(sumo_outputs or {})
+    partial = {name: path.with_name(f".{path.name}.partial") for name, path in sumo_outputs.items()}
+    options = tuple(f"{SUMO_OUTPUTS[name]}={path}" for name, path in partial.items())
+    for path in sumo_outputs.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    with Simulation(scenario, seed=cfg.seed, watch=(), signals=False, extra_options=options) as sim:
         for frame in sim.run(duration_s):
             # every vehicle here is a user already: of the background load only the cells' other users
             snapshot = links.step(frame, background_users=cell_users)
@@ -97,6 +120,8 @@ def simulate(
             handovers.extend(snapshot.handovers)
             report(progress, "simulate", len(columns["t_s"]), total_steps)
         stats = sim.stats()
+    for name, path in sumo_outputs.items():  # SUMO closed them with the simulation: complete now
+        os.replace(partial[name], path)
     joined = {
         k: np.concatenate(v) if v else np.zeros(0, dtype=str if k == "vehicle" else float) for k, v in columns.items()
     }
@@ -227,11 +252,14 @@ def run_simulate_command(
     seed: int | None,
     config_path: Path | None,
     progress: Progress | None = None,
+    sumo_outputs: Sequence[str] = (),
 ) -> dict:
-    """What `crchfl-sumo simulate` does; returns the summary.
+    """What `crchfl-sumo simulate` does; returns the summary. ``sumo_outputs``: SUMO's own files to write
+    as well (SUMO_OUTPUTS' names).
 
     ``duration_s`` None: the scenario's own length (its configuration's end), else DEFAULT_DURATION_S.
     """
+    files = sumo_output_files(sumo_outputs, out_dir)  # refused before anything runs
     cfg = load_simulate_config(config_path, seed)
     scenario = load_scenario(scenario_name, cfg.edge_sites, cfg.mobility.coverage_radius_m)
     if duration_s is None:
@@ -242,7 +270,7 @@ def run_simulate_command(
             f"simulate --duration-s: {duration_s:g} s is shorter than one step of {scenario.name} "
             f"({scenario.step_length_s:g} s); simulate at least one step"
         )
-    trace = simulate(scenario, duration_s, cfg, progress=progress)
+    trace = simulate(scenario, duration_s, cfg, progress=progress, sumo_outputs=files)
     summary = summarize(trace, scenario, duration_s, cfg)
     write_outputs(trace, scenario, summary, out_dir)
     return summary

@@ -176,3 +176,24 @@ def test_plan_json_has_the_four_hyper_parameters(capsys):
 def test_plan_with_too_small_budget_exits_2(capsys):
     assert main(["plan", "--budget-gb", "0.1"]) == 2
     assert "budget_gb" in capsys.readouterr().err
+
+
+def test_simulate_writes_sumos_own_fcd_with_every_vehicle_of_the_trace(tmp_path, capsys):
+    import csv
+
+    import sumolib
+
+    from crchfl_sumo.cli import main
+
+    out = tmp_path / "out"
+    assert main(["simulate", "town01", "--duration-s", "30", "--sumo-output", "fcd,tripinfo", "--out", str(out)]) == 0
+    fcd = {v.id for v in sumolib.xml.parse_fast(str(out / "sumo-fcd.xml"), "vehicle", ["id"])}
+    with open(out / "trace.csv", newline="") as handle:
+        traced = {row["vehicle"] for row in csv.DictReader(handle)}
+    assert fcd == traced and len(fcd) > 10
+    assert (out / "sumo-tripinfo.xml").is_file() and not list(out.glob(".*.partial"))  # renamed once SUMO closed it
+    capsys.readouterr()
+    assert main(["simulate", "town01", "--duration-s", "5", "--sumo-output", "fcd,emissions", "--out",
+                 str(tmp_path / "other")]) == 2
+    assert "--sumo-output: emissions unknown; choose from fcd, tripinfo, summary" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
