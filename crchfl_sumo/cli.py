@@ -254,7 +254,13 @@ def _run_report(args) -> int:
 
 
 def _add_simulate(p: argparse.ArgumentParser) -> None:
-    _scenario_argument(p)
+    p.add_argument("scenario", nargs="?", default=None,
+                   help="built-in scenario name (town01, town02, paper, paper_linked), a folder or a .sumocfg path; "
+                   "or none, with --net")
+    p.add_argument("--net", type=Path, default=None,
+                   help="a bare SUMO network (.net.xml or .net.xml.gz) instead of a scenario: OUT/NAME.sumocfg is "
+                   "written for it")
+    p.add_argument("--routes", default="", help="with --net: route files, separated by commas")
     p.add_argument("--duration-s", type=number_arg(0, MAX_SIMULATED_S, "simulated seconds", lo_open=True),
                    default=None,
                    help="simulated seconds (default: the .sumocfg's <end> less <begin>; without an end 300)")
@@ -270,12 +276,22 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
 def _run_simulate(args) -> int:
     from crchfl_sumo.studies.simulate import run_simulate_command, sumo_output_files
 
+    from crchfl_sumo.sumo.scenario import write_sumocfg
+
     outputs = [name.strip() for name in args.sumo_output.split(",") if name.strip()]
     sumo_output_files(outputs, args.out)  # an unknown name is refused before --out is touched
+    if (args.scenario is None) == (args.net is None):
+        raise CrchflError("simulate: give a SCENARIO or --net NET.net.xml (with --routes R1,R2), not both or neither")
+    if args.routes and args.net is None:
+        raise CrchflError("simulate --routes: route files go with --net; a scenario names its own")
     with _output_folder(args, "simulate"):
+        scenario = args.scenario
+        if args.net is not None:
+            routes = [Path(r.strip()) for r in args.routes.split(",") if r.strip()]
+            stem = args.net.name.removesuffix(".gz").removesuffix(".xml").removesuffix(".net")  # the scenario's name
+            scenario = str(write_sumocfg(args.out / f"{stem}.sumocfg", args.net, routes))
         with ProgressBars("step") as bars:
-            summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars,
-                                           outputs)
+            summary = run_simulate_command(scenario, args.duration_s, args.out, args.seed, args.config, bars, outputs)
     print(
         f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
         f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "

@@ -21,11 +21,13 @@ import subprocess
 import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from crchfl_sumo.core.config import from_mapping, read_toml
+from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.core.numbers import check_range
@@ -310,6 +312,22 @@ def load_scenario(
         injected=injected,
         inject_seed=inject.seed,
     )
+
+
+def write_sumocfg(path: Path, net: Path, routes: Sequence[Path] = ()) -> Path:
+    """A .sumocfg at ``path`` naming a network and route files by absolute path (for a bare .net.xml[.gz]); each
+    file must exist. The configuration sets no step length: SUMO's 1 s."""
+    from xml.sax.saxutils import quoteattr
+
+    for given, what in ((net, "--net"), *((r, "--routes") for r in routes)):
+        if not Path(given).is_file():
+            raise CrchflError(f"{what} {given}: no such file; give a SUMO network (.net.xml or .net.xml.gz) and route files")
+    files = ",".join(str(Path(r).resolve()) for r in routes)
+    text = (f"<configuration>\n  <input>\n    <net-file value={quoteattr(str(Path(net).resolve()))}/>\n"
+            + (f"    <route-files value={quoteattr(files)}/>\n" if routes else "")
+            + "  </input>\n</configuration>\n")
+    atomic_write_text(Path(path), text)
+    return Path(path)
 
 
 # --- reading a .sumocfg -------------------------------------------------------------------

@@ -1,5 +1,6 @@
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -197,3 +198,28 @@ def test_simulate_writes_sumos_own_fcd_with_every_vehicle_of_the_trace(tmp_path,
                  str(tmp_path / "other")]) == 2
     assert "--sumo-output: emissions unknown; choose from fcd, tripinfo, summary" in capsys.readouterr().err
     assert not (tmp_path / "other").exists()
+
+
+def test_simulate_a_bare_network_with_route_files_and_no_sumocfg(tmp_path, grid_dir, capsys):
+    import gzip
+    import json
+
+    from crchfl_sumo.cli import main
+
+    packed = tmp_path / "grid.net.xml.gz"
+    packed.write_bytes(gzip.compress((grid_dir / "grid.net.xml").read_bytes()))
+    out = tmp_path / "out"
+    assert main(["simulate", "--net", str(packed), "--routes", str(grid_dir / "routes.rou.xml"), "--duration-s", "30",
+                 "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scenario"] == "grid" and (out / "grid.sumocfg").is_file()
+    # the flows of routes.rou.xml drive, beside the 6 vehicles a scenario naming none gets added
+    assert summary["vehicles"] > 6
+    capsys.readouterr()
+    for argv, message in (
+        (["simulate", "town01", "--net", str(packed)], "give a SCENARIO or --net"),
+        (["simulate", "--net", str(tmp_path / "none.net.xml")], "--net .*none.net.xml: no such file"),
+        (["simulate", "town01", "--routes", "r.rou.xml"], "route files go with --net"),
+    ):
+        assert main([*argv, "--duration-s", "5", "--out", str(tmp_path / "refused")]) == 2
+        assert re.search(message, capsys.readouterr().err)
