@@ -34,7 +34,7 @@ from crchfl_sumo.studies.report_figures import (
     plot_metric_curves,
 )
 from crchfl_sumo.studies.results import read_results
-from crchfl_sumo.studies.statistics import PAPER_GAINS_PERCENT, build_summary
+from crchfl_sumo.studies.statistics import PAPER_GAINS_PERCENT, bench_overall, build_summary
 
 log = logging.getLogger(__name__)
 
@@ -506,10 +506,16 @@ def format_summary(summary: Mapping[str, Any], out_dir: str | Path) -> str:
     """A few lines for the terminal: each scheme's rounds, balanced accuracy (beside accuracy and the
     always-straight baseline), the paired differences, the gains, where the report is."""
     lines = []
+    bench = summary.get("drive_bench") or {}
     for name, s in summary["schemes"].items():
+        driven = ""
+        if name in bench:  # the closed loop over all its episodes (every seed's, where every seed drove)
+            score, success = (bench_overall({"results": bench[name]}, key) for key in ("driving_score", "success_rate"))
+            if score is not None:
+                driven = f", driving score {100 * score:.1f}, success {100 * success:.0f} %"
         lines.append(
             f"{NAMES.get(name, name):7s} cloud rounds {_pm(s['cloud_rounds'], 1)}, balanced accuracy "
-            f"{_pm(s['balanced_accuracy'])}, best accuracy {_pm(s['best_accuracy'])} ({len(s['seeds'])} seeds)"
+            f"{_pm(s['balanced_accuracy'])}, best accuracy {_pm(s['best_accuracy'])}{driven} ({len(s['seeds'])} seeds)"
         )
     straight = (summary.get("baselines") or {}).get("always_straight") or {}
     if straight:

@@ -303,3 +303,7 @@ def test_a_benchmark_of_every_seed_gives_all_episodes_and_the_spread_over_seeds(
     report = (results / "report.md").read_text()
     assert "| CRCHFL | 75 ± 35 / 100 / 70 ± 14 | 0.40 |" in report
     assert "| Reference driver | 100 / 100 / 100 | 0.00 |" in report
+    # the terminal's summary ends each scheme's line with its closed loop over all episodes
+    from crchfl_sumo.studies.report import format_summary
+
+    assert "driving score 70.0, success 75 %" in format_summary(summary, results).splitlines()[0]
