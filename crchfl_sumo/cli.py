@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import math
+import os
 import shutil
 import sys
 import time
@@ -276,22 +276,16 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
 def _run_simulate(args) -> int:
     from crchfl_sumo.studies.simulate import run_simulate_command, sumo_output_files
 
-    from crchfl_sumo.sumo.scenario import write_sumocfg
-
-    outputs = [name.strip() for name in args.sumo_output.split(",") if name.strip()]
+    outputs, routes = _comma_list(args.sumo_output), tuple(Path(r) for r in _comma_list(args.routes))
     sumo_output_files(outputs, args.out)  # an unknown name is refused before --out is touched
     if (args.scenario is None) == (args.net is None):
         raise CrchflError("simulate: give a SCENARIO or --net NET.net.xml (with --routes R1,R2), not both or neither")
-    if args.routes and args.net is None:
+    if routes and args.net is None:
         raise CrchflError("simulate --routes: route files go with --net; a scenario names its own")
     with _output_folder(args, "simulate"):
-        scenario = args.scenario
-        if args.net is not None:
-            routes = [Path(r.strip()) for r in args.routes.split(",") if r.strip()]
-            stem = args.net.name.removesuffix(".gz").removesuffix(".xml").removesuffix(".net")  # the scenario's name
-            scenario = str(write_sumocfg(args.out / f"{stem}.sumocfg", args.net, routes))
         with ProgressBars("step") as bars:
-            summary = run_simulate_command(scenario, args.duration_s, args.out, args.seed, args.config, bars, outputs)
+            summary = run_simulate_command(args.scenario, args.duration_s, args.out, args.seed, args.config, bars,
+                                           outputs, net=args.net, routes=routes)
     print(
         f"{summary['scenario']}: {summary['vehicles']} vehicles, {summary['steps']} steps, "
         f"{summary['handovers']} handovers, coverage {100 * summary['coverage_fraction']:.1f}%, "
@@ -670,7 +664,8 @@ def _add_sweep(p: argparse.ArgumentParser) -> None:
 def _run_sweep(args) -> int:
     from crchfl_sumo.studies.sweep import sweep_command
 
-    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address, args.seeds)  # checks --out after --param
+    # checks --out after --param
+    rows = sweep_command(args.config, args.param, args.out, args.backend, args.address, args.seeds)
     print((args.out / "results.md").read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
     return 0

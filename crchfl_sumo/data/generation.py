@@ -98,7 +98,8 @@ def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[st
                        "vehicles that stay in the simulation for the whole run, e.g. on looping routes "
                        "(docs/scenarios.md), and pass its folder")
             elif scenario.injected:
-                fix = "ask for fewer, or add more ([sumo] data_vehicles and test_vehicles of the dataset and run configs, docs/scenarios.md)"
+                fix = ("ask for fewer, or add more ([sumo] data_vehicles and test_vehicles of the dataset and run "
+                       "configs, docs/scenarios.md)")
             else:
                 fix = "ask for fewer or name more"
             raise CrchflError(

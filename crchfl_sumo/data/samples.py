@@ -51,7 +51,8 @@ class Samples:
         n = self.images.shape[0] if self.images.dim() else -1
         device = self.images.device
         if self.signal_state is None:
-            object.__setattr__(self, "signal_state", torch.full((max(n, 0),), SIGNAL_UNKNOWN, dtype=torch.int64, device=device))
+            unknown = torch.full((max(n, 0),), SIGNAL_UNKNOWN, dtype=torch.int64, device=device)
+            object.__setattr__(self, "signal_state", unknown)
         if self.signal_distance_m is None:
             object.__setattr__(self, "signal_distance_m", torch.full((max(n, 0),), float("inf"), device=device))
         if self.images.dtype != torch.uint8 or self.images.dim() != 5:
@@ -79,7 +80,9 @@ class Samples:
             if n and not bool(torch.isfinite(speed).all() and (speed >= 0).all()):
                 raise ValueError(f"{name} values must be finite and >= 0")
         if self.signal_state.dtype != torch.int64 or tuple(self.signal_state.shape) != (n,):
-            raise ValueError(f"signal_state must be int64 [{n}], got {self.signal_state.dtype} {tuple(self.signal_state.shape)}")
+            raise ValueError(
+                f"signal_state must be int64 [{n}], got {self.signal_state.dtype} {tuple(self.signal_state.shape)}"
+            )
         if n and (int(self.signal_state.min()) < 0 or int(self.signal_state.max()) >= len(SIGNAL_NAMES)):
             raise ValueError(f"signal_state values must lie in 0..{len(SIGNAL_NAMES) - 1}")
         distance = self.signal_distance_m
@@ -137,7 +140,8 @@ class Samples:
             torch.from_numpy(np.ascontiguousarray(speed_mps, dtype=np.float32)),
             torch.from_numpy(np.ascontiguousarray(target_speed_mps, dtype=np.float32)),
             None if signal_state is None else torch.from_numpy(np.ascontiguousarray(signal_state, dtype=np.int64)),
-            None if signal_distance_m is None else torch.from_numpy(np.ascontiguousarray(signal_distance_m, dtype=np.float32)),
+            None if signal_distance_m is None
+            else torch.from_numpy(np.ascontiguousarray(signal_distance_m, dtype=np.float32)),
         )
 
     @staticmethod

@@ -94,13 +94,15 @@ class TaskConfig:
             raise CrchflError(
                 f"bench.navigation_turns must be (fewest, most) with 2 <= fewest <= most, got {self.navigation_turns}"
             )
-
-    def turns(self, task: Task) -> tuple[int, int]:
-        """(fewest, most) turns of ``task``'s routes: its own, the navigation suites' from this config."""
-        return self.navigation_turns if task.name in ("navigation", "navigation_traffic") else (task.min_turns, task.max_turns)
         low, high = self.warmup_range_s
         if not 0 <= low <= high:
             raise CrchflError(f"bench.warmup_range_s must be (low, high) with 0 <= low <= high, got {self.warmup_range_s}")
+
+    def turns(self, task: Task) -> tuple[int, int]:
+        """(fewest, most) turns of ``task``'s routes: its own, the navigation suites' from this config."""
+        if task.name in ("navigation", "navigation_traffic"):
+            return self.navigation_turns
+        return task.min_turns, task.max_turns
 
 
 @dataclass(frozen=True)
@@ -292,10 +294,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
         ids = tuple(e.getID() for e in path)
         if not apart_from_data(ids, excluded):
             continue
-        try:
-            geometry = route_geometry(net, ids)
-        except CrchflError:  # a route needing a lane change: the loop drives one lane sequence only
-            continue
+        geometry = route_geometry(net, ids)  # a shortest path's edges connect; lane changes are planned
         if not config.min_route_m <= geometry.length_m <= config.max_route_m or any(
             c.direction in U_TURN_DIRECTIONS for c in geometry.crossings
         ):

@@ -45,7 +45,7 @@ from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, Route
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.learning.centralized import CHECKPOINT_FILE, train_centralized
-from crchfl_sumo.sumo.route import inside_crossing, point_at, read_net, route_geometry, signal_letter
+from crchfl_sumo.sumo.route import inside_crossing, next_signal, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -134,8 +134,8 @@ class ExpertLabelled:
         # No recorded future here: the speed the expert's wanted acceleration leads to, over the
         # learner's own horizon.
         self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
-        self.signals.append(signal_ahead(self.expert.route.crossings, observation.progress_m + length_m / 2.0,
-                                         observation.frame.tls_states))
+        self.signals.append(next_signal(self.expert.route.crossings, observation.progress_m + length_m / 2.0,
+                                        observation.frame.tls_states))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
@@ -153,15 +153,6 @@ class ExpertLabelled:
             "signal_state": signal_codes([letter for letter, _ in self.signals]).astype(np.int64),
             "signal_distance_m": np.asarray([d for _, d in self.signals], dtype=np.float32).reshape(-1),
         }
-
-
-def signal_ahead(crossings, front_s_m: float, tls_states) -> tuple[str, float]:
-    """The letter of the first signalised stop line at or ahead of the front bumper, and its distance
-    ('' and inf if none): what the data set stores of SUMO's next signal (Frame.tls_ahead_*)."""
-    for crossing in crossings:
-        if crossing.tls_id and crossing.s_start_m >= front_s_m:
-            return signal_letter(crossing, tls_states), crossing.s_start_m - front_s_m
-    return "", math.inf
 
 
 # A learner standing within this of a stop line it must stop at is labelled to hold: the data set's

@@ -315,7 +315,9 @@ def compare_runs(run_dirs: Sequence[str | Path], labels: Sequence[str] | None, o
             raise CrchflError(f"{folder}: no metrics.json; point to folders written by `crchfl-sumo drive`")
         metrics = read_json_object(metrics_path, ("scenario", "edges"), "drive the route again into this folder")
         if not (isinstance(metrics["scenario"], str) and isinstance(metrics["edges"], list)):
-            raise CrchflError(f"{metrics_path}: its scenario or edges are damaged; drive the route again into this folder")
+            raise CrchflError(
+                f"{metrics_path}: its scenario or edges are damaged; drive the route again into this folder"
+            )
         key = (metrics["scenario"], tuple(metrics["edges"]))
         if first is None:
             first = key

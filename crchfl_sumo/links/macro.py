@@ -85,9 +85,8 @@ def hex_grid_sites(
 ) -> tuple[EdgeSite, ...]:
     """Sites on a hexagonal lattice (neighbours ``spacing_m`` apart) centred on the bounds
     (sites.hex_lattice), named ``{prefix}{i}`` in row-major order."""
-    return tuple(
-        EdgeSite(f"{prefix}{i}", float(x), float(y), height_m) for i, (x, y) in enumerate(hex_lattice(bounds_m, spacing_m))
-    )
+    lattice = hex_lattice(bounds_m, spacing_m)
+    return tuple(EdgeSite(f"{prefix}{i}", float(x), float(y), height_m) for i, (x, y) in enumerate(lattice))
 
 
 def macro_link_model(

@@ -31,14 +31,16 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, set_path
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import read_json
+from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.resources import experiments_dir
-from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 from crchfl_sumo.studies.mobility_report import BASELINE
 from crchfl_sumo.studies.sweep import (
-    RUNS_DIR, Param, Point, absolute_paths, check_values, point_name, run_points, value_label,
+    RUNS_DIR, Param, Point, absolute_paths, check_values, point_name, point_seeds, run_points, seed_point, seed_runs,
+    value_label,
 )
 
 DATA_DIR = "data"
@@ -239,27 +241,17 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
         + "\n",
     )
     make_data(study.data, out_dir / DATA_DIR)
-    first = int(base.get("federation", {}).get("seed", 0))
-    seeds = list(range(first, first + study.seeds))
-    runs = [
-        Point(seed_point(p.name, seed), p.values,
-              absolute_paths(set_path(p.mapping, ("federation", "seed"), seed, "seeds")))
-        for p in plan.points for seed in seeds
-    ]
+    points = [Point(p.name, p.values, absolute_paths(p.mapping)) for p in plan.points]
+    runs = seed_runs(points, study.seeds, nested=True)  # runs/POINT/seed-S, one seed too
     summaries = run_points(runs, out_dir, backend)
-    by_point = {p.name: {seed: summaries[seed_point(p.name, seed)] for seed in seeds} for p in plan.points}
-    benches = bench_points(out_dir, [seed_point(p.name, s) for p in plan.points for s in seeds], study.bench_episodes,
-                           backend)
-    by_point_bench = {p.name: {s: benches[seed_point(p.name, s)] for s in seeds if seed_point(p.name, s) in benches}
-                      for p in plan.points}
+    benches = bench_points(out_dir, [r.name for r in runs], study.bench_episodes, backend)
+    seeds = {p.name: point_seeds(p, study.seeds) for p in points}
+    by_point = {name: {s: summaries[seed_point(name, s)] for s in ss} for name, ss in seeds.items()}
+    by_point_bench = {name: {s: benches[seed_point(name, s)] for s in ss if seed_point(name, s) in benches}
+                      for name, ss in seeds.items()}
     rows = study_rows(study.factors, plan, by_point, by_point_bench)
     write_report(out_dir, study.factors, rows)
     return rows
-
-
-def seed_point(point: str, seed: int) -> str:
-    """A point's run of one seed, as its folder under runs/ (and bench/) names it."""
-    return f"{point}/seed-{seed}"
 
 
 def bench_points(out_dir: Path, names: list[str], episodes: int, backend: BackendConfig) -> dict[str, dict]:
@@ -270,11 +262,12 @@ def bench_points(out_dir: Path, names: list[str], episodes: int, backend: Backen
     from crchfl_sumo.core.backend import Executor
 
     paths = {name: out_dir / BENCH_DIR / name / "summary.json" for name in names}
-    done = {name: json.loads(path.read_text(encoding="utf-8")) for name, path in paths.items() if path.is_file()}
+    done = {name: read_json(path, "delete the folder to drive the benchmark again") for name, path in paths.items()
+            if path.is_file()}
     todo = [name for name in names if name not in done]
     with Executor(backend) as executor:
-        results = executor.map(bench_point, [(str(out_dir / RUNS_DIR / n / "best_model.pt"), str(out_dir / BENCH_DIR / n),
-                                              episodes) for n in todo], isolate=True)
+        calls = [(str(out_dir / RUNS_DIR / n / "best_model.pt"), str(out_dir / BENCH_DIR / n), episodes) for n in todo]
+        results = executor.map(bench_point, calls, isolate=True)
     return {**done, **dict(zip(todo, results))}
 
 

@@ -18,9 +18,8 @@ from typing import Any
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
-from crchfl_sumo.core.intervals import distinguishable, paired_difference
-from crchfl_sumo.studies.statistics import bench_overall, mean_std
-
+from crchfl_sumo.core.intervals import distinguishable
+from crchfl_sumo.studies.statistics import bench_overall, mean_std, paired_by_seed, seed_mean
 from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE
 
 MB = 2**20
@@ -64,15 +63,6 @@ def seed_outcomes(summaries: dict[int, dict], benches: dict[int, dict]) -> dict[
     return outcomes
 
 
-def _mean(values) -> Any:
-    numbers = [v for v in values if _is_number(v)]
-    if len(numbers) == 1:  # one seed: its figure as it is (a count stays a whole number)
-        return numbers[0]
-    if numbers:
-        return sum(numbers) / len(numbers)
-    return next(iter(values), None)  # a text column (stop_reason): the first seed's
-
-
 def study_rows(factors: Sequence, plan, summaries: dict[str, dict[int, dict]],
                benches: dict[str, dict[int, dict]] | None = None) -> list[dict]:
     """One row per factor value: the factor, the value's label, its point, the seeds, and each figure's mean over
@@ -93,9 +83,9 @@ def study_rows(factors: Sequence, plan, summaries: dict[str, dict[int, dict]],
                 "balanced_accuracy_mean": accuracy["mean"],
                 "balanced_accuracy_ci_lo": ci[0],
                 "balanced_accuracy_ci_hi": ci[1],
-                **{key: _mean(values.values()) for key, values in outcomes.items()},
-                "driving_score_mean": _mean(outcomes.get("driving_score", {}).values()),
-                "success_rate_mean": _mean(outcomes.get("success_rate", {}).values()),
+                **{key: seed_mean(values.values()) for key, values in outcomes.items()},
+                "driving_score_mean": seed_mean(outcomes.get("driving_score", {}).values()),
+                "success_rate_mean": seed_mean(outcomes.get("success_rate", {}).values()),
                 "outcomes": outcomes,
             })
     return rows
@@ -109,10 +99,9 @@ def findings(factors: Sequence, rows: Sequence[dict]) -> list[dict]:
     for factor in factors:
         for key, title, spec in FINDINGS:
             moved, compared = [], 0
+            theirs = (base or {"outcomes": {}})["outcomes"].get(key, {})
             for row in (r for r in rows if r["factor"] == factor.name and r["point"] != BASELINE):
-                mine, theirs = row["outcomes"].get(key, {}), (base or {"outcomes": {}})["outcomes"].get(key, {})
-                seeds = [s for s in mine if s in theirs and _is_number(mine[s]) and _is_number(theirs[s])]
-                d = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+                d = paired_by_seed(theirs, row["outcomes"].get(key, {}))
                 compared = max(compared, d["n"])
                 if distinguishable(d["ci95"]):
                     moved.append((row["value"], d))
@@ -132,9 +121,8 @@ def findings_table(found: Sequence[dict]) -> str:
         elif not f["moved"]:
             verdict = "not distinguishable at any value"
         else:
-            verdict = "moves: " + "; ".join(
-                f"{value} {f['spec'].format(d['mean'] / (MB if f['key'] == 'wasted_bytes' else 1))}" for value, d in f["moved"]
-            )
+            scale = MB if f["key"] == "wasted_bytes" else 1
+            verdict = "moves: " + "; ".join(f"{value} {f['spec'].format(d['mean'] / scale)}" for value, d in f["moved"])
         lines.append(f"| {f['factor']} | {f['outcome']} | {verdict} |")
     return "\n".join(lines) + "\n"
 
@@ -148,7 +136,8 @@ def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list
     for row in rows:
         writer.writerow(["" if row.get(c) is None else row[c] for c in COLUMNS])
     atomic_write_text(out_dir / "results.csv", buffer.getvalue())
-    atomic_write_text(out_dir / "results.md", markdown_table(rows) + "\n## Findings\n\n" + findings_table(findings(factors, rows)))
+    findings_text = findings_table(findings(factors, rows))
+    atomic_write_text(out_dir / "results.md", markdown_table(rows) + "\n## Findings\n\n" + findings_text)
     base = next((r for r in rows if r["point"] == BASELINE), None)  # any factor's row of the baseline run
     return [
         plot_factor(factor, [r for r in rows if r["factor"] == factor.name], base, out_dir / "plots") for factor in factors

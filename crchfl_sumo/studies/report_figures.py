@@ -175,11 +175,12 @@ def plot_budget_curve(curve: Mapping[str, Mapping[str, Any]], path: Path) -> Non
     for ax, key, scale, title in ((axes[0], "balanced_accuracy", 1.0, "Balanced accuracy"),
                                   (axes[1], "driving_score", 100.0, "Driving score")):
         for scheme, points in curve.items():
-            x = [float(label) for label, p in points.items() if p[key]["mean"] is not None]
-            mean = np.array([p[key]["mean"] for p in points.values() if p[key]["mean"] is not None]) * scale
-            if not x:
+            known = {float(label): p[key] for label, p in points.items() if p[key]["mean"] is not None}
+            if not known:
                 continue
-            ci = [p[key]["ci95"] or [p[key]["mean"]] * 2 for p in points.values() if p[key]["mean"] is not None]
+            x = list(known)
+            mean = np.array([s["mean"] for s in known.values()]) * scale
+            ci = [s["ci95"] or [s["mean"]] * 2 for s in known.values()]
             ci = np.clip(np.array(ci).T * scale, 0.0, scale)  # neither score leaves [0, scale]
             error = np.abs(ci - mean)
             style = STYLES.get(scheme, ("-", "o"))

@@ -210,16 +210,16 @@ def for_scenario(config: ReproduceConfig, name_or_path: str) -> ReproduceConfig:
     names = {town.name for town in scenario.towns}
     if {split.town for split in sizes.towns} <= names:
         return dataclasses.replace(config, scenario=str(name_or_path))
-    data = [(town.name, v) for town in scenario.towns for v in town.data_vehicles]
-    tests = [(town.name, v) for town in scenario.towns for v in town.test_vehicles]
+    data = sum(len(town.data_vehicles) for town in scenario.towns)
+    tests = sum(len(town.test_vehicles) for town in scenario.towns)
     if not data or not tests:
         raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
                           "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
     train_total = sum(n for split in sizes.towns for n in split.train_samples)
     test_total = sum(n for split in sizes.towns for n in split.test_samples)
     towns = tuple(
-        TownSplit(town.name, (max(1, train_total // len(data)),) * len(town.data_vehicles),
-                  (max(1, test_total // len(tests)),) * len(town.test_vehicles))
+        TownSplit(town.name, (max(1, train_total // data),) * len(town.data_vehicles),
+                  (max(1, test_total // tests),) * len(town.test_vehicles))
         for town in scenario.towns if town.data_vehicles and town.test_vehicles
     )
     generate = dataclasses.replace(config.generate, dataset=dataclasses.replace(sizes, towns=towns))

@@ -34,7 +34,7 @@ from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
 from crchfl_sumo.sumo.maps import draw_network
-from crchfl_sumo.sumo.scenario import Scenario, load_scenario
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario, write_sumocfg
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
 
@@ -253,13 +253,18 @@ def run_simulate_command(
     config_path: Path | None,
     progress: Progress | None = None,
     sumo_outputs: Sequence[str] = (),
+    net: Path | None = None,
+    routes: Sequence[Path] = (),
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary. ``sumo_outputs``: SUMO's own files to write
-    as well (SUMO_OUTPUTS' names).
+    as well (SUMO_OUTPUTS' names). ``net`` (and ``routes``) instead of ``scenario_name``: a bare network,
+    run through a .sumocfg written into ``out_dir`` for it (scenario.write_sumocfg).
 
     ``duration_s`` None: the scenario's own length (its configuration's end), else DEFAULT_DURATION_S.
     """
     files = sumo_output_files(sumo_outputs, out_dir)  # refused before anything runs
+    if net is not None:
+        scenario_name = str(write_sumocfg(out_dir, net, routes))
     cfg = load_simulate_config(config_path, seed)
     scenario = load_scenario(scenario_name, cfg.edge_sites, cfg.mobility.coverage_radius_m)
     if duration_s is None:

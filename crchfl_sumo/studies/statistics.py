@@ -35,6 +35,29 @@ def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
     return {"mean": mean, "std": std, "n": n, "ci95": list(ci) if ci else None}
 
 
+def paired_by_seed(theirs: Mapping[Any, Any], mine: Mapping[Any, Any]) -> dict[str, Any]:
+    """mine - theirs over the seeds both have a number for (the same seed: the same data, start and traffic):
+    core.intervals.paired_difference's {mean, ci95, p, n}."""
+    seeds = [s for s in mine if s in theirs and _number(mine[s]) and _number(theirs[s])]
+    return paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+
+
+def seed_mean(values: Iterable[Any]) -> Any:
+    """A figure over seeds: the mean of the numbers (one seed's as it is, so a count stays whole); a column of
+    text (a stop reason) gives the first seed's."""
+    values = list(values)
+    numbers = [v for v in values if _number(v)]
+    if len(numbers) == 1:
+        return numbers[0]
+    if numbers:
+        return sum(numbers) / len(numbers)
+    return values[0] if values else None
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 # The schemes CRCHFL is compared with, seed by seed, and the figures compared (summary.json "differences").
 DIFFERENCE_KEYS = ("balanced_accuracy", "best_accuracy")
 
@@ -51,9 +74,7 @@ def differences(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") 
         pair: dict[str, Any] = {}
         for key in DIFFERENCE_KEYS:
             mine = dict(zip(schemes[ours]["seeds"], schemes[ours][key]["values"]))
-            theirs = dict(zip(stats["seeds"], stats[key]["values"]))
-            seeds = [s for s in mine if s in theirs and mine[s] is not None and theirs[s] is not None]
-            pair[key] = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+            pair[key] = paired_by_seed(dict(zip(stats["seeds"], stats[key]["values"])), mine)
         out[f"{ours}-{other}"] = pair
     return out
 
@@ -265,9 +286,7 @@ def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
     curve_runs, curve_bench = results["budget_curve"]["runs"], results["budget_curve"]["bench"]
     bench = results["drive_bench"]
     per_seed: dict[str, dict[str, dict[str, dict[int, float | None]]]] = {}
-    for scheme, runs in results["schemes"].items():
-        if not budgets:
-            break
+    for scheme, runs in results["schemes"].items() if budgets else ():
         budget = max(run["summary"]["budget_bytes"] for run in runs.values()) / GIB
         per_seed[scheme] = {}
         for gb in budgets:
@@ -281,7 +300,8 @@ def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
                     accuracy = {seed: summary.get("balanced_accuracy") for seed, summary in found.items()}
                 else:  # a mark with no evaluation within it (None) has no model: no figure
                     marks = {seed: run["summary"].get("budget_marks") or {} for seed, run in runs.items()}
-                    accuracy = {seed: (m[label] or {}).get("balanced_accuracy") for seed, m in marks.items() if label in m}
+                    accuracy = {seed: (mark[label] or {}).get("balanced_accuracy")
+                                for seed, mark in marks.items() if label in mark}
                 driven = (curve_bench.get(scheme) or {}).get(label) or {}
             score = {seed: bench_overall(summary, "driving_score") for seed, summary in driven.items()}
             per_seed[scheme][label] = {"balanced_accuracy": accuracy, "driving_score": score}
@@ -302,9 +322,7 @@ def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
             for label, point in per_seed["crchfl"].items():
                 pair[label] = {}
                 for key, mine in point.items():
-                    theirs = per_seed[other].get(label, {}).get(key, {})
-                    seeds = [s for s in mine if s in theirs and mine[s] is not None and theirs[s] is not None]
-                    pair[label][key] = paired_difference([theirs[s] for s in seeds], [mine[s] for s in seeds])
+                    pair[label][key] = paired_by_seed(per_seed[other].get(label, {}).get(key, {}), mine)
     targets = [float(t) for t in config.get("accuracy_targets") or []]
     to_accuracy, to_accuracy_seeds = {}, {}
     for scheme, runs in results["schemes"].items():

@@ -266,33 +266,38 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 INTERVAL_COLUMNS = ("balanced_accuracy", "best_accuracy")
 
 
-def seed_runs(points: list[Point], seeds: int) -> list[Point]:
-    """Each point's run of each seed (``POINT/seed-S``, federation.seed = the point's own, +1, ...); with one
-    seed the points themselves."""
-    if seeds == 1:
+def point_seeds(point: Point, seeds: int) -> list[int]:
+    """The seeds a point runs with: its own federation.seed, +1, ... (``seeds`` of them)."""
+    first = int(point.mapping.get("federation", {}).get("seed", 0))
+    return list(range(first, first + seeds))
+
+
+def seed_point(name: str, seed: int) -> str:
+    """A point's run of one seed, as its folder under runs/ names it."""
+    return f"{name}/seed-{seed}"
+
+
+def seed_runs(points: list[Point], seeds: int, nested: bool | None = None) -> list[Point]:
+    """Each point's run of each seed (``POINT/seed-S``, federation.seed set); ``nested`` False (the default
+    for one seed): the points themselves, in their own folders."""
+    if not (seeds > 1 if nested is None else nested):
         return points
-    runs = []
-    for point in points:
-        first = int(point.mapping.get("federation", {}).get("seed", 0))
-        runs += [Point(f"{point.name}/seed-{seed}", point.values,
-                       set_path(point.mapping, ("federation", "seed"), seed, "--seeds"))
-                 for seed in range(first, first + seeds)]
-    return runs
+    return [Point(seed_point(point.name, seed), point.values,
+                  set_path(point.mapping, ("federation", "seed"), seed, "seeds"))
+            for point in points for seed in point_seeds(point, seeds)]
 
 
 def seed_row(point: Point, rows: list[dict]) -> dict:
-    """A point's row over its seeds' rows: the mean of each figure (the first seed's text), ``seeds``, and the
+    """A point's row over its seeds' rows: the mean of each figure (statistics.seed_mean), ``seeds``, and the
     95 % t interval (``KEY_ci_lo``, ``KEY_ci_hi``) of INTERVAL_COLUMNS."""
-    from crchfl_sumo.core.intervals import t_interval
+    from crchfl_sumo.studies.statistics import mean_std, seed_mean
 
     row: dict[str, Any] = {"point": point.name, **point.values, "seeds": len(rows)}
     for key in (*SUMMARY_COLUMNS, "wireless_bytes", "wireline_bytes"):
         values = [r.get(key) for r in rows]
-        numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
-        row[key] = sum(numbers) / len(numbers) if numbers else values[0]
+        row[key] = seed_mean(values)
         if key in INTERVAL_COLUMNS:
-            lo_hi = t_interval(numbers) if len(numbers) >= 2 else None
-            row[f"{key}_ci_lo"], row[f"{key}_ci_hi"] = lo_hi or (None, None)
+            row[f"{key}_ci_lo"], row[f"{key}_ci_hi"] = mean_std(values)["ci95"] or (None, None)
     return row
 
 
@@ -326,7 +331,7 @@ def run_sweep(base: dict, params: list[Param], out_dir: str | Path, backend: Bac
     if seeds == 1:
         rows = [table_row(p, summaries[p.name]) for p in points]
     else:
-        rows = [seed_row(p, [table_row(r, summaries[r.name]) for r in runs if r.name.startswith(f"{p.name}/seed-")])
+        rows = [seed_row(p, [table_row(p, summaries[seed_point(p.name, s)]) for s in point_seeds(p, seeds)])
                 for p in points]
     write_table(out_dir, rows, [p.path for p in params], seeds > 1)
     plot_sweep(rows, params, out_dir / "plots")

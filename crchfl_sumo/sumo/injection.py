@@ -23,6 +23,7 @@ The scenario's own demand stays as it is: the background traffic.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,8 +90,9 @@ class Injector:
             api.vehicle.add(vehicle, f"{vehicle}__trip", typeID=INJECTED_TYPE, depart="now", departPos="base",
                             departSpeed="0", departLane="best")
 
-    def keep_driving(self, present) -> None:
-        """Send every injected vehicle that is on its route's last edge on to a new destination."""
+    def keep_driving(self, present: Collection[str]) -> None:
+        """Send every injected vehicle in ``present`` (the vehicles in the network) that is on its route's last
+        edge on to a new destination."""
         api = self._api
         for vehicle in self._vehicles:
             if vehicle not in present:

@@ -338,6 +338,16 @@ def signal_letter(crossing: Crossing, tls_states: Mapping[str, str]) -> str:
     return state[crossing.link_index] if 0 <= crossing.link_index < len(state) else ""
 
 
+def next_signal(crossings: Sequence[Crossing], front_s_m: float, tls_states: Mapping[str, str]) -> tuple[str, float]:
+    """The letter of the first signalised stop line at or ahead of the front bumper, and its distance
+    ('' and inf if none): SUMO's next signal of a vehicle (Frame.tls_ahead_*), which passes over
+    unsignalised junctions, unlike ``next_crossing``."""
+    for crossing in crossings:
+        if crossing.tls_id and crossing.s_start_m >= front_s_m:
+            return signal_letter(crossing, tls_states), crossing.s_start_m - front_s_m
+    return "", math.inf
+
+
 def inside_crossing(crossings: Sequence[Crossing], centre_s_m: float, length_m: float) -> bool:
     """Has a vehicle's front bumper passed a stop line on its route, with its centre not yet out of that junction?"""
     front_s_m = centre_s_m + length_m / 2.0

@@ -20,18 +20,18 @@ import shutil
 import subprocess
 import tempfile
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.atomic import atomic_write_text
+from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.resources import scenarios_dir
+from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.sumo.sites import (
     MAX_COORDINATE_M,
     MAX_SITES,
@@ -294,8 +294,11 @@ def load_scenario(
         towns = (Town(name, bounds.xmin_m, bounds.ymin_m, bounds.xmax_m, bounds.ymax_m),)
     injected: tuple[str, ...] = ()
     if not any(town.data_vehicles or town.test_vehicles for town in towns):  # names none: they are added
-        towns = tuple(dataclasses.replace(town, data_vehicles=inject.names(town.name)[0],
-                                          test_vehicles=inject.names(town.name)[1]) for town in towns)
+        named = []
+        for town in towns:
+            data, test = inject.names(town.name)
+            named.append(dataclasses.replace(town, data_vehicles=data, test_vehicles=test))
+        towns = tuple(named)
         injected = tuple(v for town in towns for v in (*town.data_vehicles, *town.test_vehicles))
     return Scenario(
         name=name,
@@ -314,20 +317,24 @@ def load_scenario(
     )
 
 
-def write_sumocfg(path: Path, net: Path, routes: Sequence[Path] = ()) -> Path:
-    """A .sumocfg at ``path`` naming a network and route files by absolute path (for a bare .net.xml[.gz]); each
-    file must exist. The configuration sets no step length: SUMO's 1 s."""
+def write_sumocfg(folder: Path, net: Path, routes: Sequence[Path] = ()) -> Path:
+    """A .sumocfg in ``folder``, named after the network (N.net.xml[.gz] -> N.sumocfg, so the scenario is N),
+    naming the network and route files by absolute path; each file must exist. It sets no step length:
+    SUMO's 1 s. Returns its path."""
     from xml.sax.saxutils import quoteattr
 
     for given, what in ((net, "--net"), *((r, "--routes") for r in routes)):
         if not Path(given).is_file():
-            raise CrchflError(f"{what} {given}: no such file; give a SUMO network (.net.xml or .net.xml.gz) and route files")
+            raise CrchflError(
+                f"{what} {given}: no such file; give a SUMO network (.net.xml or .net.xml.gz) and route files"
+            )
     files = ",".join(str(Path(r).resolve()) for r in routes)
     text = (f"<configuration>\n  <input>\n    <net-file value={quoteattr(str(Path(net).resolve()))}/>\n"
             + (f"    <route-files value={quoteattr(files)}/>\n" if routes else "")
             + "  </input>\n</configuration>\n")
-    atomic_write_text(Path(path), text)
-    return Path(path)
+    path = Path(folder) / f"{Path(net).name.removesuffix('.gz').removesuffix('.xml').removesuffix('.net')}.sumocfg"
+    atomic_write_text(path, text)
+    return path
 
 
 # --- reading a .sumocfg -------------------------------------------------------------------

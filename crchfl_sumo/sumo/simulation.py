@@ -109,7 +109,6 @@ class Simulation:
         self._step_s = scenario.step_length_s
         self._injector: Injector | None = None
         self.injection_error: str | None = None  # why the scenario's added vehicles could not be added
-        self._present: frozenset[str] = frozenset()  # vehicles in the network after the last step
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -212,7 +211,7 @@ class Simulation:
         api = self._api
         tc = api.constants
         if self._injector is not None:
-            self._injector.keep_driving(self._present)
+            self._injector.keep_driving(self._static)  # the vehicles in the network: departed, not yet arrived
         api.simulationStep()
         self._steps += 1
         sim = api.simulation.getSubscriptionResults()
@@ -232,7 +231,6 @@ class Simulation:
             )
         for vehicle_id in sim[tc.VAR_ARRIVED_VEHICLES_IDS]:
             self._static.pop(vehicle_id, None)
-        self._present = self._present.union(sim[tc.VAR_DEPARTED_VEHICLES_IDS]).difference(sim[tc.VAR_ARRIVED_VEHICLES_IDS])
         self._departed += len(sim[tc.VAR_DEPARTED_VEHICLES_IDS])
         self._arrived += len(sim[tc.VAR_ARRIVED_VEHICLES_IDS])
         self._teleports += sim[tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER]

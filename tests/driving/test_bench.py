@@ -235,7 +235,7 @@ def test_the_suites_length_and_turn_limits_are_settings(ladder):
     assert all(e.length_m >= 250.0 for e in drawn)
     assert [e.edges for e in navigation] == [e.edges for e in drawn if e.task == "navigation_traffic"]
     for bad, key in (({"min_route_m": 700.0}, "min_route_m"), ({"navigation_turns": (1, 3)}, "navigation_turns"),
-                     ({"navigation_turns": (4, 3)}, "navigation_turns")):
+                     ({"navigation_turns": (4, 3)}, "navigation_turns"), ({"warmup_range_s": (50.0, 10.0)}, "warmup_range_s")):
         with pytest.raises(CrchflError, match=key):
             TaskConfig(**bad)
 

@@ -184,15 +184,15 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
 
 
 def test_dagger_samples_carry_the_next_signal_as_the_data_set_does():
-    from crchfl_sumo.driving.dagger import signal_ahead
+    from crchfl_sumo.sumo.route import next_signal
     from crchfl_sumo.sumo.route import Crossing
 
     crossings = (Crossing(40.0, 55.0, "", -1, "s"), Crossing(120.0, 135.0, "J", 1, "s"), Crossing(300.0, 310.0, "K", 0, "l"))
     # the unsignalised junction is passed over; the distance is from the front bumper to the stop line
-    assert signal_ahead(crossings, 30.0, {"J": "Gr", "K": "G"}) == ("r", 90.0)
-    assert signal_ahead(crossings, 120.0, {"J": "Gy"}) == ("y", 0.0)  # at the line: still ahead
-    assert signal_ahead(crossings, 121.0, {}) == ("", 179.0)  # K's state unknown: no letter
-    assert signal_ahead(crossings, 301.0, {"K": "G"}) == ("", math.inf)
+    assert next_signal(crossings, 30.0, {"J": "Gr", "K": "G"}) == ("r", 90.0)
+    assert next_signal(crossings, 120.0, {"J": "Gy"}) == ("y", 0.0)  # at the line: still ahead
+    assert next_signal(crossings, 121.0, {}) == ("", 179.0)  # K's state unknown: no letter
+    assert next_signal(crossings, 301.0, {"K": "G"}) == ("", math.inf)
     policy = ExpertLabelled(_Learner(), _Expert(), every=1)
     policy.expert.route = SimpleNamespace(**{**vars(_Expert.route), "crossings": crossings})
     frame = SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([0.0]), length_m=np.array([4.0]),
