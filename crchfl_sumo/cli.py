@@ -638,11 +638,13 @@ def _backend_arguments(
 
 
 def _run_run(args) -> int:
+    from crchfl_sumo.driving.vehicle_dagger import labeller_factory
     from crchfl_sumo.federation.run import run_command
 
     with _output_folder(args, "run", resumable=True):
         with ProgressBars("step") as bars:  # the postfix: round, GB used / budget, loss, accuracy
-            summary = run_command(args.config, args.out, args.resume, bars, args.backend, args.address)
+            summary = run_command(args.config, args.out, args.resume, bars, args.backend, args.address,
+                                  labeller_factory=labeller_factory)
     print(json.dumps(summary, indent=2))
     return 0
 

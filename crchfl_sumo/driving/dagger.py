@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -290,18 +291,26 @@ def collected_samples(
     """
     path = Path(folder) / EXPERT_SAMPLES_FILE
     if path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as stored:
-                return Samples.from_numpy(**{name: stored[name] for name in FIELDS if name in stored.files})
-        except (OSError, ValueError, KeyError) as exc:
-            raise CrchflError(
-                f"{path}: unreadable expert samples ({exc}); delete the file to collect them again"
-            ) from None
+        return read_labels(path, "delete the file to collect them again")
     samples = collect(checkpoint, towns, config, jobs=jobs, log_dir=Path(folder) / SUMO_LOG_DIR)
+    write_labels(path, samples)
+    return samples
+
+
+def write_labels(path: Path, samples: Samples) -> None:
+    """Keep expert-labelled samples in ``path`` (.npz, written atomically)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as temp, open(temp, "wb") as out:
         np.savez(out, **{name: getattr(samples, name).numpy() for name in FIELDS})
-    return samples
+
+
+def read_labels(path: Path, fix: str) -> Samples:
+    """The samples ``write_labels`` kept; a CrchflError naming ``path`` and ``fix`` when it cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            return Samples.from_numpy(**{name: stored[name] for name in FIELDS if name in stored.files})
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise CrchflError(f"{path}: unreadable expert samples ({exc}); {fix}") from None
 
 
 def dagger_iterations(

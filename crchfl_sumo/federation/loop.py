@@ -60,10 +60,11 @@ from crchfl_sumo.accounting.schedules import (
     edge_aggregation_schedule,
     stage_one_schedule,
 )
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation import selection
 from crchfl_sumo.federation.settings import SFL_LINK
-from crchfl_sumo.federation.state import FederationState, LoopInputs, Trainer
+from crchfl_sumo.federation.state import FederationState, Labeller, LoopInputs, Trainer
 from crchfl_sumo.learning.aggregate import RunningAverage, fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
@@ -179,16 +180,25 @@ class Federation:
     ``data(vehicle, t_s)``: the samples a vehicle trains on when it starts
     training at ``t_s`` (default: its fixed shard, ``setup.samples``; the
     online data mode adds what it collected while driving).
+    ``labeller``: the vehicles' route experts, which [dagger] (``setup.dagger``) needs: after each
+    cloud round it names, every vehicle drives the model it holds and keeps the expert's labels,
+    and trains on them from then on (``_data``).
     """
 
     def __init__(
-        self, setup: LoopInputs, clock: Clock, trainer: Trainer, data: Callable[[str, float], Samples] | None = None
+        self, setup: LoopInputs, clock: Clock, trainer: Trainer, data: Callable[[str, float], Samples] | None = None,
+        labeller: Labeller | None = None,
     ) -> None:
+        if setup.dagger.enabled and labeller is None:
+            raise CrchflError("[dagger] is on, but the run was given no labeller (driving/vehicle_dagger.py)")
         self.setup = setup
         self.clock = clock
         self.trainer = trainer
         self.config = setup.config
         self.data = data or (lambda vehicle, t_s: setup.samples[vehicle])
+        self.labeller = labeller
+        # vehicle -> (its own samples, the labelled rounds, the two joined): one copy per new round, not per step
+        self._joined: dict[str, tuple[Samples, tuple[int, ...], Samples]] = {}
 
     # -- public
 
@@ -286,8 +296,26 @@ class Federation:
         return arrival_s
 
     def _data(self, state: FederationState) -> dict[str, Samples]:
-        """Every vehicle's samples for the training it would start now (when it holds its model)."""
-        return {v: self.data(v, state.ready_s[v]) for v in self.setup.vehicles}
+        """Every vehicle's samples for the training it would start now (when it holds its model), with the
+        labels of its own drives ([dagger]): at the start of a cloud round that ``setup.dagger`` names, each
+        vehicle first drives the model it holds and the expert labels what it visited."""
+        if self.setup.dagger.due(state.cloud_rounds) and state.tau == 0 and state.cloud_rounds not in state.dagger_rounds:
+            self.labeller.label(state.cloud_rounds, state.vehicle_models)
+            state.dagger_rounds = [*state.dagger_rounds, state.cloud_rounds]
+        rounds = tuple(state.dagger_rounds)
+        out = {}
+        for v in self.setup.vehicles:
+            own = self.data(v, state.ready_s[v])
+            cached = self._joined.get(v)
+            if not rounds:
+                out[v] = own
+            elif cached is not None and cached[0] is own and cached[1] == rounds:
+                out[v] = cached[2]
+            else:
+                labels = [labelled[v] for labelled in map(self.labeller.labelled, rounds) if len(labelled.get(v, ()))]
+                out[v] = Samples.concat([own, *labels]) if labels else own
+                self._joined[v] = (own, rounds, out[v])
+        return out
 
     def _train_and_average(
         self,

@@ -70,7 +70,14 @@ from crchfl_sumo.federation.run_config import (
 )
 from crchfl_sumo.federation.run_data import RunData, make_clock, read_inputs
 from crchfl_sumo.federation.settings import HyperParameters
-from crchfl_sumo.federation.state import FederationState, LoopInputs, check_payload, initial_state, sim_time_s
+from crchfl_sumo.federation.state import (
+    FederationState,
+    Labeller,
+    LoopInputs,
+    check_payload,
+    initial_state,
+    sim_time_s,
+)
 from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
@@ -87,6 +94,10 @@ TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed",
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS_CHECKPOINT = previous_path(CHECKPOINT).name  # checkpoint.prev.pt: the step before's, for a damaged one
+
+
+# Builds the vehicles' route experts of a run with [dagger] (driving.vehicle_dagger.labeller_factory).
+LabellerFactory = Callable[[RunConfig, RunData, Path], Labeller]
 
 
 def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
@@ -138,19 +149,26 @@ def run_federation_dir(
     clock_factory: Callable[[], Any] | None = None,
     progress: Progress | None = None,
     after_checkpoint: Callable[[FederationState], None] | None = None,
+    labeller_factory: LabellerFactory | None = None,
 ) -> dict:
     """Run (or resume) the federation of ``config`` on ``inputs`` into ``out_dir``; returns the summary.
 
     ``trainer`` defaults to the one of ``config.backend`` (make_trainer),
     ``clock_factory`` to ``make_clock`` (both injectable for tests).
+    ``labeller_factory(config, inputs, out_dir)`` builds the vehicles' route experts that [dagger]
+    needs (driving.vehicle_dagger.VehicleLabeller: driving sits above this package, so the caller
+    passes it); a run with [dagger] on and none given is refused.
     ``after_checkpoint`` is called right after each checkpoint is written,
     before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
     if ((out_dir / CHECKPOINT).exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
+    if config.dagger.enabled and labeller_factory is None:
+        raise CrchflError("[dagger]: this command cannot drive the vehicles' models; run it with `crchfl-sumo run`")
+    labeller = labeller_factory(config, inputs, out_dir) if config.dagger.enabled else None
     run = dict(resume=resume, config_text=config_text, clock_factory=clock_factory, progress=progress,
-               after_checkpoint=after_checkpoint)
+               after_checkpoint=after_checkpoint, labeller=labeller)
     if trainer is not None:
         return _run_with_trainer(config, inputs, out_dir, trainer, **run)
     with Executor(config.backend) as executor:
@@ -168,6 +186,7 @@ def _run_with_trainer(
     clock_factory: Callable[[], Any] | None,
     progress: Progress | None,
     after_checkpoint: Callable[[FederationState], None] | None,
+    labeller: Labeller | None,
 ) -> dict:
     checkpoint_path = out_dir / CHECKPOINT
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -202,6 +221,7 @@ def _run_with_trainer(
             transfer=config.transfer,
             coverage=_coverage(config, inputs),
             budget_marks_bytes=budget_marks_bytes(config.ledger),
+            dagger=config.dagger,
         )
         state = None
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
@@ -218,7 +238,7 @@ def _run_with_trainer(
             state = initial_state(setup, trainer, clock.start_s)
             marks = start_logs(out_dir, sizes)
         data = _online_data(clock, inputs) if config.data_mode == "online" else None
-        federation = Federation(setup, clock, trainer, data)
+        federation = Federation(setup, clock, trainer, data, labeller)
 
         def save_step(new: FederationState, handovers: int | None) -> None:
             # on the saver's thread; the logs reach the disk before the checkpoint that names their ends
@@ -329,6 +349,8 @@ def summarize(
             gb_label(gb): None if line is None else {k: line.get(k) for k in MARK_KEYS}
             for gb, (line, _, _) in budget_mark_results(config, setup, state).items()
         },
+        # [dagger]: the cloud rounds after which the vehicles drove and labelled (their labels: dagger/)
+        **({"dagger_rounds": list(state.dagger_rounds)} if config.dagger.enabled else {}),
     }
 
 
@@ -460,14 +482,17 @@ def run_command(
     progress: Progress | None = None,
     backend: str | None = None,
     address: str | None = None,
+    labeller_factory: LabellerFactory | None = None,
 ) -> dict:
     """What `crchfl-sumo run CONFIG --out DIR [--resume] [--backend B] [--address A]` does; returns the summary.
 
-    CONFIG is a TOML file or the name of a built-in experiment (crchfl, hfl, sfl).
+    CONFIG is a TOML file or the name of a built-in experiment (crchfl, hfl, sfl); ``labeller_factory``:
+    what a config with [dagger] needs (run_federation_dir).
     """
     config_path = resolve_config_path(config_path)
     config = with_backend(load_run_config(config_path), backend, address)
     inputs = read_inputs(config)
     return run_federation_dir(
-        config, inputs, out_dir, resume=resume, config_text=config_path.read_text(encoding="utf-8"), progress=progress
+        config, inputs, out_dir, resume=resume, config_text=config_path.read_text(encoding="utf-8"), progress=progress,
+        labeller_factory=labeller_factory,
     )

@@ -21,7 +21,7 @@ from crchfl_sumo.core.numbers import MAX_RATE_BPS, MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import SCHEMES
 from crchfl_sumo.data.settings import OnlineConfig
-from crchfl_sumo.federation.settings import FederationConfig
+from crchfl_sumo.federation.settings import FederationConfig, VehicleDaggerConfig
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig
@@ -67,6 +67,8 @@ class RunConfig:
     data_mode: "fixed": each vehicle trains on its generated shard (the
         paper's setting); "online": vehicles also keep collecting samples as
         they drive (data/online.py; needs the SUMO clock).
+    dagger: the vehicles' own DAgger ([dagger], VehicleDaggerConfig; off by default): the run
+        needs a labeller (driving/vehicle_dagger.py), which `crchfl-sumo run` and `reproduce` give it.
     """
 
     scenario: str = "paper"
@@ -86,6 +88,7 @@ class RunConfig:
     online: OnlineConfig = field(default_factory=OnlineConfig)
     sumo: SumoConfig = field(default_factory=SumoConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    dagger: VehicleDaggerConfig = field(default_factory=VehicleDaggerConfig)
 
     def __post_init__(self) -> None:
         if self.data_mode not in ("fixed", "online"):
@@ -123,6 +126,8 @@ def resolved_config(config: RunConfig) -> dict:
     del mapping["backend"]
     if config.sumo == SumoConfig():
         del mapping["sumo"]  # folders of runs made before [sumo] existed still resume
+    if not config.dagger.enabled:
+        del mapping["dagger"]  # nor do runs without it depend on its other settings
     return mapping
 
 

@@ -30,6 +30,7 @@ class RunData:
     root: Path | None = None  # the data set folder (the online mode reads its camera settings)
     drive_settings: dict | None = None  # Manifest.drive_settings: kept in the model files
     sites: tuple[EdgeSite, ...] = ()  # the edge sites on the SUMO clock; none on the constant clock
+    towns: Mapping[str, str] | None = None  # vehicle -> the town its shard was recorded in (where [dagger] drives)
 
 
 def read_inputs(config: RunConfig) -> RunData:
@@ -84,7 +85,8 @@ def read_inputs(config: RunConfig) -> RunData:
         home[v] = edges.index(shard.edge)
     measured = measured_sample_bytes(manifest) if config.ledger.sample_size == "measured" else None
     settings = manifest.drive_settings(f"{root}/manifest.json")
-    return RunData(vehicles, samples, test, edges, home, measured, root, settings, sites)
+    towns = {v: shard.town for v, shard in shards.items()}
+    return RunData(vehicles, samples, test, edges, home, measured, root, settings, sites, towns)
 
 
 def nearest_sites(root: Path, manifest, sites) -> dict[str, int]:

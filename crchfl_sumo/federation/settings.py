@@ -10,7 +10,15 @@ from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_SAMPLE_S, MAX_SAMPLES, MAX_SIMULATED_S, check_range
+from crchfl_sumo.core.numbers import (
+    MAX_DRIVE_S,
+    MAX_EPOCHS,
+    MAX_SAMPLE_S,
+    MAX_SAMPLES,
+    MAX_SIMULATED_S,
+    check_range,
+    check_seed,
+)
 from crchfl_sumo.core.schemes import SCHEMES, Scheme
 from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
@@ -146,6 +154,51 @@ class FederationConfig:
     @property
     def hierarchical(self) -> bool:
         return self.scheme != "sfl"
+
+
+@dataclass(frozen=True)
+class VehicleDaggerConfig:
+    """DAgger on the vehicles (TOML table ``[dagger]``): each vehicle carries the route expert.
+
+    After every ``every_cloud_rounds``-th cloud round, each federated vehicle drives the model it
+    holds (the global model it received, or its own where the download failed) on ``episodes``
+    routes per task of its own town; the expert labels the states that model visits, as
+    `crchfl-sumo dagger` does for one model (driving/dagger.py). The labels stay on the vehicle:
+    from then on it trains on its shard and on every round's labels, and only models cross the
+    links, charged as before. 0 = off (the paper).
+
+    tasks: drive-bench suites the routes are drawn from; seed: draws them (with the run's seed,
+    the round and the vehicle); every: one labelled state every this many steps; max_s: a drive's
+    longest simulated time; corrections_only: keep only the states where the expert would step in.
+    The drives take no simulated time of the run: the vehicle collects while it drives, as the
+    online data mode does.
+    """
+
+    every_cloud_rounds: int = 0
+    episodes: int = 2
+    tasks: tuple[str, ...] = ("navigation_traffic",)
+    seed: int = 1000
+    every: int = 2
+    max_s: float = 90.0
+    corrections_only: bool = True
+
+    def __post_init__(self) -> None:
+        check_range(self.every_cloud_rounds, "dagger.every_cloud_rounds", 0, MAX_EPOCHS,
+                    "a number of cloud rounds (0 = off)")
+        check_range(self.episodes, "dagger.episodes", 1, 10_000, "a number of drives per task")
+        if not self.tasks:
+            raise CrchflError("dagger.tasks: empty; name at least one drive-bench task, e.g. [\"navigation_traffic\"]")
+        check_seed(self.seed, "dagger.seed")
+        check_range(self.every, "dagger.every", 1, 10_000, "a number of steps")
+        check_range(self.max_s, "dagger.max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
+
+    @property
+    def enabled(self) -> bool:
+        return self.every_cloud_rounds > 0
+
+    def due(self, cloud_round: int) -> bool:
+        """Do the vehicles drive and label after cloud round ``cloud_round``?"""
+        return self.enabled and cloud_round > 0 and cloud_round % self.every_cloud_rounds == 0
 
 
 @dataclass(frozen=True)

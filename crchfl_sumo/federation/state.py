@@ -18,7 +18,7 @@ from crchfl_sumo.accounting.schedules import (
 )
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperParameters
+from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperParameters, VehicleDaggerConfig
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.mobility import NO_SITE
@@ -41,6 +41,20 @@ class Trainer(Protocol):
 
         The loop ranks models by ``balanced_accuracy`` where the metrics carry it.
         """
+        ...
+
+
+class Labeller(Protocol):
+    """The vehicles' route experts ([dagger], federation.settings.VehicleDaggerConfig): what the loop needs
+    from driving, which builds it (driving/vehicle_dagger.py)."""
+
+    def label(self, cloud_round: int, models: Mapping[str, State]) -> Mapping[str, Samples]:
+        """Each vehicle drives its model of ``models``; the expert's labels of the states it visited, per
+        vehicle. Called once per round; a labeller that kept a round's labels returns them without driving."""
+        ...
+
+    def labelled(self, cloud_round: int) -> Mapping[str, Samples]:
+        """The labels ``label`` gave for ``cloud_round`` (a resumed run reads them back)."""
         ...
 
 
@@ -67,6 +81,7 @@ class LoopInputs:
     transfer: TransferConfig = TransferConfig()
     coverage: Coverage | None = None
     budget_marks_bytes: tuple[int, ...] = ()  # [ledger] marks_gb in bytes: the best model within each is kept
+    dagger: VehicleDaggerConfig = VehicleDaggerConfig()  # when the vehicles drive and label (off: never)
 
     def __post_init__(self) -> None:
         names = list(self.vehicles) + list(self.edges)
@@ -134,6 +149,7 @@ class FederationState:
     # and model among the evaluations within it (None: no evaluation was); a mark not yet passed is the best
     budget_marks: dict[str, dict | None] = field(default_factory=dict)
     budget_mark_models: dict[str, State] = field(default_factory=dict)
+    dagger_rounds: list[int] = field(default_factory=list)  # the cloud rounds after which the vehicles labelled
 
     @property
     def done(self) -> bool:
@@ -152,7 +168,7 @@ class FederationState:
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
 MODELS = ("vehicle_models", "edge_models", "budget_mark_models")  # name -> State (cloud_model, best_model: one)
-ADDED_LATER = ("budget_marks", "budget_mark_models")  # an older checkpoint lacks them: empty
+ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:

@@ -353,13 +353,14 @@ def _dagger(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> N
 
 def _federated(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
     """One federated run through run.run_command; an unfinished one resumes from its checkpoint."""
+    from crchfl_sumo.driving.vehicle_dagger import labeller_factory
     from crchfl_sumo.federation.run import run_command
 
     mapping = run_mapping(config, part.scheme, part.seed, out_dir / "data", part.edge_interval, part.budget_gb)
     name = part.key.replace("/", "_")
     config_path = out_dir / "configs" / f"{name}.toml"
     atomic_write_text(config_path, toml_text(mapping))
-    run_command(config_path, out_dir / part.key, resume=True)
+    run_command(config_path, out_dir / part.key, resume=True, labeller_factory=labeller_factory)
 
 
 def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:

@@ -224,12 +224,14 @@ def run_point(mapping: dict, out_dir: str) -> dict:
     """
     import torch
 
+    from crchfl_sumo.driving.vehicle_dagger import labeller_factory
     from crchfl_sumo.federation.run import run_federation_dir
     from crchfl_sumo.federation.run_data import read_inputs
 
     torch.set_num_threads(1)  # several runs share the machine's cores
     config = from_mapping(RunConfig, mapping, where=f"{out_dir}/config.toml")
-    return run_federation_dir(config, read_inputs(config), out_dir, resume=True, config_text=toml_text(mapping))
+    return run_federation_dir(config, read_inputs(config), out_dir, resume=True, config_text=toml_text(mapping),
+                              labeller_factory=labeller_factory)
 
 
 def finished_summary(run_dir: Path, mapping: dict) -> dict | None:

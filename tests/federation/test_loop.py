@@ -605,3 +605,85 @@ def test_the_mean_uplink_rate_is_each_wireless_uplinks_bytes_over_its_duration()
                dataclasses.replace(state.records[7], size_bytes=10**9, start_s=0.0, end_s=1.0)]  # downlink: not counted
     assert mean_uplink_rate_mbps(records) == pytest.approx(14.0)
     assert mean_uplink_rate_mbps(records[2:]) is None
+
+
+# ------------------------------------------------------------------ the vehicles' own DAgger ([dagger])
+
+
+class SampleCountTrainer(SumTrainer):
+    """SumTrainer that records each training call's sample counts per vehicle."""
+
+    def __init__(self):
+        self.counts = []
+
+    def train(self, states, samples, epochs, seed):
+        self.counts.append([len(x) for x in samples])
+        return super().train(states, samples, epochs, seed)
+
+
+class ScriptedLabeller:
+    """Labels a fixed number of samples per vehicle and round; records the models each round was given."""
+
+    def __init__(self, per_round):
+        self.per_round, self.given, self.kept = per_round, {}, {}
+
+    def label(self, cloud_round, models):
+        self.given[cloud_round] = {v: float(m["w"][0]) for v, m in models.items()}
+        self.kept[cloud_round] = {v: _samples(self.per_round[v]) for v in models}
+        return self.kept[cloud_round]
+
+    def labelled(self, cloud_round):
+        return self.kept[cloud_round]
+
+
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_dagger_rounds_add_each_vehicles_own_labels_to_its_data_and_cross_no_link(scheme):
+    from crchfl_sumo.federation.settings import VehicleDaggerConfig
+
+    config = FederationConfig(scheme=scheme, edge_interval=1, cloud_interval=1, cloud_rounds=4, compute_s_per_sample=0.5)
+    counts = {"a": 2, "b": 2, "c": 2}
+    plain = _setup(config, _hyper(config), counts, HOME3, ledger=SMALL)
+    with_dagger = dataclasses.replace(plain, dagger=VehicleDaggerConfig(every_cloud_rounds=2))
+    labeller = ScriptedLabeller({"a": 1, "b": 0, "c": 3})
+    trainer = SampleCountTrainer()
+    clock = ScriptedClock.constant(HOME3, 8e6, step_s=0.25, macro_rate_bps=8e6)
+    state = Federation(with_dagger, clock, trainer, labeller=labeller).run(initial_state(with_dagger, trainer, 0.0))
+    # Labelled after rounds 2 and 4 only (round 4 ended the run, so no later training used it).
+    assert state.dagger_rounds == [2] and list(labeller.given) == [2]
+    # Each vehicle drove the model it held after round 2: 2 rounds x 1 epoch x 2 samples, averaged.
+    assert labeller.given[2] == {"a": 4.0, "b": 4.0, "c": 4.0}
+    # Rounds 1-2 train on the shards; rounds 3-4 on each shard plus that vehicle's own labels.
+    assert trainer.counts == [[2, 2, 2], [2, 2, 2], [3, 2, 5], [3, 2, 5]]
+    # Only models crossed the links: the same transfers and bytes as without [dagger].
+    reference = Federation(plain, ScriptedClock.constant(HOME3, 8e6, step_s=0.25, macro_rate_bps=8e6),
+                           SumTrainer()).run(initial_state(plain, SumTrainer(), 0.0))
+    assert _rows(state) == _rows(reference)
+    # The labels count in FedAvg's weights as the vehicle's samples (|T_nk| = 3, 2, 5).
+    assert state.cloud_model["w"].tolist() == pytest.approx([4.0 + 2 * (3 * 3 + 2 * 2 + 5 * 5) / 10] * 2)
+
+
+def test_a_run_with_dagger_needs_a_labeller_and_dagger_rounds_survive_the_payload():
+    from crchfl_sumo.federation.settings import VehicleDaggerConfig
+    from crchfl_sumo.federation.state import FederationState
+
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=2)
+    setup = dataclasses.replace(_setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=SMALL),
+                                dagger=VehicleDaggerConfig(every_cloud_rounds=1))
+    with pytest.raises(CrchflError, match="labeller"):
+        Federation(setup, ScriptedClock.constant(HOME3, 8e6), SumTrainer())
+    state = initial_state(setup, SumTrainer(), 0.0)
+    state.dagger_rounds = [1, 3]
+    assert FederationState.from_payload(state.to_payload(), [], [], []).dagger_rounds == [1, 3]
+    older = {k: v for k, v in state.to_payload().items() if k != "dagger_rounds"}
+    assert FederationState.from_payload(older, [], [], []).dagger_rounds == []
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("every_cloud_rounds", -1, "dagger.every_cloud_rounds"), ("episodes", 0, "dagger.episodes"),
+    ("tasks", (), "dagger.tasks"), ("seed", -3, "dagger.seed"), ("max_s", float("nan"), "dagger.max_s"),
+])
+def test_bad_dagger_settings_are_refused_naming_the_key(key, value, match):
+    from crchfl_sumo.federation.settings import VehicleDaggerConfig
+
+    with pytest.raises(CrchflError, match=match):
+        VehicleDaggerConfig(**{key: value})
