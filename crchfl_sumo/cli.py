@@ -552,7 +552,7 @@ def _run_drive_bench(args) -> int:
 
 def _add_dagger(p: argparse.ArgumentParser) -> None:
     from crchfl_sumo.driving.bench_tasks import TASK_NAMES
-    from crchfl_sumo.driving.dagger import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
+    from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 
     p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
     p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")
@@ -591,7 +591,8 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
 def _run_dagger(args) -> int:
     from crchfl_sumo.data.dataset import load_samples
     from crchfl_sumo.data.shards import read_manifest
-    from crchfl_sumo.driving.dagger import DaggerConfig, dagger_iterations
+    from crchfl_sumo.driving.dagger import dagger_iterations
+    from crchfl_sumo.driving.dagger_settings import DaggerConfig
     from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     with _output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
@@ -724,7 +725,7 @@ def _run_calibrate(args) -> int:
 
 def _add_plan(p: argparse.ArgumentParser) -> None:
     from crchfl_sumo.accounting.ledger import MAX_SIZE
-    from crchfl_sumo.planning.problem import MAX_INTERVAL
+    from crchfl_sumo.planning.settings import MAX_INTERVAL
 
     p.add_argument("--budget-gb", type=number_arg(0, MAX_SIZE, "a budget in GB", lo_open=True), default=None,
                    help="communication budget [GB, 1 GB = 1024**3 B]; overrides [ledger] budget_gb (default 20)")

@@ -95,3 +95,26 @@ def test_a_run_config_reads_without_torch():
     code = "import sys, crchfl_sumo.federation.run_config; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip() == "False"
+
+
+# Modules whose configs come with their work: calibration's settings sit beside the training it fits.
+CONFIGS_WITH_THEIR_WORK = {"crchfl_sumo.planning.calibration"}
+
+
+def test_every_config_module_imports_without_torch_or_cvxpy():
+    """A config reads (and a run, a reproduction or a sweep is planned) without loading torch or CVXPY:
+    every module that defines a ``*Config`` class, in one fresh interpreter."""
+    import re
+    import subprocess
+    import sys
+
+    configs = sorted(
+        module for module, path in modules()
+        if re.search(r"^class \w+Config\b", path.read_text(), re.M) and module not in CONFIGS_WITH_THEIR_WORK
+    )
+    assert "crchfl_sumo.federation.run_config" in configs and "crchfl_sumo.studies.reproduce_plan" in configs
+    code = "import importlib, sys\n" + "".join(f"importlib.import_module({m!r})\n" for m in configs) + (
+        "print(sorted(n for n in ('torch', 'cvxpy') if n in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

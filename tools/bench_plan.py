@@ -16,7 +16,8 @@ import time
 
 from crchfl_sumo.accounting.ledger import LedgerConfig, resolve_sizes
 from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule, schedule_bytes
-from crchfl_sumo.planning.problem import AllocationConfig, _Relaxation, costs_for, make_plan, round_time_s
+from crchfl_sumo.planning.problem import _Relaxation, costs_for, make_plan, round_time_s
+from crchfl_sumo.planning.settings import AllocationConfig
 
 
 def rebuild_per_pair_s(config: AllocationConfig, ledger_config: LedgerConfig) -> tuple[float, int]:

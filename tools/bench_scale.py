@@ -134,7 +134,7 @@ def peak_rss_mib() -> float:
 
 
 def dataset_sizes(scenario: str, samples: int, test_samples: int):
-    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.sumo.scenario import load_scenario
 
     towns = load_scenario(scenario).towns

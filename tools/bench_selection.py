@@ -35,7 +35,7 @@ SCENARIO = "paper_linked"
 
 
 def make_data(data_dir: Path, samples: int, test_samples: int, seed: int) -> None:
-    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.data.generation import generate_dataset
     from crchfl_sumo.sumo.scenario import load_scenario
 

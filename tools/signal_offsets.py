@@ -36,7 +36,7 @@ import libsumo
 import numpy as np
 
 from build_nets import SIGNAL_CYCLE_S  # tools/ is this script's folder, first on sys.path
-from crchfl_sumo.data.dataset import PAPER_TOWNS
+from crchfl_sumo.data.settings import PAPER_TOWNS
 from crchfl_sumo.sumo.scenario import load_scenario
 
 SEARCH_SEED = 15

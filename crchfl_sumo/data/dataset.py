@@ -10,18 +10,14 @@ Two ways to read a data set written by dataset_io:
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import h5py
 import numpy as np
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, MAX_SAMPLES_PER_VEHICLE, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.data.shards import (
     LABEL_DATASETS,
     LABEL_SHAPES,
@@ -36,105 +32,6 @@ from crchfl_sumo.vision.camera import CAMERA_NAMES
 SAMPLE_LABELS = FIELDS[1:]  # what a Samples holds besides the images, each a shard dataset of that name
 
 
-
-
-@dataclass(frozen=True)
-class TownSplit:
-    """Sample counts of one town: one entry per training vehicle and per test vehicle."""
-
-    town: str
-    train_samples: tuple[int, ...]
-    test_samples: tuple[int, ...] = ()
-
-    def __post_init__(self) -> None:
-        if not self.town:
-            raise CrchflError("dataset.towns: every town needs a non-empty 'town'")
-        for name in ("train_samples", "test_samples"):
-            counts = getattr(self, name)
-            if any(not 1 <= n <= MAX_SAMPLES_PER_VEHICLE for n in counts):
-                raise CrchflError(
-                    f"dataset.towns.{self.town}.{name}: every count must be in 1 .. {MAX_SAMPLES_PER_VEHICLE}, "
-                    f"got {list(counts)}"
-                )
-        if not self.train_samples:
-            raise CrchflError(f"dataset.towns.{self.town}.train_samples: give at least one training vehicle")
-
-
-# The paper's data set (FACTS.md): 2 + 3 training vehicles and one test set per town.
-PAPER_TOWNS = (
-    TownSplit("town01", train_samples=(2928, 2928), test_samples=(1061,)),
-    TownSplit("town02", train_samples=(2586, 2587, 1555), test_samples=(1020,)),
-)
-
-
-@dataclass(frozen=True)
-class DatasetConfig:
-    """How big a data set is and how its samples are charged.
-
-    sample_period_s: simulated time between two samples of a vehicle (paper: 0.25 s).
-    towns: per-town sample counts (default: the paper's split).
-    compression: HDF5 filter for the images, 'lzf' (default: fast), 'gzip' or 'none'.
-    recovery_share: share of each vehicle's moving samples rendered from a
-        perturbed pose and labelled to steer back (data/recovery.py); 0 turns it off.
-    recovery_lateral_m, recovery_yaw_deg: the perturbation is drawn uniformly
-        within +-recovery_lateral_m sideways and +-recovery_yaw_deg in heading.
-        1 m keeps the car's side within a 4 m lane (1.8 m wide car: 1.1 m to
-        the line); 15 deg gives labels up to the outer steer classes.
-    recovery_queue_share: share of the standing samples with a standing leader
-        2 to 5 m ahead rendered moved closer to it (0.5 to 2 m, nearer than SUMO
-        ever stands) and labelled to stay (data/recovery.py); 0 (default) turns
-        it off: measured, it did not help (docs/dataset.md).
-
-    What a sample costs in the byte ledger is the ledger's setting
-    (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
-    """
-
-    sample_period_s: float = PAPER_SAMPLE_PERIOD_S
-    towns: tuple[TownSplit, ...] = PAPER_TOWNS
-    compression: Literal["lzf", "gzip", "none"] = "lzf"
-    recovery_share: float = 0.25
-    recovery_lateral_m: float = 1.0
-    recovery_yaw_deg: float = 15.0
-    recovery_queue_share: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("recovery_share", "recovery_queue_share"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise CrchflError(f"dataset.{name} must lie in [0, 1], got {getattr(self, name)}")
-        if not 0 <= self.recovery_lateral_m <= 2:
-            raise CrchflError(
-                f"dataset.recovery_lateral_m must lie in [0, 2] (half a 4 m lane), got {self.recovery_lateral_m}"
-            )
-        if not 0 <= self.recovery_yaw_deg <= 45:
-            raise CrchflError(f"dataset.recovery_yaw_deg must lie in [0, 45], got {self.recovery_yaw_deg}")
-        check_range(self.sample_period_s, "dataset.sample_period_s", 0, MAX_SAMPLE_PERIOD_S, "simulated seconds",
-                    lo_open=True)
-        names = [t.town for t in self.towns]
-        if not names:
-            raise CrchflError("dataset.towns: list at least one town")
-        if len(set(names)) != len(names):
-            raise CrchflError(f"dataset.towns: each town may appear once, got {names}")
-
-
-@dataclass(frozen=True)
-class PlannedShard:
-    """One shard a generation run must produce: file name, town, split and size."""
-
-    file: str
-    town: str
-    split: str
-    index: int  # vehicle number within (town, split)
-    samples: int
-
-
-def shard_plan(config: DatasetConfig) -> list[PlannedShard]:
-    """The shards of a data set, in generation order; names are stable so a rerun can resume."""
-    plan = []
-    for town in config.towns:
-        for split, counts in (("train", town.train_samples), ("test", town.test_samples)):
-            for index, samples in enumerate(counts):
-                plan.append(PlannedShard(f"{town.town}-{split}-{index}.h5", town.town, split, index, samples))
-    return plan
 
 
 def measured_sample_bytes(manifest: Manifest) -> int:

@@ -22,7 +22,6 @@ import dataclasses
 import logging
 import math
 import zipfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -33,14 +32,15 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
-from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, check_range, check_seed
+from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
-from crchfl_sumo.driving.bench import STUCK_S, SUMO_LOG_DIR, ModelDriver, episode_log
+from crchfl_sumo.driving.bench import SUMO_LOG_DIR, ModelDriver, episode_log
+from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
-from crchfl_sumo.driving.drive import DriveConfig, drive
+from crchfl_sumo.driving.drive import drive
 from crchfl_sumo.driving.drive_command import single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint
@@ -156,11 +156,6 @@ class ExpertLabelled:
         }
 
 
-# A learner standing within this of a stop line it must stop at is labelled to hold: the data set's
-# drivers never creep towards a red light, so a creep label there is one the data never gave.
-HOLD_SHORT_M = 10.0
-
-
 # What counts as the expert correcting the learner: it brakes this much harder, or steers this far apart.
 CORRECTION_BRAKE = 0.1
 CORRECTION_STEER = 0.1
@@ -177,38 +172,6 @@ def is_correction(learner: Action, expert: Action, inside_junction: bool = False
     braking_apart = expert[2] - learner[2]
     return (braking_apart > CORRECTION_BRAKE or abs(expert[1] - learner[1]) > CORRECTION_STEER
             or (inside_junction and -braking_apart > CORRECTION_BRAKE))
-
-
-@dataclass(frozen=True)
-class DaggerConfig:
-    """Settings of one round of expert-labelled drives.
-
-    tasks     drive-bench suites the routes are drawn from
-    episodes  drives per task and town
-    seed      draws the routes (not the benchmark's seed)
-    every     one labelled sample every this many steps
-    max_s     a drive ends after this long (or when stuck for STUCK_S, as in drive-bench)
-    corrections_only  keep only the states where the expert steps in (is_correction): measured,
-              all states taught the models to run red lights (docs/model.md)
-    expert    the route expert that labels (RoutePolicyConfig); it holds where the learner stood
-              still short of a red light instead of creeping up to the line
-    """
-
-    tasks: tuple[str, ...] = ("navigation_traffic",)
-    episodes: int = 10
-    seed: int = 1000
-    every: int = 2
-    max_s: float = 90.0
-    corrections_only: bool = True
-    drive: DriveConfig = field(default_factory=lambda: DriveConfig(stuck_s=STUCK_S))
-    expert: RoutePolicyConfig = field(default_factory=lambda: RoutePolicyConfig(hold_short_m=HOLD_SHORT_M))
-
-    def __post_init__(self) -> None:
-        for name in self.tasks:
-            task_by_name(name)
-        check_range(self.episodes, "dagger.episodes", 1, 10_000, "a number of drives")
-        check_range(self.every, "dagger.every", 1, 10_000, "a number of steps")
-        check_range(self.max_s, "dagger.max_s", 0, MAX_DRIVE_S, "simulated seconds", lo_open=True)
 
 
 def labeller_config(route_expert: RoutePolicyConfig, data_expert: ExpertConfig) -> RoutePolicyConfig:
@@ -275,10 +238,6 @@ def collect(
 
 
 EXPERT_SAMPLES_FILE = "expert_samples.npz"
-# Fine-tuning a tenth as fast as the recipe trains: at the recipe's 1e-3, three epochs left one of
-# three models off the road, depending on the order of the samples alone (docs/model.md).
-FINE_TUNE_LEARNING_RATE = 1e-4
-MAX_ITERATIONS = 100
 
 
 def collected_samples(

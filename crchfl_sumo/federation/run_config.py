@@ -27,7 +27,7 @@ from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
 from crchfl_sumo.links.macro import MacroLinkConfig
 from crchfl_sumo.links.mobility import MobilityConfig
 from crchfl_sumo.links.transfer import TransferConfig
-from crchfl_sumo.planning.problem import AllocationConfig
+from crchfl_sumo.planning.settings import AllocationConfig
 from crchfl_sumo.sumo.scenario import SumoConfig
 
 

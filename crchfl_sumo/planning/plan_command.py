@@ -16,7 +16,8 @@ from crchfl_sumo.core.config import from_mapping, load_tables, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import MobilityConfig
-from crchfl_sumo.planning.problem import AllocationConfig, Plan, make_plan
+from crchfl_sumo.planning.problem import Plan, make_plan
+from crchfl_sumo.planning.settings import AllocationConfig
 from crchfl_sumo.planning.timing import planning_rate_bps, scenario_rates_bps
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.clock import Clock, LinkSeries
-from crchfl_sumo.planning.problem import AllocationConfig
+from crchfl_sumo.planning.settings import AllocationConfig
 
 
 def time_mean_rate_bps(series: LinkSeries, from_s: float, to_s: float) -> float:

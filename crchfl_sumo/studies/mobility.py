@@ -198,7 +198,7 @@ def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") ->
 
 def make_data(data: StudyData, out_dir: Path) -> Path:
     """The study's data set in ``out_dir`` (generated once; a finished one is reused)."""
-    from crchfl_sumo.data.dataset import DatasetConfig, TownSplit
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.data.generation import generate_dataset
     from crchfl_sumo.sumo.scenario import load_scenario
 

@@ -92,7 +92,7 @@ def test_from_mapping_refuses_non_finite_floats_and_bad_seeds_for_every_field():
 def test_a_dataclass_s_own_errors_name_the_file_and_the_table(tmp_path):
     from crchfl_sumo.core.config import from_mapping, load_tables
     from crchfl_sumo.federation.run_config import RunConfig
-    from crchfl_sumo.planning.problem import AllocationConfig
+    from crchfl_sumo.planning.settings import AllocationConfig
 
     def message(data, where):
         with pytest.raises(CrchflError) as info:

@@ -8,14 +8,8 @@ import torch
 from crchfl_sumo.core.atomic import TMP_MARK
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.dataset import (
-    DatasetConfig,
-    ShardDataset,
-    load_samples,
-    load_vehicle_samples,
-    measured_sample_bytes,
-    shard_plan,
-)
+from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples, measured_sample_bytes
+from crchfl_sumo.data.settings import DatasetConfig, shard_plan
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.shards import (
     MANIFEST_NAME,

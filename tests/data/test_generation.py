@@ -3,7 +3,8 @@ import pytest
 
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.dataset import DatasetConfig, load_samples, shard_plan
+from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.settings import DatasetConfig, shard_plan
 from crchfl_sumo.data.generation import assign_vehicles, generate_dataset, nearest_site
 from crchfl_sumo.data.labels import digitize_steer
 from crchfl_sumo.data.shards import read_manifest, read_shard
@@ -39,7 +40,7 @@ def test_a_plain_sumocfg_gets_data_vehicles_and_a_split_of_its_own(tmp_path):
     """A .sumocfg without a scenario.toml has one town, the whole network, with vehicles added to it."""
     import shutil
 
-    from crchfl_sumo.data.dataset import PAPER_TOWNS
+    from crchfl_sumo.data.settings import PAPER_TOWNS
     from crchfl_sumo.data.generation import DEFAULT_TEST_SAMPLES, DEFAULT_TRAIN_SAMPLES, sizes_for
     from crchfl_sumo.sumo.injection import InjectConfig
 
@@ -318,7 +319,7 @@ def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
 
 
 def test_render_groups_hold_the_shards_whose_images_fit_the_budget():
-    from crchfl_sumo.data.dataset import PlannedShard
+    from crchfl_sumo.data.settings import PlannedShard
     from crchfl_sumo.data.generation import render_groups
 
     shards = [PlannedShard(f"s{i}.h5", "town01", "train", i, n) for i, n in enumerate([3, 4, 2, 9, 1])]

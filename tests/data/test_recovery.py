@@ -5,7 +5,7 @@ import pytest
 
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.dataset import DatasetConfig
+from crchfl_sumo.data.settings import DatasetConfig
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_actions
 from crchfl_sumo.data.recovery import (
     QUEUE_CLOSE_M,

@@ -19,10 +19,12 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.data.dataset import DatasetConfig, TownSplit, load_samples
+from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.settings import DatasetConfig, TownSplit
 from crchfl_sumo.data.generation import generate_dataset
 from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.dagger import DaggerConfig, dagger_iterations
+from crchfl_sumo.driving.dagger import dagger_iterations
+from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import native_bfloat16
 from crchfl_sumo.sumo.scenario import load_scenario

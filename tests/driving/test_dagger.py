@@ -18,7 +18,8 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import SIGNAL_RED, digitize_steer
 from crchfl_sumo.data.samples import FIELDS
-from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, DaggerConfig, ExpertLabelled, collect, dagger_iterations
+from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, ExpertLabelled, collect, dagger_iterations
+from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.driving.policies import Observation
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint

@@ -22,7 +22,8 @@ from crchfl_sumo.driving.drive import (
     lane_departed,
     red_light_violations,
 )
-from crchfl_sumo.driving.dagger import DaggerConfig, ExpertLabelled
+from crchfl_sumo.driving.dagger import ExpertLabelled
+from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.driving.drive_command import drive_command
 from crchfl_sumo.driving.dynamics import (
     VehicleState,

@@ -22,7 +22,8 @@ from crchfl_sumo.learning.aggregate import weighted_average
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
 from crchfl_sumo.links.transfer import TransferConfig
-from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.planning.problem import make_plan
+from crchfl_sumo.planning.settings import AllocationConfig
 
 
 class SumTrainer:

@@ -8,7 +8,8 @@ import pytest
 from crchfl_sumo.accounting.ledger import LedgerConfig
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.links.clock import LinkSeries, ScriptedClock, Segment
-from crchfl_sumo.planning.problem import AllocationConfig, make_plan
+from crchfl_sumo.planning.problem import make_plan
+from crchfl_sumo.planning.settings import AllocationConfig
 from crchfl_sumo.planning.timing import measured_rates_bps, run_timing, time_mean_rate_bps
 
 PAPER_LIKE = AllocationConfig(alpha=0.1, gamma=0.5, d=5.0, vehicles_per_edge=(2, 3), local_samples=12584)

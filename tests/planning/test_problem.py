@@ -10,15 +10,8 @@ from crchfl_sumo.accounting.ledger import GIB, KIB, MIB, Ledger, LedgerConfig, r
 from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule, schedule_bytes, stage_one_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.planning.plan_command import format_plan, plan_command
-from crchfl_sumo.planning.problem import (
-    AllocationConfig,
-    _Relaxation,
-    costs_for,
-    make_plan,
-    objective_value,
-    round_time_s,
-    split_pretrain_batch,
-)
+from crchfl_sumo.planning.problem import _Relaxation, costs_for, make_plan, objective_value, round_time_s, split_pretrain_batch
+from crchfl_sumo.planning.settings import AllocationConfig
 
 # Explicit values, so that recalibrating the shipped defaults does not change these tests.
 PAPER_LIKE = AllocationConfig(
