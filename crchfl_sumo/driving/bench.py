@@ -27,9 +27,6 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
-from crchfl_sumo.core.schemes import REFERENCE
-from crchfl_sumo.data.commands import RouteCommands
-from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.driving.bench_behaviour import ABILITIES, behaviour
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
@@ -44,17 +41,15 @@ from crchfl_sumo.driving.bench_tasks import (
     without_traffic,
 )
 from crchfl_sumo.driving.drive import DriveConfig, drive, sumo_warnings
-from crchfl_sumo.driving.drive_command import model_expert, model_renderer, single_torch_thread
-from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
+from crchfl_sumo.driving.drivers import ReferenceDriver, driver_for, single_torch_thread
 from crchfl_sumo.learning.settings import (
     DEFAULT_BRAKE_GAIN,
     DEFAULT_STEER_DECODING,
     check_brake_gain,
     check_steer_decoding,
 )
-from crchfl_sumo.sumo.route import RouteGeometry, read_net, route_geometry
+from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
-from crchfl_sumo.sumo.turns import choice_junctions
 
 PATH_EVERY_S = 1.0  # the driven path is kept at this spacing for the figure
 # An episode ends when the ego has not moved on for one signal cycle of the towns (90 s):
@@ -96,77 +91,6 @@ class BenchConfig:
             raise CrchflError(f"bench.group_episodes must be >= 1, got {self.group_episodes}")
         check_steer_decoding(self.steer_decoding)
         check_brake_gain(self.brake_gain)
-
-
-# --- drivers: what makes the policy of an episode --------------------------------------------------------
-
-
-@dataclass
-class ReferenceDriver:
-    """The scripted RoutePolicy: knows the route, reads no images."""
-
-    label: str = REFERENCE
-    renders: bool = False
-
-    def policy(self, route: RouteGeometry, net) -> Policy:
-        return RoutePolicy(route)
-
-    def expert(self) -> ExpertConfig:
-        return ExpertConfig()
-
-
-@dataclass
-class ModelDriver:
-    """A trained checkpoint driving through ModelPolicy; the model is loaded once per process."""
-
-    path: str
-    label: str = ""
-    steer_decoding: str = DEFAULT_STEER_DECODING
-    brake_gain: float = DEFAULT_BRAKE_GAIN
-    renders: bool = True
-    _model: Any = field(default=None, repr=False, compare=False)
-    _extra: dict = field(default_factory=dict, repr=False, compare=False)  # the checkpoint's, read with the model
-
-    def __getstate__(self) -> dict:  # workers load the model themselves: only the path travels
-        return {**self.__dict__, "_model": None, "_extra": {}}
-
-    def model(self):
-        if self._model is None:
-            from crchfl_sumo.learning.checkpoint import checkpoint_model, load_checkpoint
-
-            checkpoint = load_checkpoint(self.path)
-            self._model, self._extra = checkpoint_model(checkpoint, self.path), checkpoint.extra
-        return self._model
-
-    def renderer(self, net_path: str):
-        """The cameras as the model's training data drew them (drive_command.model_renderer)."""
-        return model_renderer(net_path, self.model().config, self._extra, self.path)
-
-    def expert(self) -> ExpertConfig:
-        """The steering rack and pedal mapping the model's data were labelled with (drive_command.model_expert)."""
-        self.model()
-        return model_expert(self._extra, self.path)
-
-    def policy(self, route: RouteGeometry, net) -> Policy:
-        # The commands as the training data was labelled: at the junctions of the net with a choice.
-        return ModelPolicy(
-            self.model(), RouteCommands(route, choice_junctions(net)),
-            steer_decoding=self.steer_decoding, brake_gain=self.brake_gain, source=self.path,
-        )
-
-
-def driver_for(
-    model: str | Path | None, steer_decoding: str = DEFAULT_STEER_DECODING, brake_gain: float = DEFAULT_BRAKE_GAIN
-) -> ReferenceDriver | ModelDriver:
-    """The driver of MODEL|reference; a model path must name a checkpoint file."""
-    if model is None or str(model) == REFERENCE:
-        return ReferenceDriver()
-    path = Path(model)
-    if not path.is_file():
-        raise CrchflError(f"MODEL: no checkpoint at {path}; give a checkpoint.pt written by crchfl-sumo, or 'reference'")
-    driver = ModelDriver(str(path), label=path.stem, steer_decoding=steer_decoding, brake_gain=brake_gain)
-    driver.model()  # a file that is not a checkpoint fails here, before any episode runs
-    return driver
 
 
 # --- one group of episodes (runs in a worker process) -------------------------------------------------

@@ -37,11 +37,11 @@ from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS
-from crchfl_sumo.driving.bench import SUMO_LOG_DIR, ModelDriver, episode_log
+from crchfl_sumo.driving.bench import SUMO_LOG_DIR, episode_log
+from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drive import drive
-from crchfl_sumo.driving.drive_command import single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig

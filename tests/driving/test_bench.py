@@ -422,7 +422,7 @@ def test_the_command_runs_a_suite_and_reports_bad_input_with_status_2(ladder, tm
 
 def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
     from crchfl_sumo.core.config import to_mapping
-    from crchfl_sumo.driving.bench import ModelDriver
+    from crchfl_sumo.driving.drivers import ModelDriver
     from crchfl_sumo.learning.checkpoint import save_checkpoint
     from crchfl_sumo.learning.model import build_model
     from crchfl_sumo.learning.settings import ModelConfig
@@ -451,7 +451,7 @@ def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
 
 
 def test_a_model_drives_through_the_steering_rack_of_its_training_data(tmp_path):
-    from crchfl_sumo.driving.bench import ModelDriver
+    from crchfl_sumo.driving.drivers import ModelDriver
     from crchfl_sumo.driving.dynamics import curvature_from_steer
     from crchfl_sumo.learning.checkpoint import save_checkpoint
     from crchfl_sumo.learning.model import build_model
