@@ -12,7 +12,6 @@ import json
 import logging
 import math
 import os
-import shutil
 import sys
 import time
 from contextlib import nullcontext
@@ -313,20 +312,11 @@ def _add_render(p: argparse.ArgumentParser) -> None:
 
 
 def _run_render(args) -> int:
-    from crchfl_sumo.sumo.scenario import load_scenario
-    from crchfl_sumo.sumo.simulation import Simulation
-    from crchfl_sumo.vision.mosaic import render_run
-    from crchfl_sumo.vision.raster import Renderer
-    from crchfl_sumo.vision.world import build_world
+    from crchfl_sumo.vision.mosaic import render_vehicle
 
     with _output_folder(args, "render"):
-        scenario = load_scenario(args.scenario)
-        renderer = Renderer(build_world(scenario.net_path))
-        with Simulation(scenario, seed=args.seed, watch=[args.vehicle]) as sim:
-            result = render_run(
-                sim.run(args.duration_s), renderer, args.vehicle, args.out, every_n=args.every_n,
-                fps=1.0 / (scenario.step_length_s * args.every_n), scale=args.scale,
-            )
+        result = render_vehicle(args.scenario, args.vehicle, args.duration_s, args.out, args.every_n, args.seed,
+                                args.scale)
     print(f"{len(result.png_paths)} mosaics of {args.vehicle} over {result.frames_seen} steps -> {args.out}")
     return 0
 
@@ -407,10 +397,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args) -> int:
-    from crchfl_sumo.data.dataset import load_samples
-    from crchfl_sumo.data.shards import read_manifest
-    from crchfl_sumo.learning.settings import ModelConfig
-    from crchfl_sumo.learning.centralized import train_centralized
+    from crchfl_sumo.learning.centralized import train_command
 
     # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
     # precision its epochs trained in), which folders marked while it was kept still allow
@@ -419,16 +406,9 @@ def _run_train(args) -> int:
     if args.red_weight == TrainConfig.red_weight:  # off: a folder trained before these options existed still resumes
         del args.red_weight, args.red_window_m
     with _output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
-        train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
-        manifest = read_manifest(args.dataset)
-        model_config = ModelConfig(args.size, *train.image_hw, arch=args.arch, speed_horizon_s=manifest.speed_horizon_s)
         with ProgressBars("sample") as bars:
-            records = train_centralized(
-                train, test, args.epochs, args.out, model_config, config, args.seed, progress=bars,
-                drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"), resume=args.resume,
-                overwrite=args.overwrite,
-            )
-        last = records[-1]
+            last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
+                                 resume=args.resume, overwrite=args.overwrite, progress=bars)
         straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "
@@ -472,10 +452,10 @@ def _decoding_arguments(p: argparse.ArgumentParser) -> None:
 
 def _run_drive(args) -> int:
     from crchfl_sumo.driving.drive import DriveConfig
-    from crchfl_sumo.driving.drive_command import drive_command
+    from crchfl_sumo.driving.route_drive import drive_route
 
     with _output_folder(args, "drive"):
-        m = drive_command(
+        m = drive_route(
             None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
             args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
             steer_decoding=args.steer_decoding, brake_gain=args.brake_gain,
@@ -589,24 +569,14 @@ def _add_dagger(p: argparse.ArgumentParser) -> None:
 
 
 def _run_dagger(args) -> int:
-    from crchfl_sumo.data.dataset import load_samples
-    from crchfl_sumo.data.shards import read_manifest
-    from crchfl_sumo.driving.dagger import dagger_iterations
+    from crchfl_sumo.driving.dagger import dagger_command
     from crchfl_sumo.driving.dagger_settings import DaggerConfig
-    from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     with _output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
-        towns, tasks = _comma_list(args.towns), _comma_list(args.tasks)
-        config = DaggerConfig(tasks=tasks, episodes=args.episodes, seed=args.route_seed,
+        config = DaggerConfig(tasks=_comma_list(args.tasks), episodes=args.episodes, seed=args.route_seed,
                               corrections_only=not args.all_states)
-        start = load_checkpoint(args.model)
-        read_manifest(args.dataset).check_model(start.model_config, str(args.dataset))
-        train, test = load_samples(args.dataset, "train"), load_samples(args.dataset, "test")
-        if args.overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
-            for old in sorted(args.out.glob("iteration-*")):
-                shutil.rmtree(old)
-        records = dagger_iterations(args.model, train, test, args.out, towns, config, args.iterations, args.epochs,
-                                    args.seed, args.jobs, args.learning_rate)
+        records = dagger_command(args.model, args.dataset, args.out, _comma_list(args.towns), config,
+                                 args.iterations, args.epochs, args.seed, args.jobs, args.learning_rate, args.overwrite)
     for record in records:
         straight = record["always_straight"]
         print(

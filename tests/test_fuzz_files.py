@@ -32,7 +32,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples
 from crchfl_sumo.data.shards import LABEL_DATASETS, LABEL_SHAPES, MANIFEST_NAME, DatasetWriter, Manifest, ShardData, sha256_file
 from crchfl_sumo.data.stats import dataset_stats, write_mosaic
-from crchfl_sumo.federation.run import PREVIOUS_CHECKPOINT, run_federation_dir
+from crchfl_sumo.federation.run import PREVIOUS_STATE_FILE, STATE_FILE, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.checkpoint import CHECKPOINT_FORMAT, load_model, save_checkpoint
@@ -448,7 +448,7 @@ def test_fuzz_model_files(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def killed_run(tmp_path_factory):
-    """A run killed after its third checkpoint (checkpoint.pt and checkpoint.prev.pt there) and the whole run."""
+    """A run killed after its third checkpoint (federation_state.pt and federation_state.prev.pt there) and the whole run."""
     folder = tmp_path_factory.mktemp("fuzzrun")
     dataset = write_dataset(folder / "data", PAPER_VEHICLES)
     config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
@@ -462,7 +462,7 @@ def killed_run(tmp_path_factory):
 def run_files_mutation(out: Path, rng: np.random.Generator) -> tuple[str, bool]:
     """Damage one or two of the files a resume reads; also says whether the result must equal the whole run's."""
     kind = int(rng.integers(0, 6))
-    name = ["checkpoint.pt", PREVIOUS_CHECKPOINT][int(rng.integers(0, 2))] if kind < 4 else None
+    name = [STATE_FILE, PREVIOUS_STATE_FILE][int(rng.integers(0, 2))] if kind < 4 else None
     if kind == 0:
         data = (out / name).read_bytes()
         (out / name).write_bytes(data[: int(rng.integers(0, len(data)))])
@@ -471,7 +471,7 @@ def run_files_mutation(out: Path, rng: np.random.Generator) -> tuple[str, bool]:
         (out / name).write_bytes(flip_bits((out / name).read_bytes(), rng))
         return f"bit-flipped {name}", False  # a flip in a tensor's bytes loads: the run goes on from other weights
     if kind == 2:
-        for both in ("checkpoint.pt", PREVIOUS_CHECKPOINT):
+        for both in (STATE_FILE, PREVIOUS_STATE_FILE):
             (out / both).write_bytes(b"")
         return "both checkpoints empty", True
     if kind == 3:
@@ -507,7 +507,7 @@ def test_fuzz_run_files(killed_run, tmp_path):
             finished["summary"] = run_federation_dir(config, inputs, out, trainer=SumTrainer(), resume=True)
 
         outcomes.check(f"case {case} ({what})", out, resume)
-        if finished and exact:  # a detectably bad checkpoint.pt: the previous one carried on to the same end
+        if finished and exact:  # a detectably bad federation_state.pt: the previous one carried on to the same end
             assert result_files(out) == whole, f"case {case} ({what}) resumed to other results"
     outcomes.assert_clean(CASES["run files"])
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import shutil
 import zipfile
 from pathlib import Path
 from typing import Sequence
@@ -33,10 +34,11 @@ from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
+from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.shards import DRIVE_SETTINGS
+from crchfl_sumo.data.shards import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.driving.bench import SUMO_LOG_DIR, episode_log
 from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
@@ -337,3 +339,20 @@ def dagger_iterations(
     }
     write_json(out_dir / "summary.json", summary)
     return records
+
+
+def dagger_command(
+    model: str | Path, dataset: str | Path, out_dir: str | Path, towns: Sequence[str], config: DaggerConfig,
+    iterations: int = 1, epochs: int = 3, seed: int = 0, jobs: int = 1,
+    learning_rate: float = FINE_TUNE_LEARNING_RATE, overwrite: bool = False,
+) -> list[dict]:
+    """What `crchfl-sumo dagger` does: ``dagger_iterations`` from ``model`` on the data set it was trained on
+    (checked against it first); ``overwrite`` starts afresh, without the earlier iterations' samples."""
+    start = load_checkpoint(model)
+    read_manifest(dataset).check_model(start.model_config, str(dataset))
+    train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
+    if overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
+        for old in sorted(Path(out_dir).glob("iteration-*")):
+            shutil.rmtree(old)
+    return dagger_iterations(model, train, test, out_dir, towns, config, iterations, epochs, seed, jobs,
+                             learning_rate)

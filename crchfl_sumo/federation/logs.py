@@ -59,7 +59,7 @@ def restore_logs(out_dir: Path, marks: Marks, sizes: ByteSizes) -> tuple[list[Re
         path = out_dir / name
         if not path.is_file() or path.stat().st_size < marks[name]["offset"]:
             raise CrchflError(
-                f"{path}: missing or shorter than checkpoint.pt says ({marks[name]['offset']} bytes); "
+                f"{path}: missing or shorter than federation_state.pt says ({marks[name]['offset']} bytes); "
                 "the folder was changed after the run; delete it to start afresh"
             )
         os.truncate(path, marks[name]["offset"])
@@ -73,7 +73,7 @@ def restore_logs(out_dir: Path, marks: Marks, sizes: ByteSizes) -> tuple[list[Re
     for name, entries in ((LEDGER, records), (METRICS, lines[METRICS]), (STRAGGLERS, lines[STRAGGLERS])):
         if len(entries) != marks[name]["lines"]:
             raise CrchflError(
-                f"{out_dir / name}: {len(entries)} entries where checkpoint.pt says {marks[name]['lines']}; "
+                f"{out_dir / name}: {len(entries)} entries where federation_state.pt says {marks[name]['lines']}; "
                 "delete the folder to start afresh"
             )
     return records, lines[METRICS], lines[STRAGGLERS]

@@ -4,9 +4,10 @@ DIR receives (every file written atomically):
 
   config.toml      the config file as given
   config.json      the resolved run: settings, the four hyper-parameters used, byte sizes
-  checkpoint.pt    the FederationState after the latest step less its history, and the logs' marks
-                   (what --resume reads)
-  checkpoint.prev.pt  the one of the step before (what --resume reads if checkpoint.pt is damaged)
+  federation_state.pt  the FederationState after the latest step less its history, and the logs' marks
+                   (what --resume reads; a model is never in a file of this name, nor the state in a
+                   checkpoint.pt: runs written before this name, as checkpoint.pt, are renamed on resume)
+  federation_state.prev.pt  the one of the step before (what --resume reads if the latest is damaged)
   metrics.jsonl    one line per aggregation (stage I, each edge aggregation, each cloud aggregation)
   ledger.jsonl     every charged transfer (first line: the sizes)
   stragglers.jsonl every vehicle that missed an aggregation or a download, and why
@@ -27,8 +28,8 @@ logs are cut back to the checkpoint's marks. A step writes its log lines,
 then the checkpoint, then the files derived from the state (models, summary),
 on a background thread while the next step runs (core/background.py: one
 save at a time, in order; the run waits for the last before it returns).
-The checkpoint it replaces becomes checkpoint.prev.pt, so one empty, truncated
-or damaged checkpoint.pt costs a step, not the run: a resume refuses it with
+The state it replaces becomes federation_state.prev.pt, so one empty, truncated
+or damaged federation_state.pt costs a step, not the run: a resume refuses it with
 a message and continues from the previous one. A run or resume first removes
 the temporaries a killed atomic write left (core/atomic.py).
 """
@@ -38,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -84,7 +86,7 @@ from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
 from crchfl_sumo.links.residence import Coverage, sites_coverage
-from crchfl_sumo.planning.plan_command import calibrated
+from crchfl_sumo.planning.settings import calibrated
 from crchfl_sumo.planning.problem import make_plan
 from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
 
@@ -92,8 +94,9 @@ log = logging.getLogger(__name__)
 
 TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
-CHECKPOINT = "checkpoint.pt"
-PREVIOUS_CHECKPOINT = previous_path(CHECKPOINT).name  # checkpoint.prev.pt: the step before's, for a damaged one
+STATE_FILE = "federation_state.pt"
+PREVIOUS_STATE_FILE = previous_path(STATE_FILE).name  # federation_state.prev.pt: the step before's, for a damaged one
+LEGACY_STATE_FILE = "checkpoint.pt"  # the state's name before: a model's name elsewhere (learning.centralized)
 
 
 # Builds the vehicles' route experts of a run with [dagger] (driving.vehicle_dagger.labeller_factory).
@@ -162,7 +165,8 @@ def run_federation_dir(
     before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
-    if ((out_dir / CHECKPOINT).exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()) and not resume:
+    adopt_legacy_state(out_dir)
+    if ((out_dir / STATE_FILE).exists() or (out_dir / PREVIOUS_STATE_FILE).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     if config.dagger.enabled and labeller_factory is None:
         raise CrchflError("[dagger]: this command cannot drive the vehicles' models; run it with `crchfl-sumo run`")
@@ -188,7 +192,7 @@ def _run_with_trainer(
     after_checkpoint: Callable[[FederationState], None] | None,
     labeller: Labeller | None,
 ) -> dict:
-    checkpoint_path = out_dir / CHECKPOINT
+    checkpoint_path = out_dir / STATE_FILE
     out_dir.mkdir(parents=True, exist_ok=True)
     for path in remove_stale_temporaries(out_dir):
         log.info("removed %s left by an interrupted run", path)
@@ -224,7 +228,7 @@ def _run_with_trainer(
             dagger=config.dagger,
         )
         state = None
-        if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_CHECKPOINT).exists()):
+        if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_STATE_FILE).exists()):
             state, marks = _load_state(checkpoint_path, resolved, sizes, config.backend)
             if state.done:  # finished before: only the derived files may be missing
                 _write_outputs(out_dir, config, setup, state, settings, _handovers(clock, state), baseline)
@@ -383,8 +387,19 @@ def budget_mark_results(config: RunConfig, setup: LoopInputs, state: FederationS
     return results
 
 
+def adopt_legacy_state(out_dir: Path) -> None:
+    """A run folder written when the state was checkpoint.pt (and checkpoint.prev.pt): rename them to today's
+    names, so that it resumes. A folder is a run's when it holds the run's config.json beside them."""
+    legacy = out_dir / LEGACY_STATE_FILE
+    if (out_dir / "config.json").is_file() and legacy.is_file() and not (out_dir / STATE_FILE).exists():
+        for old, new in ((previous_path(legacy), out_dir / PREVIOUS_STATE_FILE), (legacy, out_dir / STATE_FILE)):
+            if old.is_file():
+                os.replace(old, new)
+                log.info("renamed %s to %s (the federation state's name since)", old, new.name)
+
+
 def _save_state(path: Path, resolved: dict, state: FederationState, marks: Marks) -> None:
-    """Write checkpoint.pt atomically; the one it replaces becomes checkpoint.prev.pt (core.atomic)."""
+    """Write federation_state.pt atomically; the one it replaces becomes federation_state.prev.pt (core.atomic)."""
     with atomic_path_keeping_previous(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "resolved": resolved, "state": state.to_payload(), "logs": marks}, tmp)
 
@@ -418,8 +433,8 @@ def _is_marks(marks: Any) -> bool:
 def _load_state(path: Path, resolved: dict, sizes, backend: BackendConfig) -> tuple[FederationState, Marks]:
     """The checkpointed state, its history read back from the logs (cut back to their marks), and the marks.
 
-    A checkpoint.pt that is missing, empty, truncated or malformed is refused
-    with a warning and the previous step's checkpoint.prev.pt is read instead;
+    A federation_state.pt that is missing, empty, truncated or malformed is refused
+    with a warning and the previous step's federation_state.prev.pt is read instead;
     with neither readable the resume stops with both reasons.
     """
     payload, path = read_latest(path, _read_checkpoint, "checkpoint", "delete the folder to start afresh")

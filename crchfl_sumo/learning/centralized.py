@@ -17,6 +17,8 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress
+from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
@@ -222,3 +224,19 @@ def _resumable_checkpoint(path: Path) -> Checkpoint:
             "delete the folder to train afresh"
         )
     return checkpoint
+
+
+def train_command(
+    dataset: str | Path, out_dir: str | Path, epochs: int, size: str, arch: str, config: TrainConfig, seed: int,
+    resume: bool = False, overwrite: bool = False, progress: Progress | None = None,
+) -> dict[str, Any]:
+    """What `crchfl-sumo train` does: the model of ``size`` and ``arch`` at the data set's image size and speed
+    horizon, trained on its train shards and evaluated on its test shards; the last epoch's metrics line."""
+    train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
+    manifest = read_manifest(dataset)
+    model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s)
+    records = train_centralized(
+        train, test, epochs, out_dir, model_config, config, seed, progress=progress,
+        drive_settings=manifest.drive_settings(f"{dataset}/manifest.json"), resume=resume, overwrite=overwrite,
+    )
+    return records[-1]

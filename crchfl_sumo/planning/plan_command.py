@@ -12,12 +12,11 @@ from pathlib import Path
 from typing import Any
 
 from crchfl_sumo.accounting.ledger import GIB, LedgerConfig
-from crchfl_sumo.core.config import from_mapping, load_tables, read_toml
-from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.config import load_tables
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import MobilityConfig
 from crchfl_sumo.planning.problem import Plan, make_plan
-from crchfl_sumo.planning.settings import AllocationConfig
+from crchfl_sumo.planning.settings import AllocationConfig, calibrated
 from crchfl_sumo.planning.timing import planning_rate_bps, scenario_rates_bps
 
 
@@ -47,27 +46,6 @@ def format_plan(plan: Plan) -> str:
         f"solve {plan.solve_s * 1e3:.1f} ms, search {plan.search_s * 1e3:.1f} ms"
     )
     return "\n".join(lines)
-
-
-def calibrated(config: AllocationConfig) -> AllocationConfig:
-    """``config`` with alpha, gamma, d from its ``calibration_file`` (unchanged without one)."""
-    if config.calibration_file is None:
-        return config
-    path = Path(config.calibration_file)
-    if not path.is_file():
-        raise CrchflError(
-            f"allocation.calibration_file: {path} not found; write it with `crchfl-sumo calibrate --out {path}` "
-            "or fix the path (relative to the current directory)"
-        )
-    table = read_toml(path).get("allocation", {})
-    missing = [key for key in ("alpha", "gamma", "d") if key not in table]
-    if missing:
-        raise CrchflError(
-            f"allocation.calibration_file: {path} has no {', '.join(missing)} in its [allocation] table; "
-            "point it at a file written by `crchfl-sumo calibrate`"
-        )
-    weights = from_mapping(AllocationConfig, {k: table[k] for k in ("alpha", "gamma", "d")}, f"{path}: allocation")
-    return dataclasses.replace(config, alpha=weights.alpha, gamma=weights.gamma, d=weights.d, calibration_file=None)
 
 
 def load_plan_configs(config_path: str | Path | None) -> tuple[AllocationConfig, LedgerConfig]:

@@ -1,10 +1,13 @@
-"""The resource optimizer's settings (TOML ``[allocation]``), apart from problem.py: a run config reads
-them without loading CVXPY."""
+"""The resource optimizer's settings (TOML ``[allocation]``) and its calibration file, apart from problem.py:
+a run config reads them without loading CVXPY."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
+from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, MAX_RATE_BPS, MAX_SAMPLES, MAX_SIMULATED_S, check_range
 from crchfl_sumo.sumo.sites import MAX_SITES
@@ -124,3 +127,24 @@ class AllocationConfig:
     def cloud_intervals(self, edge_interval: int) -> range:
         """0 < I_c < I_e, as written in the paper, and I_c <= max_cloud_interval."""
         return range(1, min(self.max_cloud_interval, edge_interval - 1) + 1)
+
+
+def calibrated(config: AllocationConfig) -> AllocationConfig:
+    """``config`` with alpha, gamma, d from its ``calibration_file`` (unchanged without one)."""
+    if config.calibration_file is None:
+        return config
+    path = Path(config.calibration_file)
+    if not path.is_file():
+        raise CrchflError(
+            f"allocation.calibration_file: {path} not found; write it with `crchfl-sumo calibrate --out {path}` "
+            "or fix the path (relative to the current directory)"
+        )
+    table = read_toml(path).get("allocation", {})
+    missing = [key for key in ("alpha", "gamma", "d") if key not in table]
+    if missing:
+        raise CrchflError(
+            f"allocation.calibration_file: {path} has no {', '.join(missing)} in its [allocation] table; "
+            "point it at a file written by `crchfl-sumo calibrate`"
+        )
+    weights = from_mapping(AllocationConfig, {k: table[k] for k in ("alpha", "gamma", "d")}, f"{path}: allocation")
+    return dataclasses.replace(config, alpha=weights.alpha, gamma=weights.gamma, d=weights.d, calibration_file=None)

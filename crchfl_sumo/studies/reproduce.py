@@ -364,10 +364,10 @@ def _federated(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -
 
 
 def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
-    from crchfl_sumo.driving.drive_command import drive_command
+    from crchfl_sumo.driving.route_drive import drive_route
 
     model = None if part.scheme == REFERENCE else model_for(out_dir, part.scheme)
-    drive_command(
+    drive_route(
         model, None, part.route, out_dir / part.key, seed=config.drive_seed, max_s=config.drive_max_s,
         config=config.drive, video=config.drive_video, steer_decoding=config.steer_decoding,
     )

@@ -22,10 +22,12 @@ import numpy as np
 from crchfl_sumo.core.atomic import atomic_write_bytes, temporary_beside
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.scenario import load_scenario
+from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.vision.camera import CAMERA_NAMES, ground_rays
 from crchfl_sumo.vision.objects import LAMP_RGB, lit_lamps, vehicle_rgb
 from crchfl_sumo.vision.raster import Renderer
-from crchfl_sumo.vision.world import SKY_RGB
+from crchfl_sumo.vision.world import SKY_RGB, build_world
 
 log = logging.getLogger(__name__)
 
@@ -214,3 +216,18 @@ def render_run(
         )
     log.info("wrote %d mosaics of %s and %s", len(paths), vehicle_id, video_path)
     return RunPictures(tuple(paths), video_path, seen)
+
+
+def render_vehicle(
+    scenario_name: str, vehicle_id: str, duration_s: float, out_dir: str | Path, every_n: int = 1, seed: int = 0,
+    scale: int = 3,
+) -> RunPictures:
+    """What `crchfl-sumo render` does: simulate ``scenario_name`` and draw ``vehicle_id``'s four cameras
+    with a top-down view every ``every_n``-th step into ``out_dir`` (step_*.png, run.mp4)."""
+    scenario = load_scenario(scenario_name)
+    renderer = Renderer(build_world(scenario.net_path))
+    with Simulation(scenario, seed=seed, watch=[vehicle_id]) as sim:
+        return render_run(
+            sim.run(duration_s), renderer, vehicle_id, out_dir, every_n=every_n,
+            fps=1.0 / (scenario.step_length_s * every_n), scale=scale,
+        )

@@ -24,7 +24,7 @@ from crchfl_sumo.driving.drive import (
 )
 from crchfl_sumo.driving.dagger import ExpertLabelled
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
-from crchfl_sumo.driving.drive_command import drive_command
+from crchfl_sumo.driving.route_drive import drive_route
 from crchfl_sumo.driving.dynamics import (
     VehicleState,
     acceleration_from_pedals,
@@ -499,13 +499,13 @@ def test_model_policy_feeds_the_route_command_and_the_ego_speed(roads):
 
 
 @pytest.mark.slow
-def test_drive_command_writes_metrics_pictures_and_video(roads, tmp_path):
+def test_drive_route_writes_metrics_pictures_and_video(roads, tmp_path):
     checkpoint = tmp_path / "model.pt"
     model = build_model(ModelConfig(), seed=0)
     save_checkpoint(checkpoint, model.config, model.state_dict())
     scenario = str(roads / "signal.sumocfg")
-    scripted = drive_command(None, scenario, "AB,BC", tmp_path / "script", seed=1, max_s=30.0, config=NO_WARMUP)
-    learned = drive_command(checkpoint, scenario, "AB,BC", tmp_path / "model", seed=1, max_s=3.0, config=NO_WARMUP)
+    scripted = drive_route(None, scenario, "AB,BC", tmp_path / "script", seed=1, max_s=30.0, config=NO_WARMUP)
+    learned = drive_route(checkpoint, scenario, "AB,BC", tmp_path / "model", seed=1, max_s=3.0, config=NO_WARMUP)
     for folder, metrics in ((tmp_path / "script", scripted), (tmp_path / "model", learned)):
         assert json.loads((folder / "metrics.json").read_text()) == metrics
         assert (folder / "trajectory.png").stat().st_size > 0 and (folder / "drive.mp4").stat().st_size > 0

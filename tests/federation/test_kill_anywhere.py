@@ -3,7 +3,7 @@
 The chosen-step resume tests (test_run.py) raise inside the process after a
 checkpoint; this one kills the process wherever it is: inside an atomic write,
 between a log append and its checkpoint, between the two renames that keep
-checkpoint.prev.pt. The trainer is the cheap SumTrainer (the files do not
+federation_state.prev.pt. The trainer is the cheap SumTrainer (the files do not
 depend on what learning does; test_run.py pins the torch trainer's resume).
 """
 

@@ -1,4 +1,4 @@
-"""`run --resume` against damaged files: stale temporaries swept, a bad checkpoint.pt falls back to the one before."""
+"""`run --resume` against damaged files: stale temporaries swept, a bad federation_state.pt falls back to the one before."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 from crchfl_sumo.core.atomic import TMP_MARK
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.federation.run import PREVIOUS_CHECKPOINT, run_federation_dir
+from crchfl_sumo.federation.run import PREVIOUS_STATE_FILE, STATE_FILE, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import read_inputs
 
@@ -46,15 +46,15 @@ def steps_in(path: Path) -> int:
 
 def test_the_checkpoint_of_the_step_before_is_kept(setup, tmp_path):
     killed_run(setup, tmp_path / "out", 3)
-    assert steps_in(tmp_path / "out" / "checkpoint.pt") == 3
-    assert steps_in(tmp_path / "out" / PREVIOUS_CHECKPOINT) == 2
+    assert steps_in(tmp_path / "out" / STATE_FILE) == 3
+    assert steps_in(tmp_path / "out" / PREVIOUS_STATE_FILE) == 2
 
 
 @pytest.mark.parametrize("damage", ["empty", "truncated", "garbage", "other payload", "missing"])
 def test_a_damaged_checkpoint_resumes_from_the_previous_one_exactly(setup, tmp_path, damage, caplog):
     out = tmp_path / "out"
     killed_run(setup, out, 3)
-    path = out / "checkpoint.pt"
+    path = out / STATE_FILE
     data = path.read_bytes()
     if damage == "missing":  # killed between the two renames of _save_state
         path.unlink()
@@ -68,18 +68,18 @@ def test_a_damaged_checkpoint_resumes_from_the_previous_one_exactly(setup, tmp_p
     assert result_files(out) == result_files(setup[2])  # the same files as the uninterrupted run
     assert summary == json.loads((setup[2] / "summary.json").read_text())
     if damage != "missing":
-        assert any("resuming from" in r.getMessage() and PREVIOUS_CHECKPOINT in r.getMessage() for r in caplog.records)
+        assert any("resuming from" in r.getMessage() and PREVIOUS_STATE_FILE in r.getMessage() for r in caplog.records)
 
 
 def test_with_no_readable_checkpoint_the_resume_stops_with_a_clear_message(setup, tmp_path):
     out = tmp_path / "out"
     killed_run(setup, out, 1)  # the first step: no previous checkpoint yet
-    assert not (out / PREVIOUS_CHECKPOINT).exists()
-    (out / "checkpoint.pt").write_bytes(b"")
-    with pytest.raises(CrchflError, match=r"checkpoint\.pt: not a readable federation checkpoint \(empty, truncated"):
+    assert not (out / PREVIOUS_STATE_FILE).exists()
+    (out / STATE_FILE).write_bytes(b"")
+    with pytest.raises(CrchflError, match=r"federation_state\.pt: not a readable federation checkpoint \(empty, truncated"):
         resume(setup, out)
     killed_run(setup, tmp_path / "two", 3)
-    for name in ("checkpoint.pt", PREVIOUS_CHECKPOINT):
+    for name in (STATE_FILE, PREVIOUS_STATE_FILE):
         (tmp_path / "two" / name).write_bytes(b"\0" * 10)
     with pytest.raises(CrchflError, match="the previous checkpoint is no better") as caught:
         resume(setup, tmp_path / "two")
@@ -102,11 +102,11 @@ def test_with_no_readable_checkpoint_the_resume_stops_with_a_clear_message(setup
 def test_a_malformed_checkpoint_payload_is_refused(setup, tmp_path, change, message):
     out = tmp_path / "out"
     killed_run(setup, out, 1)
-    path = out / "checkpoint.pt"
+    path = out / STATE_FILE
     payload = torch.load(path, weights_only=True)
     change(payload)
     torch.save(payload, path)
-    with pytest.raises(CrchflError, match=f"checkpoint.pt: malformed federation checkpoint.*{message}"):
+    with pytest.raises(CrchflError, match=f"{STATE_FILE}: malformed federation checkpoint.*{message}"):
         resume(setup, out)
 
 
@@ -114,7 +114,7 @@ def test_stale_temporaries_are_swept_at_the_start_of_a_run_and_a_resume(setup, t
     config, inputs, _ = setup
     out = tmp_path / "out"
     out.mkdir()
-    stale = [out / f".checkpoint.pt{TMP_MARK}abc.pt", out / f".summary.json{TMP_MARK}x.json"]
+    stale = [out / f".{STATE_FILE}{TMP_MARK}abc.pt", out / f".summary.json{TMP_MARK}x.json"]
     for path in stale:
         path.write_bytes(b"half a file")
     keep = out / "notes.txt"
@@ -132,6 +132,6 @@ def test_a_folder_with_only_the_previous_checkpoint_still_counts_as_a_run(setup,
     config, inputs, _ = setup
     out = tmp_path / "out"
     killed_run(setup, out, 2)
-    (out / "checkpoint.pt").unlink()
+    (out / STATE_FILE).unlink()
     with pytest.raises(CrchflError, match="already holds a run; pass --resume"):
         run_federation_dir(config, inputs, out, trainer=SumTrainer())

@@ -38,7 +38,7 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     seen = []
     summary = run_command(path, tmp_path / "out", progress=seen.append)
     out = tmp_path / "out"
-    for name in ("config.toml", "config.json", "checkpoint.pt", "best_model.pt", "final_model.pt"):
+    for name in ("config.toml", "config.json", "federation_state.pt", "best_model.pt", "final_model.pt"):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text()) == summary
     for key in ("scheme", "cloud_rounds", "edge_aggregations", "consumed_bytes", "budget_bytes", "best_accuracy",
@@ -99,6 +99,23 @@ def test_kill_at_any_step_and_resume_gives_the_same_files(tmp_path, dataset, kil
         run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(kill_at))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
     assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
+
+
+def test_a_folder_whose_state_was_checkpoint_pt_resumes_under_todays_name(tmp_path, dataset):
+    config = from_mapping(RunConfig, run_config(dataset, scheme="hfl", cloud_interval=2, cloud_rounds=2))
+    inputs = read_inputs(config)
+    run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    old = tmp_path / "old"
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, old, trainer=SumTrainer(), after_checkpoint=kill_after(3))
+    # the folder as runs wrote it before the state had a name of its own
+    (old / "federation_state.pt").rename(old / "checkpoint.pt")
+    (old / "federation_state.prev.pt").rename(old / "checkpoint.prev.pt")
+    with pytest.raises(CrchflError, match="--resume"):
+        run_federation_dir(config, inputs, old, trainer=SumTrainer())
+    run_federation_dir(config, inputs, old, trainer=SumTrainer(), resume=True)
+    assert result_files(old) == result_files(tmp_path / "whole")
+    assert not (old / "checkpoint.pt").exists() and not (old / "checkpoint.prev.pt").exists()
 
 
 def test_resume_with_other_settings_is_refused(tmp_path, dataset):
@@ -282,7 +299,7 @@ def test_the_bytes_a_step_writes_do_not_grow_with_the_record_count(tmp_path, dat
 
     def note(state):
         texts = {name: (out / name).read_bytes() for name in logs}
-        rewritten = sum((out / name).stat().st_size for name in ("checkpoint.pt", "summary.json", "final_model.pt")
+        rewritten = sum((out / name).stat().st_size for name in ("federation_state.pt", "summary.json", "final_model.pt")
                         if (out / name).exists())
         seen.append((len(state.records), texts, rewritten))
 
@@ -367,7 +384,7 @@ def test_a_log_shorter_than_the_checkpoint_is_refused(tmp_path, dataset):
     with pytest.raises(Killed):
         run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=kill_after(2))
     (tmp_path / "out" / "metrics.jsonl").write_text("")
-    with pytest.raises(CrchflError, match="metrics.jsonl: missing or shorter than checkpoint.pt"):
+    with pytest.raises(CrchflError, match="metrics.jsonl: missing or shorter than federation_state.pt"):
         run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
 
 

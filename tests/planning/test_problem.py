@@ -222,7 +222,7 @@ def test_format_plan_lists_stage_shares():
 
 def test_calibration_file_supplies_the_weights(tmp_path):
     from crchfl_sumo.planning.calibration import Fit, calibration_toml
-    from crchfl_sumo.planning.plan_command import calibrated
+    from crchfl_sumo.planning.settings import calibrated
 
     # the file exactly as `calibrate` writes it (the record's values do not matter here)
     data = {"metric": "loss", "local_samples": 10, "test_samples": 4, "epochs": 2, "reference_samples": [4, 10],

@@ -1,4 +1,4 @@
-"""The `crchfl-sumo drive` command: load a model or the reference, drive a named route, write the outputs.
+"""A named route driven by a model or the reference, its outputs written (what `crchfl-sumo drive` does).
 
 It sits above drive.py (the loop) and plots.py (the pictures), so neither of
 those imports the other's caller.
@@ -23,7 +23,7 @@ from crchfl_sumo.vision.world import build_world
 SUMO_LOG_FILE = "sumo.log"  # SUMO's warnings of the drive, instead of the console
 
 
-def drive_command(
+def drive_route(
     model_path: str | Path | None,
     scenario: str | None,
     route: str,
@@ -35,7 +35,7 @@ def drive_command(
     steer_decoding: str = DEFAULT_STEER_DECODING,
     brake_gain: float = DEFAULT_BRAKE_GAIN,
 ) -> dict[str, Any]:
-    """The `crchfl-sumo drive` body: drive a route, write metrics, trajectory, pictures; return the metrics.
+    """What `crchfl-sumo drive` does: drive a route, write metrics, trajectory, pictures; return the metrics.
 
     ``model_path`` None drives with the scripted RoutePolicy (the reference).
     Writes OUT/metrics.json, OUT/trajectory.csv, OUT/trajectory.png,
