@@ -18,6 +18,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from crchfl_sumo import __version__
+from crchfl_sumo.core.result_files import RESULTS_MD_FILE
 from crchfl_sumo.core.cpus import available_cpus, choose_wait_policy, settle_native_libraries
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
@@ -639,7 +640,7 @@ def _run_sweep(args) -> int:
 
     # checks --out after --param
     rows = sweep_command(args.config, args.param, args.out, args.backend, args.address, args.seeds)
-    print((args.out / "results.md").read_text(encoding="utf-8"), end="")
+    print((args.out / RESULTS_MD_FILE).read_text(encoding="utf-8"), end="")
     print(f"{len(rows)} runs -> {args.out}")
     return 0
 
@@ -660,7 +661,7 @@ def _run_mobility_study(args) -> int:
     from crchfl_sumo.studies.mobility import mobility_study_command
 
     rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
-    print((args.out / "results.md").read_text(encoding="utf-8"), end="")
+    print((args.out / RESULTS_MD_FILE).read_text(encoding="utf-8"), end="")
     seeds = max((r["seeds"] for r in rows), default=0)
     print(f"{len({r['point'] for r in rows})} points x {seeds} seed(s) -> {args.out}")
     return 0

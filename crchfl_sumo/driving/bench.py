@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from crchfl_sumo.core.result_files import EPISODES_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
@@ -256,10 +257,10 @@ def run_benchmark(
 
 def write_outputs(out: Path, summary: dict, records: list[dict], scenarios: dict[str, Scenario]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "summary.json", summary)
-    write_json(out / "episodes.json", records, indent=1)
-    atomic_write_text(out / "results.md", results_table(summary) + "\n")
-    atomic_write_text(out / "results.csv", results_csv(summary))
+    write_json(out / SUMMARY_FILE, summary)
+    write_json(out / EPISODES_FILE, records, indent=1)
+    atomic_write_text(out / RESULTS_MD_FILE, results_table(summary) + "\n")
+    atomic_write_text(out / RESULTS_CSV_FILE, results_csv(summary))
     plot_benchmark(records, {s.name: Path(s.net_path) for s in scenarios.values()}, summary["tasks"],
                    out / "trajectories.png", title=f"drive-bench: {summary['driver']}")
 

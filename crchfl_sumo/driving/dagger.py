@@ -28,6 +28,7 @@ from typing import Sequence
 
 import numpy as np
 
+from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping
@@ -47,7 +48,7 @@ from crchfl_sumo.driving.drive import drive
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
-from crchfl_sumo.learning.centralized import CHECKPOINT_FILE, train_centralized
+from crchfl_sumo.learning.centralized import train_centralized
 from crchfl_sumo.sumo.route import inside_crossing, next_signal, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
@@ -317,7 +318,7 @@ def dagger_iterations(
             seed + iteration, initial_state=start.state_dict if iteration == 1 else load_checkpoint(current).state_dict,
             drive_settings=drive_settings, resume=True,
         )
-        current = folder / CHECKPOINT_FILE
+        current = folder / MODEL_FILE
         last = metrics[-1]
         records.append({
             "iteration": iteration,
@@ -329,7 +330,7 @@ def dagger_iterations(
             "balanced_accuracy": last["balanced_accuracy"],
             "always_straight": last["always_straight"],
         })
-    with atomic_path(out_dir / CHECKPOINT_FILE) as temp:
+    with atomic_path(out_dir / MODEL_FILE) as temp:
         temp.write_bytes(current.read_bytes())
     summary = {
         "start_checkpoint": str(checkpoint), "towns": list(towns), "tasks": list(config.tasks),
@@ -337,7 +338,7 @@ def dagger_iterations(
         "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "learning_rate": learning_rate, "seed": seed,
         "iterations": records,
     }
-    write_json(out_dir / "summary.json", summary)
+    write_json(out_dir / SUMMARY_FILE, summary)
     return records
 
 

@@ -13,9 +13,12 @@ action means in the loop what it meant in the data set:
 The expert labelled the footprint centre's track with delta = atan(wheelbase *
 kappa), so the loop moves the centre on arcs of curvature tan(delta) /
 wheelbase: a steer label replayed gives back the curvature it was made from.
-The new pose is placed in SUMO with moveToXY (free placement, front bumper,
-libsumo via sim.py) and the ego's speed is set, so the other vehicles follow,
-stop behind and yield to it as to any other vehicle.
+In SUMO the ego is placed with moveToXY at its progress on the route, on the
+lane the route plans there (its front bumper on that lane's centre line): SUMO
+never maps it onto another lane or edge. Its exact pose stays the loop's: the
+cameras, the metrics and the collision check (the footprints overlap) use it.
+The ego's speed is set, so the other vehicles follow, stop behind and yield to
+it as to any other vehicle.
 
 Metrics are measured against the planned route's lane centre line (the lanes
 of the route's edges joined by the junctions' internal lanes), read from the
@@ -40,6 +43,7 @@ from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals,
 from crchfl_sumo.driving.policies import Observation, Policy, leader_gap_m
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
+    point_at,
     RED_LETTERS,
     Crossing,
     RouteGeometry,
@@ -315,13 +319,15 @@ def drive(
             rows.append(record | {"throttle": throttle, "steer": steer, "brake": brake})
             accel = acceleration_from_pedals(throttle, brake, state.speed_mps, max_accel, max_decel, expert)
             new_state = bicycle_step(state, accel, steer, dt, expert)
-            sim.place_vehicle(
-                ego,
-                new_state.x_m + length / 2.0 * math.cos(new_state.heading_rad),
-                new_state.y_m + length / 2.0 * math.sin(new_state.heading_rad),
-                new_state.heading_rad,
-                new_state.speed_mps,
+            new_s, offset, lane_width = (
+                float(v[0])
+                for v in project_points(route, new_state.x_m, new_state.y_m, s - _SEARCH_BACK_M, s + _SEARCH_AHEAD_M)
             )
+            # SUMO holds the ego on the lane its route plans, at the ego's progress: never on another lane or
+            # edge (its own pose, which the cameras and metrics use, stays the loop's)
+            front_s = new_s + length / 2.0
+            x_front, y_front, heading = point_at(route, front_s)
+            sim.place_vehicle(ego, x_front, y_front, heading, new_state.speed_mps, lane_id=route.lane_at(front_s))
             seen = frame
             frame = sim.step()
             removed = ego not in frame.ids
@@ -329,10 +335,6 @@ def drive(
                 log.warning("SUMO removed the ego '%s' at t=%.2f s; the drive ends there", ego, frame.t_s)
                 frame = dataclasses.replace(seen, t_s=frame.t_s, tls_states=frame.tls_states)
             colliding = ego in sim.colliding_vehicles() or _touches_another(frame, ego, new_state, length, width)
-            new_s, offset, lane_width = (
-                float(v[0])
-                for v in project_points(route, new_state.x_m, new_state.y_m, s - _SEARCH_BACK_M, s + _SEARCH_AHEAD_M)
-            )
             red = bool(red_light_violations(route.crossings, s + length / 2.0, new_s + length / 2.0, seen.tls_states))
             state, s = new_state, new_s
             if s >= moved_s + STUCK_PROGRESS_M:

@@ -11,7 +11,6 @@ by side later from their folders alone.
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 from pathlib import Path
@@ -20,9 +19,10 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from crchfl_sumo.core.atomic import atomic_path, atomic_write_text
+from crchfl_sumo.core.result_files import DRIVE_METRICS_FILE
+from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.json_files import read_json_object
+from crchfl_sumo.core.json_files import read_json_object, write_json
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
 from crchfl_sumo.sumo.maps import draw_network
@@ -265,8 +265,8 @@ def write_drive_outputs(
     """metrics.json, trajectory.csv, trajectory.png, frames/*.png and drive.mp4 of one drive."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    written = {"metrics": out_dir / "metrics.json", "trajectory_csv": out_dir / "trajectory.csv"}
-    atomic_write_text(written["metrics"], json.dumps(dict(metrics), indent=2) + "\n")
+    written = {"metrics": out_dir / DRIVE_METRICS_FILE, "trajectory_csv": out_dir / "trajectory.csv"}
+    write_json(written["metrics"], dict(metrics))
     write_trajectory_csv(written["trajectory_csv"], result.log)
     written["trajectory_png"] = out_dir / "trajectory.png"
     runs = {label: (result.log, metrics)}
@@ -310,7 +310,7 @@ def compare_runs(run_dirs: Sequence[str | Path], labels: Sequence[str] | None, o
     runs = {}
     first = None
     for label, folder in zip(labels, run_dirs):
-        metrics_path = folder / "metrics.json"
+        metrics_path = folder / DRIVE_METRICS_FILE
         if not metrics_path.is_file():
             raise CrchflError(f"{folder}: no metrics.json; point to folders written by `crchfl-sumo drive`")
         metrics = read_json_object(metrics_path, ("scenario", "edges"), "drive the route again into this folder")

@@ -45,6 +45,8 @@ from typing import Any, Callable, Mapping
 
 import torch
 
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, CONFIG_JSON_FILE, FINAL_MODEL_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.accounting.ledger import GIB, Ledger, budget_marks_bytes, gb_label, resolve_sizes
 from crchfl_sumo.core.atomic import (
     atomic_path_keeping_previous,
@@ -94,9 +96,8 @@ log = logging.getLogger(__name__)
 
 TRANSFER_COUNTS = ("downloads", "downloads_failed", "uploads", "uploads_failed", "relayed_transfers")
 CHECKPOINT_FORMAT = "crchfl-sumo-federation/2"  # /2: the history lives in the logs
-STATE_FILE = "federation_state.pt"
 PREVIOUS_STATE_FILE = previous_path(STATE_FILE).name  # federation_state.prev.pt: the step before's, for a damaged one
-LEGACY_STATE_FILE = "checkpoint.pt"  # the state's name before: a model's name elsewhere (learning.centralized)
+LEGACY_STATE_FILE = MODEL_FILE  # the state's name before: now only a model's
 
 
 # Builds the vehicles' route experts of a run with [dagger] (driving.vehicle_dagger.labeller_factory).
@@ -237,7 +238,7 @@ def _run_with_trainer(
         else:
             if config_text is not None:
                 atomic_write_text(out_dir / "config.toml", config_text)
-            atomic_write_text(out_dir / "config.json", json.dumps(resolved, indent=2) + "\n")
+            write_json(out_dir / CONFIG_JSON_FILE, resolved)
         if state is None:
             state = initial_state(setup, trainer, clock.start_s)
             marks = start_logs(out_dir, sizes)
@@ -391,7 +392,7 @@ def adopt_legacy_state(out_dir: Path) -> None:
     """A run folder written when the state was checkpoint.pt (and checkpoint.prev.pt): rename them to today's
     names, so that it resumes. A folder is a run's when it holds the run's config.json beside them."""
     legacy = out_dir / LEGACY_STATE_FILE
-    if (out_dir / "config.json").is_file() and legacy.is_file() and not (out_dir / STATE_FILE).exists():
+    if (out_dir / CONFIG_JSON_FILE).is_file() and legacy.is_file() and not (out_dir / STATE_FILE).exists():
         for old, new in ((previous_path(legacy), out_dir / PREVIOUS_STATE_FILE), (legacy, out_dir / STATE_FILE)):
             if old.is_file():
                 os.replace(old, new)
@@ -478,16 +479,16 @@ def _write_outputs(
     ``drive_settings``: the data set's camera and expert settings (Manifest.drive_settings), kept in the model files.
     """
     extra = {"scheme": config.federation.scheme, "cloud_round": state.cloud_rounds, **(drive_settings or {})}
-    save_checkpoint(out_dir / "final_model.pt", config.model, state.cloud_model, extra)
+    save_checkpoint(out_dir / FINAL_MODEL_FILE, config.model, state.cloud_model, extra)
     if state.best_model is not None:
-        save_checkpoint(out_dir / "best_model.pt", config.model, state.best_model, {**extra, "metrics": state.best})
+        save_checkpoint(out_dir / BEST_MODEL_FILE, config.model, state.best_model, {**extra, "metrics": state.best})
     for gb, (line, model, passed) in budget_mark_results(config, setup, state).items():
         path = out_dir / mark_model_file(gb)
         # a passed mark's model never changes: written once (again if lost), and every mark at the end
         if model is not None and (state.done or (passed and not path.exists())):
             save_checkpoint(path, config.model, model, {**extra, "metrics": line})
     summary = summarize(config, setup, state, handovers, baseline)
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_json(out_dir / SUMMARY_FILE, summary)
 
 
 def run_command(

@@ -17,6 +17,7 @@ from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress
+from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.data.samples import Samples
@@ -29,8 +30,6 @@ from crchfl_sumo.learning.training import Learner, evaluate
 
 log = logging.getLogger(__name__)
 
-METRICS_FILE = "metrics.jsonl"
-CHECKPOINT_FILE = "checkpoint.pt"
 
 
 def train_centralized(
@@ -87,7 +86,7 @@ def train_centralized(
     model = build_model(model_config, seed) if initial_state is None else model_from_state(model_config, initial_state, device)
     trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
-    checkpoint_path = out_dir / CHECKPOINT_FILE
+    checkpoint_path = out_dir / MODEL_FILE
     if not (resume or overwrite) and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
         raise CrchflError(
             f"{out_dir}: holds a training's checkpoint; pass --resume to continue it, --overwrite to train "
@@ -96,7 +95,7 @@ def train_centralized(
     records: list[dict] = []
     if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
         records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))
-        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
+        atomic_write_text(out_dir / METRICS_LOG_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
     train_on_device, test_on_device = train.to(device), test.to(device)
     baseline = always_straight(test)
     for epoch in range(len(records) + 1, epochs + 1):
@@ -124,7 +123,7 @@ def train_centralized(
             "epoch %d: test loss %.4f, accuracy %.3f, balanced accuracy %.3f (always straight %.3f)",
             epoch, record["loss"], record["accuracy"], record["balanced_accuracy"], baseline["balanced_accuracy"],
         )
-        atomic_write_text(out_dir / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in records))
+        atomic_write_text(out_dir / METRICS_LOG_FILE, "".join(json.dumps(r) + "\n" for r in records))
         resume_state = {
             "optimizers": [optimizer.state_dict() for optimizer in trainer.optimizers],
             "generator": generator.get_state(),

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, set_path
@@ -261,12 +262,12 @@ def bench_points(out_dir: Path, names: list[str], episodes: int, backend: Backen
         return {}
     from crchfl_sumo.core.backend import Executor
 
-    paths = {name: out_dir / BENCH_DIR / name / "summary.json" for name in names}
+    paths = {name: out_dir / BENCH_DIR / name / SUMMARY_FILE for name in names}
     done = {name: read_json(path, "delete the folder to drive the benchmark again") for name, path in paths.items()
             if path.is_file()}
     todo = [name for name in names if name not in done]
     with Executor(backend) as executor:
-        calls = [(str(out_dir / RUNS_DIR / n / "best_model.pt"), str(out_dir / BENCH_DIR / n), episodes) for n in todo]
+        calls = [(str(out_dir / RUNS_DIR / n / BEST_MODEL_FILE), str(out_dir / BENCH_DIR / n), episodes) for n in todo]
         results = executor.map(bench_point, calls, isolate=True)
     return {**done, **dict(zip(todo, results))}
 

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from crchfl_sumo.core.result_files import RESULTS_CSV_FILE, RESULTS_MD_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.intervals import distinguishable
@@ -135,9 +136,9 @@ def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list
     writer.writerow(COLUMNS)
     for row in rows:
         writer.writerow(["" if row.get(c) is None else row[c] for c in COLUMNS])
-    atomic_write_text(out_dir / "results.csv", buffer.getvalue())
+    atomic_write_text(out_dir / RESULTS_CSV_FILE, buffer.getvalue())
     findings_text = findings_table(findings(factors, rows))
-    atomic_write_text(out_dir / "results.md", markdown_table(rows) + "\n## Findings\n\n" + findings_text)
+    atomic_write_text(out_dir / RESULTS_MD_FILE, markdown_table(rows) + "\n## Findings\n\n" + findings_text)
     base = next((r for r in rows if r["point"] == BASELINE), None)  # any factor's row of the baseline run
     return [
         plot_factor(factor, [r for r in rows if r["factor"] == factor.name], base, out_dir / "plots") for factor in factors

@@ -18,6 +18,8 @@ import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from crchfl_sumo.core.result_files import SUMMARY_FILE
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.intervals import distinguishable
@@ -492,7 +494,7 @@ def write_report(out_dir: str | Path) -> dict[str, Any]:
             figures[f"fig5_{route}"] = path.name
     summary["figures"] = {key: f"figures/{name}" for key, name in figures.items()}
     atomic_write_text(out_dir / "report.md", report_markdown(summary, results, figures))
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_json(out_dir / SUMMARY_FILE, summary)
     log.info("report of %s: %d figures", out_dir, len(figures))
     return summary
 

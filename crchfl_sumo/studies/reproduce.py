@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import to_mapping, toml_text
@@ -194,7 +196,7 @@ def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "environment": environment(),
     }
-    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+    write_json(path, record)
 
 
 def environment() -> dict[str, Any]:
@@ -229,7 +231,7 @@ def environment() -> dict[str, Any]:
 
 
 def read_timings(out_dir: Path) -> dict[str, dict[str, float]]:
-    path = Path(out_dir) / "timings.json"
+    path = Path(out_dir) / TIMINGS_FILE
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
 
 
@@ -283,7 +285,7 @@ def _record(out_dir: Path, part: ReproductionPart, elapsed: dict[str, float]) ->
     """Mark ``part`` finished in timings.json (only the main process writes it)."""
     timings = read_timings(out_dir)
     timings[part.key] = elapsed
-    atomic_write_text(out_dir / "timings.json", json.dumps(timings, indent=2) + "\n")
+    write_json(out_dir / TIMINGS_FILE, timings)
     log.info("%s: done in %.1f s (CPU %.1f s)", part.key, elapsed["wall_s"], elapsed["cpu_s"])
 
 
@@ -335,7 +337,7 @@ def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path
         "best_confusion": best["confusion"],
         "baselines": {"always_straight": best["always_straight"]},
     }
-    atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_json(folder / SUMMARY_FILE, summary)
 
 
 def _dagger(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
@@ -396,16 +398,16 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
     centralized = label in (CENTRALIZED, CENTRALIZED_DAGGER)
     folder = Path(out_dir) / (label if centralized else f"runs/{label}")
     if seed is not None:
-        return folder / f"seed-{seed}" / ("checkpoint.pt" if centralized else "best_model.pt")
+        return folder / f"seed-{seed}" / (MODEL_FILE if centralized else BEST_MODEL_FILE)
     summaries = {}
     for path in sorted(folder.glob("seed-*/summary.json")):
         summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))
     if label == CENTRALIZED_DAGGER:  # the last iteration's model of the seed that ended best
         last = {seed: summary["iterations"][-1] for seed, summary in summaries.items()}
-        return folder / f"seed-{best_seed(last)}" / "checkpoint.pt"
+        return folder / f"seed-{best_seed(last)}" / MODEL_FILE
     if label == CENTRALIZED:
-        return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / "checkpoint.pt"
-    return folder / f"seed-{best_seed(summaries)}" / "best_model.pt"
+        return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / MODEL_FILE
+    return folder / f"seed-{best_seed(summaries)}" / BEST_MODEL_FILE
 
 
 def budget_model_for(config: ReproduceConfig, out_dir: Path, scheme: str, budget_gb: float, seed: int) -> Path:
@@ -414,5 +416,5 @@ def budget_model_for(config: ReproduceConfig, out_dir: Path, scheme: str, budget
     from crchfl_sumo.federation.run import mark_model_file
 
     if replanned(config, scheme):
-        return Path(out_dir) / budget_key("runs", scheme, budget_gb, seed) / "best_model.pt"
+        return Path(out_dir) / budget_key("runs", scheme, budget_gb, seed) / BEST_MODEL_FILE
     return Path(out_dir) / "runs" / scheme / f"seed-{seed}" / mark_model_file(budget_gb)

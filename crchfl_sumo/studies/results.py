@@ -7,6 +7,13 @@ import json
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from crchfl_sumo.core.result_files import (
+    CONFIG_JSON_FILE,
+    DRIVE_METRICS_FILE,
+    METRICS_LOG_FILE,
+    SUMMARY_FILE,
+    TIMINGS_FILE,
+)
 from crchfl_sumo.core import json_files
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
@@ -39,10 +46,10 @@ def read_seed_runs(folder: Path) -> dict[int, dict[str, Any]]:
     """seed -> {"summary", "metrics", "config"} of each ``folder/seed-S`` holding a summary.json."""
     runs = {}
     for seed, run_dir in seed_folders(folder).items():
-        config_path = run_dir / "config.json"
+        config_path = run_dir / CONFIG_JSON_FILE
         runs[seed] = {
-            "summary": read_json(run_dir / "summary.json"),
-            "metrics": read_jsonl(run_dir / "metrics.jsonl"),
+            "summary": read_json(run_dir / SUMMARY_FILE),
+            "metrics": read_jsonl(run_dir / METRICS_LOG_FILE),
             "config": read_json(config_path) if config_path.is_file() else None,
         }
     return runs
@@ -60,10 +67,10 @@ def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
     if not bench_dir.is_dir():
         return bench
     for folder in bench_dir.iterdir():
-        if (folder / "summary.json").is_file():
-            bench[folder.name] = read_json(folder / "summary.json")
+        if (folder / SUMMARY_FILE).is_file():
+            bench[folder.name] = read_json(folder / SUMMARY_FILE)
         elif folder.is_dir():
-            seeds = {seed: read_json(path / "summary.json") for seed, path in seed_folders(folder).items()}
+            seeds = {seed: read_json(path / SUMMARY_FILE) for seed, path in seed_folders(folder).items()}
             if seeds:
                 bench[folder.name] = {"seeds": seeds}
     return {label: bench[label] for label in _ordered(bench, MODEL_LABELS)}
@@ -76,7 +83,7 @@ def read_budget_curve(folder: Path) -> dict[str, Any]:
     for kind, key in (("runs", "runs"), ("drive_bench", "bench")):
         for scheme_dir in sorted(p for p in (folder / kind).glob("*") if p.is_dir()):
             for budget_dir in sorted(p for p in scheme_dir.glob("gb-*") if p.is_dir()):
-                seeds = {seed: read_json(path / "summary.json") for seed, path in seed_folders(budget_dir).items()}
+                seeds = {seed: read_json(path / SUMMARY_FILE) for seed, path in seed_folders(budget_dir).items()}
                 if seeds:
                     found[key].setdefault(scheme_dir.name, {})[budget_dir.name[3:]] = seeds
     return found
@@ -104,10 +111,10 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
     drives: dict[str, dict[str, dict[str, Any]]] = {}
     if drives_dir.is_dir():
         for route_dir in sorted(p for p in drives_dir.iterdir() if p.is_dir()):
-            labels = [p.name for p in route_dir.iterdir() if (p / "metrics.json").is_file()]
+            labels = [p.name for p in route_dir.iterdir() if (p / DRIVE_METRICS_FILE).is_file()]
             if labels:
                 drives[route_dir.name] = {
-                    label: read_json(route_dir / label / "metrics.json") for label in _ordered(labels, MODEL_LABELS)
+                    label: read_json(route_dir / label / DRIVE_METRICS_FILE) for label in _ordered(labels, MODEL_LABELS)
                 }
     bench = read_benchmarks(out_dir / "drive_bench")
     if not schemes and not ablation:
@@ -116,7 +123,7 @@ def read_results(out_dir: str | Path) -> dict[str, Any]:
             f"run `crchfl-sumo reproduce --out {out_dir}` first"
         )
     reproduce_path = out_dir / "reproduce.json"
-    timings_path = out_dir / "timings.json"
+    timings_path = out_dir / TIMINGS_FILE
     return {
         "out_dir": out_dir,
         "schemes": schemes,

@@ -17,7 +17,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from crchfl_sumo.core.result_files import SUMMARY_FILE
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
@@ -193,7 +194,7 @@ def write_outputs(trace: Trace, scenario: Scenario, summary: dict, out_dir: Path
     writer.writerow(["t_s", "vehicle", "from_edge", "to_edge"])
     writer.writerows((h.t_s, h.vehicle_id, names[h.from_site], names[h.to_site]) for h in trace.handovers)
     atomic_write_text(out_dir / "handovers.csv", buffer.getvalue())
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_json(out_dir / SUMMARY_FILE, summary)
     plot_map(trace, scenario, summary, out_dir / "map.png")
     plot_rates(trace, scenario, out_dir / "rate.png")
 

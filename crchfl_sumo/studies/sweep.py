@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from crchfl_sumo.core.result_files import CONFIG_JSON_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping, loads_toml, read_toml, set_path, toml_text
@@ -239,19 +240,19 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
 
     A finished run made with other settings (the base config changed since) is an error, never a stale row.
     """
-    path = run_dir / "summary.json"
+    path = run_dir / SUMMARY_FILE
     if not path.is_file():
         return None
     try:
         summary = json.loads(path.read_text(encoding="utf-8"))
-        recorded = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))["config"]
+        recorded = json.loads((run_dir / CONFIG_JSON_FILE).read_text(encoding="utf-8"))["config"]
     except (OSError, KeyError, json.JSONDecodeError):
         return None  # not finished writing: the run resumes and rewrites them
     if not summary.get("stop_reason"):
         return None
     point = from_mapping(RunConfig, mapping)
     wanted = json.loads(json.dumps(resolved_config(point)))
-    finished = resolved_as_today(recorded, str(run_dir / "config.json"), point.backend)  # an older version's too
+    finished = resolved_as_today(recorded, str(run_dir / CONFIG_JSON_FILE), point.backend)  # an older version's too
     train = finished.get("train")
     if point.train.precision == "auto" and isinstance(train, dict) and train.get("precision") in RESOLVED_PRECISIONS:
         # "auto" was decided where the point ran (a Ray worker's CPU may differ from this one's): it stands
@@ -384,11 +385,11 @@ def write_table(out_dir: Path, rows: list[dict], paths: list[str], intervals: bo
     writer.writerow(columns)
     for row in rows:
         writer.writerow([_cell(row.get(c), csv_cell=True) for c in columns])
-    atomic_write_text(out_dir / "results.csv", buffer.getvalue())
+    atomic_write_text(out_dir / RESULTS_CSV_FILE, buffer.getvalue())
     shown = [c for c in columns if c != "point"]
     lines = ["| " + " | ".join(shown) + " |", "|" + " --- |" * len(shown)]
     lines += ["| " + " | ".join(_cell(row.get(c)) for c in shown) + " |" for row in rows]
-    atomic_write_text(out_dir / "results.md", "\n".join(lines) + "\n")
+    atomic_write_text(out_dir / RESULTS_MD_FILE, "\n".join(lines) + "\n")
 
 
 def _cell(value: Any, csv_cell: bool = False) -> str:

@@ -45,7 +45,9 @@ class RouteGeometry:
     """The lane centre line a route's vehicle should drive, as one polyline.
 
     xy_m [N, 2] vertices, s_m [N] arc length at each, width_m [N-1] and
-    in_junction [N-1] the lane width and kind of each segment.
+    in_junction [N-1] the lane width and kind of each segment; lane_ids [N-1] the SUMO lane each
+    segment lies on (during a planned lane change: the lane it starts on, then, from halfway, the
+    one it ends on), or () for a geometry made by hand.
     """
 
     edges: tuple[str, ...]
@@ -54,10 +56,18 @@ class RouteGeometry:
     width_m: np.ndarray
     in_junction: np.ndarray
     crossings: tuple[Crossing, ...]
+    lane_ids: tuple[str, ...] = ()
 
     @property
     def length_m(self) -> float:
         return float(self.s_m[-1])
+
+    def lane_at(self, s_m: float) -> str | None:
+        """The SUMO lane the route plans at arc length ``s_m`` (None without lane_ids)."""
+        if not self.lane_ids:
+            return None
+        segment = int(np.clip(np.searchsorted(self.s_m, s_m, side="right") - 1, 0, len(self.lane_ids) - 1))
+        return self.lane_ids[segment]
 
 
 @functools.lru_cache(maxsize=4)
@@ -101,35 +111,41 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     if len(objects) == 1 and not 0 <= lane_index < objects[0].getLaneNumber():
         raise CrchflError(f"route: edge '{objects[0].getID()}' has no lane {lane_index}")
     plan = plan_lanes(objects, lane_index)
-    pieces: list[tuple[np.ndarray, float, bool]] = []  # (shape, lane width, inside a junction)
+    pieces: list[tuple[np.ndarray, float, bool, list[str]]] = []  # (shape, lane width, inside a junction, lane ids)
     # Per crossing: positions in ``pieces`` of its first and last internal lane, and the connection.
     links: list[tuple[int, int, Any]] = []
     for (entry, exit_lane, connection) in plan:
         if entry is exit_lane:
-            pieces.append((np.asarray(entry.getShape(), dtype=np.float64), float(exit_lane.getWidth()), False))
+            shape = np.asarray(entry.getShape(), dtype=np.float64)
+            pieces.append((shape, float(exit_lane.getWidth()), False, [entry.getID()] * len(shape)))
         else:
-            pieces.append((lane_change_shape(entry, exit_lane), float(exit_lane.getWidth()), False))
+            shape, weight = lane_change_shape(entry, exit_lane, with_weights=True)
+            lanes = [entry.getID() if w < 0.5 else exit_lane.getID() for w in weight]
+            pieces.append((shape, float(exit_lane.getWidth()), False, lanes))
         if connection is None:
             break
         first = len(pieces)
         via = connection.getViaLaneID()
         while via:  # an internal lane may continue into another (internal junctions)
             internal = net.getLane(via)
-            pieces.append((np.asarray(internal.getShape(), dtype=np.float64), float(internal.getWidth()), True))
+            shape = np.asarray(internal.getShape(), dtype=np.float64)
+            pieces.append((shape, float(internal.getWidth()), True, [via] * len(shape)))
             outgoing = internal.getOutgoing()
             via = outgoing[0].getViaLaneID() if outgoing else ""
         links.append((first, len(pieces) - 1, connection))
     points: list[np.ndarray] = []
     widths: list[float] = []
     junction: list[bool] = []
+    segment_lanes: list[str] = []  # a segment's lane: the one of the vertex it ends at
     lane_end_vertex: list[int] = []  # index of each lane's last vertex in the joined polyline
-    for shape, width, inside in pieces:
+    for shape, width, inside, lanes in pieces:
         if points and np.hypot(*(shape[0] - points[-1])) < 1e-3:
-            shape = shape[1:]
-        for p in shape:
+            shape, lanes = shape[1:], lanes[1:]
+        for p, lane in zip(shape, lanes):
             if points:
                 widths.append(width)
                 junction.append(inside)
+                segment_lanes.append(lane)
             points.append(p)
         lane_end_vertex.append(len(points) - 1)
     xy = np.array(points)
@@ -137,6 +153,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     if not keep.all():  # drop repeated vertices (and their zero-length segments)
         seg_keep = keep[1:]
         xy, widths, junction = xy[keep], np.asarray(widths)[seg_keep], np.asarray(junction)[seg_keep]
+        segment_lanes = [lane for lane, kept in zip(segment_lanes, seg_keep) if kept]
         lane_end_vertex = [int(np.count_nonzero(keep[: v + 1]) - 1) for v in lane_end_vertex]
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     crossings = []
@@ -158,6 +175,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         width_m=np.asarray(widths, dtype=np.float64),
         in_junction=np.asarray(junction, dtype=bool),
         crossings=tuple(crossings),
+        lane_ids=tuple(segment_lanes),
     )
 
 
@@ -206,10 +224,11 @@ def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, A
     return plan
 
 
-def lane_change_shape(entry, exit_lane) -> np.ndarray:
+def lane_change_shape(entry, exit_lane, with_weights: bool = False):
     """An edge's centre line that starts on lane ``entry`` and ends on ``exit_lane`` (two lanes of one edge): the
     two lanes' centre lines blended by a smoothstep over LANE_CHANGE_M, finished LANE_CHANGE_END_M before the end
-    (an edge too short for that changes over all it has but the last LANE_CHANGE_END_M, or over all of it)."""
+    (an edge too short for that changes over all it has but the last LANE_CHANGE_END_M, or over all of it).
+    ``with_weights``: also each vertex's blend weight (0 on ``entry``, 1 on ``exit_lane``)."""
     a, b = np.asarray(entry.getShape(), np.float64), np.asarray(exit_lane.getShape(), np.float64)
     length = min(_polyline_length(a), _polyline_length(b))
     end = length - LANE_CHANGE_END_M if length > LANE_CHANGE_END_M + 2.0 else length
@@ -217,7 +236,8 @@ def lane_change_shape(entry, exit_lane) -> np.ndarray:
     s = np.unique(np.concatenate([np.arange(0.0, length, LANE_CHANGE_STEP_M), [start, end, length]]))
     t = np.clip((s - start) / max(end - start, 1e-9), 0.0, 1.0)
     weight = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the move begins or ends
-    return (1.0 - weight)[:, None] * _along(a, s / length) + weight[:, None] * _along(b, s / length)
+    shape = (1.0 - weight)[:, None] * _along(a, s / length) + weight[:, None] * _along(b, s / length)
+    return (shape, weight) if with_weights else shape
 
 
 def _polyline_length(xy: np.ndarray) -> float:

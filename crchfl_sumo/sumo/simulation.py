@@ -274,16 +274,29 @@ class Simulation:
         api.vehicle.setSpeedMode(vehicle_id, 0)
         api.vehicle.setLaneChangeMode(vehicle_id, 0)
 
-    def place_vehicle(self, vehicle_id: str, x_front_m: float, y_front_m: float, heading_rad: float, speed_mps: float) -> None:
-        """Put a vehicle's FRONT bumper at (x, y), facing ``heading_rad``, at the next step (free placement).
+    def place_vehicle(
+        self, vehicle_id: str, x_front_m: float, y_front_m: float, heading_rad: float, speed_mps: float,
+        lane_id: str | None = None,
+    ) -> None:
+        """Put a vehicle's FRONT bumper at (x, y), facing ``heading_rad``, at the next step.
 
-        moveToXY with keepRoute=2 maps it onto whatever lane lies there (or none,
-        off the road) with its exact lateral offset; the speed is set so that the
-        vehicles around it react to it as to any other.
+        With ``lane_id`` (a lane of its route, internal lanes too, and a pose on that lane's centre line):
+        moveToXY with keepRoute=1 and the lane as the hint keeps it on that lane, so SUMO never maps it
+        onto another lane or edge. Without, free placement (keepRoute=2) maps it onto whatever lane lies
+        at (x, y) (or none, off the road) with its exact lateral offset; so does a pose SUMO cannot map
+        onto the route. The speed is set so that the vehicles around it react to it as to any other.
         """
         angle_deg = (90.0 - math.degrees(heading_rad)) % 360.0
-        self._api.vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
-        self._api.vehicle.setSpeed(vehicle_id, max(0.0, float(speed_mps)))
+        vehicle = self._api.vehicle
+        if lane_id:
+            edge_id, _, index = lane_id.rpartition("_")
+            try:
+                vehicle.moveToXY(vehicle_id, edge_id, int(index), float(x_front_m), float(y_front_m), angle_deg, 1)
+            except Exception:  # libsumo's error when the pose is far off the route: place it freely
+                vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
+        else:
+            vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
+        vehicle.setSpeed(vehicle_id, max(0.0, float(speed_mps)))
 
     def colliding_vehicles(self) -> tuple[str, ...]:
         """Vehicles SUMO found in a collision during the last step."""

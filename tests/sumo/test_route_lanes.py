@@ -96,3 +96,39 @@ def test_the_reference_driver_changes_lane_and_turns(fork):
     result = drive(scenario, route, RoutePolicy(route), max_s=90.0, config=DriveConfig(warmup_s=0.0))
     assert result.metrics["end_reason"] == "completed"
     assert result.metrics["max_abs_offset_m"] < 1.0 and result.metrics["lane_departures"] == 0
+
+
+def test_the_route_names_the_lane_it_plans_at_every_point(fork):
+    net = read_net(fork)
+    route = route_geometry(net, ["ZA", "AB", "BC"])
+    assert len(route.lane_ids) == len(route.s_m) - 1
+    ab_start, stop_line = float(route.crossings[0].s_end_m), float(route.crossings[1].s_start_m)
+    assert route.lane_at(1.0) == "ZA_0" and route.lane_at(ab_start + 5.0) == "AB_0"
+    assert route.lane_at(stop_line - 1.0) == "AB_1"  # the change is done by the stop line
+    assert route.lane_at((route.crossings[1].s_start_m + route.crossings[1].s_end_m) / 2).startswith(":")
+    assert route.lane_at(route.length_m + 5.0) == "BC_0"
+
+
+@pytest.mark.slow
+def test_sumo_keeps_the_ego_on_its_planned_lanes_wherever_it_drives(fork):
+    """The ego's route plans AB's right lane (straight on to D), but it drives the geometry of the left
+    turn (into AB's left lane, then towards C): SUMO has it on its planned lanes all the way, never on
+    AB_1 or the left turn's internal lane."""
+    from crchfl_sumo.driving.bench_tasks import without_traffic
+    from crchfl_sumo.driving.drive import DriveConfig, drive
+    from crchfl_sumo.driving.policies import RoutePolicy
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    (fork.parent / "f.sumocfg").write_text('<configuration><input><net-file value="f.net.xml"/></input>'
+                                           '<time><step-length value="0.25"/></time></configuration>')
+    scenario = without_traffic(load_scenario(fork.parent / "f.sumocfg"))
+    net = read_net(fork)
+    planned, driven = route_geometry(net, ["ZA", "AB", "BD"]), route_geometry(net, ["ZA", "AB", "BC"])
+    result = drive(scenario, planned, RoutePolicy(driven), max_s=60.0, config=DriveConfig(warmup_s=0.0),
+                   keep_frames=True)
+    left_lane = np.asarray(net.getEdge("AB").getLane(1).getShape())
+    rows = [(f, f.index_of("ego")) for f in result.frames]
+    in_left = [str(f.lane_id[i]) for f, i in rows if abs(f.y_m[i] - left_lane[0, 1]) < 0.3 and left_lane[0, 0] < f.x_m[i] < left_lane[-1, 0] - 10.0]
+    assert len(in_left) >= 3 and set(in_left) == {"AB_0"}  # it drove in AB's left lane; SUMO kept it on the right
+    lanes = {str(f.lane_id[i]) for f, i in rows}
+    assert lanes <= set(planned.lane_ids) and ":B_0_0" in lanes  # and in the junction on the straight-on lane
