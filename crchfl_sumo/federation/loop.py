@@ -58,6 +58,7 @@ from crchfl_sumo.accounting.schedules import (
     Transfer,
     cloud_aggregation_schedule,
     edge_aggregation_schedule,
+    schedule_bytes,
     stage_one_schedule,
 )
 from crchfl_sumo.core.errors import CrchflError
@@ -299,7 +300,8 @@ class Federation:
         """Every vehicle's samples for the training it would start now (when it holds its model), with the
         labels of its own drives ([dagger]): at the start of a cloud round that ``setup.dagger`` names, each
         vehicle first drives the model it holds and the expert labels what it visited."""
-        if self.setup.dagger.due(state.cloud_rounds) and state.tau == 0 and state.cloud_rounds not in state.dagger_rounds:
+        if (self.setup.dagger.due(state.cloud_rounds) and state.tau == 0 and state.cloud_rounds not in state.dagger_rounds
+                and self._step_may_fit(state)):
             self.labeller.label(state.cloud_rounds, state.vehicle_models)
             state.dagger_rounds = [*state.dagger_rounds, state.cloud_rounds]
         rounds = tuple(state.dagger_rounds)
@@ -316,6 +318,25 @@ class Federation:
                 out[v] = Samples.concat([own, *labels]) if labels else own
                 self._joined[v] = (own, rounds, out[v])
         return out
+
+    def _step_may_fit(self, state: FederationState) -> bool:
+        """Could the budget carry this step? Under the paper rule a step charges at least the schedule of its
+        vehicles all under one edge (more edges and relays add to it), so one for which even that does not
+        fit will not be counted: the vehicles' drives for it would be wasted. Under the physical rule a
+        failed transfer charges less: always True."""
+        setup, cfg = self.setup, self.config
+        if setup.rule != "paper":
+            return True
+        if cfg.hierarchical:
+            topology = Topology((setup.edges[0],), (setup.vehicles,))  # the cheapest the step can be
+            followed = state.tau + 1 == setup.hyper.cloud_interval
+            schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes, followed_by_cloud=followed)
+            if followed:
+                schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes)
+        else:
+            schedule = cloud_aggregation_schedule(setup.rule, cfg.scheme, Topology((SFL_LINK,), (setup.vehicles,)),
+                                                  setup.sizes)
+        return Ledger(setup.sizes, byte_totals=state.ledger_totals).can_carry(schedule_bytes(schedule))
 
     def _train_and_average(
         self,

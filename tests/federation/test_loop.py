@@ -688,3 +688,21 @@ def test_bad_dagger_settings_are_refused_naming_the_key(key, value, match):
 
     with pytest.raises(CrchflError, match=match):
         VehicleDaggerConfig(**{key: value})
+
+
+def test_no_labelling_for_a_step_the_budget_cannot_carry():
+    """The paper rule: 3 rounds fit the budget, labelling is due after every round; the drives after
+    round 3 would feed a round that is never counted, so the vehicles do not make them."""
+    from crchfl_sumo.federation.settings import VehicleDaggerConfig
+
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_interval=1, compute_s_per_sample=0.5)
+    counts = {"a": 2, "b": 2, "c": 2}
+    # one HFL round at 1 MiB models: 3 uploads, 2 + 2 wireline, 3 downloads = 10 MiB; 35 MiB carry 3 rounds
+    ledger = LedgerConfig(nominal_model_mb=1.0, nominal_sample_kb=512.0, budget_gb=35 / 1024)
+    setup = dataclasses.replace(_setup(config, _hyper(config), counts, HOME3, ledger=ledger),
+                                dagger=VehicleDaggerConfig(every_cloud_rounds=1))
+    labeller = ScriptedLabeller({"a": 1, "b": 1, "c": 1})
+    clock = ScriptedClock.constant(HOME3, 8e6, step_s=0.25)
+    state = Federation(setup, clock, SumTrainer(), labeller=labeller).run(initial_state(setup, SumTrainer(), 0.0))
+    assert (state.cloud_rounds, state.stop_reason) == (3, "budget")
+    assert list(labeller.given) == [1, 2] and state.dagger_rounds == [1, 2]
