@@ -91,8 +91,15 @@ def resolve_sizes(
     config: LedgerConfig,
     real_model_bytes: int | None = None,
     measured_sample_bytes: int | None = None,
+    model_fraction: float = 1.0,
+    upload_fraction: float | None = None,
 ) -> ByteSizes:
-    """Settings -> sizes in bytes; checks the budget can carry at least one model transfer."""
+    """Settings -> sizes in bytes; checks the budget can carry at least one model transfer.
+
+    ``model_fraction`` scales every model transfer and ``upload_fraction`` (default: the same) a
+    vehicle's upload: an update codec's encoded size over the raw one (learning.codecs.encoded_fraction),
+    so that both rules, the stopping rule and the allocator charge what the codec sends.
+    """
     if config.model_size == "real":
         if real_model_bytes is None or real_model_bytes <= 0:
             raise CrchflError(
@@ -111,13 +118,16 @@ def resolve_sizes(
         sample_bytes = int(measured_sample_bytes)
     else:
         sample_bytes = round(config.nominal_sample_kb * KIB)
+    upload_bytes = max(1, round(model_bytes * (model_fraction if upload_fraction is None else upload_fraction)))
+    model_bytes = max(1, round(model_bytes * model_fraction))
     budget_bytes = math.floor(config.budget_gb * GIB)
-    if budget_bytes < model_bytes:
+    if budget_bytes < min(model_bytes, upload_bytes):
         raise CrchflError(
             f"ledger.budget_gb = {config.budget_gb:g} cannot carry one model transfer of {model_bytes} bytes; "
             f"set budget_gb to at least {model_bytes / GIB:.4f} (1 GB = 1024**3 bytes)"
         )
-    return ByteSizes(model_bytes=model_bytes, sample_bytes=sample_bytes, budget_bytes=budget_bytes)
+    return ByteSizes(model_bytes=model_bytes, sample_bytes=sample_bytes, budget_bytes=budget_bytes,
+                     vehicle_upload_bytes=0 if upload_bytes == model_bytes else upload_bytes)
 
 
 def budget_marks_bytes(config: LedgerConfig) -> tuple[int, ...]:
@@ -204,7 +214,7 @@ class Ledger:
 
     def can_carry_model(self) -> bool:
         """The stopping rule: False once the rest of the budget cannot carry one more model transfer."""
-        return self.can_carry(self.sizes.model_bytes)
+        return self.can_carry(self.sizes.smallest_model_bytes)
 
     def charge(self, transfer: Transfer, *, cloud_round: int, start_s: float = 0.0, end_s: float = 0.0) -> Record:
         record = Record(**dataclasses.asdict(transfer), cloud_round=cloud_round, start_s=start_s, end_s=end_s)
@@ -263,9 +273,9 @@ class Ledger:
                 if path.suffix.lower() == ".jsonl":
                     lines = [line for line in handle if line.strip()]
                     header = json.loads(lines[0]) if lines else {}
-                    if header.get("sizes") != dataclasses.asdict(sizes):
+                    if header.get("sizes") != sizes.to_dict():
                         raise CrchflError(
-                            f"{path}: written with sizes {header.get('sizes')}, resuming with {dataclasses.asdict(sizes)}; "
+                            f"{path}: written with sizes {header.get('sizes')}, resuming with {sizes.to_dict()}; "
                             "resume with the [ledger] settings of the original run"
                         )
                     rows = [json.loads(line) for line in lines[1:]]
@@ -281,7 +291,7 @@ class Ledger:
 
 def jsonl_header(sizes: ByteSizes) -> str:
     """The first line of a ledger.jsonl: the sizes it was charged with."""
-    return json.dumps({"sizes": dataclasses.asdict(sizes)}) + "\n"
+    return json.dumps({"sizes": sizes.to_dict()}) + "\n"
 
 
 def jsonl_lines(records: Iterable[Record]) -> list[str]:

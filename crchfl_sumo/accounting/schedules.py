@@ -44,16 +44,38 @@ STAGES = ("I", "II", "III")
 
 @dataclass(frozen=True)
 class ByteSizes:
-    """What one model transfer and one sample cost, and the budget [bytes]."""
+    """What one model transfer and one sample cost, and the budget [bytes].
+
+    ``vehicle_upload_bytes``: a vehicle's model upload (its wireless uplink), where an update codec
+    compresses it apart from the other transfers ([federation] update_codec = "topk"); 0 = model_bytes.
+    """
 
     model_bytes: int
     sample_bytes: int
     budget_bytes: int
+    vehicle_upload_bytes: int = 0
 
     def __post_init__(self) -> None:
         for key in ("model_bytes", "sample_bytes", "budget_bytes"):
             if getattr(self, key) <= 0:
                 raise CrchflError(f"{key} must be > 0, got {getattr(self, key)}")
+        if self.vehicle_upload_bytes < 0:
+            raise CrchflError(f"vehicle_upload_bytes must be >= 0, got {self.vehicle_upload_bytes}")
+
+    def to_dict(self) -> dict[str, int]:
+        """The sizes as files record them (without vehicle_upload_bytes when it is not set, as before it existed)."""
+        out = {"model_bytes": self.model_bytes, "sample_bytes": self.sample_bytes, "budget_bytes": self.budget_bytes}
+        return out | ({"vehicle_upload_bytes": self.vehicle_upload_bytes} if self.vehicle_upload_bytes else {})
+
+    @property
+    def upload_bytes(self) -> int:
+        """A vehicle's model upload [bytes]."""
+        return self.vehicle_upload_bytes or self.model_bytes
+
+    @property
+    def smallest_model_bytes(self) -> int:
+        """The cheapest model transfer: what the stopping rule asks the budget to carry."""
+        return min(self.model_bytes, self.upload_bytes)
 
 
 @dataclass(frozen=True)
@@ -110,7 +132,10 @@ class Transfer:
 
 
 def _model(link: Link, direction: Direction, stage: Stage, sender: str, receiver: str, sizes: ByteSizes) -> Transfer:
-    return Transfer(link, direction, stage, sender, receiver, "model", sizes.model_bytes)
+    # a wireless uplink carries a vehicle's upload (to its edge, or SFL's cloud)
+    vehicle_upload = link == "wireless" and direction == "uplink"
+    size = sizes.upload_bytes if vehicle_upload else sizes.model_bytes
+    return Transfer(link, direction, stage, sender, receiver, "model", size)
 
 
 def _check_rule_scheme(rule: str, scheme: str) -> None:

@@ -66,6 +66,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation import selection
 from crchfl_sumo.federation.settings import SFL_LINK
 from crchfl_sumo.federation.state import FederationState, Labeller, LoopInputs, Trainer
+from crchfl_sumo.learning import codecs
 from crchfl_sumo.learning.aggregate import RunningAverage, fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
@@ -225,6 +226,7 @@ class Federation:
             metrics=list(state.metrics),
             stragglers=list(state.stragglers),
             transfers=dict(state.transfers),
+            residuals=dict(state.residuals),
         )
         ledger = Ledger(self.setup.sizes, byte_totals=state.ledger_totals)
         hyper = self.setup.hyper
@@ -319,6 +321,25 @@ class Federation:
                 self._joined[v] = (own, rounds, out[v])
         return out
 
+    def _uploaded(self, state: FederationState, vehicle: str, model: State, start: State) -> State:
+        """What the receiver of ``vehicle``'s upload of ``model`` holds: the update (``model`` - ``start``)
+        through [federation] update_codec, added to ``start``. topk keeps what it leaves out in
+        ``state.residuals`` for the vehicle's next upload (error feedback)."""
+        codec = self.config.update_codec
+        if codec == "none":
+            return model
+        delta = codecs.subtract(model, start)
+        if codec == "int8":
+            return codecs.add(start, codecs.int8_roundtrip(delta))
+        sent, state.residuals[vehicle] = codecs.topk_roundtrip(delta, self.config.topk_fraction,
+                                                                state.residuals.get(vehicle))
+        return codecs.add(start, sent)
+
+    def _sent(self, model: State, reference: State) -> State:
+        """What the receivers of a whole-model transfer (a release, an edge's upload) hold: under int8, its
+        difference from ``reference`` (the last global model, which every node holds) in 8 bits."""
+        return codecs.int8_transfer(model, reference) if self.config.update_codec == "int8" else model
+
     def _step_may_fit(self, state: FederationState) -> bool:
         """Could the budget carry this step? Under the paper rule a step charges at least the schedule of its
         vehicles all under one edge (more edges and relays add to it), so one for which even that does not
@@ -366,9 +387,9 @@ class Federation:
         kept: dict[str, State] = {}
         starts = [state.vehicle_models[v] for v in vehicles]
         trained = self.trainer.train(starts, [samples[v] for v in vehicles], epochs, seed)
-        for v, model in zip(vehicles, trained, strict=True):
+        for v, start, model in zip(vehicles, starts, trained, strict=True):
             if v in receiver:
-                running[receiver[v]].add(model)
+                running[receiver[v]].add(self._uploaded(state, v, model, start))
             if v in keep:
                 kept[v] = model
         return {r: average.result() for r, average in running.items()}, kept
@@ -384,7 +405,7 @@ class Federation:
         for v in samples:
             t_s = state.ready_s[v]
             rate_bps = selection.recent_rate_bps(self.clock, v, t_s)
-            needed[v] = selection.needed_s(self._compute_s(len(samples[v]), epochs), setup.sizes.model_bytes, rate_bps)
+            needed[v] = selection.needed_s(self._compute_s(len(samples[v]), epochs), setup.sizes.upload_bytes, rate_bps)
             site = setup.edges.index(state.member[v]) if own else None
             residence[v] = selection.residence_on_clock(self.clock, v, t_s, setup.coverage, site)
         picked = selection.chosen(needed, residence)
@@ -471,6 +492,7 @@ class Federation:
             parts = [uploaded[v] for v in setup.vehicles if v in uploaded]
             seed = int(np.random.SeedSequence([cfg.seed, 3]).generate_state(1)[0])
             [model] = self.trainer.train([state.cloud_model], [Samples.concat(parts)], cfg.pretrain_epochs, seed)
+            model = self._sent(model, state.cloud_model)  # released to every edge and vehicle
         pretrained_s = start_s + cfg.pretrain_epochs * n * cfg.compute_s_per_sample
         # release: cloud -> every edge (wireline), edge -> its vehicles (wireless)
         ready, models, open_s = dict(state.ready_s), dict(state.vehicle_models), dict(state.open_s)
@@ -534,13 +556,13 @@ class Federation:
         )
         edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         for e, average in averages.items():  # an edge that received no model keeps its previous one
-            edge_models[e] = average
+            edge_models[e] = self._sent(average, state.cloud_model)  # up to the cloud, or down to its vehicles
             edge_weights[e] = float(sum(counts[v] for v in received_by[e]))
         edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
         cloud_model = state.cloud_model
         if followed:
             fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
-            cloud_model = fedavg(fresh) if fresh else state.cloud_model
+            cloud_model = self._sent(fedavg(fresh), state.cloud_model) if fresh else state.cloud_model
             edge_models.update(dict.fromkeys(agg_s, cloud_model))
         models = {**state.vehicle_models, **kept}  # a skipped vehicle, or one whose download failed, keeps its own
         for e, vehicles in topology.active():
@@ -578,7 +600,7 @@ class Federation:
         for v in counts:
             edge = state.member[v]
             start_s = state.ready_s[v] + self._compute_s(counts[v], setup.hyper.edge_interval)
-            out = self._upload(v, edge, start_s, setup.sizes.model_bytes, state.open_s[edge] + cfg.deadline_s)
+            out = self._upload(v, edge, start_s, setup.sizes.upload_bytes, state.open_s[edge] + cfg.deadline_s)
             uploads[v] = out
             if out is not None and out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
@@ -661,7 +683,7 @@ class Federation:
                 continue
             events[(v, receiver, "uplink")] = _wireless(out)
             _count(state, "uploads", out.ok)
-            arrival_s = self._forward(out, receiver, self.setup.sizes.model_bytes, "model", stage, relays)
+            arrival_s = self._forward(out, receiver, self.setup.sizes.upload_bytes, "model", stage, relays)
             if out.ok and arrival_s > missed_at(v) + _EPS_S:  # forwarded past the deadline
                 events[(v, receiver, "uplink")] = dataclasses.replace(events[(v, receiver, "uplink")], wasted=True)
                 ends.append(missed_at(v))
@@ -699,7 +721,7 @@ class Federation:
         relays: list[RelayedTransfer] = []
         uploads = {
             v: self._upload(
-                v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.model_bytes, window_end
+                v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.upload_bytes, window_end
             )
             for v in setup.vehicles
         }
@@ -709,7 +731,7 @@ class Federation:
         delivered = set(self._send_down(state, CLOUD, setup.vehicles, cloud_s, "III", events, ready, relays))
         # the times first, the training last (as in _edge_step)
         averages, kept = self._train_and_average(state, epochs, samples, {CLOUD: received}, set(samples) - delivered)
-        cloud_model = averages.get(CLOUD, state.cloud_model)
+        cloud_model = self._sent(averages[CLOUD], state.cloud_model) if CLOUD in averages else state.cloud_model
         models = {v: cloud_model if v in delivered else kept[v] for v in setup.vehicles}
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1

@@ -83,6 +83,7 @@ from crchfl_sumo.federation.state import (
     sim_time_s,
 )
 from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
+from crchfl_sumo.learning.codecs import encoded_fraction
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
@@ -112,7 +113,21 @@ def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
 
 
 
-def resolve_hyper(config: RunConfig, inputs: RunData, model_bytes: int, clock: Clock) -> tuple[HyperParameters, dict | None]:
+def codec_fractions(config: RunConfig, state) -> tuple[float, float]:
+    """(every model transfer's, a vehicle upload's) encoded bytes over the raw ones under [federation]
+    update_codec (learning.codecs): int8 shrinks every transfer, topk a vehicle's upload only."""
+    fed = config.federation
+    if fed.update_codec == "int8":
+        fraction = encoded_fraction(state, "int8")
+        return fraction, fraction
+    if fed.update_codec == "topk":
+        return 1.0, encoded_fraction(state, "topk", fed.topk_fraction)
+    return 1.0, 1.0
+
+
+def resolve_hyper(
+    config: RunConfig, inputs: RunData, model_bytes: int, clock: Clock, fractions: tuple[float, float] = (1.0, 1.0)
+) -> tuple[HyperParameters, dict | None]:
     """The four hyper-parameters: the config's, or (CRCHFL, use_plan) the optimizer's for this run.
 
     The plan takes the run's topology, its sample counts, and its timing: the
@@ -132,7 +147,8 @@ def resolve_hyper(config: RunConfig, inputs: RunData, model_bytes: int, clock: C
         wireline_rate_bps=config.wireline.rate_bps,
     )
     plan = make_plan(
-        allocation, config.ledger, real_model_bytes=model_bytes, measured_sample_bytes=inputs.measured_sample_bytes
+        allocation, config.ledger, real_model_bytes=model_bytes, measured_sample_bytes=inputs.measured_sample_bytes,
+        fractions=fractions,
     )
     # The solver's timings differ from run to run; the rest of the plan is what the run depends on.
     fixed = {k: v for k, v in plan.to_dict().items() if k not in ("compile_s", "solve_s", "search_s")}
@@ -201,14 +217,15 @@ def _run_with_trainer(
     first = trainer.initial_state()
     baseline = always_straight(inputs.test)  # what the accuracies are read against
     settings = inputs.drive_settings  # kept in the model files, so that a drive renders and steers as the data did
-    sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes)
+    fractions = codec_fractions(config, first)
+    sizes = resolve_sizes(config.ledger, state_size_bytes(first), inputs.measured_sample_bytes, *fractions)
     with (clock_factory or (lambda: make_clock(config, inputs)))() as clock:
-        hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock)
+        hyper, plan = resolve_hyper(config, inputs, state_size_bytes(first), clock, fractions)
         resolved = {
             "config": resolved_config(config),
             "hyper": dataclasses.asdict(hyper),
             "plan": plan,
-            "sizes": dataclasses.asdict(sizes),
+            "sizes": sizes.to_dict(),
             "vehicles": list(inputs.vehicles),
             "edges": list(inputs.edges),
         }

@@ -33,6 +33,11 @@ CLIENT_SELECTIONS: tuple[str, ...] = get_args(ClientSelection)
 SFL_LINK = "macro"  # the pseudo-edge name of SFL's topology (the ledger needs one group)
 
 
+# How a transfer carries a model (learning/codecs.py): whole, as an 8-bit difference, or a vehicle's top-k update.
+UpdateCodec = Literal["none", "int8", "topk"]
+UPDATE_CODECS: tuple[str, ...] = get_args(UpdateCodec)
+
+
 # Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
 DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
 
@@ -76,6 +81,12 @@ class FederationConfig:
     compute_s_per_sample: simulated time of one sample of one local epoch on a
         vehicle, and of the cloud's pretraining [s].
     seed: seed of the initial model, the pretraining subset and the shuffling.
+    update_codec: how transfers carry models (learning/codecs.py): "none" (whole, the paper), "int8"
+        (every model transfer as its 8-bit difference from the last global model: about a quarter of
+        the bytes) or "topk" (a vehicle's upload as the ``topk_fraction`` largest entries of its
+        update, with error feedback; the rest whole). The ledger charges, and CRCHFL's optimizer
+        plans with, the encoded sizes.
+    topk_fraction: the share of each tensor's entries a "topk" upload keeps.
     """
 
     scheme: Scheme = "crchfl"
@@ -92,8 +103,15 @@ class FederationConfig:
     deadline_s: float = math.inf
     compute_s_per_sample: float = DEFAULT_COMPUTE_S_PER_SAMPLE
     seed: int = 0
+    update_codec: UpdateCodec = "none"
+    topk_fraction: float = 0.01
 
     def __post_init__(self) -> None:
+        if self.update_codec not in UPDATE_CODECS:
+            raise CrchflError(
+                f"federation.update_codec: {self.update_codec!r} is not one of {', '.join(map(repr, UPDATE_CODECS))}"
+            )
+        check_range(self.topk_fraction, "federation.topk_fraction", 0, 1, "a share of the entries", lo_open=True)
         if self.scheme not in SCHEMES:
             raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
         if self.handover_policy not in get_args(HandoverPolicy):

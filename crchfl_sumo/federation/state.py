@@ -150,6 +150,7 @@ class FederationState:
     budget_marks: dict[str, dict | None] = field(default_factory=dict)
     budget_mark_models: dict[str, State] = field(default_factory=dict)
     dagger_rounds: list[int] = field(default_factory=list)  # the cloud rounds after which the vehicles labelled
+    residuals: dict[str, State] = field(default_factory=dict)  # what each vehicle's topk uploads left out
 
     @property
     def done(self) -> bool:
@@ -167,8 +168,8 @@ class FederationState:
 
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
-MODELS = ("vehicle_models", "edge_models", "budget_mark_models")  # name -> State (cloud_model, best_model: one)
-ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds")  # an older checkpoint lacks them: empty
+MODELS = ("vehicle_models", "edge_models", "budget_mark_models", "residuals")  # name -> State (cloud_model, best_model: one)
+ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:

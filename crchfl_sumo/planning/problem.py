@@ -247,9 +247,15 @@ def make_plan(
     *,
     real_model_bytes: int | None = None,
     measured_sample_bytes: int | None = None,
+    fractions: tuple[float, float] = (1.0, 1.0),
 ) -> Plan:
-    """Solve problem P for the planning topology of ``config`` under the ledger's rule and sizes."""
-    sizes = resolve_sizes(ledger_config, real_model_bytes, measured_sample_bytes)
+    """Solve problem P for the planning topology of ``config`` under the ledger's rule and sizes.
+
+    ``fractions``: (every model transfer's, a vehicle upload's) encoded size over the raw one under an
+    update codec (federation.run.codec_fractions): the costs E and M shrink with them, so the plan
+    makes more rounds of the same budget.
+    """
+    sizes = resolve_sizes(ledger_config, real_model_bytes, measured_sample_bytes, *fractions)
     rule = ledger_config.rule
     topology = Topology.from_counts(config.vehicles_per_edge)
     costs = costs_for(config, rule, topology, sizes)

@@ -706,3 +706,66 @@ def test_no_labelling_for_a_step_the_budget_cannot_carry():
     state = Federation(setup, clock, SumTrainer(), labeller=labeller).run(initial_state(setup, SumTrainer(), 0.0))
     assert (state.cloud_rounds, state.stop_reason) == (3, "budget")
     assert list(labeller.given) == [1, 2] and state.dagger_rounds == [1, 2]
+
+
+# ------------------------------------------------------------------ update codecs
+
+
+def _codec_run(codec, budget_mib=35, fraction=0.5):
+    """HFL at 1 MiB models (SumTrainer's model: two float64 entries, 16 raw bytes)."""
+    from crchfl_sumo.federation.run import codec_fractions
+    from crchfl_sumo.federation.run_config import RunConfig
+
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_interval=1, compute_s_per_sample=0.5,
+                              update_codec=codec, topk_fraction=fraction)
+    ledger = LedgerConfig(nominal_model_mb=1.0, nominal_sample_kb=512.0, budget_gb=budget_mib / 1024)
+    fractions = codec_fractions(RunConfig(federation=config),
+                                SumTrainer().initial_state())
+    setup = dataclasses.replace(_setup(config, _hyper(config), {"a": 2, "b": 2, "c": 2}, HOME3, ledger=ledger),
+                                sizes=resolve_sizes(ledger, None, None, *fractions))
+    return _run(setup, ScriptedClock.constant(HOME3, 8e6, step_s=0.25)), fractions
+
+
+def test_int8_charges_every_model_transfer_its_encoded_size_and_makes_more_rounds():
+    plain, _ = _codec_run("none")
+    coded, (every, upload) = _codec_run("int8")
+    assert every == upload == pytest.approx((2 + 4) / 16)  # two int8 entries and a float32 scale, of 16 bytes
+    encoded = round(MIB * every)
+    assert {r[6] for r in _rows(coded)} == {encoded} and {r[6] for r in _rows(plain)} == {MIB}
+    # 10 model transfers a round: 10 MiB carry 3 rounds of 35 MiB, 3.75 MiB carry 9
+    assert (plain.cloud_rounds, coded.cloud_rounds) == (3, 9)
+    # SumTrainer's updates (n, n) quantize exactly: the model is what it is without the codec, round by round
+    three, _ = _codec_run("int8", budget_mib=3 * 3.75 + 1)
+    assert three.cloud_rounds == 3 and torch.allclose(three.cloud_model["w"], plain.cloud_model["w"])
+
+
+def test_topk_shrinks_the_vehicles_uploads_only_and_keeps_what_it_left_out():
+    coded, (every, upload) = _codec_run("topk", fraction=0.5)
+    assert every == 1.0 and upload == pytest.approx((8 + 4) / 16)  # one of two float64 entries and its index
+    sizes = {(r[0], r[1]): r[6] for r in _rows(coded)}
+    assert sizes == {("wireless", "uplink"): round(MIB * upload), ("wireline", "uplink"): MIB,
+                     ("wireline", "downlink"): MIB, ("wireless", "downlink"): MIB}
+    # SumTrainer's update is (n, n): one entry sent, one left over for each vehicle's next upload
+    assert set(coded.residuals) == {"a", "b", "c"}
+    assert all(float(r["w"].abs().sum()) > 0 for r in coded.residuals.values())
+    from crchfl_sumo.federation.state import FederationState
+
+    back = FederationState.from_payload(coded.to_payload(), [], [], [])
+    assert all(torch.equal(back.residuals[v]["w"], coded.residuals[v]["w"]) for v in "abc")
+
+
+def test_the_optimizer_plans_a_quarter_size_transfer_as_a_quarter_size_model():
+    plan = make_plan(AllocationConfig(), LedgerConfig())
+    coded = make_plan(AllocationConfig(), LedgerConfig(), fractions=(0.25, 0.25))
+    quarter = make_plan(AllocationConfig(), LedgerConfig(nominal_model_mb=LedgerConfig().nominal_model_mb / 4))
+    assert plan.cloud_rounds == 9
+    fixed = ("pretrain_batch", "edge_interval", "cloud_interval", "cloud_rounds")
+    assert {k: getattr(coded, k) for k in fixed} == {k: getattr(quarter, k) for k in fixed}
+    assert coded.cloud_rounds > plan.cloud_rounds
+
+
+def test_a_bad_codec_is_refused_naming_the_key():
+    with pytest.raises(CrchflError, match="federation.update_codec"):
+        FederationConfig(update_codec="zip")
+    with pytest.raises(CrchflError, match="federation.topk_fraction"):
+        FederationConfig(topk_fraction=0.0)
