@@ -658,7 +658,7 @@ def _add_mobility_study(p: argparse.ArgumentParser) -> None:
 
 
 def _run_mobility_study(args) -> int:
-    from crchfl_sumo.studies.mobility import mobility_study_command
+    from crchfl_sumo.studies.mobility_study import mobility_study_command
 
     rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
     print((args.out / RESULTS_MD_FILE).read_text(encoding="utf-8"), end="")

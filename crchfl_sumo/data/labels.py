@@ -6,7 +6,7 @@ convention; its left turn at a T-junction carries steer -0.275).
 
 Route command (Conditional Imitation Learning, Codevilla et al. 2018): what
 the vehicle's route does at the next junction within the command look-ahead
-(data/commands.py): follow the lane (no junction near), turn left, turn right,
+(data/route_commands.py): follow the lane (no junction near), turn left, turn right,
 or go straight across. Code k is COMMAND_NAMES[k].
 
 Signal ahead (data set format 5): the state of the next signal on the sample's

@@ -12,7 +12,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
-from crchfl_sumo.data.commands import PathCommands
+from crchfl_sumo.data.route_commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
 from crchfl_sumo.learning.settings import (
@@ -240,7 +240,7 @@ class ModelPolicy:
 
     ``commands``: the commands along the ego's planned route, looked up at the
     observation's ``progress_m`` (the ego centre's arc position on that route,
-    what data.commands expects): ``RouteCommands(route, choice_junctions(net))``,
+    what data.route_commands expects): ``RouteCommands(route, choice_junctions(net))``,
     the same definition the training data was labelled with. A model of
     arch "paper" sees no command and may go without. The speed is the ego's
     ``frame.speed_mps``; a target-speed model's pedals are scaled by the ego's

@@ -5,7 +5,7 @@ A path is a polyline of positions in driving order: a vehicle's recorded track
 a junction where it runs inside the junction's outline (from the network);
 the turn it takes there is the change of its direction of travel between
 entering and leaving, in radians, counter-clockwise (left) positive.
-data/commands.py turns the next turn within a look-ahead into a command.
+data/route_commands.py turns the next turn within a look-ahead into a command.
 
 Only junctions where a driver must choose count: some incoming road leads to
 two or more roads (turnarounds aside). A corner of a town's ring, where one

@@ -6,7 +6,7 @@ import pytest
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.resources import scenarios_dir
-from crchfl_sumo.data.commands import CommandConfig, PathCommands, RouteCommands, command_from_turn, track_commands
+from crchfl_sumo.data.route_commands import CommandConfig, PathCommands, RouteCommands, command_from_turn, track_commands
 from crchfl_sumo.data.labels import COMMAND_NAMES, FOLLOW, LEFT, RIGHT, STRAIGHT
 from crchfl_sumo.sumo.route import read_net, route_geometry
 from crchfl_sumo.sumo.turns import Junction, choice_junctions

@@ -230,7 +230,7 @@ def test_neighbourhood_frames_render_what_full_frames_render():
 
 
 def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
-    from crchfl_sumo.data.commands import CommandConfig
+    from crchfl_sumo.data.route_commands import CommandConfig
     from crchfl_sumo.data.expert import ExpertConfig, Track
     from crchfl_sumo.data.generation import sample_labels
     from crchfl_sumo.data.labels import FOLLOW, LEFT

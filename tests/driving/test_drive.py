@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.commands import RouteCommands
+from crchfl_sumo.data.route_commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import LEFT, RIGHT, STEER_CLASS_VALUES, digitize_steer, steer_bin_values
 from crchfl_sumo.driving.drive import (

@@ -12,8 +12,8 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import read_toml
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.studies.mobility import BASELINE, Plan, Study, StudyData, parse_study, run_study, study_plan
-from crchfl_sumo.studies.mobility_report import markdown_table, study_rows, write_report
+from crchfl_sumo.studies.mobility_study import BASELINE, StudyPlan, Study, StudyData, parse_study, run_study, study_plan
+from crchfl_sumo.studies.mobility_study_report import markdown_table, study_rows, write_report
 from crchfl_sumo.studies.sweep import Point
 
 from helpers import PAPER_VEHICLES, run_config, write_dataset
@@ -132,7 +132,7 @@ def test_report_rows_table_and_figures_from_hand_made_summaries(tmp_path):
         {"name": "speed", "key": "sumo.speed_limit_mps", "values": [8.0, 14.0, float("inf")]},
         {"name": "policy", "key": "federation.handover_policy", "values": ["new_edge", "miss"]},
     )
-    plan = Plan(
+    plan = StudyPlan(
         (Point(BASELINE, {}, {}),),
         {"speed": ("s8", "s14", BASELINE), "policy": (BASELINE, "miss")},
     )
@@ -198,7 +198,7 @@ def test_rows_over_seeds_carry_intervals_the_closed_loop_and_the_findings(tmp_pa
     from scipy import stats
 
     study = _study({"name": "density", "key": "sumo.scale", "values": [0.5, 1.0, 2.0]})
-    plan = Plan((Point(BASELINE, {}, {}),), {"density": ("d05", BASELINE, "d2")})
+    plan = StudyPlan((Point(BASELINE, {}, {}),), {"density": ("d05", BASELINE, "d2")})
     accuracy = {BASELINE: [0.50, 0.52, 0.51], "d05": [0.50, 0.53, 0.49], "d2": [0.30, 0.31, 0.33]}
     rate = {BASELINE: [20.0, 21.0, 19.0], "d05": [30.0, 29.0, 31.0], "d2": [10.0, 11.0, 9.0]}
     summaries = {p: {s: {**_summary(1), "balanced_accuracy": accuracy[p][s], "mean_uplink_rate_mbps": rate[p][s]}

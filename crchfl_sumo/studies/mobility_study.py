@@ -38,7 +38,7 @@ from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
-from crchfl_sumo.studies.mobility_report import BASELINE
+from crchfl_sumo.studies.mobility_study_report import BASELINE
 from crchfl_sumo.studies.sweep import (
     RUNS_DIR, Param, Point, absolute_paths, check_values, point_name, point_seeds, run_points, seed_point, seed_runs,
     value_label,
@@ -98,7 +98,7 @@ class Study:
 
 
 @dataclass(frozen=True)
-class Plan:
+class StudyPlan:
     """The points to run (the baseline first) and, per factor, the point of each of its values."""
 
     points: tuple[Point, ...]
@@ -164,7 +164,7 @@ def _known(table: Any, keys: set[str], where: str) -> None:
 # ------------------------------------------------------------------ the plan
 
 
-def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") -> Plan:
+def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") -> StudyPlan:
     """The baseline and one point per factor value (that key alone changed); equal settings share a point.
 
     Every value is checked like a sweep --param first, so a bad key or value names its factor.
@@ -191,7 +191,7 @@ def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") ->
             mapping = set_path(base, factor.param.keys, value, f"factor {factor.name!r}")
             names.append(add(point_name(values), values, mapping))
         factor_points[factor.name] = tuple(names)
-    return Plan(tuple(points), factor_points)
+    return StudyPlan(tuple(points), factor_points)
 
 
 # ------------------------------------------------------------------ running
@@ -218,7 +218,7 @@ def make_data(data: StudyData, out_dir: Path) -> Path:
 
 def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: str = "study") -> list[dict]:
     """Generate the data, run every point not finished yet, write the table and figures; returns the rows."""
-    from crchfl_sumo.studies.mobility_report import study_rows, write_report
+    from crchfl_sumo.studies.mobility_study_report import study_rows, write_report
 
     out_dir = Path(out_dir)
     base = {**study.base, "dataset": str((out_dir / DATA_DIR).resolve())}
