@@ -118,3 +118,12 @@ def test_every_config_module_imports_without_torch_or_cvxpy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_no_library_module_imports_a_command_module():
+    """A command module (``*_command.py``: what one CLI command does, end to end) is cli.py's alone."""
+    offenders = [
+        (module, imported) for module, path in modules() if module != "crchfl_sumo.cli"
+        for imported in imported_modules(path) if imported.rsplit(".", 1)[-1].endswith("_command")
+    ]
+    assert offenders == []
