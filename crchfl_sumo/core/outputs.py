@@ -37,8 +37,9 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
-from crchfl_sumo.core.atomic import TMP_MARK, atomic_write_bytes, atomic_write_text
+from crchfl_sumo.core.atomic import TMP_MARK, atomic_write_bytes
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import write_json
 
 MARKER_PREFIX = ".crchfl-sumo-"
 MARKER_SUFFIX = ".json"
@@ -130,7 +131,7 @@ def prepare_output_dir(
     marker = {"command": command, "fingerprint": settings_fingerprint}
     if resume_fingerprint is not None:
         marker["resume_fingerprint"] = resume_fingerprint
-    atomic_write_text(marker_path(path, command), json.dumps(marker, indent=2) + "\n")
+    write_json(marker_path(path, command), marker)
     return path
 
 

@@ -6,7 +6,6 @@ handful of samples (one per steer class where the data set has one).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -14,9 +13,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from crchfl_sumo.core.atomic import atomic_write_bytes, atomic_write_text
+from crchfl_sumo.core.atomic import atomic_write_bytes
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
 from crchfl_sumo.data.recovery import FORWARD_M, LATERAL_M, YAW_DEG
@@ -208,6 +208,6 @@ def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None) -> 
     if stats["train"]["samples"]:
         files["mosaic"] = str(write_mosaic(root, out_dir / "dataset_mosaic.png"))
     stats["files"] = files
-    atomic_write_text(out_dir / "dataset_stats.json", json.dumps(stats, indent=2) + "\n")
+    write_json(out_dir / "dataset_stats.json", stats)
     log.info("wrote %s", ", ".join(files.values()))
     return stats
