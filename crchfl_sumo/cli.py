@@ -203,15 +203,23 @@ def _comma_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
+def _scenario_names() -> str:
+    """The built-in scenarios as --help lists them (the packaged folders, so the list never goes stale)."""
+    from crchfl_sumo.sumo.scenario import builtin_names
+
+    return ", ".join(builtin_names())
+
+
 def _scenario_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", help="built-in scenario name (town01, town02, paper, paper_linked) or a .sumocfg path")
+    parser.add_argument("scenario", help=f"built-in scenario name ({_scenario_names()}), a folder laid out as one, "
+                        "or a .sumocfg path")
 
 
 # --- reproduce and report -----------------------------------------------------------------------
 
 
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quick", action="store_true", help="reduced size, about 5 minutes on 2 cores (docs/reproduce.md)")
+    p.add_argument("--quick", action="store_true", help="reduced size, about 2 minutes on 2 cores (docs/reproduce.md)")
     p.add_argument("--out", type=Path, default=None, help="results folder (default results/quick or results/full)")
     p.add_argument("--seeds", type=integer_arg(1, 100, "a number of seeds per scheme"), default=None,
                    help="seeds per scheme (default: quick 1, full 3)")
@@ -255,7 +263,7 @@ def _run_report(args) -> int:
 
 def _add_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", nargs="?", default=None,
-                   help="built-in scenario name (town01, town02, paper, paper_linked), a folder or a .sumocfg path; "
+                   help=f"built-in scenario name ({_scenario_names()}), a folder laid out as one or a .sumocfg path; "
                    "or none, with --net")
     p.add_argument("--net", type=Path, default=None,
                    help="a bare SUMO network (.net.xml or .net.xml.gz) instead of a scenario: OUT/NAME.sumocfg is "
