@@ -18,7 +18,6 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from crchfl_sumo import __version__
-from crchfl_sumo.core.result_files import RESULTS_MD_FILE
 from crchfl_sumo.core.cpus import available_cpus, choose_wait_policy, settle_native_libraries
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
@@ -30,6 +29,7 @@ from crchfl_sumo.core.numbers import (
     number_arg,
     seed_arg,
 )
+from crchfl_sumo.core.result_files import RESULTS_MD_FILE
 from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, TrainConfig
 
 
@@ -205,7 +205,7 @@ def _comma_list(text: str) -> tuple[str, ...]:
 
 def _scenario_names() -> str:
     """The built-in scenarios as --help lists them (the packaged folders, so the list never goes stale)."""
-    from crchfl_sumo.sumo.scenario import builtin_names
+    from crchfl_sumo.core.resources import builtin_names
 
     return ", ".join(builtin_names())
 

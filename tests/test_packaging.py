@@ -12,7 +12,7 @@ import pytest
 
 import crchfl_sumo
 from crchfl_sumo.core.resources import drive_routes_path, experiments_dir, scenarios_dir, street_types_path
-from crchfl_sumo.sumo.scenario import builtin_names
+from crchfl_sumo.core.resources import builtin_names
 
 REPO = Path(__file__).resolve().parents[1]
 BUILTIN = ("paper", "paper_linked", "scale200", "town01", "town02")

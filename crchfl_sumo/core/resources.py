@@ -18,6 +18,11 @@ def scenarios_dir() -> Path:
     return Path(str(files("crchfl_sumo.scenarios")))
 
 
+def builtin_names() -> list[str]:
+    """The built-in scenarios' names: the packaged folders with a scenario.toml."""
+    return sorted(p.parent.name for p in scenarios_dir().glob("*/scenario.toml"))
+
+
 def drive_routes_path() -> Path:
     """The named routes that `drive` and `reproduce` drive."""
     return scenarios_dir() / "drive_routes.toml"

@@ -41,8 +41,6 @@ from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.core.progress import Progress, report
-from crchfl_sumo.data.route_commands import CommandConfig, track_commands
-from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
 from crchfl_sumo.data.expert import (
     ExpertConfig,
     Track,
@@ -60,6 +58,8 @@ from crchfl_sumo.data.recovery import (
     gap_ahead,
     recovery_steer,
 )
+from crchfl_sumo.data.route_commands import CommandConfig, track_commands
+from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net

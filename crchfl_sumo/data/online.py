@@ -27,9 +27,9 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.route_commands import CommandConfig, track_commands
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels, target_speeds
 from crchfl_sumo.data.generation import FUTURE_S
+from crchfl_sumo.data.route_commands import CommandConfig, track_commands
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.settings import OnlineConfig
 from crchfl_sumo.sumo.frame import Frame

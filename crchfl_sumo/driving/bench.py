@@ -22,12 +22,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from crchfl_sumo.core.result_files import EPISODES_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.result_files import EPISODES_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.driving.bench_behaviour import ABILITIES, behaviour
 from crchfl_sumo.driving.bench_plots import plot_benchmark
 from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task

@@ -28,27 +28,27 @@ from typing import Sequence
 
 import numpy as np
 
-from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
+from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.driving.bench import SUMO_LOG_DIR, episode_log
-from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
-from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
+from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import drive
+from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
+from crchfl_sumo.learning.centralized import train_centralized
 from crchfl_sumo.learning.checkpoint import load_checkpoint
 from crchfl_sumo.learning.settings import TrainConfig
-from crchfl_sumo.learning.centralized import train_centralized
 from crchfl_sumo.sumo.route import inside_crossing, next_signal, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES

@@ -43,12 +43,12 @@ from crchfl_sumo.driving.dynamics import VehicleState, acceleration_from_pedals,
 from crchfl_sumo.driving.policies import Observation, Policy, leader_gap_m
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import (
-    point_at,
     RED_LETTERS,
     Crossing,
     RouteGeometry,
     next_crossing,
     on_road,
+    point_at,
     project_points,
     read_net,
     road_area,

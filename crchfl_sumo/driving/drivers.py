@@ -19,8 +19,8 @@ from typing import Any
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import REFERENCE
-from crchfl_sumo.data.route_commands import RouteCommands
 from crchfl_sumo.data.expert import ExpertConfig, expert_from_labels
+from crchfl_sumo.data.route_commands import RouteCommands
 from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING
 from crchfl_sumo.sumo.route import RouteGeometry

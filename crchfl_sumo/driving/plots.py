@@ -19,11 +19,11 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from crchfl_sumo.core.result_files import DRIVE_METRICS_FILE
 from crchfl_sumo.core.atomic import atomic_path
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.json_files import read_json_object, write_json
 from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.json_files import read_json_object, write_json
+from crchfl_sumo.core.result_files import DRIVE_METRICS_FILE
 from crchfl_sumo.driving.drive import DriveLog, DriveResult, lane_departed
 from crchfl_sumo.sumo.maps import draw_network
 from crchfl_sumo.sumo.route import GREEN_LETTERS, RED_LETTERS, RouteGeometry, read_net, route_geometry

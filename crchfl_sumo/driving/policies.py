@@ -12,9 +12,9 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
-from crchfl_sumo.data.route_commands import PathCommands
 from crchfl_sumo.data.expert import ExpertConfig, pedals, steer_from_curvature
 from crchfl_sumo.data.labels import FOLLOW
+from crchfl_sumo.data.route_commands import PathCommands
 from crchfl_sumo.learning.settings import (
     DEFAULT_BRAKE_GAIN,
     DEFAULT_STEER_DECODING,

@@ -19,7 +19,6 @@ from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.raster import Renderer
 from crchfl_sumo.vision.world import build_world
 
-
 SUMO_LOG_FILE = "sumo.log"  # SUMO's warnings of the drive, instead of the console
 
 

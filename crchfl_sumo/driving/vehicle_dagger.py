@@ -29,10 +29,10 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.driving.bench import SUMO_LOG_DIR
-from crchfl_sumo.driving.drivers import ModelDriver
 from crchfl_sumo.driving.bench_tasks import draw_episodes, task_by_name
 from crchfl_sumo.driving.dagger import labelled_drives, read_labels, write_labels
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
+from crchfl_sumo.driving.drivers import ModelDriver
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import RunData
 from crchfl_sumo.federation.settings import VehicleDaggerConfig
@@ -81,11 +81,13 @@ class VehicleLabeller:
     ) -> None:
         self.config, self.drives = config, drive_config(config)
         self.towns = dict(towns)
+        self._scenarios = {}  # each town read once: every round draws its routes from it
         for town in sorted(set(self.towns.values())):
             try:
-                load_scenario(town)
+                self._scenarios[town] = load_scenario(town)
             except CrchflError as exc:
                 raise CrchflError(f"[dagger]: the vehicles of town {town!r} cannot drive there ({exc})") from None
+        self._tasks = [task_by_name(name) for name in self.drives.tasks]
         self.model_config, self.drive_settings = model_config, dict(drive_settings or {})
         self.run_dir, self.run_seed, self.jobs = Path(run_dir), run_seed, jobs
         self._rounds: dict[int, dict[str, Samples]] = {}
@@ -99,8 +101,7 @@ class VehicleLabeller:
             path = folder / f"{vehicle}.model.pt"  # the model the vehicle drives, for the drive's process
             save_checkpoint(path, self.model_config, models[vehicle], {**self.drive_settings, "vehicle": vehicle})
             model_files.append(path)
-            tasks = [task_by_name(name) for name in self.drives.tasks]
-            episodes = draw_episodes(load_scenario(town), tasks, self.drives.episodes,
+            episodes = draw_episodes(self._scenarios[town], self._tasks, self.drives.episodes,
                                      route_seed(self.config, self.run_seed, cloud_round, i))
             calls.append((ModelDriver(str(path), label=vehicle), town, episodes, self.drives, folder / SUMO_LOG_DIR))
         with Executor(BackendConfig(num_cpus=self.jobs)) as executor:

@@ -13,10 +13,10 @@ import json
 import os
 from pathlib import Path
 
-from crchfl_sumo.core.result_files import METRICS_LOG_FILE
 from crchfl_sumo.accounting.ledger import Ledger, Record, jsonl_header, jsonl_lines
 from crchfl_sumo.accounting.schedules import ByteSizes
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.result_files import METRICS_LOG_FILE
 from crchfl_sumo.federation.state import FederationState
 
 LEDGER, METRICS, STRAGGLERS = "ledger.jsonl", METRICS_LOG_FILE, "stragglers.jsonl"

@@ -298,12 +298,12 @@ class Federation:
         relays.append(RelayedTransfer(stage, "uplink", payload, (Relay(out.site, home, out.end_s, arrival_s, size),)))
         return arrival_s
 
-    def _data(self, state: FederationState) -> dict[str, Samples]:
+    def _data(self, state: FederationState, ledger: Ledger) -> dict[str, Samples]:
         """Every vehicle's samples for the training it would start now (when it holds its model), with the
         labels of its own drives ([dagger]): at the start of a cloud round that ``setup.dagger`` names, each
         vehicle first drives the model it holds and the expert labels what it visited."""
         if (self.setup.dagger.due(state.cloud_rounds) and state.tau == 0 and state.cloud_rounds not in state.dagger_rounds
-                and self._step_may_fit(state)):
+                and self._step_may_fit(state, ledger)):
             self.labeller.label(state.cloud_rounds, state.vehicle_models)
             state.dagger_rounds = [*state.dagger_rounds, state.cloud_rounds]
         rounds = tuple(state.dagger_rounds)
@@ -328,10 +328,9 @@ class Federation:
         codec = self.config.update_codec
         if codec == "none":
             return model
-        delta = codecs.subtract(model, start)
         if codec == "int8":
-            return codecs.add(start, codecs.int8_roundtrip(delta))
-        sent, state.residuals[vehicle] = codecs.topk_roundtrip(delta, self.config.topk_fraction,
+            return codecs.int8_transfer(model, start)
+        sent, state.residuals[vehicle] = codecs.topk_roundtrip(codecs.subtract(model, start), self.config.topk_fraction,
                                                                 state.residuals.get(vehicle))
         return codecs.add(start, sent)
 
@@ -340,24 +339,28 @@ class Federation:
         difference from ``reference`` (the last global model, which every node holds) in 8 bits."""
         return codecs.int8_transfer(model, reference) if self.config.update_codec == "int8" else model
 
-    def _step_may_fit(self, state: FederationState) -> bool:
+    def _step_schedule(self, topology: Topology, followed: bool) -> tuple[Transfer, ...]:
+        """What a step charges for ``topology``: an edge aggregation (and the cloud aggregation when
+        ``followed``), or SFL's cloud round."""
+        setup, cfg = self.setup, self.config
+        if not cfg.hierarchical:
+            return cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes)
+        schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes, followed_by_cloud=followed)
+        if followed:
+            schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes)
+        return schedule
+
+    def _step_may_fit(self, state: FederationState, ledger: Ledger) -> bool:
         """Could the budget carry this step? Under the paper rule a step charges at least the schedule of its
         vehicles all under one edge (more edges and relays add to it), so one for which even that does not
         fit will not be counted: the vehicles' drives for it would be wasted. Under the physical rule a
         failed transfer charges less: always True."""
-        setup, cfg = self.setup, self.config
+        setup = self.setup
         if setup.rule != "paper":
             return True
-        if cfg.hierarchical:
-            topology = Topology((setup.edges[0],), (setup.vehicles,))  # the cheapest the step can be
-            followed = state.tau + 1 == setup.hyper.cloud_interval
-            schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes, followed_by_cloud=followed)
-            if followed:
-                schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, setup.sizes)
-        else:
-            schedule = cloud_aggregation_schedule(setup.rule, cfg.scheme, Topology((SFL_LINK,), (setup.vehicles,)),
-                                                  setup.sizes)
-        return Ledger(setup.sizes, byte_totals=state.ledger_totals).can_carry(schedule_bytes(schedule))
+        cheapest = Topology(((setup.edges[0],) if self.config.hierarchical else (SFL_LINK,)), (setup.vehicles,))
+        followed = state.tau + 1 == setup.hyper.cloud_interval
+        return ledger.can_carry(schedule_bytes(self._step_schedule(cheapest, followed)))
 
     def _train_and_average(
         self,
@@ -530,7 +533,7 @@ class Federation:
         """
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
-        samples = self._data(state)
+        samples = self._data(state, ledger)
         picked = self._select(state, samples)
         counts = {v: len(samples[v]) for v in picked}  # |T_nk| of the vehicles that train
         skipped = [v for v in setup.vehicles if v not in picked]
@@ -568,9 +571,7 @@ class Federation:
         for e, vehicles in topology.active():
             models.update(dict.fromkeys((v for v in vehicles if v in delivered), edge_models[e]))
         next_round = state.cloud_rounds + 1
-        schedule = edge_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes, followed_by_cloud=followed)
-        if followed:
-            schedule += cloud_aggregation_schedule(setup.rule, cfg.scheme, topology, sizes)
+        schedule = self._step_schedule(topology, followed)
         if not _charge(ledger, schedule, events, setup.rule, next_round, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
@@ -714,7 +715,7 @@ class Federation:
     def _sfl_round(self, state: FederationState, ledger: Ledger) -> None:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         epochs = setup.hyper.edge_interval
-        samples = self._data(state)
+        samples = self._data(state, ledger)
         counts = {v: len(samples[v]) for v in samples}
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
@@ -735,7 +736,7 @@ class Federation:
         models = {v: cloud_model if v in delivered else kept[v] for v in setup.vehicles}
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
-        schedule = cloud_aggregation_schedule(setup.rule, "sfl", topology, sizes)
+        schedule = self._step_schedule(topology, followed=True)
         if not _charge(ledger, schedule, events, setup.rule, next_round, state):
             state.stop_reason = "budget"
             return

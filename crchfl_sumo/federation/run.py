@@ -45,8 +45,6 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crchfl_sumo.core.result_files import BEST_MODEL_FILE, CONFIG_JSON_FILE, FINAL_MODEL_FILE, MODEL_FILE, STATE_FILE, SUMMARY_FILE
-from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.accounting.ledger import GIB, Ledger, budget_marks_bytes, gb_label, resolve_sizes
 from crchfl_sumo.core.atomic import (
     atomic_path_keeping_previous,
@@ -55,11 +53,20 @@ from crchfl_sumo.core.atomic import (
     read_latest,
     remove_stale_temporaries,
 )
-from crchfl_sumo.core.background import BackgroundSaver
 from crchfl_sumo.core.backend import BackendConfig, Executor
+from crchfl_sumo.core.background import BackgroundSaver
 from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.result_files import (
+    BEST_MODEL_FILE,
+    CONFIG_JSON_FILE,
+    FINAL_MODEL_FILE,
+    MODEL_FILE,
+    STATE_FILE,
+    SUMMARY_FILE,
+)
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.logs import LOGS, Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
@@ -89,8 +96,8 @@ from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
 from crchfl_sumo.links.residence import Coverage, sites_coverage
-from crchfl_sumo.planning.settings import calibrated
 from crchfl_sumo.planning.problem import make_plan
+from crchfl_sumo.planning.settings import calibrated
 from crchfl_sumo.planning.timing import measured_rates_bps, run_timing
 
 log = logging.getLogger(__name__)

@@ -132,8 +132,8 @@ def make_clock(config: RunConfig, inputs: RunData):
 
 def online_collector(config: RunConfig, inputs: RunData, scenario):
     """The online mode's collector, rendering and labelling exactly as the data set was made."""
-    from crchfl_sumo.data.route_commands import CommandConfig
     from crchfl_sumo.data.online import OnlineCollector
+    from crchfl_sumo.data.route_commands import CommandConfig
     from crchfl_sumo.data.shards import read_manifest, read_shard
     from crchfl_sumo.vision.raster import camera_settings
 

@@ -18,13 +18,12 @@ Tensors that are not floating point (counters) always travel whole. Pure functio
 from __future__ import annotations
 
 import math
-from typing import Literal, Mapping
+from typing import Mapping
 
 import torch
 
 from crchfl_sumo.learning.model import State
 
-UpdateCodec = Literal["none", "int8", "topk"]
 INDEX_BYTES = 4  # a kept entry's position in its tensor (int32)
 SCALE_BYTES = 4  # an int8 tensor's float32 scale
 

@@ -374,8 +374,8 @@ PILOT_TOWNS = (("town01", (73, 73), (106,)), ("town02", (65, 65, 39), (102,)))  
 
 
 def _generate_pilot_data(scenario_name: str, data_dir: Path, seed: int) -> None:
-    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.sumo.scenario import load_scenario
 
     sizes = DatasetConfig(towns=tuple(TownSplit(t, train, test) for t, train, test in PILOT_TOWNS))

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from crchfl_sumo.core.result_files import BEST_MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, set_path
@@ -36,11 +35,21 @@ from crchfl_sumo.core.json_files import read_json
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.resources import experiments_dir
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.data.settings import MAX_SAMPLE_PERIOD_S, PAPER_SAMPLE_PERIOD_S
 from crchfl_sumo.federation.run_config import RunConfig, resolved_config
 from crchfl_sumo.studies.mobility_study_report import BASELINE
 from crchfl_sumo.studies.sweep import (
-    RUNS_DIR, Param, Point, absolute_paths, check_values, point_name, point_seeds, run_points, seed_point, seed_runs,
+    RUNS_DIR,
+    Param,
+    Point,
+    absolute_paths,
+    check_values,
+    point_name,
+    point_seeds,
+    run_points,
+    seed_point,
+    seed_runs,
     value_label,
 )
 
@@ -199,8 +208,8 @@ def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") ->
 
 def make_data(data: StudyData, out_dir: Path) -> Path:
     """The study's data set in ``out_dir`` (generated once; a finished one is reused)."""
-    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.data.generation import generate_dataset
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
     from crchfl_sumo.sumo.scenario import load_scenario
 
     if not (out_dir / "manifest.json").is_file():

@@ -16,10 +16,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from crchfl_sumo.core.result_files import RESULTS_CSV_FILE, RESULTS_MD_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.intervals import distinguishable
+from crchfl_sumo.core.result_files import RESULTS_CSV_FILE, RESULTS_MD_FILE
 from crchfl_sumo.studies.statistics import bench_overall, mean_std, paired_by_seed, seed_mean
 from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE
 

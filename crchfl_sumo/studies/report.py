@@ -18,12 +18,12 @@ import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from crchfl_sumo.core.result_files import SUMMARY_FILE
-from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.accounting.ledger import GIB
 from crchfl_sumo.accounting.schedules import STAGES
-from crchfl_sumo.core.intervals import distinguishable
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
+from crchfl_sumo.core.intervals import distinguishable
+from crchfl_sumo.core.json_files import write_json
+from crchfl_sumo.core.result_files import SUMMARY_FILE
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES
 from crchfl_sumo.federation.settings import PLANNED_BY_THE_OPTIMIZER
 from crchfl_sumo.studies.report_figures import (

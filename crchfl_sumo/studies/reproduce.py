@@ -28,15 +28,15 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
-from crchfl_sumo.core.result_files import BEST_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
-from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
 from crchfl_sumo.studies.reproduce_plan import (
     CENTRALIZED,
     CENTRALIZED_DAGGER,

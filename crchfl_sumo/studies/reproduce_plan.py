@@ -17,8 +17,8 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, SEED_MAX, check_range
 from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, REFERENCE, SCHEMES
-from crchfl_sumo.data.settings import TownSplit
 from crchfl_sumo.data.generation import GenerateConfig
+from crchfl_sumo.data.settings import TownSplit
 from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig

@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from crchfl_sumo.core import json_files
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.result_files import (
     CONFIG_JSON_FILE,
     DRIVE_METRICS_FILE,
@@ -14,8 +16,6 @@ from crchfl_sumo.core.result_files import (
     SUMMARY_FILE,
     TIMINGS_FILE,
 )
-from crchfl_sumo.core import json_files
-from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.schemes import MODEL_LABELS, SCHEMES
 from crchfl_sumo.studies.reproduce_plan import BUDGET_CURVE_DIR
 

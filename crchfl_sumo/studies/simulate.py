@@ -24,14 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from crchfl_sumo.core.result_files import SUMMARY_FILE
-from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
+from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_SIMULATED_S, check_range
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.core.result_files import SUMMARY_FILE
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
 from crchfl_sumo.sumo.maps import draw_network

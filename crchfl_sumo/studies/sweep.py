@@ -43,12 +43,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from crchfl_sumo.core.result_files import CONFIG_JSON_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import from_mapping, loads_toml, read_toml, set_path, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.outputs import prepare_output_dir
+from crchfl_sumo.core.result_files import CONFIG_JSON_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
 from crchfl_sumo.federation.run_config import (
     RunConfig,
     load_run_config,

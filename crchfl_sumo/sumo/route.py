@@ -119,7 +119,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
             shape = np.asarray(entry.getShape(), dtype=np.float64)
             pieces.append((shape, float(exit_lane.getWidth()), False, [entry.getID()] * len(shape)))
         else:
-            shape, weight = lane_change_shape(entry, exit_lane, with_weights=True)
+            shape, weight = lane_change_shape(entry, exit_lane)
             lanes = [entry.getID() if w < 0.5 else exit_lane.getID() for w in weight]
             pieces.append((shape, float(exit_lane.getWidth()), False, lanes))
         if connection is None:
@@ -224,11 +224,11 @@ def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, A
     return plan
 
 
-def lane_change_shape(entry, exit_lane, with_weights: bool = False):
+def lane_change_shape(entry, exit_lane) -> tuple[np.ndarray, np.ndarray]:
     """An edge's centre line that starts on lane ``entry`` and ends on ``exit_lane`` (two lanes of one edge): the
     two lanes' centre lines blended by a smoothstep over LANE_CHANGE_M, finished LANE_CHANGE_END_M before the end
-    (an edge too short for that changes over all it has but the last LANE_CHANGE_END_M, or over all of it).
-    ``with_weights``: also each vertex's blend weight (0 on ``entry``, 1 on ``exit_lane``)."""
+    (an edge too short for that changes over all it has but the last LANE_CHANGE_END_M, or over all of it);
+    with each vertex's blend weight (0 on ``entry``, 1 on ``exit_lane``)."""
     a, b = np.asarray(entry.getShape(), np.float64), np.asarray(exit_lane.getShape(), np.float64)
     length = min(_polyline_length(a), _polyline_length(b))
     end = length - LANE_CHANGE_END_M if length > LANE_CHANGE_END_M + 2.0 else length
@@ -237,7 +237,7 @@ def lane_change_shape(entry, exit_lane, with_weights: bool = False):
     t = np.clip((s - start) / max(end - start, 1e-9), 0.0, 1.0)
     weight = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the move begins or ends
     shape = (1.0 - weight)[:, None] * _along(a, s / length) + weight[:, None] * _along(b, s / length)
-    return (shape, weight) if with_weights else shape
+    return shape, weight
 
 
 def _polyline_length(xy: np.ndarray) -> float:

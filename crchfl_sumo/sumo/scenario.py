@@ -30,7 +30,7 @@ from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
-from crchfl_sumo.core.resources import scenarios_dir
+from crchfl_sumo.core.resources import builtin_names, scenarios_dir
 from crchfl_sumo.sumo.injection import InjectConfig
 from crchfl_sumo.sumo.sites import (
     MAX_COORDINATE_M,
@@ -210,10 +210,6 @@ def configured_scenario(name_or_path: str | Path, sumo: SumoConfig, coverage_rad
         sites = place_edge_site_count(lane_points(scenario.net_path), sumo.edge_site_count)
         scenario = dataclasses.replace(scenario, edge_sites=sites)
     return dataclasses.replace(scenario, demand_scale=sumo.scale, speed_limit_mps=sumo.speed_limit_mps)
-
-
-def builtin_names() -> list[str]:
-    return sorted(p.parent.name for p in scenarios_dir().glob("*/scenario.toml"))
 
 
 def load_scenario(

@@ -288,13 +288,15 @@ class Simulation:
         """
         angle_deg = (90.0 - math.degrees(heading_rad)) % 360.0
         vehicle = self._api.vehicle
+        placed = False
         if lane_id:
             edge_id, _, index = lane_id.rpartition("_")
             try:
                 vehicle.moveToXY(vehicle_id, edge_id, int(index), float(x_front_m), float(y_front_m), angle_deg, 1)
-            except Exception:  # libsumo's error when the pose is far off the route: place it freely
-                vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
-        else:
+                placed = True
+            except Exception:  # libsumo's error when the pose is far off the route
+                pass
+        if not placed:
             vehicle.moveToXY(vehicle_id, "", -1, float(x_front_m), float(y_front_m), angle_deg, 2)
         vehicle.setSpeed(vehicle_id, max(0.0, float(speed_mps)))
 
