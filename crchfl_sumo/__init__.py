@@ -1,7 +1,8 @@
 """CRCHFL on SUMO: hierarchical federated learning for end-to-end driving.
 
 The package is layered along its data flow. Each subpackage may import only
-from itself and the subpackages before it in LAYERS; cli.py sits on top.
+from itself and the subpackages before it in LAYERS; the command line (cli/) is
+last, on top.
 tests/test_layers.py enforces the order.
 """
 
@@ -19,4 +20,5 @@ LAYERS = (
     "federation",  # Algorithm 1's loop and a run from config to results folder
     "driving",  # dynamics, policies, the closed-loop drive, its plots
     "studies",  # reproduce, report, sweeps, simulate
+    "cli",  # `crchfl-sumo <subcommand>`: parses arguments, calls the layers below, prints
 )

@@ -108,11 +108,11 @@ def test_one_file_commands_refuse_an_existing_output_unless_overwrite(tmp_path, 
 def test_progress_without_a_terminal_prints_plain_lines_now_and_then(monkeypatch):
     import io
 
-    from crchfl_sumo.cli import ProgressBars
+    from crchfl_sumo.cli.progress_bars import ProgressBars
     from crchfl_sumo.core.progress import Update
 
     clock = iter([0.0, 1.0, 2.0, 61.0, 62.0, 63.0, 64.0, 65.0])
-    monkeypatch.setattr("crchfl_sumo.cli.time.monotonic", lambda: next(clock))
+    monkeypatch.setattr("crchfl_sumo.cli.progress_bars.time.monotonic", lambda: next(clock))
     stream = io.StringIO()  # not a terminal
     with ProgressBars("episode", stream=stream) as bars:
         for update in (Update("simulate", 1, 10), Update("simulate", 2, 10), Update("simulate", 3, 10),

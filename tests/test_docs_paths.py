@@ -16,7 +16,7 @@ Three checks over docs/*.md, README.md and CHANGELOG.md:
       prefix must exist and every part after it must be an attribute;
     - otherwise it is checked only when its first part is one of the package's subpackages
       (core, sumo, links, vision, data, learning, accounting, planning, federation, driving,
-      studies) AND its second part is a module of that subpackage
+      studies, cli) AND its second part is a module of that subpackage
       (``crchfl_sumo/<subpackage>/<module>.py``). So ``federation.seed`` or ``dagger.every``
       (TOML settings: there is no ``federation/seed.py``) are skipped, while
       ``learning.settings.TrainConfig`` is imported and must have ``TrainConfig``;
@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "crchfl_sumo"
 SUBPACKAGES = (
     "core", "sumo", "links", "vision", "data", "learning",
-    "accounting", "planning", "federation", "driving", "studies",
+    "accounting", "planning", "federation", "driving", "studies", "cli",
 )
 FILE_EXTENSIONS = frozenset((  # a dotted name ending in one of these is a file name, not a reference
     "py", "md", "json", "toml", "csv", "pt", "npz", "png", "mp4", "xml", "h5", "jsonl",

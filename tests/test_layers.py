@@ -27,7 +27,7 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def layer_of(module: str) -> int:
-    """Index of a dotted module's subpackage in LAYERS (cli: the top)."""
+    """Index of a dotted module's subpackage in LAYERS (crchfl_sumo itself: above them all)."""
     parts = module.split(".")
     return LAYERS.index(parts[1]) if len(parts) > 1 else len(LAYERS)
 
@@ -48,7 +48,7 @@ def test_every_subpackage_has_a_layer_and_every_layer_a_subpackage():
 def test_no_module_imports_from_a_subpackage_above_its_own():
     upward = []
     for module, path in modules():
-        if module in ("crchfl_sumo", "crchfl_sumo.cli"):
+        if module in ("crchfl_sumo", "crchfl_sumo.cli"):  # the command line reads the package's __version__
             continue
         own = layer_of(module)
         for target in imported_modules(path):
@@ -121,9 +121,10 @@ def test_every_config_module_imports_without_torch_or_cvxpy():
 
 
 def test_no_library_module_imports_a_command_module():
-    """A command module (``*_command.py``: what one CLI command does, end to end) is cli.py's alone."""
+    """A command module (``*_command.py``: what one CLI command does, end to end) is the command line's alone
+    (crchfl_sumo.cli and its modules)."""
     offenders = [
-        (module, imported) for module, path in modules() if module != "crchfl_sumo.cli"
+        (module, imported) for module, path in modules() if layer_of(module) < LAYERS.index("cli")
         for imported in imported_modules(path) if imported.rsplit(".", 1)[-1].endswith("_command")
     ]
     assert offenders == []

@@ -1,7 +1,7 @@
 """Numbers a user gives, checked where they enter: finite, within a range, a usable seed.
 
 Two kinds of entry use these: the command line (``number_arg``, ``integer_arg``,
-``seed_arg`` are argparse ``type=`` functions; cli.py prints their message as
+``seed_arg`` are argparse ``type=`` functions; the command line prints their message as
 ``simulate --duration-s: nan is not a finite number; give ...``) and config
 files (``check_seed``, ``check_range``; core.config refuses non-finite floats
 for every field by itself).

@@ -1,5 +1,5 @@
 """Experiments built from the rest: reproduce (the paper's experiments), the
 report, mobility sweeps, and simulate (association and link traces).
 
-May import: every subpackage; only cli.py sits above it.
+May import: every subpackage; only cli/ (the command line) sits above it.
 """

@@ -150,7 +150,8 @@ def test_train_resume_on_the_command_line_continues_to_more_epochs(tmp_path, cap
 def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(tmp_path):
     # Before --precision could be named on a resume, the marker's resume fingerprint held it;
     # such a folder still resumes to more epochs.
-    from crchfl_sumo.cli import _NOT_SETTINGS, build_parser
+    from crchfl_sumo.cli import build_parser
+    from crchfl_sumo.cli.arguments import NOT_SETTINGS
     from crchfl_sumo.core.outputs import fingerprint
 
     dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
@@ -160,7 +161,7 @@ def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(t
     args = vars(build_parser().parse_args([*argv, "--epochs", "1"]))
     # (nor did --red-weight / --red-window-m exist then; off, they are left out of the settings)
     formerly = {k: v for k, v in sorted(args.items())
-                if k not in _NOT_SETTINGS and k not in ("epochs", "red_weight", "red_window_m")}
+                if k not in NOT_SETTINGS and k not in ("epochs", "red_weight", "red_window_m")}
     stored = json.loads(marker.read_text())
     assert stored["resume_fingerprint"] != fingerprint(formerly)  # today's leaves precision out
     marker.write_text(json.dumps({**stored, "resume_fingerprint": fingerprint(formerly)}))

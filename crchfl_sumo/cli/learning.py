@@ -1,0 +1,61 @@
+"""The subcommand whose work lives in learning/: train."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from crchfl_sumo.cli.arguments import output_folder, overwrite_argument
+from crchfl_sumo.cli.progress_bars import ProgressBars
+from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
+from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, TrainConfig
+
+
+def add_train(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", type=Path, help="data set folder (manifest.json and shards)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: metrics.jsonl, checkpoint.pt (checkpoint.prev.pt: the epoch before)")
+    overwrite_argument(p)
+    p.add_argument("--epochs", type=integer_arg(1, MAX_EPOCHS, "a number of epochs"), default=10,
+                   help="epochs over all training shards (default 10)")
+    p.add_argument("--size", choices=("compact", "paper"), default="compact", help="model size (default compact)")
+    p.add_argument("--arch", choices=ARCHS, default="cil",
+                   help="cil (default: normalised, one steer head per route command) or paper (the paper's network)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed of initialisation and shuffling (default 0)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="default: cuda if present")
+    p.add_argument("--deterministic", action="store_true", help="deterministic algorithms (bit-exact reruns)")
+    p.add_argument("--precision", choices=PRECISIONS, default=TrainConfig.precision,
+                   help=f"forward pass in float32, under bfloat16 autocast, or auto: bf16 where the device has "
+                   f"bfloat16 arithmetic, else fp32 (default {TrainConfig.precision}; docs/model.md measures both)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the training in --out after its last checkpointed epoch (the same command line; "
+                   "--epochs may be raised, and --precision named to continue in the precision the epochs trained in)")
+    p.add_argument("--red-weight", type=number_arg(1, MAX_RED_WEIGHT, "a draw multiplier (1 = off)"),
+                   default=TrainConfig.red_weight,
+                   help="draw samples at a red or yellow signal within --red-window-m this many times as often "
+                   f"(default {TrainConfig.red_weight:g}: off; needs a data set of format 5)")
+    p.add_argument("--red-window-m", type=number_arg(0, MAX_RED_WINDOW_M, "metres before a stop line", lo_open=True),
+                   default=TrainConfig.red_window_m,
+                   help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
+
+
+def run_train(args) -> int:
+    from crchfl_sumo.learning.centralized import train_command
+
+    # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
+    # precision its epochs trained in), which folders marked while it was kept still allow
+    config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
+                         red_weight=args.red_weight, red_window_m=args.red_window_m)  # refused before any file
+    if args.red_weight == TrainConfig.red_weight:  # off: a folder trained before these options existed still resumes
+        del args.red_weight, args.red_window_m
+    with output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
+        with ProgressBars("sample") as bars:
+            last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
+                                 resume=args.resume, overwrite=args.overwrite, progress=bars)
+        straight = last["always_straight"]
+    print(
+        f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "
+        f"(always straight {straight['accuracy']:.3f}), balanced accuracy {last['balanced_accuracy']:.3f} "
+        f"(always straight {straight['balanced_accuracy']:.3f}) -> {args.out}"
+    )
+    return 0
