@@ -71,6 +71,7 @@ from crchfl_sumo.learning.aggregate import RunningAverage, fedavg
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import Clock, Relay, WirelessOutcome, edge_download, wireless_transfer, with_deadline
+from crchfl_sumo.links.fleet import AvailableClock
 from crchfl_sumo.links.transfer import wireline_transfer_time_s
 from crchfl_sumo.planning.problem import split_pretrain_batch
 
@@ -194,13 +195,18 @@ class Federation:
         if setup.dagger.enabled and labeller is None:
             raise CrchflError("[dagger] is on, but the run was given no labeller (driving/vehicle_dagger.py)")
         self.setup = setup
-        self.clock = clock
+        # a vehicle that is off has no link (links/fleet.py)
+        self.clock = AvailableClock(clock, setup.fleet) if setup.fleet.intermittent else clock
         self.trainer = trainer
         self.config = setup.config
         self.data = data or (lambda vehicle, t_s: setup.samples[vehicle])
         self.labeller = labeller
         # vehicle -> (its own samples, the labelled rounds, the two joined): one copy per new round, not per step
         self._joined: dict[str, tuple[Samples, tuple[int, ...], Samples]] = {}
+        # vehicle -> when its training of this step ended, and how much later than at the nominal speed (a
+        # straggler's cause)
+        self._trained_at: dict[str, float] = {}
+        self._slowed_s: dict[str, float] = {}
 
     # -- public
 
@@ -230,6 +236,7 @@ class Federation:
         )
         ledger = Ledger(self.setup.sizes, byte_totals=state.ledger_totals)
         hyper = self.setup.hyper
+        self._trained_at, self._slowed_s = {}, {}
         if hyper.cloud_rounds and state.cloud_rounds >= hyper.cloud_rounds:
             state.stop_reason = "cloud_rounds"
         elif not ledger.can_carry_model():
@@ -250,7 +257,17 @@ class Federation:
     # -- pieces
 
     def _compute_s(self, samples: int, epochs: int) -> float:
+        """Nominal training time: a vehicle of compute factor 1 that stays on."""
         return epochs * samples * self.config.compute_s_per_sample
+
+    def _trained_s(self, vehicle: str, start_s: float, samples: int, epochs: int) -> float:
+        """When ``vehicle``, starting at ``start_s``, has trained: at its own speed, paused while it is off."""
+        fleet = self.setup.fleet
+        nominal_s = self._compute_s(samples, epochs)
+        own_s = nominal_s * fleet.factor(vehicle)
+        self._slowed_s[vehicle] = own_s - nominal_s
+        self._trained_at[vehicle] = fleet.work_end_s(vehicle, start_s, own_s)
+        return self._trained_at[vehicle]
 
     def _upload(
         self, vehicle: str, edge: str | None, start_s: float, size: int, window_end_s: float
@@ -408,7 +425,8 @@ class Federation:
         for v in samples:
             t_s = state.ready_s[v]
             rate_bps = selection.recent_rate_bps(self.clock, v, t_s)
-            needed[v] = selection.needed_s(self._compute_s(len(samples[v]), epochs), setup.sizes.upload_bytes, rate_bps)
+            train_s = self._trained_s(v, t_s, len(samples[v]), epochs) - t_s
+            needed[v] = selection.needed_s(train_s, setup.sizes.upload_bytes, rate_bps)
             site = setup.edges.index(state.member[v]) if own else None
             residence[v] = selection.residence_on_clock(self.clock, v, t_s, setup.coverage, site)
         picked = selection.chosen(needed, residence)
@@ -600,7 +618,7 @@ class Federation:
         uploads: dict[str, WirelessOutcome | None] = {}
         for v in counts:
             edge = state.member[v]
-            start_s = state.ready_s[v] + self._compute_s(counts[v], setup.hyper.edge_interval)
+            start_s = self._trained_s(v, state.ready_s[v], counts[v], setup.hyper.edge_interval)
             out = self._upload(v, edge, start_s, setup.sizes.upload_bytes, state.open_s[edge] + cfg.deadline_s)
             uploads[v] = out
             if out is not None and out.ok and cfg.handover_policy == "new_edge":
@@ -678,9 +696,10 @@ class Federation:
         """
         ends, received = [], []
         for v, out in uploads.items():
+            late = dict(window_end_s=missed_at(v), edge=None if receiver == CLOUD else state.member[v])
             if out is None:
                 ends.append(missed_at(v))
-                self._straggler(state, v, stage, "no time to upload before the deadline", ends[-1])
+                self._straggler(state, v, stage, "no time to upload before the deadline", ends[-1], **late)
                 continue
             events[(v, receiver, "uplink")] = _wireless(out)
             _count(state, "uploads", out.ok)
@@ -688,16 +707,23 @@ class Federation:
             if out.ok and arrival_s > missed_at(v) + _EPS_S:  # forwarded past the deadline
                 events[(v, receiver, "uplink")] = dataclasses.replace(events[(v, receiver, "uplink")], wasted=True)
                 ends.append(missed_at(v))
-                self._straggler(state, v, stage, "deadline", ends[-1])
+                self._straggler(state, v, stage, "deadline", ends[-1], **late)
             elif out.ok:
                 ends.append(arrival_s)
                 received.append(v)
             else:
                 ends.append(out.end_s)
-                self._straggler(state, v, stage, out.reason, out.end_s)
+                self._straggler(state, v, stage, out.reason, out.end_s, **late)
         return ends, received
 
-    def _straggler(self, state: FederationState, vehicle: str, stage: str, reason: str, t_s: float) -> None:
+    def _straggler(
+        self, state: FederationState, vehicle: str, stage: str, reason: str, t_s: float,
+        window_end_s: float | None = None, edge: str | None = None,
+    ) -> None:
+        """Record that ``vehicle`` missed this step's aggregation or download at ``t_s``, why (``reason``: what
+        happened to the transfer) and its ``cause`` (``_cause``; ``window_end_s`` and ``edge``: its upload's deadline
+        and receiving edge, for an upload after training)."""
+        cause = self._cause(state, vehicle, reason, t_s, window_end_s, edge)
         state.stragglers.append(
             {
                 "step": state.steps + 1,
@@ -705,10 +731,31 @@ class Federation:
                 "cloud_round": 0 if stage == "I" else state.cloud_rounds + 1,
                 "vehicle": vehicle,
                 "reason": reason,
+                "cause": cause,
                 "t_s": t_s,
             }
         )
-        log.info("step %d: %s straggles (%s) at %.1f s", state.steps, vehicle, reason, t_s)
+        log.info("step %d: %s straggles (%s, %s) at %.1f s", state.steps, vehicle, reason, cause, t_s)
+
+    def _cause(
+        self, state: FederationState, vehicle: str, reason: str, t_s: float, window_end_s: float | None, edge: str | None
+    ) -> str:
+        """Why a vehicle straggled, the first that applies: "unavailable" (it was off at some moment between
+        holding its model and ``t_s``, either way round), "out_of_coverage" (its transfer lost coverage), "slow_compute" (it missed
+        the deadline, and an upload started when a vehicle of compute factor 1 would have finished training
+        makes it on the same links), "deadline" (its links were too slow for the deadline)."""
+        held_s = state.ready_s[vehicle]  # past t_s when its last download came late
+        if self.setup.fleet.off_between(vehicle, min(held_s, t_s), max(held_s, t_s)):
+            return "unavailable"
+        if reason.endswith("outage"):
+            return "out_of_coverage"
+        slowed_s = self._slowed_s.get(vehicle, 0.0)
+        if slowed_s > 0 and window_end_s is not None:
+            start_s = self._trained_at[vehicle] - slowed_s
+            out = self._upload(vehicle, edge, start_s, self.setup.sizes.upload_bytes, window_end_s)
+            if out is not None and out.ok:
+                return "slow_compute"
+        return "deadline"
 
     # -- SFL
 
@@ -722,7 +769,7 @@ class Federation:
         relays: list[RelayedTransfer] = []
         uploads = {
             v: self._upload(
-                v, None, state.ready_s[v] + self._compute_s(counts[v], epochs), sizes.upload_bytes, window_end
+                v, None, self._trained_s(v, state.ready_s[v], counts[v], epochs), sizes.upload_bytes, window_end
             )
             for v in setup.vehicles
         }

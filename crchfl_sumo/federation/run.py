@@ -10,7 +10,8 @@ DIR receives (every file written atomically):
   federation_state.prev.pt  the one of the step before (what --resume reads if the latest is damaged)
   metrics.jsonl    one line per aggregation (stage I, each edge aggregation, each cloud aggregation)
   ledger.jsonl     every charged transfer (first line: the sizes)
-  stragglers.jsonl every vehicle that missed an aggregation or a download, and why
+  stragglers.jsonl every vehicle that missed an aggregation or a download: what happened (reason)
+                   and why (cause: unavailable, out_of_coverage, slow_compute, deadline)
                    (the three .jsonl logs are append-only: federation/logs.py)
   best_model.pt    the best cloud model so far (checkpoint.save_checkpoint format)
   best_model_within_<B>gb.pt  per [ledger] marks_gb B: the best cloud model among the evaluations
@@ -40,6 +41,7 @@ import dataclasses
 import json
 import logging
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -95,6 +97,7 @@ from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
+from crchfl_sumo.links.fleet import draw_fleet
 from crchfl_sumo.links.residence import Coverage, sites_coverage
 from crchfl_sumo.planning.problem import make_plan
 from crchfl_sumo.planning.settings import calibrated
@@ -251,6 +254,7 @@ def _run_with_trainer(
             coverage=_coverage(config, inputs),
             budget_marks_bytes=budget_marks_bytes(config.ledger),
             dagger=config.dagger,
+            fleet=draw_fleet(config.clock, inputs.vehicles, fed.seed, clock.start_s),
         )
         state = None
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_STATE_FILE).exists()):
@@ -364,6 +368,9 @@ def summarize(
         "final_loss": None if final is None else final["loss"],
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
+        "straggler_causes": dict(Counter(s.get("cause", "not recorded") for s in state.stragglers)),
+        **({"compute_factors": dict(setup.fleet.compute_factor)} if setup.fleet.compute_factor else {}),
+        **({"off_periods": {v: len(p) for v, p in setup.fleet.off_s.items()}} if setup.fleet.intermittent else {}),
         "selection": config.federation.selection,
         "skipped_by_selection": state.skipped,
         "wasted_bytes": state.wasted_bytes,

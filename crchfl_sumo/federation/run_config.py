@@ -24,6 +24,7 @@ from crchfl_sumo.data.settings import OnlineConfig
 from crchfl_sumo.federation.settings import FederationConfig, VehicleDaggerConfig
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.links.channel import ChannelConfig, WirelineConfig
+from crchfl_sumo.links.fleet import FleetConfig
 from crchfl_sumo.links.macro import MacroLinkConfig
 from crchfl_sumo.links.mobility import MobilityConfig
 from crchfl_sumo.links.transfer import TransferConfig
@@ -32,7 +33,7 @@ from crchfl_sumo.sumo.scenario import SumoConfig
 
 
 @dataclass(frozen=True)
-class ClockConfig:
+class ClockConfig(FleetConfig):
     """Which clock the federation runs on (TOML ``[clock]``).
 
     kind: "sumo" (the scenario in SUMO with the link models: the product) or
@@ -40,6 +41,12 @@ class ClockConfig:
         at ``constant_rate_bps``, the macro link at ``constant_macro_rate_bps``;
         for quick runs and checks).
     constant_step_s: sample spacing of the constant clock [s].
+    compute_profile, compute_sigma, compute_tiers: each vehicle's compute speed, a factor on
+        federation.compute_s_per_sample: "equal" (the paper), "lognormal" or "tiers".
+    availability, mean_on_s, mean_off_s, availability_trace: when each vehicle is on (it neither
+        trains nor transmits while off): "always" (the paper), "onoff" (exponential on and off periods
+        of those means) or "trace" (a CSV file of off periods).
+    These last seven are links.fleet.FleetConfig's, which this table extends.
     """
 
     kind: Literal["sumo", "constant"] = "sumo"
@@ -54,6 +61,7 @@ class ClockConfig:
             check_range(getattr(self, key), f"clock.{key}", 0, MAX_RATE_BPS, "bit/s", lo_open=True)
         check_range(self.constant_step_s, "clock.constant_step_s", 0, MAX_SIMULATED_S, "simulated seconds",
                     lo_open=True)
+        super().__post_init__()  # the devices' settings
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperParameters, VehicleDaggerConfig
 from crchfl_sumo.learning.model import State
 from crchfl_sumo.links.channel import WirelineConfig
+from crchfl_sumo.links.fleet import Fleet
 from crchfl_sumo.links.mobility import NO_SITE
 from crchfl_sumo.links.residence import Coverage
 from crchfl_sumo.links.transfer import TransferConfig
@@ -82,6 +83,7 @@ class LoopInputs:
     coverage: Coverage | None = None
     budget_marks_bytes: tuple[int, ...] = ()  # [ledger] marks_gb in bytes: the best model within each is kept
     dagger: VehicleDaggerConfig = VehicleDaggerConfig()  # when the vehicles drive and label (off: never)
+    fleet: Fleet = field(default_factory=Fleet)  # each vehicle's compute speed and off periods (links/fleet.py)
 
     def __post_init__(self) -> None:
         names = list(self.vehicles) + list(self.edges)

@@ -21,6 +21,7 @@ from crchfl_sumo.federation.state import LoopInputs, initial_state
 from crchfl_sumo.learning.aggregate import weighted_average
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import ScriptedClock, Segment, wireless_transfer
+from crchfl_sumo.links.fleet import Fleet
 from crchfl_sumo.links.transfer import TransferConfig
 from crchfl_sumo.planning.problem import make_plan
 from crchfl_sumo.planning.settings import AllocationConfig
@@ -439,7 +440,9 @@ def test_forward_policy_forwards_an_upload_that_ends_at_another_edge():
 
 def test_miss_policy_fails_the_upload_at_the_handover():
     state = _policy_run("miss", _handover_clock(back_s=4.0))
-    assert [(s["vehicle"], s["reason"], s["t_s"]) for s in state.stragglers] == [("a", "outage", 1.5)]
+    assert [(s["vehicle"], s["reason"], s["cause"], s["t_s"]) for s in state.stragglers] == [
+        ("a", "outage", "out_of_coverage", 1.5)
+    ]
     assert state.edge_weights == {"e0": 2.0, "e1": 2.0}
     assert state.member["a"] == "e0"
 
@@ -769,3 +772,55 @@ def test_a_bad_codec_is_refused_naming_the_key():
         FederationConfig(update_codec="zip")
     with pytest.raises(CrchflError, match="federation.topk_fraction"):
         FederationConfig(topk_fraction=0.0)
+
+
+# ------------------------------------------------------------------ heterogeneous and intermittent vehicles
+
+
+def _fleet_run(fleet, deadline_s=math.inf, scheme="hfl"):
+    """a and b on e0, 2 samples at 0.5 s: 1 s of nominal training, then 1 MiB at 8 Mbit/s."""
+    home = {"a": 0, "b": 0}
+    config = FederationConfig(scheme=scheme, edge_interval=1, cloud_rounds=1, compute_s_per_sample=0.5,
+                              deadline_s=deadline_s)
+    setup = dataclasses.replace(
+        _setup(config, _hyper(config), {"a": 2, "b": 2}, home, ledger=SMALL, edges=("e0",)), fleet=fleet
+    )
+    return _run(setup, ScriptedClock.constant(home, 8e6, macro_rate_bps=8e6))
+
+
+def _up(state, vehicle):
+    return [r for r in state.records if r.sender == vehicle and r.direction == "uplink" and r.link == "wireless"]
+
+
+@pytest.mark.parametrize("scheme", ["hfl", "sfl"])
+def test_an_availability_trace_keeps_a_vehicle_out_exactly_while_it_is_off(scheme):
+    # a is off from 0.5 s to 3 s: half its training before, half after -> trained at 3.5 s
+    state = _fleet_run(Fleet(off_s={"a": np.array([[0.5, 3.0]])}), scheme=scheme)
+    (a_up,), (b_up,) = _up(state, "a"), _up(state, "b")
+    assert (a_up.start_s, a_up.end_s) == (pytest.approx(3.5), pytest.approx(3.5 + WIRELESS_S))
+    assert (b_up.start_s, b_up.end_s) == (pytest.approx(1.0), pytest.approx(1.0 + WIRELESS_S))
+    assert state.stragglers == []
+    # off during its upload (from 1.5 s to 2 s): the upload waits 0.5 s, nothing crosses meanwhile
+    state = _fleet_run(Fleet(off_s={"a": np.array([[1.5, 2.0]])}), scheme=scheme)
+    (a_up,) = _up(state, "a")
+    assert (a_up.start_s, a_up.end_s) == (pytest.approx(1.0), pytest.approx(1.0 + WIRELESS_S + 0.5))
+    # off past the deadline: a straggler because it was unavailable, left out of the FedAvg
+    state = _fleet_run(Fleet(off_s={"a": np.array([[0.5, 30.0]])}), deadline_s=5.0, scheme=scheme)
+    assert [(s["vehicle"], s["reason"], s["cause"]) for s in state.stragglers] == [
+        ("a", "no time to upload before the deadline", "unavailable")
+    ]
+    assert _up(state, "a") == []
+
+
+def test_a_slow_vehicle_trains_longer_and_straggles_for_slow_compute_only_when_speed_decides():
+    slow = Fleet(compute_factor={"a": 3.0})  # 3 s of training instead of 1 s
+    state = _fleet_run(slow)
+    assert _up(state, "a")[0].start_s == pytest.approx(3.0) and _up(state, "b")[0].start_s == pytest.approx(1.0)
+    # the deadline falls between the nominal arrival (1 + 1.05 s) and a's (3 + 1.05 s): its speed decided
+    state = _fleet_run(slow, deadline_s=3.5)
+    assert [(s["vehicle"], s["reason"], s["cause"]) for s in state.stragglers] == [("a", "deadline", "slow_compute")]
+    state = _fleet_run(slow, deadline_s=2.5)
+    assert [(s["vehicle"], s["cause"]) for s in state.stragglers] == [("a", "slow_compute")]  # could not even start
+    # a deadline that even the nominal speed misses: the link's fault, for both
+    state = _fleet_run(slow, deadline_s=1.5)
+    assert [(s["vehicle"], s["cause"]) for s in state.stragglers] == [("a", "deadline"), ("b", "deadline")]

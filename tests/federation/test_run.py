@@ -526,3 +526,30 @@ def test_the_trainer_trains_as_config_json_records(dataset):
     recorded = resolved_config(config)["train"]
     assert (trainer.config.precision, trainer.config.multi_vehicle) == (recorded["precision"], recorded["multi_vehicle"])
     assert trainer.config.precision in ("fp32", "bf16") and trainer.config.multi_vehicle == "sequential"
+
+
+def test_a_run_of_slow_and_intermittent_vehicles_says_why_each_straggled_and_resumes_exactly(tmp_path, dataset):
+    trace = tmp_path / "off.csv"
+    trace.write_text("vehicle,off_start_s,off_end_s\nt01_data_1,0.5,25\n")  # off through the first round
+    mapping = run_config(dataset, scheme="hfl", cloud_rounds=3, compute_s_per_sample=1.0, deadline_s=8.0)
+    mapping["clock"] |= {"compute_profile": "tiers", "compute_tiers": [1.0, 3.0], "availability": "trace",
+                         "availability_trace": str(trace)}
+    config = from_mapping(RunConfig, mapping)
+    inputs = read_inputs(config)
+    summary = run_federation_dir(config, inputs, tmp_path / "whole", trainer=SumTrainer())
+    stragglers = [json.loads(line) for line in (tmp_path / "whole" / "stragglers.jsonl").read_text().splitlines()]
+    assert stragglers and {s["cause"] for s in stragglers} <= {"unavailable", "slow_compute", "deadline",
+                                                                 "out_of_coverage"}
+    # off until 25 s: it misses rounds 1 and 2 (its round-1 model arrives at 29 s), and only for that
+    assert [(s["cloud_round"], s["cause"]) for s in stragglers if s["vehicle"] == "t01_data_1"][:2] == [
+        (1, "unavailable"), (2, "unavailable")
+    ]
+    assert {s["cause"] for s in stragglers if s["vehicle"] != "t01_data_1"} <= {"slow_compute", "deadline"}
+    assert sum(summary["straggler_causes"].values()) == summary["stragglers"] == len(stragglers)
+    assert set(summary["compute_factors"]) == set(inputs.vehicles)
+    assert set(summary["compute_factors"].values()) <= {1.0, 3.0}
+    assert summary["off_periods"] == {"t01_data_1": 1}
+    with pytest.raises(Killed):
+        run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(2))
+    run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
+    assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
