@@ -260,6 +260,12 @@ class Federation:
         """Nominal training time: a vehicle of compute factor 1 that stays on."""
         return epochs * samples * self.config.compute_s_per_sample
 
+    def _count_training(self, state: FederationState, counts: Mapping[str, int], epochs: int) -> None:
+        """A counted step's training time of each vehicle that trained, at its own speed (its energy)."""
+        own = {v: self._compute_s(n, epochs) * self.setup.fleet.factor(v) for v, n in counts.items()}
+        state.train_s = {v: state.train_s.get(v, 0.0) + own.get(v, 0.0) for v in self.setup.vehicles
+                         if v in state.train_s or v in own}
+
     def _trained_s(self, vehicle: str, start_s: float, samples: int, epochs: int) -> float:
         """When ``vehicle``, starting at ``start_s``, has trained: at its own speed, paused while it is off."""
         fleet = self.setup.fleet
@@ -595,6 +601,7 @@ class Federation:
             return
         state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
         state.edge_models, state.edge_weights = edge_models, edge_weights
+        self._count_training(state, counts, setup.hyper.edge_interval)
         state.edge_aggregations += 1
         state.tau += 1
         state.skipped += len(skipped)
@@ -789,6 +796,7 @@ class Federation:
             return
         state.vehicle_models, state.ready_s = models, ready
         state.open_s = {CLOUD: cloud_s}
+        self._count_training(state, counts, epochs)
         state.cloud_model = cloud_model
         state.cloud_rounds = next_round
         self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received), samples=sum(counts.values()))

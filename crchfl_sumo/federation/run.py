@@ -47,6 +47,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 
+from crchfl_sumo.accounting.energy import vehicle_energy_j
 from crchfl_sumo.accounting.ledger import GIB, Ledger, budget_marks_bytes, gb_label, resolve_sizes
 from crchfl_sumo.core.atomic import (
     atomic_path_keeping_previous,
@@ -369,6 +370,7 @@ def summarize(
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
         "straggler_causes": dict(Counter(s.get("cause", "not recorded") for s in state.stragglers)),
+        "energy_j": vehicle_energy_j(state.records, state.train_s, setup.vehicles, config.energy),
         **({"compute_factors": dict(setup.fleet.compute_factor)} if setup.fleet.compute_factor else {}),
         **({"off_periods": {v: len(p) for v, p in setup.fleet.off_s.items()}} if setup.fleet.intermittent else {}),
         "selection": config.federation.selection,

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
+from crchfl_sumo.accounting.energy import EnergyConfig
 from crchfl_sumo.accounting.ledger import LedgerConfig
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, read_toml, to_mapping
@@ -77,6 +78,7 @@ class RunConfig:
         they drive (data/online.py; needs the SUMO clock).
     dagger: the vehicles' own DAgger ([dagger], VehicleDaggerConfig; off by default): the run
         needs a labeller (driving/vehicle_dagger.py), which `crchfl-sumo run` and `reproduce` give it.
+    energy: the power figures summary.json's ``energy_j`` is computed with (accounting/energy.py).
     """
 
     scenario: str = "paper"
@@ -97,6 +99,7 @@ class RunConfig:
     sumo: SumoConfig = field(default_factory=SumoConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     dagger: VehicleDaggerConfig = field(default_factory=VehicleDaggerConfig)
+    energy: EnergyConfig = field(default_factory=EnergyConfig)
 
     def __post_init__(self) -> None:
         if self.data_mode not in ("fixed", "online"):

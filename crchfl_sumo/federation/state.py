@@ -153,6 +153,7 @@ class FederationState:
     budget_mark_models: dict[str, State] = field(default_factory=dict)
     dagger_rounds: list[int] = field(default_factory=list)  # the cloud rounds after which the vehicles labelled
     residuals: dict[str, State] = field(default_factory=dict)  # what each vehicle's topk uploads left out
+    train_s: dict[str, float] = field(default_factory=dict)  # each vehicle's training time so far, at its own speed
 
     @property
     def done(self) -> bool:
@@ -171,7 +172,7 @@ class FederationState:
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
 MODELS = ("vehicle_models", "edge_models", "budget_mark_models", "residuals")  # name -> State (cloud_model, best_model: one)
-ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals")  # an older checkpoint lacks them: empty
+ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals", "train_s")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:

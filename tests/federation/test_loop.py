@@ -815,6 +815,7 @@ def test_an_availability_trace_keeps_a_vehicle_out_exactly_while_it_is_off(schem
 def test_a_slow_vehicle_trains_longer_and_straggles_for_slow_compute_only_when_speed_decides():
     slow = Fleet(compute_factor={"a": 3.0})  # 3 s of training instead of 1 s
     state = _fleet_run(slow)
+    assert state.train_s == {"a": 3.0, "b": 1.0}  # the time each trained, for its energy
     assert _up(state, "a")[0].start_s == pytest.approx(3.0) and _up(state, "b")[0].start_s == pytest.approx(1.0)
     # the deadline falls between the nominal arrival (1 + 1.05 s) and a's (3 + 1.05 s): its speed decided
     state = _fleet_run(slow, deadline_s=3.5)

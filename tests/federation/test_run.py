@@ -549,6 +549,9 @@ def test_a_run_of_slow_and_intermittent_vehicles_says_why_each_straggled_and_res
     assert set(summary["compute_factors"]) == set(inputs.vehicles)
     assert set(summary["compute_factors"].values()) <= {1.0, 3.0}
     assert summary["off_periods"] == {"t01_data_1": 1}
+    energy = summary["energy_j"]
+    assert set(energy["vehicles"]) == set(inputs.vehicles) and energy["compute"] > 0 and energy["radio"] > 0
+    assert energy["total"] == pytest.approx(sum(e["total"] for e in energy["vehicles"].values()))
     with pytest.raises(Killed):
         run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(2))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
