@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from crchfl_sumo.sumo.scenario import sumo_binary
+from crchfl_sumo.sumo.installation import sumo_binary
 
 
 def _tool(name: str) -> str:

@@ -10,7 +10,7 @@ import numpy as np
 
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
-from crchfl_sumo.sumo.scenario import sumo_binary
+from crchfl_sumo.sumo.installation import sumo_binary
 
 PAPER_VEHICLES = [
     ("t01_data_0", "town01", "edge01"),

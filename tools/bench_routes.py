@@ -19,7 +19,8 @@ from pathlib import Path
 
 from crchfl_sumo.driving.bench_tasks import TASKS, candidate_routes, draw_episodes
 from crchfl_sumo.sumo.route import read_net
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary
+from crchfl_sumo.sumo.installation import sumo_binary
+from crchfl_sumo.sumo.scenario import load_scenario
 
 
 def main() -> None:

@@ -36,7 +36,8 @@ import time
 from pathlib import Path
 
 from crchfl_sumo.studies.simulate import SimulateConfig, simulate
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
+from crchfl_sumo.sumo.installation import sumo_binary, sumo_tool_script
+from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 
 

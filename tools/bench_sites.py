@@ -23,7 +23,9 @@ from scipy.spatial import cKDTree
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.studies.simulate import run_simulate_command
-from crchfl_sumo.sumo.scenario import lane_points, load_scenario, sumo_binary
+from crchfl_sumo.sumo.installation import sumo_binary
+from crchfl_sumo.sumo.network import lane_points
+from crchfl_sumo.sumo.scenario import load_scenario
 
 BLOCK_M = 500.0
 

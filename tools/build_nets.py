@@ -41,8 +41,8 @@ from typing import Callable
 import sumolib
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.scenario import sumo_binary as scenario_sumo_binary
-from crchfl_sumo.sumo.scenario import sumo_tool_script
+from crchfl_sumo.sumo.installation import sumo_binary as scenario_sumo_binary
+from crchfl_sumo.sumo.installation import sumo_tool_script
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[1] / "scenarios"
 TYPE_FILE = SCENARIOS_DIR / "street.typ.xml"

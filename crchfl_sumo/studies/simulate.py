@@ -35,9 +35,10 @@ from crchfl_sumo.core.result_files import SUMMARY_FILE
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
 from crchfl_sumo.sumo.maps import draw_network
-from crchfl_sumo.sumo.scenario import Scenario, load_scenario, write_sumocfg
+from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
+from crchfl_sumo.sumo.sumocfg import write_sumocfg
 
 DEFAULT_DURATION_S = 300.0  # simulated seconds of a scenario whose configuration sets no end
 
@@ -259,7 +260,7 @@ def run_simulate_command(
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary. ``sumo_outputs``: SUMO's own files to write
     as well (SUMO_OUTPUTS' names). ``net`` (and ``routes``) instead of ``scenario_name``: a bare network,
-    run through a .sumocfg written into ``out_dir`` for it (scenario.write_sumocfg).
+    run through a .sumocfg written into ``out_dir`` for it (sumocfg.write_sumocfg).
 
     ``duration_s`` None: the scenario's own length (its configuration's end), else DEFAULT_DURATION_S.
     """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from crchfl_sumo.sumo.scenario import lane_polylines
+from crchfl_sumo.sumo.network import lane_polylines
 
 
 def draw_network(ax, net_path: Path, color: str = "0.75", linewidth: float = 1.0) -> None:

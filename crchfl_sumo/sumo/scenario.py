@@ -2,36 +2,25 @@
 
 Every command takes either a built-in scenario name (a folder under
 ``scenarios/`` holding ``scenario.toml``) or a path to any
-``.sumocfg``. A user's configuration is read, not trusted blindly: options that
-only sumo-gui knows are dropped (sumo would refuse them), and so are the TraCI
-server's (a remote port would make sumo wait for a client), file options are made
-absolute (so relative paths keep working from any directory), and output-file
-options are dropped (so running here never overwrites the user's own results).
-What remains becomes command-line options for sumo/libsumo.
+``.sumocfg``, whose options sumo/sumocfg.py reads and sanitises.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import math
-import shutil
-import subprocess
-import tempfile
-import xml.etree.ElementTree as ET
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.config import from_mapping, read_toml
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.core.resources import builtin_names, scenarios_dir
 from crchfl_sumo.sumo.injection import InjectConfig
+from crchfl_sumo.sumo.network import Bounds, lane_points, read_net_bounds
 from crchfl_sumo.sumo.sites import (
     MAX_COORDINATE_M,
     MAX_SITES,
@@ -40,8 +29,10 @@ from crchfl_sumo.sumo.sites import (
     place_edge_site_count,
     place_edge_sites,
 )
+from crchfl_sumo.sumo.sumocfg import _option_value, resolved_path, sumo_options_from_config, sumo_time_s
 
 log = logging.getLogger(__name__)
+
 
 # A town's box spans its junction centres; lanes and their vehicles lie up to a
 # lane width or two beside the outermost ones.
@@ -88,19 +79,6 @@ class ScenarioFile:
     towns: tuple[Town, ...] = ()
 
 
-@dataclass(frozen=True)
-class Bounds:
-    xmin_m: float
-    ymin_m: float
-    xmax_m: float
-    ymax_m: float
-
-    def contains(self, x_m: float, y_m: float, margin_m: float = 0.0) -> bool:
-        return (
-            self.xmin_m - margin_m <= x_m <= self.xmax_m + margin_m
-            and self.ymin_m - margin_m <= y_m <= self.ymax_m + margin_m
-        )
-
 
 @dataclass(frozen=True)
 class Scenario:
@@ -134,6 +112,8 @@ class Scenario:
 DEFAULT_COVERAGE_RADIUS_M = 250.0  # what automatic site placement covers when no run config says otherwise
 MAX_DEMAND_SCALE = 100.0  # SUMO inserts this many times the scenario's vehicles at most
 MAX_SPEED_MPS = 200.0  # 720 km/h: no road vehicle's; a cap above it caps nothing (inf says so)
+# A SUMO step longer than this is no traffic simulation a vehicle's link or camera can follow.
+MAX_STEP_LENGTH_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -311,215 +291,3 @@ def load_scenario(
         injected=injected,
         inject_seed=inject.seed,
     )
-
-
-def write_sumocfg(folder: Path, net: Path, routes: Sequence[Path] = ()) -> Path:
-    """A .sumocfg in ``folder``, named after the network (N.net.xml[.gz] -> N.sumocfg, so the scenario is N),
-    naming the network and route files by absolute path; each file must exist. It sets no step length:
-    SUMO's 1 s. Returns its path."""
-    from xml.sax.saxutils import quoteattr
-
-    for given, what in ((net, "--net"), *((r, "--routes") for r in routes)):
-        if not Path(given).is_file():
-            raise CrchflError(
-                f"{what} {given}: no such file; give a SUMO network (.net.xml or .net.xml.gz) and route files"
-            )
-    files = ",".join(str(Path(r).resolve()) for r in routes)
-    text = (f"<configuration>\n  <input>\n    <net-file value={quoteattr(str(Path(net).resolve()))}/>\n"
-            + (f"    <route-files value={quoteattr(files)}/>\n" if routes else "")
-            + "  </input>\n</configuration>\n")
-    path = Path(folder) / f"{Path(net).name.removesuffix('.gz').removesuffix('.xml').removesuffix('.net')}.sumocfg"
-    atomic_write_text(path, text)
-    return path
-
-
-# --- reading a .sumocfg -------------------------------------------------------------------
-
-
-# A SUMO step longer than this is no traffic simulation a vehicle's link or camera can follow.
-MAX_STEP_LENGTH_S = 60.0
-# Option sections a run here leaves out: sumo-gui's own, and the TraCI server's (remote-port,
-# num-clients): with a port, sumo waits for a client that never connects.
-DROPPED_SECTIONS = ("gui_only", "traci_server")
-
-
-@dataclass(frozen=True)
-class _OptionSpec:
-    section: str
-    type: str
-
-
-@functools.lru_cache(maxsize=1)
-def _sumo_option_specs() -> tuple[dict[str, _OptionSpec], dict[str, str]]:
-    """Every option sumo knows (from its own template): name -> spec, synonym -> name."""
-    with tempfile.TemporaryDirectory() as tmp:
-        template = Path(tmp) / "template.xml"
-        subprocess.run(
-            [sumo_binary(), "--save-template", str(template)],
-            check=True,
-            capture_output=True,
-        )
-        root = ET.parse(template).getroot()
-    specs: dict[str, _OptionSpec] = {}
-    synonyms: dict[str, str] = {}
-    for section in root:
-        for option in section:
-            specs[option.tag] = _OptionSpec(section.tag, option.get("type", ""))
-            for synonym in (option.get("synonymes") or "").split():
-                synonyms[synonym] = option.tag
-    return specs, synonyms
-
-
-def sumo_options_from_config(cfg_path: Path) -> tuple[list[str], list[str]]:
-    """Sanitised sumo command-line options from a .sumocfg, and the names of dropped options."""
-    if not cfg_path.is_file():
-        raise CrchflError(f"{cfg_path}: SUMO configuration not found; check the path")
-    try:
-        root = ET.parse(cfg_path).getroot()
-    except ET.ParseError as exc:
-        raise CrchflError(f"{cfg_path}: malformed XML ({exc}); fix the file") from None
-    specs, synonyms = _sumo_option_specs()
-    base = cfg_path.parent
-    options: list[str] = []
-    dropped: list[str] = []
-    for element in root.iter():
-        value = _config_value(element)
-        if value is None or element is root:
-            continue
-        name = synonyms.get(element.tag, element.tag)
-        spec = specs.get(name)
-        if spec is None or spec.section in DROPPED_SECTIONS:
-            dropped.append(name)
-            if spec is not None and spec.section == "traci_server":
-                log.warning("%s: ignoring <%s>: a TraCI server would wait for a client that never connects "
-                            "(crchfl-sumo drives SUMO itself)", cfg_path.name, element.tag)
-            continue
-        if spec.type == "FILE":
-            if spec.section in ("output", "report") or name in ("save-configuration", "save-template", "save-schema"):
-                dropped.append(name)
-                continue
-            value = ",".join(str(resolved_path(base / p)) for p in _split_files(value))
-            missing = [p for p in value.split(",") if p and spec.section == "input" and not Path(p).exists()]
-            if missing:
-                raise CrchflError(
-                    f"{cfg_path}: <{element.tag}> names {missing[0]}, which does not exist; fix the path"
-                )
-        options.append(f"--{name}={value}")
-    if dropped:
-        log.info("%s: ignoring options %s (GUI-only, TraCI server, unknown, or output files)", cfg_path.name, dropped)
-    return options, dropped
-
-
-def resolved_path(path: Path) -> Path:
-    """``path`` made absolute with its links followed; a loop of symbolic links is a CrchflError."""
-    try:
-        return path.resolve()
-    except (RuntimeError, OSError) as exc:  # Python 3.11/3.12 raise RuntimeError for a loop, 3.13 OSError
-        raise CrchflError(f"{path}: cannot be followed ({exc}); point to the file itself, not to a loop of links") from None
-
-
-def _config_value(element: ET.Element) -> str | None:
-    """An option's value in any form sumo reads: ``value="..."``, ``v="..."`` or the element's text."""
-    value = element.get("value", element.get("v"))
-    if value is None and len(element) == 0 and element.text and element.text.strip():
-        value = element.text.strip()
-    return value
-
-
-def _split_files(value: str) -> list[str]:
-    # sumo separates file lists by commas only: a space may be part of a path
-    return [p.strip() for p in value.split(",") if p.strip()]
-
-
-def sumo_time_s(text: str, cfg_path: Path, option: str) -> float:
-    """A SUMO time value in seconds: plain seconds or [[days:]hours:]minutes:seconds."""
-    parts = text.split(":")
-    try:
-        if len(parts) > 4:
-            raise ValueError
-        seconds = sum(unit * float(part) for unit, part in zip((86400.0, 3600.0, 60.0, 1.0)[-len(parts):], parts))
-    except ValueError:
-        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a time; give seconds") from None
-    if not math.isfinite(seconds):
-        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a finite time; give seconds")
-    return seconds
-
-
-def _option_value(options: list[str] | tuple[str, ...], name: str) -> str | None:
-    prefix = f"--{name}="
-    values = [o[len(prefix):] for o in options if o.startswith(prefix)]
-    return values[-1] if values else None
-
-
-def sumo_binary(name: str = "sumo") -> str:
-    """Path of a SUMO binary (sumo, netconvert, duarouter ...): the eclipse-sumo package's, else PATH's."""
-    try:
-        import sumo  # the eclipse-sumo wheel
-
-        candidate = Path(sumo.SUMO_HOME) / "bin" / name
-        if candidate.exists():
-            return str(candidate)
-    except ImportError:
-        pass
-    found = shutil.which(name)
-    if not found:
-        raise CrchflError(f"the '{name}' binary was not found; install it with: pip install eclipse-sumo")
-    return found
-
-
-def sumo_tool_script(name: str) -> str:
-    """Path of a script in SUMO's tools folder (randomTrips.py ...), from the eclipse-sumo package."""
-    try:
-        import sumo
-    except ImportError:
-        raise CrchflError(f"SUMO's {name} needs the eclipse-sumo package: pip install eclipse-sumo") from None
-    script = Path(sumo.SUMO_HOME) / "tools" / name
-    if not script.is_file():
-        raise CrchflError(f"{script} not found; reinstall eclipse-sumo")
-    return str(script)
-
-
-# --- reading a network ---------------------------------------------------------------------
-
-
-def read_net_bounds(net_path: Path) -> Bounds:
-    """The network's convBoundary, read without parsing the whole file (plain or gzipped, as sumo reads it)."""
-    import sumolib
-
-    if not net_path.is_file():
-        raise CrchflError(f"{net_path}: network file not found; check <net-file> in the configuration")
-    try:
-        with sumolib.openz(str(net_path), "rb") as source:
-            for _, element in ET.iterparse(source, events=("start",)):
-                if element.tag == "location":
-                    xmin, ymin, xmax, ymax = (float(v) for v in element.get("convBoundary", "").split(","))
-                    return Bounds(xmin, ymin, xmax, ymax)
-    except (ET.ParseError, ValueError, OSError, EOFError) as exc:
-        raise CrchflError(f"{net_path}: malformed SUMO network ({exc}); rebuild it with netconvert") from None
-    raise CrchflError(f"{net_path}: no <location> element: not a SUMO network; rebuild it with netconvert")
-
-
-@functools.lru_cache(maxsize=4)
-def lane_polylines(net_path: Path) -> tuple[np.ndarray, ...]:
-    """Every non-internal lane's centre line as an [N, 2] array (the network is read once)."""
-    import sumolib
-
-    try:
-        net = sumolib.net.readNet(str(net_path))
-    except Exception as exc:  # sumolib raises assorted errors on bad input
-        raise CrchflError(f"{net_path}: could not read the network ({exc}); rebuild it with netconvert") from None
-    return tuple(
-        np.asarray(lane.getShape(), dtype=np.float64) for edge in net.getEdges() for lane in edge.getLanes()
-    )
-
-
-def lane_points(net_path: Path, spacing_m: float = 10.0) -> np.ndarray:
-    """Points every ``spacing_m`` along every non-internal lane of the network, [P, 2]."""
-    points = []
-    for shape in lane_polylines(Path(net_path)):
-        for a, b in zip(shape[:-1], shape[1:]):
-            n = max(1, int(math.ceil(np.hypot(*(b - a)) / spacing_m)))
-            t = np.arange(n)[:, None] / n
-            points.append(a + t * (b - a))
-        points.append(shape[-1:])
-    return np.concatenate(points) if points else np.zeros((0, 2))

@@ -35,7 +35,8 @@ import numpy as np
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import Frame, sumo_angle_to_heading_rad
 from crchfl_sumo.sumo.injection import Injector
-from crchfl_sumo.sumo.scenario import Scenario, sumo_binary
+from crchfl_sumo.sumo.installation import sumo_binary
+from crchfl_sumo.sumo.scenario import Scenario
 
 log = logging.getLogger(__name__)
 

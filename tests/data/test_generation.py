@@ -70,7 +70,7 @@ def test_dataset_of_a_plain_multi_lane_sumocfg_needs_no_hand_written_file(tmp_pa
     import subprocess
 
     from crchfl_sumo.cli import main
-    from crchfl_sumo.sumo.scenario import sumo_binary
+    from crchfl_sumo.sumo.installation import sumo_binary
 
     subprocess.run([sumo_binary("netgenerate"), "--grid", "--grid.number=3", "--grid.length=200",
                     "--default.lanenumber=2", "--default-junction-type=traffic_light", "--no-turnarounds=true",

@@ -13,7 +13,8 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.studies.simulate import SimulateConfig, simulate, summarize
 from crchfl_sumo.sumo.injection import InjectConfig
-from crchfl_sumo.sumo.scenario import load_scenario, sumo_binary, sumo_tool_script
+from crchfl_sumo.sumo.installation import sumo_binary, sumo_tool_script
+from crchfl_sumo.sumo.scenario import load_scenario
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "motorway_ramps.osm"
 
