@@ -368,7 +368,8 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
 def link_handovers(clock, vehicles) -> tuple[int, int]:
     """Site-to-site changes of the clients' serving edge site over the simulated span the run used,
     and how many of them went back to the site served before within 5 s (mobility.ping_pongs)."""
-    from crchfl_sumo.links.mobility import Handover, ping_pongs
+    from crchfl_sumo.links.mobility import ping_pongs
+    from crchfl_sumo.links.snapshots import Handover
 
     events = []
     for v in vehicles:

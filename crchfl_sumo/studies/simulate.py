@@ -69,7 +69,7 @@ class Trace:
     speed_mps: np.ndarray
     site: np.ndarray  # serving site index, -1 none
     rate_bps: np.ndarray
-    handovers: tuple  # mobility.Handover records
+    handovers: tuple  # snapshots.Handover records
     steps: int
     teleports: int
     collisions: int

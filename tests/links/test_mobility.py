@@ -14,15 +14,14 @@ from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.macro import MacroLinkConfig, hex_grid_sites, macro_link_model
 from crchfl_sumo.links.mobility import (
     NO_SITE,
-    Handover,
     LinkModel,
     MobilityConfig,
     associate,
     background_users,
     l3_filter,
     ping_pongs,
-    rate_series,
 )
+from crchfl_sumo.links.snapshots import Handover, rate_series
 from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.sumo.sites import EdgeSite
 

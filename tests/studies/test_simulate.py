@@ -7,7 +7,8 @@ import pytest
 
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.resources import scenarios_dir
-from crchfl_sumo.links.mobility import NO_SITE, Handover, LinkModel, MobilityConfig
+from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig
+from crchfl_sumo.links.snapshots import Handover
 from crchfl_sumo.studies.simulate import SimulateConfig, Trace, simulate, summarize
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
