@@ -349,7 +349,7 @@ def test_the_top_down_view_draws_a_permissive_green_as_the_cameras_do(renderer):
 
 def test_cheap_visibility_test_never_drops_a_box_a_camera_shows(renderer):
     """CameraReach.may_see is a pre-filter: every camera image a box changes must be flagged."""
-    from crchfl_sumo.vision.raster import CameraReach
+    from crchfl_sumo.vision.camera_reach import CameraReach
 
     reach = CameraReach.of(renderer.config.camera, renderer.config.max_object_distance_m)
     radius = 0.5 * math.hypot(4.5, 1.8)
