@@ -88,11 +88,13 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
     a float is finite (``inf`` only where the default is ``inf``, i.e. "no
     limit"; NaN never), and a field named ``seed`` or ``*_seed`` is a seed
     (core.numbers). Physical ranges are each dataclass's own ``__post_init__``.
+    A field whose name cannot be a key's (``class``, a Python keyword) names its key in its
+    metadata: ``field(metadata={KEY: "class"})``.
     """
     if not isinstance(data, Mapping):
         raise CrchflError(f"{where}: expected a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    fields = {_key(f): f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         known = ", ".join(sorted(fields))
@@ -101,15 +103,22 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
         )
     values = {}
     for name in data:
-        value = _convert(hints[name], data[name], f"{where}.{name}")
+        value = _convert(hints[fields[name].name], data[name], f"{where}.{name}")
         _check_finite(value, f"{where}.{name}", allow_inf=fields[name].default == math.inf)
         if (name == "seed" or name.endswith("_seed")) and value is not None:
             check_seed(value, f"{where}.{name}")
-        values[name] = value
+        values[fields[name].name] = value
     try:
         return cls(**values)
     except (CrchflError, TypeError, ValueError) as exc:  # the dataclass's own checks (__post_init__)
         raise CrchflError(_located(str(exc), where)) from None
+
+
+KEY = "key"  # a field's metadata entry naming its key where the field's name cannot be it
+
+
+def _key(f: dataclasses.Field) -> str:
+    return f.metadata.get(KEY, f.name)
 
 
 def _located(message: str, where: str) -> str:
@@ -141,7 +150,7 @@ def _check_finite(value: Any, where: str, allow_inf: bool) -> None:
 def to_mapping(obj: Any) -> Any:
     """Dataclass -> plain dict/list structure (TOML/JSON friendly), the inverse of from_mapping."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_mapping(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {_key(f): to_mapping(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, (list, tuple)):
         return [to_mapping(v) for v in obj]
     if isinstance(obj, Path):

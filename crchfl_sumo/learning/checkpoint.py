@@ -30,7 +30,7 @@ from crchfl_sumo.core.config import from_mapping, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import expert_from_labels
 from crchfl_sumo.data.labels import NUM_STEER_CLASSES
-from crchfl_sumo.learning.model import DrivingModel, model_from_state
+from crchfl_sumo.learning.model import model_from_state, network
 from crchfl_sumo.learning.settings import ModelConfig
 from crchfl_sumo.vision.raster import camera_settings
 
@@ -128,7 +128,7 @@ def check_weights(config: ModelConfig, state: dict[str, torch.Tensor], where: st
     """Refuse weights that do not fit a freshly built model of ``config``: names, shapes, dtypes, dense
     layout, finite values within MAX_ABS_WEIGHT."""
     with torch.device("meta"):  # shapes and dtypes only: nothing allocated, no random init
-        expected = DrivingModel(config).state_dict()
+        expected = network(config).state_dict()
     fix = "the file is damaged or not of this model config; retrain or point to another checkpoint"
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
@@ -153,12 +153,12 @@ def check_weights(config: ModelConfig, state: dict[str, torch.Tensor], where: st
             )
 
 
-def load_model(path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
+def load_model(path: str | Path, device: torch.device | str = "cpu") -> torch.nn.Module:
     """The model stored in a checkpoint, in eval mode, on ``device``."""
     return checkpoint_model(load_checkpoint(path), path, device)
 
 
-def checkpoint_model(checkpoint: Checkpoint, path: str | Path, device: torch.device | str = "cpu") -> DrivingModel:
+def checkpoint_model(checkpoint: Checkpoint, path: str | Path, device: torch.device | str = "cpu") -> torch.nn.Module:
     """The model of a checkpoint already read from ``path`` (its weights checked first), in eval mode, on ``device``."""
     check_weights(checkpoint.model_config, checkpoint.state_dict, str(path))
     try:

@@ -37,12 +37,15 @@ and are normalised inside the network, so uint8 can stay uint8 in memory.
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import math
 
 import numpy as np
 import torch
 from torch import nn
 
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.data.expert import (
     PASSENGER_MAX_ACCEL_MPS2,
@@ -332,23 +335,61 @@ def state_size_bytes(state: dict[str, torch.Tensor]) -> int:
     return sum(t.numel() * t.element_size() for t in state.values())
 
 
-def build_model(config: ModelConfig, seed: int) -> DrivingModel:
+def network(config: ModelConfig) -> nn.Module:
+    """The network of ``config``: the built-in DrivingModel, or the class ``model.class`` names.
+
+    Your class is built as ``Class(config)`` and must answer like DrivingModel: (images, command,
+    speed_mps) -> (branch I [B, longitudinal_width(config)], steer logits [B, config.steer_bins]).
+    The network's ``config`` is the ModelConfig it was built from (the rest of the package reads it).
+    """
+    if not config.class_path:
+        return DrivingModel(config)
+    net = network_class(config.class_path)(config)
+    net.config = config
+    return net
+
+
+def network_class(class_path: str) -> type[nn.Module]:
+    """The class of ``"package.module:Class"``, imported; a CrchflError naming ``model.class`` and the fix otherwise.
+
+    Importing runs that module's code, as training it did: a checkpoint that names a class loads
+    only where that class is installed, and nothing of it comes from the file.
+    """
+    module_name, _, class_name = class_path.partition(":")
+    fix = "install the package or put its folder on PYTHONPATH (docs/own_model.md)"
+    try:
+        found = importlib.util.find_spec(module_name)
+    except (ImportError, ValueError):
+        found = None
+    if found is None:
+        raise CrchflError(f"model.class: module {module_name!r} of {class_path!r} is not importable here; {fix}")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:  # the user's module: anything may go wrong in it, and it is reported in one line
+        raise CrchflError(f"model.class: importing {module_name!r} failed ({type(exc).__name__}: {exc}); fix that module")
+    cls = getattr(module, class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise CrchflError(f"model.class: {class_path!r} is not a torch.nn.Module class in {module_name!r}; name one")
+    return cls
+
+
+def build_model(config: ModelConfig, seed: int) -> nn.Module:
     """A freshly initialised model; the same seed gives the same weights."""
     check_seed(seed, "build_model: seed")
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:
-        return DrivingModel(config)
+        return network(config)
     finally:
         torch.random.set_rng_state(generator_state)
 
 
 def model_from_state(
     config: ModelConfig, state: dict[str, torch.Tensor], device: torch.device | str = "cpu"
-) -> DrivingModel:
+) -> nn.Module:
     """A model holding a copy of ``state`` on ``device``; the caller's tensors and RNG are untouched."""
     with torch.device("meta"):  # no random init: every weight comes from ``state``
-        model = DrivingModel(config)
+        model = network(config)
     # Weights in float32 (states averaged by FedAvg may arrive in another float type); counters such
     # as BatchNorm's num_batches_tracked keep their integer type, which checkpoints are checked against.
     weights = {

@@ -6,9 +6,11 @@ reason); TrainConfig is training.py's and centralized.py's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from typing import Literal
 
+from crchfl_sumo.core.config import KEY
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S, MAX_SPEED_HORIZON_S
@@ -100,6 +102,8 @@ class ModelConfig:
         architecture's default: 21 for "cil" (the paper's sharpest class, 17
         degrees, cannot take the towns' turns: docs/model.md), 7 for "paper",
         which takes no other.
+    class (TOML key; ``class_path`` here): "package.module:Class", your own network in place of the
+        built-in one (learning/model.py ``network``; docs/own_model.md); "" (default): the built-in.
     """
 
     size: Literal["compact", "paper"] = "compact"
@@ -114,8 +118,14 @@ class ModelConfig:
     longitudinal: Literal["pedals", "target_speed"] | None = None
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
     steer_bins: int | None = None
+    class_path: str = field(default="", metadata={KEY: "class"})
 
     def __post_init__(self) -> None:
+        if self.class_path and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", self.class_path):
+            raise CrchflError(
+                f"model.class: {self.class_path!r} is no import path; give \"package.module:Class\" (a torch.nn.Module "
+                "built from this ModelConfig; docs/own_model.md)"
+            )
         if self.longitudinal is None:  # frozen: the architecture's default is filled in once, here
             object.__setattr__(self, "longitudinal", "pedals" if self.arch == "paper" else "target_speed")
         if self.steer_bins is None:

@@ -24,7 +24,7 @@ import torch
 from crchfl_sumo.core.backend import Executor
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight
-from crchfl_sumo.learning.model import DrivingModel, build_model
+from crchfl_sumo.learning.model import build_model, network
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device, resolved_multi_vehicle
 from crchfl_sumo.learning.training import evaluate, train_vehicle, train_vehicles, vehicle_seed
@@ -39,7 +39,7 @@ class TorchTrainer:
         self.device = resolve_device(config.device)
         self.test = test.to(self.device)
         self.always_straight = always_straight(test)  # {"accuracy", "balanced_accuracy"} on the test set
-        self._eval_model = DrivingModel(model_config).to(self.device)
+        self._eval_model = network(model_config).to(self.device)
 
     def initial_state(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().cpu().clone() for k, v in build_model(self.model_config, self.seed).state_dict().items()}
@@ -119,6 +119,6 @@ def evaluate_task(state, test, model_config, config, threads) -> Evaluation:
     """The test-set metrics of ``state`` (a backend task)."""
     torch.set_num_threads(threads)
     configure_determinism(config.deterministic)
-    model = DrivingModel(model_config)
+    model = network(model_config)
     model.load_state_dict(state)
     return evaluate(model, test, config)

@@ -31,6 +31,7 @@ from typing import Sequence
 
 import numpy as np
 import torch
+from torch import nn
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
 
@@ -50,10 +51,10 @@ from crchfl_sumo.learning.devices import (
 )
 from crchfl_sumo.learning.evaluation import Evaluation, evaluate_model
 from crchfl_sumo.learning.model import (
-    DrivingModel,
     State,
     longitudinal_target,
     model_from_state,
+    network,
     paper_class_of_bin,
     steer_targets,
 )
@@ -105,7 +106,7 @@ def branch_losses(
 
 
 @pinned_threads()  # each torch thread on a CPU of its own (core/cpus.py)
-def evaluate(model: DrivingModel, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
+def evaluate(model: nn.Module, samples: Samples, config: TrainConfig = TrainConfig()) -> Evaluation:
     """``model``'s test metrics on ``samples`` (evaluation.py), in batches of ``config.eval_batch_size``."""
     return evaluate_model(model, samples, config.eval_batch_size)
 
@@ -119,7 +120,7 @@ class Learner:
     a CPU copy of its weights.
     """
 
-    def __init__(self, model: DrivingModel, config: TrainConfig) -> None:
+    def __init__(self, model: nn.Module, config: TrainConfig) -> None:
         self.model = model
         self.config = config
         self.precision = resolved_precision(config, self.device)
@@ -129,10 +130,11 @@ class Learner:
             eps=config.adam_eps,
             weight_decay=config.weight_decay,
         )
-        self.optimizers = (
-            torch.optim.Adam(model.branch_throttle_brake.parameters(), **adam),
-            torch.optim.Adam(model.branch_steer.parameters(), **adam),
-        )
+        # One Adam per branch (the paper's two networks); a network of the user's (model.class) has one.
+        # Adam works element by element, so either way every weight takes the same steps.
+        parts = [getattr(model, name, None) for name in ("branch_throttle_brake", "branch_steer")]
+        parts = parts if all(isinstance(part, nn.Module) for part in parts) else [model]
+        self.optimizers = tuple(torch.optim.Adam(part.parameters(), **adam) for part in parts)
 
     @property
     def device(self) -> torch.device:
@@ -251,7 +253,7 @@ def _train_vehicles_vmap(
     num_vehicles, batch_size = len(states), config.batch_size
     # A weightless copy of the network for functional_call: its parameters are replaced on each call.
     with torch.device("meta"):
-        template = DrivingModel(model_config)
+        template = network(model_config)
     names = [name for name, _ in template.named_parameters()]
     params = {name: torch.stack([s[name] for s in states]).to(device, torch.float32) for name in names}
     exp_avg = {name: torch.zeros_like(p) for name, p in params.items()}
