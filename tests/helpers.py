@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from crchfl_sumo.data.manifest import Manifest
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.data.shards import DatasetWriter, ShardData
 from crchfl_sumo.sumo.installation import sumo_binary
 
 PAPER_VEHICLES = [

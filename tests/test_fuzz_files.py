@@ -30,7 +30,8 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.config import from_mapping, to_mapping, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples
-from crchfl_sumo.data.shards import LABEL_DATASETS, LABEL_SHAPES, MANIFEST_NAME, DatasetWriter, Manifest, ShardData, sha256_file
+from crchfl_sumo.data.manifest import MANIFEST_NAME, Manifest
+from crchfl_sumo.data.shards import LABEL_DATASETS, LABEL_SHAPES, DatasetWriter, ShardData, sha256_file
 from crchfl_sumo.data.stats import dataset_stats, write_mosaic
 from crchfl_sumo.federation.run import PREVIOUS_STATE_FILE, STATE_FILE, run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig

@@ -31,7 +31,8 @@ from crchfl_sumo.core.cpus import settle_native_libraries
 from crchfl_sumo.data.dataset import ShardDataset, load_samples
 from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, TownSplit
 from crchfl_sumo.data.generation import generate_dataset
-from crchfl_sumo.data.shards import NOMINAL_SAMPLE_BYTES, DatasetWriter, read_manifest, read_shard
+from crchfl_sumo.data.manifest import NOMINAL_SAMPLE_BYTES, read_manifest
+from crchfl_sumo.data.shards import DatasetWriter, read_shard
 from crchfl_sumo.sumo.scenario import load_scenario
 
 

@@ -41,7 +41,8 @@ def noop(x=None):
 
 
 def write_data(root: Path, samples: int) -> Path:
-    from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+    from crchfl_sumo.data.manifest import Manifest
+    from crchfl_sumo.data.shards import DatasetWriter, ShardData
 
     rng = np.random.default_rng(0)
     header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")

@@ -17,14 +17,12 @@ import numpy as np
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.data.manifest import Manifest, ShardEntry, read_manifest
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.data.shards import (
     LABEL_DATASETS,
     LABEL_SHAPES,
-    Manifest,
-    ShardEntry,
     open_shard,
-    read_manifest,
     read_shard,
 )
 from crchfl_sumo.vision.camera import CAMERA_NAMES
@@ -39,7 +37,7 @@ def measured_sample_bytes(manifest: Manifest) -> int:
 
     This is what ``ledger.resolve_sizes(..., measured_sample_bytes=...)`` takes
     when ``ledger.sample_size = "measured"``; the nominal alternative is the
-    paper's 1800 KB (dataset_io.NOMINAL_SAMPLE_BYTES).
+    paper's 1800 KB (manifest.NOMINAL_SAMPLE_BYTES).
     """
     if manifest.samples == 0:
         raise CrchflError("ledger.sample_size = 'measured' needs a data set with samples; generate it first")

@@ -5,7 +5,8 @@
    its departure until it has its sample count; the run goes on
    ``FUTURE_S`` more seconds so the last samples have a path ahead to label.
    It also goes on until each of them has driven ``CommandConfig.path_ahead_m``
-   past its last sample, so that the last samples' route commands are known.
+   past its last sample, so that the last samples' route commands are known
+   (recording.py).
 2. Per shard (one vehicle): build its track from all frames, label every
    step with the expert (expert.py) and its route command (commands.py),
    keep the sampled steps, draw which of them become recovery samples
@@ -13,8 +14,9 @@
    plan).
 3. Render the four camera images (raster.py) from the track's pose or the
    perturbed one, frame by frame: all the samples of a frame in one call, for
-   as many shards at a time as ``RENDER_GROUP_BYTES`` of images hold; then
-   write each shard (shards.py).
+   as many shards at a time as ``RENDER_GROUP_BYTES`` of images hold
+   (rendering.py); then write each shard (shards.py) and its manifest entry
+   (manifest.py).
 
 Shards already finished by an earlier run with the same settings are
 skipped (their rendering is the expensive part; the simulation is rerun,
@@ -28,7 +30,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -50,21 +51,22 @@ from crchfl_sumo.data.expert import (
     tracks_from_frames,
 )
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
+from crchfl_sumo.data.manifest import Manifest, label_schema
+from crchfl_sumo.data.recording import record_run, steps_per_sample
 from crchfl_sumo.data.recovery import (
     FORWARD_M,
-    camera_pose,
     draw_perturbations,
     draw_queue_shifts,
     gap_ahead,
     recovery_steer,
 )
+from crchfl_sumo.data.rendering import RenderJob, render_groups, render_samples
 from crchfl_sumo.data.route_commands import CommandConfig, track_commands
 from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData, label_schema
+from crchfl_sumo.data.shards import DatasetWriter, ShardData
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.route import read_net
 from crchfl_sumo.sumo.scenario import DEFAULT_COVERAGE_RADIUS_M, Scenario, SumoConfig, configured_scenario
-from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
 from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
@@ -72,9 +74,7 @@ from crchfl_sumo.vision.world import WorldConfig, build_world
 
 log = logging.getLogger(__name__)
 
-FUTURE_S = 10.0  # simulated time kept after the last sample: >= the look-ahead at any town speed
 RECOVERY_STREAM = 15  # the recovery draws' own random stream: SeedSequence([seed, RECOVERY_STREAM, shard])
-RENDER_GROUP_BYTES = 1 << 30  # images of the shards rendered together, held until they are written
 
 
 def assign_vehicles(scenario: Scenario, plan: Sequence[PlannedShard]) -> dict[str, str]:
@@ -118,97 +118,6 @@ def nearest_site(sites: Sequence[EdgeSite], x_m: np.ndarray, y_m: np.ndarray) ->
     sy = np.array([s.y_m for s in sites])
     nearest = np.hypot(x_m[:, None] - sx, y_m[:, None] - sy).argmin(axis=1)
     return sites[int(np.bincount(nearest, minlength=len(sites)).argmax())].name
-
-
-def steps_per_sample(scenario: Scenario, sample_period_s: float) -> int:
-    """Simulation steps between two samples of a vehicle; the period must be a whole number of steps."""
-    step_s = scenario.step_length_s
-    every = int(round(sample_period_s / step_s))
-    if every < 1 or not math.isclose(every * step_s, sample_period_s, rel_tol=1e-6):
-        raise CrchflError(
-            f"dataset.sample_period_s = {sample_period_s} is not a multiple of the scenario's step "
-            f"length {step_s} s; choose a multiple"
-        )
-    return every
-
-
-def record_run(
-    scenario: Scenario,
-    seed: int,
-    needed: dict[str, int],
-    sample_period_s: float,
-    progress: Progress | None = None,
-    around_m: float | None = None,
-    ahead_m: float = 0.0,
-) -> tuple[list[Frame], dict[str, list[int]]]:
-    """Simulate until each vehicle in ``needed`` has its samples, then FUTURE_S more and until each
-    has driven ``ahead_m`` past its last sample (or left the network).
-
-    Returns every step's Frame (every vehicle, or with ``around_m`` only the
-    needed vehicles and those within it of one) and, per vehicle, the indices
-    of its sampled frames.
-    """
-    step_s = scenario.step_length_s
-    every = steps_per_sample(scenario, sample_period_s)
-    longest_s = max(needed.values(), default=0) * sample_period_s
-    max_steps = int((4 * longest_s + 600.0) / step_s)
-    frames: list[Frame] = []
-    sampled: dict[str, list[int]] = {v: [] for v in needed}
-    seen: set[str] = set()
-    done_at: int | None = None
-    driven_m = {v: 0.0 for v in needed}  # path driven since the vehicle's last sample
-    last_xy: dict[str, tuple[float, float]] = {}
-    focus = None if around_m is None else set(needed)  # without a radius, no vehicle may go missing
-    with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0) as sim:
-        if sim.injection_error is not None and set(needed) & set(scenario.injected):
-            raise CrchflError(f"scenario '{scenario.name}': {sim.injection_error}")
-        for step in range(max_steps):
-            frame = sim.step()
-            frames.append(frame)
-            present = set(frame.ids.tolist())
-            if round(frame.t_s / step_s) % every == 0:
-                for vehicle, rows in sampled.items():
-                    if vehicle in present and len(rows) < needed[vehicle]:
-                        rows.append(len(frames) - 1)
-            for vehicle in needed:
-                if vehicle in present:
-                    seen.add(vehicle)
-                elif vehicle in seen and len(sampled[vehicle]) < needed[vehicle]:
-                    raise CrchflError(
-                        f"vehicle '{vehicle}' left the network after {len(sampled[vehicle])} of its "
-                        f"{needed[vehicle]} samples; ask for fewer samples or give it a longer route"
-                    )
-            if done_at is None and all(len(sampled[v]) >= n for v, n in needed.items()):
-                done_at = step
-            for vehicle in needed:
-                if len(sampled[vehicle]) >= needed[vehicle] and vehicle in present:
-                    row = frame.index_of(vehicle)
-                    xy = (float(frame.x_m[row]), float(frame.y_m[row]))
-                    if vehicle in last_xy:
-                        driven_m[vehicle] += math.hypot(xy[0] - last_xy[vehicle][0], xy[1] - last_xy[vehicle][1])
-                    last_xy[vehicle] = xy
-            if step % 40 == 0:
-                report(progress, "simulate", sum(len(r) for r in sampled.values()), sum(needed.values()))
-            if (
-                done_at is not None
-                and (step - done_at) * step_s >= FUTURE_S
-                and all(driven_m[v] >= ahead_m or v not in present for v in needed)
-            ):
-                break
-        else:
-            short = {v: len(r) for v, r in sampled.items() if len(r) < needed[v]}
-            if short:
-                raise CrchflError(
-                    f"after {max_steps * step_s:.0f} simulated seconds these vehicles still lack samples "
-                    f"(have: {short}); check that they depart in scenario '{scenario.name}'"
-                )
-            # All sampled, but one stood to the end: where its path is unknown its command stays FOLLOW.
-            log.warning("stopped at %.0f s before every vehicle had driven %.0f m past its last sample",
-                        max_steps * step_s, ahead_m)
-        stats = sim.stats()
-    if stats.teleports or stats.collisions:
-        log.warning("run had %d teleports and %d collisions", stats.teleports, stats.collisions)
-    return frames, sampled
 
 
 def generate_dataset(
@@ -328,65 +237,6 @@ def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray)
         "signal_distance_m": np.maximum(distance - np.asarray(forward_m, dtype=np.float64), 0.0).astype(np.float32),
         "yield_gap_m": np.array([frame.foe_gap_m[r] for frame, r in zip(frames, rows)], dtype=np.float32),
     }
-
-
-@dataclass(frozen=True)
-class RenderJob:
-    """One shard's samples to draw: its vehicle, the frame of each sample, each sample's perturbation."""
-
-    vehicle: str
-    frame_rows: Sequence[int]  # index into the run's frames, per sample
-    perturbation: np.ndarray  # float32 [R, 3] (lateral_m, yaw_deg, forward_m)
-
-
-def render_groups(shards: Sequence[PlannedShard], image_shape: tuple[int, ...], budget_bytes: int = RENDER_GROUP_BYTES):
-    """Consecutive shards whose images fit ``budget_bytes`` together (at least one shard a group)."""
-    sample_bytes = math.prod(image_shape)
-    group: list[PlannedShard] = []
-    for shard in shards:
-        if group and (sum(s.samples for s in group) + shard.samples) * sample_bytes > budget_bytes:
-            yield group
-            group = []
-        group.append(shard)
-    if group:
-        yield group
-
-
-def render_samples(
-    renderer: Renderer,
-    frames: Sequence[Frame],
-    jobs: Sequence[RenderJob],
-    vehicles_per_call: int | None = None,
-    on_rendered=None,
-) -> list[np.ndarray]:
-    """Every job's camera images, uint8 [R, 4, H, W, 3], drawn frame by frame.
-
-    The samples that share a frame are rendered in one call, which shares the
-    frame's set-up among them (``vehicles_per_call`` caps a call; 1 draws them
-    one by one, as the benchmark's baseline). Each sample's cameras stand at
-    its own perturbed pose while the others see the vehicle where it is, so
-    the images are those of rendering each sample alone. ``on_rendered``
-    hears the number of samples drawn so far after every frame.
-    """
-    images = [np.empty((len(job.frame_rows), *renderer.shape), np.uint8) for job in jobs]
-    at_frame: dict[int, list[tuple[int, int]]] = {}  # frame -> [(job, sample)]
-    for j, job in enumerate(jobs):
-        for k, i in enumerate(job.frame_rows):
-            at_frame.setdefault(int(i), []).append((j, k))
-    drawn = 0
-    for i in sorted(at_frame):
-        frame, samples = frames[i], at_frame[i]
-        step = vehicles_per_call or len(samples)
-        for first in range(0, len(samples), step):
-            chunk = samples[first : first + step]
-            ids = [jobs[j].vehicle for j, _ in chunk]
-            poses = np.array([camera_pose(frame, jobs[j].vehicle, *jobs[j].perturbation[k]) for j, k in chunk])
-            for (j, k), sample_images in zip(chunk, renderer.render(frame, ids, poses)):
-                images[j][k] = sample_images
-        drawn += len(samples)
-        if on_rendered is not None:
-            on_rendered(drawn)
-    return images
 
 
 @dataclass(frozen=True)

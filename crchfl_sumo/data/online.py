@@ -6,7 +6,7 @@ federation's own SUMO run: every ``sample_period_s`` the collector renders
 the vehicle's four camera images (raster.py, with the data set's own camera
 and world settings) and keeps its kinematics. A sample is labelled by the
 expert (expert.py) and given its route command (commands.py) once the
-vehicle has driven ``generate.FUTURE_S`` past it (the look-ahead the expert
+vehicle has driven ``recording.FUTURE_S`` past it (the look-ahead the expert
 needs) and ``CommandConfig.path_ahead_m`` metres beyond it (what the command
 needs to see the next junction's pass), so a sample's label never changes
 after it first appears. Collected samples are all rendered on the track (no
@@ -28,7 +28,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig, Track, expert_labels, target_speeds
-from crchfl_sumo.data.generation import FUTURE_S
+from crchfl_sumo.data.recording import FUTURE_S
 from crchfl_sumo.data.route_commands import CommandConfig, track_commands
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.settings import OnlineConfig

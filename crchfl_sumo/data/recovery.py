@@ -48,6 +48,8 @@ from crchfl_sumo.sumo.frame import Frame
 
 # The columns of a sample's perturbation [N, 3], as the shard stores it ("perturbation").
 LATERAL_M, YAW_DEG, FORWARD_M = range(3)
+# positive = the rendered pose is left of / turned left of / ahead of the track
+PERTURBATION_NAMES = ("lateral_m", "yaw_deg", "forward_m")
 
 QUEUE_GAP_MAX_M = 5.0  # a standing leader at most this far ahead (bumper to bumper) makes a queue sample
 QUEUE_GAP_MIN_M = 0.5  # the closest a shifted sample stands to its leader ...

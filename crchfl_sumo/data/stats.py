@@ -19,8 +19,9 @@ from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.recovery import FORWARD_M, LATERAL_M, YAW_DEG
-from crchfl_sumo.data.shards import LABEL_SHAPES, open_shard, read_manifest, read_shard
+from crchfl_sumo.data.shards import LABEL_SHAPES, open_shard, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
 log = logging.getLogger(__name__)

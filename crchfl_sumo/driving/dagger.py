@@ -38,8 +38,8 @@ from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
+from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.data.shards import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.driving.bench import SUMO_LOG_DIR, episode_log
 from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig

@@ -19,8 +19,8 @@ from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress
 from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
 from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.data.shards import read_manifest
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
 from crchfl_sumo.learning.evaluation import always_straight

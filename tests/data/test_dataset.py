@@ -11,15 +11,17 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples, measured_sample_bytes
 from crchfl_sumo.data.settings import DatasetConfig, shard_plan
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.shards import (
+from crchfl_sumo.data.manifest import (
     MANIFEST_NAME,
     NOMINAL_SAMPLE_BYTES,
-    DatasetWriter,
     Manifest,
-    ShardData,
     label_schema,
-    png_bytes_per_sample,
     read_manifest,
+)
+from crchfl_sumo.data.shards import (
+    DatasetWriter,
+    ShardData,
+    png_bytes_per_sample,
     read_shard,
     sha256_file,
     write_shard,

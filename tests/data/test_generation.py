@@ -7,7 +7,8 @@ from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.settings import DatasetConfig, shard_plan
 from crchfl_sumo.data.generation import assign_vehicles, generate_dataset, nearest_site
 from crchfl_sumo.data.labels import digitize_steer
-from crchfl_sumo.data.shards import read_manifest, read_shard
+from crchfl_sumo.data.manifest import read_manifest
+from crchfl_sumo.data.shards import read_shard
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
 from crchfl_sumo.vision.camera import CameraConfig
@@ -187,7 +188,7 @@ def test_generate_config_from_toml(tmp_path):
 @pytest.mark.slow
 def test_label_signs_follow_sumo_turns():
     from crchfl_sumo.data.expert import expert_labels, tracks_from_frames
-    from crchfl_sumo.data.generation import record_run
+    from crchfl_sumo.data.recording import record_run
 
     frames, _ = record_run(paper_scenario(), 1, {"t02_data_1": 240, "t01_data_0": 240}, 0.25)
     turns = {"left": 0, "right": 0}
@@ -206,7 +207,7 @@ def test_label_signs_follow_sumo_turns():
 
 def test_neighbourhood_frames_render_what_full_frames_render():
     """record_run keeps only the sampled vehicles and their neighbourhood: their images must not change."""
-    from crchfl_sumo.data.generation import record_run
+    from crchfl_sumo.data.recording import record_run
     from crchfl_sumo.sumo.simulation import Simulation
     from crchfl_sumo.vision.raster import Renderer, neighbourhood_m
     from crchfl_sumo.vision.world import WorldConfig, build_world
@@ -286,8 +287,9 @@ def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
     drawn from a frame in which only its own vehicle's pose is perturbed."""
     import dataclasses
 
-    from crchfl_sumo.data.generation import RenderJob, record_run, render_samples
+    from crchfl_sumo.data.recording import record_run
     from crchfl_sumo.data.recovery import camera_pose
+    from crchfl_sumo.data.rendering import RenderJob, render_samples
     from crchfl_sumo.vision.raster import Renderer, neighbourhood_m
     from crchfl_sumo.vision.world import WorldConfig, build_world
 
@@ -320,7 +322,7 @@ def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
 
 def test_render_groups_hold_the_shards_whose_images_fit_the_budget():
     from crchfl_sumo.data.settings import PlannedShard
-    from crchfl_sumo.data.generation import render_groups
+    from crchfl_sumo.data.rendering import render_groups
 
     shards = [PlannedShard(f"s{i}.h5", "town01", "train", i, n) for i, n in enumerate([3, 4, 2, 9, 1])]
     # 10 bytes a sample, 60 bytes a group: 3+4 = 7 samples would be 70 bytes.

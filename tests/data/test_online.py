@@ -1,7 +1,7 @@
 import numpy as np
 
 from crchfl_sumo.data.route_commands import CommandConfig, track_commands
-from crchfl_sumo.data.generation import FUTURE_S
+from crchfl_sumo.data.recording import FUTURE_S
 from crchfl_sumo.data.labels import FOLLOW, STRAIGHT
 from crchfl_sumo.data.online import OnlineCollector
 from crchfl_sumo.sumo.frame import make_frame

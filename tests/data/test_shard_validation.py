@@ -12,14 +12,16 @@ import pytest
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import ShardDataset, load_samples, load_vehicle_samples
-from crchfl_sumo.data.shards import (
+from crchfl_sumo.data.manifest import (
     MANIFEST_NAME,
+    Manifest,
+    read_manifest,
+)
+from crchfl_sumo.data.shards import (
     MAX_COMPRESSION_RATIO,
     DatasetWriter,
-    Manifest,
     ShardData,
     check_label_values,
-    read_manifest,
     read_shard,
     sha256_file,
 )

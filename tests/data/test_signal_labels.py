@@ -22,7 +22,8 @@ from crchfl_sumo.data.labels import (
     signal_codes,
 )
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.data.shards import MANIFEST_NAME, read_shard, sha256_file
+from crchfl_sumo.data.manifest import MANIFEST_NAME
+from crchfl_sumo.data.shards import read_shard, sha256_file
 from crchfl_sumo.learning.balance import epoch_batches, near_red
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation, yield_gap_m
@@ -121,7 +122,8 @@ def test_signal_columns_round_trip_through_a_shard_and_old_shards_read_as_unknow
         yield_gap_m=np.array([np.inf, 7.0, np.inf, -1.5], np.float32),
     )
     root = make_dataset(tmp_path / "d", n=1)
-    from crchfl_sumo.data.shards import DatasetWriter, read_manifest
+    from crchfl_sumo.data.manifest import read_manifest
+    from crchfl_sumo.data.shards import DatasetWriter
 
     writer = DatasetWriter(root, read_manifest(root))
     writer.add("a.h5", data, vehicle="v0", town="town01", edge="e0", split="train")

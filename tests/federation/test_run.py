@@ -228,8 +228,8 @@ def _straight_frames(seconds: float, step_s: float = 0.25):
 
 def test_online_collector_labels_after_the_look_ahead_and_keeps_the_newest(grid_dir):
     from crchfl_sumo.data.expert import ExpertConfig, expert_labels, tracks_from_frames
-    from crchfl_sumo.data.generation import FUTURE_S
     from crchfl_sumo.data.online import OnlineCollector
+    from crchfl_sumo.data.recording import FUTURE_S
     from crchfl_sumo.data.settings import OnlineConfig
     from crchfl_sumo.vision.camera import CameraConfig
     from crchfl_sumo.vision.raster import RasterConfig

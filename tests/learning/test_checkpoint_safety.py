@@ -137,7 +137,7 @@ def test_data_sets_and_model_files_the_package_writes_pass_the_expert_bounds(tmp
     from helpers import PAPER_VEHICLES, write_dataset
 
     from crchfl_sumo.data.expert import LINEAR_RACK, ExpertConfig
-    from crchfl_sumo.data.shards import MANIFEST_NAME, read_manifest
+    from crchfl_sumo.data.manifest import MANIFEST_NAME, read_manifest
 
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
     defaults = to_mapping(ExpertConfig())

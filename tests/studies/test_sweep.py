@@ -20,7 +20,8 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.backend import BackendConfig
 from crchfl_sumo.core.config import from_mapping, toml_text
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.data.shards import DatasetWriter, Manifest, ShardData
+from crchfl_sumo.data.manifest import Manifest
+from crchfl_sumo.data.shards import DatasetWriter, ShardData
 from crchfl_sumo.federation.run import run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import read_inputs
