@@ -36,7 +36,7 @@ class RunData:
 def read_inputs(config: RunConfig) -> RunData:
     """Load the data set (train shards per vehicle, test shards) and map vehicles to edge sites."""
     from crchfl_sumo.data.dataset import load_samples, load_vehicle_samples, measured_sample_bytes
-    from crchfl_sumo.data.shards import read_manifest
+    from crchfl_sumo.data.manifest import read_manifest
 
     root = Path(config.dataset)
     manifest = read_manifest(root)
@@ -134,7 +134,8 @@ def online_collector(config: RunConfig, inputs: RunData, scenario):
     """The online mode's collector, rendering and labelling exactly as the data set was made."""
     from crchfl_sumo.data.online import OnlineCollector
     from crchfl_sumo.data.route_commands import CommandConfig
-    from crchfl_sumo.data.shards import read_manifest, read_shard
+    from crchfl_sumo.data.manifest import read_manifest
+    from crchfl_sumo.data.shards import read_shard
     from crchfl_sumo.vision.raster import camera_settings
 
     manifest = read_manifest(inputs.root)

@@ -302,7 +302,7 @@ def _make_dataset(config: ReproduceConfig, data_dir: Path) -> None:
 def _centralized(config: ReproduceConfig, out_dir: Path, seed: int, folder: Path) -> None:
     """The upper bound: one model trained on every vehicle's data; summary.json beside learning/centralized.py's files."""
     from crchfl_sumo.data.dataset import load_samples
-    from crchfl_sumo.data.shards import read_manifest
+    from crchfl_sumo.data.manifest import read_manifest
     from crchfl_sumo.learning.centralized import train_centralized
 
     run = run_config(run_mapping(config, config.schemes[0], seed, out_dir / "data"), "reproduce.run")
