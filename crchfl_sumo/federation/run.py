@@ -71,6 +71,7 @@ from crchfl_sumo.core.result_files import (
     SUMMARY_FILE,
 )
 from crchfl_sumo.data.samples import Samples
+from crchfl_sumo.federation.async_edges import AsyncFederation
 from crchfl_sumo.federation.logs import LOGS, Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
@@ -272,7 +273,8 @@ def _run_with_trainer(
             state = initial_state(setup, trainer, clock.start_s)
             marks = start_logs(out_dir, sizes)
         data = _online_data(clock, inputs) if config.data_mode == "online" else None
-        federation = Federation(setup, clock, trainer, data, labeller)
+        loop = AsyncFederation if fed.aggregation == "async" else Federation
+        federation = loop(setup, clock, trainer, data, labeller)
 
         def save_step(new: FederationState, handovers: int | None) -> None:
             # on the saver's thread; the logs reach the disk before the checkpoint that names their ends

@@ -111,6 +111,9 @@ class RunConfig:
             )
         if self.clock.kind != "sumo" and self.sumo != SumoConfig():
             raise CrchflError("[sumo] changes the SUMO run; set [clock] kind = \"sumo\" or remove the [sumo] table")
+        if self.dagger.enabled and self.federation.aggregation == "async":
+            raise CrchflError("[dagger] labels at cloud rounds of synchronous edges; with federation.aggregation = "
+                              "\"async\" remove the [dagger] table (or set every_cloud_rounds = 0)")
         if self.backend.kind == "ray":
             if self.train.multi_vehicle == "vmap":
                 raise CrchflError(

@@ -38,6 +38,12 @@ UpdateCodec = Literal["none", "int8", "topk"]
 UPDATE_CODECS: tuple[str, ...] = get_args(UpdateCodec)
 
 
+# When an edge aggregates (federation/async_edges.py): once all its vehicles' uploads are in (or at the
+# deadline), or, FedBuff-style, once ``async_buffer`` of them have arrived.
+Aggregation = Literal["sync", "async"]
+AGGREGATIONS: tuple[str, ...] = get_args(Aggregation)
+
+
 # Default compute speed: the allocator's epoch_time_s (120 s) for the paper's largest shard (2928 samples).
 DEFAULT_COMPUTE_S_PER_SAMPLE = 120.0 / 2928
 
@@ -87,6 +93,13 @@ class FederationConfig:
         update, with error feedback; the rest whole). The ledger charges, and CRCHFL's optimizer
         plans with, the encoded sizes.
     topk_fraction: the share of each tensor's entries a "topk" upload keeps.
+    aggregation: "sync" (the paper: an edge waits for its vehicles, or its deadline) or "async"
+        (FedBuff-style, hierarchical schemes: an edge aggregates as soon as ``async_buffer`` updates
+        have arrived, each weighted by ``(1 + staleness) ** -staleness_exponent``, the staleness
+        counted in versions of the receiving edge's model; the cloud aggregates after every
+        ``cloud_interval`` x edges edge aggregations; federation/async_edges.py).
+    async_buffer: updates an asynchronous edge aggregates at once (at most its vehicles).
+    staleness_exponent: the polynomial staleness weight's exponent (0: no discount; 0.5: FedBuff's).
     """
 
     scheme: Scheme = "crchfl"
@@ -105,8 +118,17 @@ class FederationConfig:
     seed: int = 0
     update_codec: UpdateCodec = "none"
     topk_fraction: float = 0.01
+    aggregation: Aggregation = "sync"
+    async_buffer: int = 2
+    staleness_exponent: float = 0.5
 
     def __post_init__(self) -> None:
+        if self.aggregation not in AGGREGATIONS:
+            raise CrchflError(f"federation.aggregation: {self.aggregation!r} is not one of 'sync', 'async'")
+        check_range(self.async_buffer, "federation.async_buffer", 1, MAX_SAMPLES, "a number of updates")
+        check_range(self.staleness_exponent, "federation.staleness_exponent", 0, 10, "an exponent")
+        if self.aggregation == "async":
+            self._check_async()
         if self.update_codec not in UPDATE_CODECS:
             raise CrchflError(
                 f"federation.update_codec: {self.update_codec!r} is not one of {', '.join(map(repr, UPDATE_CODECS))}"
@@ -172,6 +194,20 @@ class FederationConfig:
     @property
     def hierarchical(self) -> bool:
         return self.scheme != "sfl"
+
+    def _check_async(self) -> None:
+        """What asynchronous edges do not combine with: each refused by its key."""
+        refusals = {
+            "scheme": (self.scheme == "sfl", "SFL has no edges to aggregate asynchronously; use hfl or crchfl"),
+            "deadline_s": (math.isfinite(self.deadline_s),
+                           "an asynchronous edge waits for no deadline (staleness weights late updates); remove it"),
+            "handover_policy": (self.handover_policy == "wait", "'wait' needs a deadline; use new_edge, forward or miss"),
+            "selection": (self.selection != "all", "client selection predicts a synchronous window; use \"all\""),
+            "update_codec": (self.update_codec != "none", "compressed transfers assume synchronous rounds; use \"none\""),
+        }
+        for key, (refused, why) in refusals.items():
+            if refused:
+                raise CrchflError(f"federation.{key}: {getattr(self, key)!r} with aggregation = \"async\": {why}")
 
 
 @dataclass(frozen=True)

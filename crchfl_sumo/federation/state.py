@@ -154,6 +154,10 @@ class FederationState:
     dagger_rounds: list[int] = field(default_factory=list)  # the cloud rounds after which the vehicles labelled
     residuals: dict[str, State] = field(default_factory=dict)  # what each vehicle's topk uploads left out
     train_s: dict[str, float] = field(default_factory=dict)  # each vehicle's training time so far, at its own speed
+    # asynchronous edges (federation/async_edges.py): when each vehicle's model was released to it, and the times
+    # each edge's model changed (its aggregations and the cloud's releases), which count an update's staleness
+    base_s: dict[str, float] = field(default_factory=dict)
+    edge_history: dict[str, list[float]] = field(default_factory=dict)
 
     @property
     def done(self) -> bool:
@@ -172,7 +176,8 @@ class FederationState:
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
 MODELS = ("vehicle_models", "edge_models", "budget_mark_models", "residuals")  # name -> State (cloud_model, best_model: one)
-ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals", "train_s")  # an older checkpoint lacks them: empty
+ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals", "train_s", "base_s",
+               "edge_history")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:

@@ -155,3 +155,35 @@ def _check_like_first(i: int, state: StateDict, layout: Mapping[str, tuple[torch
             raise CrchflError(
                 f"weighted_average: entry {key!r} has dtype {other.dtype} in state {i} but {dtype} in state 0"
             )
+
+
+def staleness_factor(staleness: int, exponent: float) -> float:
+    """The polynomial staleness weight (1 + staleness) ** -exponent (Xie et al., "Asynchronous Federated
+    Optimization", 2019; exponent 0.5 is FedBuff's 1 / sqrt(1 + staleness), Nguyen et al., AISTATS 2022)."""
+    if staleness < 0 or exponent < 0:
+        raise CrchflError(f"staleness_factor: staleness {staleness} and exponent {exponent} must be >= 0")
+    return (1.0 + staleness) ** -exponent
+
+
+def buffered_update(current: StateDict, updates: Sequence[tuple[StateDict, StateDict, float, float]]) -> dict[str, torch.Tensor]:
+    """An asynchronous aggregator's step over its buffer (FedBuff):
+    current + sum_i n_i f_i (trained_i - base_i) / sum_i n_i, for ``updates`` = [(base_i, trained_i, n_i, f_i)].
+
+    n_i are sample counts, f_i staleness factors in [0, 1]. With every f_i = 1 and every base the current
+    model this is the FedAvg of the trained models. Float64 sums, each tensor back in its dtype (integer
+    tensors rounded), as ``weighted_average`` does.
+    """
+    if not updates:
+        raise CrchflError("buffered_update: an empty buffer; pass at least one update")
+    _check_weights([n for _, _, n, _ in updates])
+    total = float(sum(n for _, _, n, _ in updates))
+    sums = {key: tensor.detach().to(torch.float64).clone() for key, tensor in current.items()}
+    for i, (base, trained, n, factor) in enumerate(updates):
+        _check_like_first(i, base, {k: (t.shape, t.dtype) for k, t in current.items()})
+        _check_like_first(i, trained, {k: (t.shape, t.dtype) for k, t in current.items()})
+        scale = float(n) * float(factor) / total
+        if scale:
+            for key, acc in sums.items():
+                acc += scale * (trained[key].detach().to(torch.float64) - base[key].detach().to(torch.float64))
+    return {key: (acc if current[key].dtype.is_floating_point else torch.round(acc)).to(current[key].dtype)
+            for key, acc in sums.items()}
