@@ -93,7 +93,10 @@ def evaluations(run_dir: Path) -> list[tuple[float, float]]:
 
 
 def reach_ratio(sync: list[tuple[float, float]], asyn: list[tuple[float, float]]) -> float | None:
-    """When async first reaches sync's last balanced accuracy, over when sync had it (None: never)."""
+    """When async first reaches sync's last balanced accuracy, over when sync had it (None: never, or sync
+    made no evaluation)."""
+    if not sync:
+        return None
     t_sync, target = sync[-1]
     t_async = next((t for t, ba in asyn if ba >= target), None)
     return None if t_async is None else t_async / t_sync
