@@ -350,16 +350,13 @@ def network(config: ModelConfig) -> nn.Module:
 
 
 def network_class(class_path: str) -> type[nn.Module]:
-    """The class of ``"package.module:Class"``, imported; a CrchflError naming ``model.class`` and the fix otherwise.
-
-    Importing runs that module's code, as training it did: a checkpoint that names a class loads
-    only where that class is installed, and nothing of it comes from the file.
-    """
+    """The class of ``"package.module:Class"``, imported (its module's code runs, as when it trained; nothing
+    of it comes from a checkpoint); a CrchflError naming ``model.class`` and the fix otherwise."""
     module_name, _, class_name = class_path.partition(":")
     fix = "install the package or put its folder on PYTHONPATH (docs/own_model.md)"
     try:
         found = importlib.util.find_spec(module_name)
-    except (ImportError, ValueError):
+    except (ImportError, ValueError):  # a parent package that is missing, or a malformed name
         found = None
     if found is None:
         raise CrchflError(f"model.class: module {module_name!r} of {class_path!r} is not importable here; {fix}")
