@@ -357,6 +357,14 @@ class Federation:
                                                                 state.residuals.get(vehicle))
         return codecs.add(start, sent)
 
+    def _server_update(self, state: FederationState, tier: str, node: str, current: State, average: State) -> State:
+        """The aggregator's new model from the FedAvg of what it received ([federation] strategy); what the
+        strategy keeps at the node goes into ``state.strategy_memory``."""
+        new, memory = self.setup.strategy.server_update(tier, node, current, average, state.strategy_memory.get(node, {}))
+        if memory or node in state.strategy_memory:
+            state.strategy_memory = {**state.strategy_memory, node: memory}
+        return new
+
     def _sent(self, model: State, reference: State) -> State:
         """What the receivers of a whole-model transfer (a release, an edge's upload) hold: under int8, its
         difference from ``reference`` (the last global model, which every node holds) in 8 bits."""
@@ -583,13 +591,16 @@ class Federation:
         )
         edge_models, edge_weights = dict(state.edge_models), dict(state.edge_weights)
         for e, average in averages.items():  # an edge that received no model keeps its previous one
+            average = self._server_update(state, "edge", e, state.edge_models[e], average)
             edge_models[e] = self._sent(average, state.cloud_model)  # up to the cloud, or down to its vehicles
             edge_weights[e] = float(sum(counts[v] for v in received_by[e]))
         edge_metrics = self._evaluate_edges(edge_models, edge_weights, agg_s) if cfg.evaluate_every_edge else None
         cloud_model = state.cloud_model
         if followed:
             fresh = [(edge_models[e], edge_weights[e]) for e in agg_s if received_by[e]]
-            cloud_model = self._sent(fedavg(fresh), state.cloud_model) if fresh else state.cloud_model
+            if fresh:
+                average = self._server_update(state, "cloud", CLOUD, state.cloud_model, fedavg(fresh))
+                cloud_model = self._sent(average, state.cloud_model)
             edge_models.update(dict.fromkeys(agg_s, cloud_model))
         models = {**state.vehicle_models, **kept}  # a skipped vehicle, or one whose download failed, keeps its own
         for e, vehicles in topology.active():
@@ -786,7 +797,10 @@ class Federation:
         delivered = set(self._send_down(state, CLOUD, setup.vehicles, cloud_s, "III", events, ready, relays))
         # the times first, the training last (as in _edge_step)
         averages, kept = self._train_and_average(state, epochs, samples, {CLOUD: received}, set(samples) - delivered)
-        cloud_model = self._sent(averages[CLOUD], state.cloud_model) if CLOUD in averages else state.cloud_model
+        cloud_model = state.cloud_model
+        if CLOUD in averages:
+            average = self._server_update(state, "cloud", CLOUD, state.cloud_model, averages[CLOUD])
+            cloud_model = self._sent(average, state.cloud_model)
         models = {v: cloud_model if v in delivered else kept[v] for v in setup.vehicles}
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1

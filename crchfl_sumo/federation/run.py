@@ -97,6 +97,7 @@ from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.codecs import encoded_fraction
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
+from crchfl_sumo.learning.strategies import strategy_from
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
 from crchfl_sumo.links.fleet import draw_fleet
@@ -121,7 +122,13 @@ def make_trainer(config: RunConfig, inputs: RunData, executor: Executor):
     """The run's Trainer: in this process (local backend) or as tasks (ray). It trains with the precision
     and multi-vehicle method config.json records ("auto" decided here, not again on each Ray worker)."""
     args = (config.model, resolved_train(config), inputs.test, config.federation.seed)
-    return RayTrainer(*args, executor) if executor.is_ray else TorchTrainer(*args)
+    mu = run_strategy(config).proximal_mu
+    return RayTrainer(*args, executor, proximal_mu=mu) if executor.is_ray else TorchTrainer(*args, proximal_mu=mu)
+
+
+def run_strategy(config: RunConfig):
+    """The run's aggregation strategy ([federation] strategy, strategy_options; learning/strategies.py)."""
+    return strategy_from(config.federation.strategy, config.federation.strategy_options)
 
 
 
@@ -257,6 +264,7 @@ def _run_with_trainer(
             budget_marks_bytes=budget_marks_bytes(config.ledger),
             dagger=config.dagger,
             fleet=draw_fleet(config.clock, inputs.vehicles, fed.seed, clock.start_s),
+            strategy=run_strategy(config),
         )
         state = None
         if resume and (checkpoint_path.exists() or (out_dir / PREVIOUS_STATE_FILE).exists()):

@@ -6,7 +6,7 @@ No torch here: every config that names a federation reads this module.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
 from crchfl_sumo.core.errors import CrchflError
@@ -100,6 +100,10 @@ class FederationConfig:
         ``cloud_interval`` x edges edge aggregations; federation/async_edges.py).
     async_buffer: updates an asynchronous edge aggregates at once (at most its vehicles).
     staleness_exponent: the polynomial staleness weight's exponent (0: no discount; 0.5: FedBuff's).
+    strategy: how aggregators turn what they received into their model and what local training adds
+        (learning/strategies.py): "fedavg" (the paper), "fedavgm" (server momentum), "fedprox" (a
+        proximal term in local training) or "package.module:Class" (your own).
+    strategy_options: the strategy's options, e.g. {momentum = 0.9} or {proximal_mu = 0.01}.
     """
 
     scheme: Scheme = "crchfl"
@@ -121,8 +125,13 @@ class FederationConfig:
     aggregation: Aggregation = "sync"
     async_buffer: int = 2
     staleness_exponent: float = 0.5
+    strategy: str = "fedavg"
+    strategy_options: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        for key, value in self.strategy_options.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise CrchflError(f"federation.strategy_options.{key}: {value!r} is not a finite number")
         if self.aggregation not in AGGREGATIONS:
             raise CrchflError(f"federation.aggregation: {self.aggregation!r} is not one of 'sync', 'async'")
         check_range(self.async_buffer, "federation.async_buffer", 1, MAX_SAMPLES, "a number of updates")
@@ -204,6 +213,7 @@ class FederationConfig:
             "handover_policy": (self.handover_policy == "wait", "'wait' needs a deadline; use new_edge, forward or miss"),
             "selection": (self.selection != "all", "client selection predicts a synchronous window; use \"all\""),
             "update_codec": (self.update_codec != "none", "compressed transfers assume synchronous rounds; use \"none\""),
+            "strategy": (self.strategy != "fedavg", "asynchronous edges weight by staleness; use \"fedavg\""),
         }
         for key, (refused, why) in refusals.items():
             if refused:

@@ -20,6 +20,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.federation.settings import SFL_LINK, FederationConfig, HyperParameters, VehicleDaggerConfig
 from crchfl_sumo.learning.model import State
+from crchfl_sumo.learning.strategies import FedAvg, Strategy
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.fleet import Fleet
 from crchfl_sumo.links.mobility import NO_SITE
@@ -84,6 +85,7 @@ class LoopInputs:
     budget_marks_bytes: tuple[int, ...] = ()  # [ledger] marks_gb in bytes: the best model within each is kept
     dagger: VehicleDaggerConfig = VehicleDaggerConfig()  # when the vehicles drive and label (off: never)
     fleet: Fleet = field(default_factory=Fleet)  # each vehicle's compute speed and off periods (links/fleet.py)
+    strategy: Strategy = field(default_factory=FedAvg)  # how aggregators update (learning/strategies.py)
 
     def __post_init__(self) -> None:
         names = list(self.vehicles) + list(self.edges)
@@ -158,6 +160,7 @@ class FederationState:
     # each edge's model changed (its aggregations and the cloud's releases), which count an update's staleness
     base_s: dict[str, float] = field(default_factory=dict)
     edge_history: dict[str, list[float]] = field(default_factory=dict)
+    strategy_memory: dict[str, State] = field(default_factory=dict)  # what the strategy keeps at each aggregator
 
     @property
     def done(self) -> bool:
@@ -175,9 +178,9 @@ class FederationState:
 
 
 HISTORY = ("records", "metrics", "stragglers")  # what the loop appends to and never reads back
-MODELS = ("vehicle_models", "edge_models", "budget_mark_models", "residuals")  # name -> State (cloud_model, best_model: one)
+MODELS = ("vehicle_models", "edge_models", "budget_mark_models", "residuals", "strategy_memory")  # name -> State (cloud_model, best_model: one)
 ADDED_LATER = ("budget_marks", "budget_mark_models", "dagger_rounds", "residuals", "train_s", "base_s",
-               "edge_history")  # an older checkpoint lacks them: empty
+               "edge_history", "strategy_memory")  # an older checkpoint lacks them: empty
 
 
 def check_payload(payload: Any, where: str) -> None:

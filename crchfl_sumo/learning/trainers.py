@@ -22,6 +22,7 @@ from typing import Any, Iterator
 import torch
 
 from crchfl_sumo.core.backend import Executor
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.evaluation import Evaluation, always_straight
 from crchfl_sumo.learning.model import build_model, network
@@ -33,9 +34,12 @@ from crchfl_sumo.learning.training import evaluate, train_vehicle, train_vehicle
 class TorchTrainer:
     """The loop's Trainer on top of training.py: DrivingModel state dicts, local training, test-set metrics."""
 
-    def __init__(self, model_config: ModelConfig, config: TrainConfig, test: Samples, seed: int) -> None:
+    def __init__(
+        self, model_config: ModelConfig, config: TrainConfig, test: Samples, seed: int, proximal_mu: float = 0.0
+    ) -> None:
         configure_determinism(config.deterministic)
         self.model_config, self.config, self.seed = model_config, config, seed
+        self.proximal_mu = proximal_mu  # the strategy's local proximal term (FedProx; learning/strategies.py)
         self.device = resolve_device(config.device)
         self.test = test.to(self.device)
         self.always_straight = always_straight(test)  # {"accuracy", "balanced_accuracy"} on the test set
@@ -48,10 +52,13 @@ class TorchTrainer:
         """Each vehicle's new state, in order, trained when it is asked for: vehicle i with
         ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (vmap: all at once)."""
         if resolved_multi_vehicle(self.config, self.model_config, self.device.type) == "vmap":
+            if self.proximal_mu:
+                raise CrchflError("a proximal term (strategy fedprox) trains vehicle by vehicle; set "
+                                  "train.multi_vehicle = \"sequential\"")
             new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
             return iter(new)
         return (
-            train_vehicle(state, x, epochs, self.model_config, self.config, vehicle_seed(seed, i))[0]
+            train_vehicle(state, x, epochs, self.model_config, self.config, vehicle_seed(seed, i), self.proximal_mu)[0]
             for i, (state, x) in enumerate(zip(states, samples, strict=True))
         )
 
@@ -78,8 +85,8 @@ class RayTrainer(TorchTrainer):
     share a few dozen copies, not a thousand).
     """
 
-    def __init__(self, model_config, config, test, seed, executor: Executor) -> None:
-        super().__init__(model_config, dataclasses.replace(config, device="cpu"), test, seed)
+    def __init__(self, model_config, config, test, seed, executor: Executor, proximal_mu: float = 0.0) -> None:
+        super().__init__(model_config, dataclasses.replace(config, device="cpu"), test, seed, proximal_mu)
         self.executor = executor
         self.threads = torch.get_num_threads()
         self._test_ref = executor.put(test)
@@ -98,7 +105,7 @@ class RayTrainer(TorchTrainer):
         state_refs: dict[int, tuple[Any, Any]] = {}
         args = [
             (self._put_once(state, state_refs), self._put_once(x, sample_refs, self._sample_refs), epochs,
-             self.model_config, self.config, vehicle_seed(seed, i), self.threads)
+             self.model_config, self.config, vehicle_seed(seed, i), self.threads, self.proximal_mu)
             for i, (state, x) in enumerate(zip(states, samples, strict=True))
         ]
         self._sample_refs = sample_refs  # handles of samples no longer trained on are released
@@ -109,10 +116,10 @@ class RayTrainer(TorchTrainer):
         return self.executor.map(evaluate_task, [args])[0]
 
 
-def train_vehicle_task(state, samples, epochs, model_config, config, seed, threads):
+def train_vehicle_task(state, samples, epochs, model_config, config, seed, threads, proximal_mu=0.0):
     """One vehicle's local training (a backend task): its new state."""
     torch.set_num_threads(threads)
-    return train_vehicle(state, samples, epochs, model_config, config, seed)[0]
+    return train_vehicle(state, samples, epochs, model_config, config, seed, proximal_mu)[0]
 
 
 def evaluate_task(state, test, model_config, config, threads) -> Evaluation:

@@ -120,9 +120,12 @@ class Learner:
     a CPU copy of its weights.
     """
 
-    def __init__(self, model: nn.Module, config: TrainConfig) -> None:
+    def __init__(self, model: nn.Module, config: TrainConfig, proximal_mu: float = 0.0) -> None:
         self.model = model
         self.config = config
+        # FedProx (learning/strategies.py): mu/2 ||w - w_start||^2 joins the loss, w_start the weights now
+        self.proximal_mu = proximal_mu
+        self._start = [p.detach().clone() for p in model.parameters()] if proximal_mu else None
         self.precision = resolved_precision(config, self.device)
         adam = dict(
             lr=config.learning_rate,
@@ -170,7 +173,11 @@ class Learner:
             longitudinal, steer_logits = longitudinal.float(), steer_logits.float()
             loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, steer_class, weight)
             # The branches share no weights, so one backward of the sum gives each branch its own gradient.
-            (loss_tb + loss_steer).backward()
+            loss = loss_tb + loss_steer
+            if self._start is not None:
+                loss = loss + 0.5 * self.proximal_mu * sum(
+                    ((p - p0) ** 2).sum() for p, p0 in zip(self.model.parameters(), self._start, strict=True))
+            loss.backward()
             for optimizer in self.optimizers:
                 optimizer.step()
             n = len(indices)
@@ -191,15 +198,17 @@ def train_vehicle(
     model_config: ModelConfig,
     config: TrainConfig,
     seed: int,
+    proximal_mu: float = 0.0,
 ) -> tuple[State, list[Metrics]]:
-    """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch).
+    """Train one model for ``epochs`` on ``samples``: (new state on CPU, training metrics per epoch);
+    ``proximal_mu`` > 0 adds FedProx's proximal term to the loss.
 
     ``seed`` is any integer torch's generator takes: callers derive one per vehicle and step.
     """
     check_range(epochs, "train_vehicle: epochs", 0, MAX_EPOCHS, "a number of epochs")
     configure_determinism(config.deterministic)
     device = resolve_device(config.device)
-    trainer = Learner(model_from_state(model_config, state, device), config)
+    trainer = Learner(model_from_state(model_config, state, device), config, proximal_mu)
     samples = samples.to(device)  # once, not every epoch
     generator = torch.Generator().manual_seed(seed)
     metrics = [trainer.train_epoch(samples, generator) for _ in range(epochs)]

@@ -1,6 +1,6 @@
 """How long a vehicle will stay in its cell: straight-line extrapolation of its track to the cell's border.
 
-The model (pure; docs/federation.md, "Mobility-aware client selection"):
+The model (pure; docs/beyond_paper.md, "Mobility-aware client selection"):
 the vehicle keeps its speed and heading, ``p(t) = p0 + speed t (cos h, sin h)``;
 its serving site ``s`` stops serving it at the first of
 

@@ -1,0 +1,121 @@
+"""Aggregation strategies: what a vehicle's local training adds to its loss, and how an aggregator turns
+the FedAvg of what it received into its new model (``[federation] strategy``).
+
+The loop (federation/loop.py) folds the models that reach an edge or the cloud into their sample-
+weighted FedAvg as they come (so a thousand vehicles' models are never held at once) and then asks
+the strategy for the aggregator's new model:
+
+    new, memory = strategy.server_update(tier, node, current, average, memory)
+
+``tier`` is "edge" or "cloud", ``node`` the edge's name or "cloud", ``current`` the model the node
+sent out last, ``average`` the FedAvg of what came back, ``memory`` what the strategy kept at that
+node from its previous update ({} at first; tensors only, so a run's checkpoint holds it and a
+resume goes on with it). This is the server-optimizer form of Reddi et al., "Adaptive Federated
+Optimization" (ICLR 2021): ``current - average`` is the pseudo-gradient.
+
+Built in:
+
+* ``fedavg`` (the paper): the average itself, bit for bit.
+* ``fedavgm``: server momentum at the cloud (Hsu et al., "Measuring the Effects of Non-Identical
+  Data Distribution for Federated Visual Classification", 2019): v <- momentum v + (current -
+  average), new = current - server_lr v; the edges average. Options ``momentum`` (0.9) and
+  ``server_lr`` (1.0); momentum 0 and server_lr 1 is FedAvg.
+* ``fedprox`` (Li et al., "Federated Optimization in Heterogeneous Networks", MLSys 2020): FedAvg's
+  aggregation, and each local training adds ``proximal_mu``/2 ||w - w_start||^2 to its loss, w_start
+  being the model it started from. Option ``proximal_mu`` (0.01).
+
+Your own: ``strategy = "package.module:Class"``; ``Class(**options)`` must have ``proximal_mu``
+(a float, 0 for none) and ``server_update`` as above. ``[federation] strategy_options`` gives the
+options of any strategy (docs/beyond_paper.md).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from typing import Mapping, Protocol
+
+import torch
+
+from crchfl_sumo.core.errors import CrchflError
+
+State = Mapping[str, torch.Tensor]
+BUILTIN = ("fedavg", "fedavgm", "fedprox")
+
+
+class Strategy(Protocol):
+    proximal_mu: float  # the local loss's proximal weight (FedProx); 0: plain local training
+
+    def server_update(
+        self, tier: str, node: str, current: State, average: State, memory: Mapping[str, torch.Tensor]
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """The node's new model from its last one and the FedAvg of what it received; and what to keep."""
+        ...
+
+
+class FedAvg:
+    proximal_mu = 0.0
+
+    def server_update(self, tier, node, current, average, memory):
+        return dict(average), {}
+
+
+class FedAvgM:
+    def __init__(self, momentum: float = 0.9, server_lr: float = 1.0) -> None:
+        if not 0 <= momentum < 1 or not 0 < server_lr <= 10:
+            raise CrchflError(f"federation.strategy_options: fedavgm needs 0 <= momentum < 1 and 0 < server_lr <= 10, "
+                              f"got momentum {momentum}, server_lr {server_lr}")
+        self.momentum, self.server_lr, self.proximal_mu = float(momentum), float(server_lr), 0.0
+
+    def server_update(self, tier, node, current, average, memory):
+        if tier != "cloud":  # the edges average; momentum at both tiers would compound
+            return dict(average), {}
+        new, velocity = {}, {}
+        for key, now in current.items():
+            if not now.is_floating_point():  # counters (BatchNorm's) are averaged, not moved
+                new[key] = average[key]
+                continue
+            step = now.double() - average[key].double()
+            if key in memory:
+                step = step + self.momentum * memory[key].double()
+            velocity[key] = step.to(now.dtype)
+            new[key] = (now.double() - self.server_lr * step).to(now.dtype)
+        return new, velocity
+
+
+class FedProx(FedAvg):
+    def __init__(self, proximal_mu: float = 0.01) -> None:
+        if not 0 <= proximal_mu <= 100:
+            raise CrchflError(f"federation.strategy_options: fedprox needs 0 <= proximal_mu <= 100, got {proximal_mu}")
+        self.proximal_mu = float(proximal_mu)
+
+
+def strategy_from(name: str, options: Mapping[str, float]) -> Strategy:
+    """The strategy ``name`` names (a built-in, or "package.module:Class") with ``options``; a CrchflError
+    naming the key and the fix otherwise."""
+    builtin = {"fedavg": FedAvg, "fedavgm": FedAvgM, "fedprox": FedProx}
+    if name in builtin:
+        cls = builtin[name]
+    else:
+        module_name, _, class_name = name.partition(":")
+        if not class_name:
+            raise CrchflError(f"federation.strategy: {name!r} is neither {', '.join(BUILTIN)} nor \"package.module:Class\"")
+        try:
+            found = importlib.util.find_spec(module_name)
+        except (ImportError, ValueError):  # a parent package that is missing, or a malformed name
+            found = None
+        if found is None:
+            raise CrchflError(f"federation.strategy: module {module_name!r} is not importable here; install it or "
+                              "put its folder on PYTHONPATH")
+        cls = getattr(importlib.import_module(module_name), class_name, None)
+        if not isinstance(cls, type):
+            raise CrchflError(f"federation.strategy: {name!r} names no class; name one")
+    try:
+        strategy = cls(**options)
+    except TypeError as exc:
+        raise CrchflError(f"federation.strategy_options: {exc}; give the options {name!r} takes") from None
+    if not callable(getattr(strategy, "server_update", None)) or not isinstance(getattr(strategy, "proximal_mu", None),
+                                                                                 (int, float)):
+        raise CrchflError(f"federation.strategy: {name!r} needs a server_update method and a proximal_mu number "
+                          "(learning/strategies.py)")
+    return strategy
