@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from sumolib.miscutils import parseTime
+
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.installation import sumo_binary
@@ -120,14 +122,13 @@ def _split_files(value: str) -> list[str]:
 
 
 def sumo_time_s(text: str, cfg_path: Path, option: str) -> float:
-    """A SUMO time value in seconds: plain seconds or [[days:]hours:]minutes:seconds."""
-    parts = text.split(":")
+    """A SUMO time value in seconds: plain seconds or [[days:]hours:]minutes:seconds (sumolib's parseTime)."""
     try:
-        if len(parts) > 4:
-            raise ValueError
-        seconds = sum(unit * float(part) for unit, part in zip((86400.0, 3600.0, 60.0, 1.0)[-len(parts):], parts))
-    except ValueError:
-        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a time; give seconds") from None
+        seconds = parseTime(text) if text.count(":") <= 3 else None
+    except (ValueError, IndexError):
+        seconds = None
+    if seconds is None:
+        raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a time; give seconds")
     if not math.isfinite(seconds):
         raise CrchflError(f"{cfg_path}: <{option}> {text!r} is not a finite time; give seconds")
     return seconds

@@ -206,3 +206,14 @@ def test_a_traci_server_port_is_dropped_and_the_simulation_finishes(grid_dir, tm
     )
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "out" / "summary.json").is_file()
+
+
+def test_sumo_times_read_as_sumolib_reads_them_and_bad_ones_are_refused(tmp_path):
+    from crchfl_sumo.sumo.sumocfg import sumo_time_s
+
+    cfg = tmp_path / "a.sumocfg"
+    for text, seconds in (("90", 90.0), ("0:01:30", 90.0), ("1:00:00", 3600.0), ("1:00:00:10", 86410.0), ("0.5", 0.5)):
+        assert sumo_time_s(text, cfg, "end") == seconds
+    for text in ("soon", "", "1:2:3:4:5", "nan", "inf", "1:x:00", "1:30"):  # SUMO's forms: s, h:m:s, d:h:m:s
+        with pytest.raises(CrchflError, match="<end>"):
+            sumo_time_s(text, cfg, "end")
