@@ -119,6 +119,10 @@ def add_mobility_study(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help="the quick preset: within 15 minutes on 2 cores (docs/sweep.md)")
     p.add_argument("--config", type=Path, default=None, help="a study preset TOML instead of the built-in one")
+    p.add_argument("--scenario", default=None,
+                   help="run the study in this scenario (a built-in name, a folder or a .sumocfg; a plain .sumocfg "
+                   "gets its data vehicles added): the same samples per vehicle, the benchmark driven there, the "
+                   "factors that place the preset scenario's sites left out")
     p.add_argument("--out", type=Path, required=True, help="study folder (rerun the same command to resume)")
     p.add_argument("--jobs", type=integer_arg(0, MAX_JOBS, "a number of processes (0: all CPUs)"), default=0,
                    help="runs at a time, each in its own process (default 0: all CPUs)")
@@ -128,7 +132,8 @@ def add_mobility_study(p: argparse.ArgumentParser) -> None:
 def run_mobility_study(args) -> int:
     from crchfl_sumo.studies.mobility_study import mobility_study_command
 
-    rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address)
+    rows = mobility_study_command(args.quick, args.out, args.config, args.jobs, args.backend, args.address,
+                                  args.scenario)
     print((args.out / RESULTS_MD_FILE).read_text(encoding="utf-8"), end="")
     seeds = max((r["seeds"] for r in rows), default=0)
     print(f"{len({r['point'] for r in rows})} points x {seeds} seed(s) -> {args.out}")

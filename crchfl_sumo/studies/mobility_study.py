@@ -22,7 +22,10 @@ Rerunning the command resumes: finished runs are read, not rerun.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,6 +55,8 @@ from crchfl_sumo.studies.sweep import (
     seed_runs,
     value_label,
 )
+
+log = logging.getLogger(__name__)
 
 DATA_DIR = "data"
 PRESET_KEYS = {"name", "data", "run", "factor", "seeds", "bench_episodes"}
@@ -104,6 +109,7 @@ class Study:
     factors: tuple[Factor, ...]
     seeds: int = 1
     bench_episodes: int = 0
+    bench_towns: tuple[str, ...] = BENCH_TOWNS  # where the models drive: built-in town names or scenario paths
 
 
 @dataclass(frozen=True)
@@ -203,6 +209,43 @@ def study_plan(base: dict, factors: tuple[Factor, ...], where: str = "study") ->
     return StudyPlan(tuple(points), factor_points)
 
 
+# Factors whose values are places of the preset's own scenario (its sites' coordinates): meaningless elsewhere.
+SCENARIO_BOUND_KEYS = ("sumo.edge_sites",)
+
+
+def for_scenario(study: Study, name_or_path: str) -> tuple[Study, list[str]]:
+    """``study`` in another scenario (`mobility-study --scenario S`): its data set and runs there, the same
+    samples per vehicle (the sample period rounded up to a multiple of its step where it is none); the models
+    drive the benchmark in that scenario itself (in Town01 and Town02 where
+    it has both); factors whose values are places of the preset's scenario are dropped, and named in the
+    returned list. A scenario without data or test vehicles (a plain .sumocfg gets them added) is refused."""
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    scenario = load_scenario(name_or_path)
+    if Path(name_or_path).exists():  # a path: absolute, so that every run (and a Ray task) finds it
+        name_or_path = str(Path(name_or_path).resolve())
+    if not all(any(getattr(t, kind) for t in scenario.towns) for kind in ("data_vehicles", "test_vehicles")):
+        raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
+                          "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
+    if name_or_path == study.data.scenario:
+        return study, []
+    dropped = [f.name for f in study.factors if f.param.path in SCENARIO_BOUND_KEYS]
+    towns = {t.name for t in scenario.towns}
+    # the samples must fall on the scenario's steps: the preset's period, or the next multiple of a longer step
+    step_s = scenario.step_length_s
+    period_s = max(1, math.ceil(study.data.sample_period_s / step_s - 1e-9)) * step_s
+    if not math.isclose(period_s, study.data.sample_period_s):
+        log.warning("[data] sample_period_s %g s is no multiple of %s's step, %g s: sampling every %g s",
+                    study.data.sample_period_s, name_or_path, step_s, period_s)
+    return dataclasses.replace(
+        study,
+        data=dataclasses.replace(study.data, scenario=name_or_path, sample_period_s=period_s),
+        base={**study.base, "scenario": name_or_path},
+        factors=tuple(f for f in study.factors if f.param.path not in SCENARIO_BOUND_KEYS),
+        bench_towns=BENCH_TOWNS if set(BENCH_TOWNS) <= towns else (name_or_path,),
+    ), dropped
+
+
 # ------------------------------------------------------------------ running
 
 
@@ -239,6 +282,7 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
             {
                 "name": study.name,
                 "data": study.data.__dict__,
+                "bench_towns": list(study.bench_towns),
                 "base": base,
                 "factors": [{"name": f.name, "key": f.param.path, "values": list(f.param.values),
                              "labels": list(f.labels), "points": list(plan.factor_points[f.name])}
@@ -254,7 +298,7 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
     points = [Point(p.name, p.values, absolute_paths(p.mapping)) for p in plan.points]
     runs = seed_runs(points, study.seeds, nested=True)  # runs/POINT/seed-S, one seed too
     summaries = run_points(runs, out_dir, backend)
-    benches = bench_points(out_dir, [r.name for r in runs], study.bench_episodes, backend)
+    benches = bench_points(out_dir, [r.name for r in runs], study.bench_episodes, backend, study.bench_towns)
     seeds = {p.name: point_seeds(p, study.seeds) for p in points}
     by_point = {name: {s: summaries[seed_point(name, s)] for s in ss} for name, ss in seeds.items()}
     by_point_bench = {name: {s: benches[seed_point(name, s)] for s in ss if seed_point(name, s) in benches}
@@ -264,7 +308,8 @@ def run_study(study: Study, out_dir: str | Path, backend: BackendConfig, where: 
     return rows
 
 
-def bench_points(out_dir: Path, names: list[str], episodes: int, backend: BackendConfig) -> dict[str, dict]:
+def bench_points(out_dir: Path, names: list[str], episodes: int, backend: BackendConfig,
+                 towns: tuple[str, ...] = BENCH_TOWNS) -> dict[str, dict]:
     """The closed-loop benchmark of each run's best model in ``out_dir/bench/NAME`` (finished ones are read):
     name -> its summary; none with ``episodes`` 0."""
     if not episodes:
@@ -276,25 +321,28 @@ def bench_points(out_dir: Path, names: list[str], episodes: int, backend: Backen
             if path.is_file()}
     todo = [name for name in names if name not in done]
     with Executor(backend) as executor:
-        calls = [(str(out_dir / RUNS_DIR / n / BEST_MODEL_FILE), str(out_dir / BENCH_DIR / n), episodes) for n in todo]
+        calls = [(str(out_dir / RUNS_DIR / n / BEST_MODEL_FILE), str(out_dir / BENCH_DIR / n), episodes, towns)
+                 for n in todo]
         results = executor.map(bench_point, calls, isolate=True)
     return {**done, **dict(zip(todo, results))}
 
 
-def bench_point(model: str, out: str, episodes: int) -> dict:
+def bench_point(model: str, out: str, episodes: int, towns: tuple[str, ...] = BENCH_TOWNS) -> dict:
     """One run's best model through the study's benchmark (a backend task, in its own process)."""
     import torch
 
-    from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+    from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 
     torch.set_num_threads(1)  # several share the machine's cores
-    return run_benchmark(model, out, episodes=episodes, seed=BENCH_SEED, towns=BENCH_TOWNS,
+    return run_benchmark(model, out, episodes=episodes, seed=BENCH_SEED, towns=tuple(towns),
                          config=BenchConfig(tasks=BENCH_TASKS))
 
 
 def mobility_study_command(quick: bool, out_dir: str | Path, config: str | Path | None = None, jobs: int = 0,
-                           backend: str | None = None, address: str | None = None) -> list[dict]:
-    """What `crchfl-sumo mobility-study [--quick] [--config TOML] --out DIR [--jobs N] [--backend B]` does."""
+                           backend: str | None = None, address: str | None = None,
+                           scenario: str | None = None) -> list[dict]:
+    """What `crchfl-sumo mobility-study [--quick] [--config TOML] [--scenario S] --out DIR [--jobs N]
+    [--backend B]` does."""
     path = Path(config) if config is not None else preset_path(quick)
     if not path.is_file():
         raise CrchflError(f"--config {path}: no such file")
@@ -303,5 +351,9 @@ def mobility_study_command(quick: bool, out_dir: str | Path, config: str | Path 
     if address is not None and backend != "ray":
         raise CrchflError("--address joins a Ray cluster: give it with --backend ray")
     study = parse_study(read_toml(path), str(path))
+    if scenario is not None:
+        study, dropped = for_scenario(study, scenario)
+        for name in dropped:
+            log.warning("factor %r left out: its values are places of the preset's scenario, not of %s", name, scenario)
     return run_study(study, out_dir, BackendConfig(kind=backend or "local", address=address or "", num_cpus=jobs),
                      where=str(path))

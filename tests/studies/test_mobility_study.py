@@ -229,3 +229,36 @@ def test_rows_over_seeds_carry_intervals_the_closed_loop_and_the_findings(tmp_pa
     assert "| density | balanced accuracy | moves: 2.0 -0.197 |" in md
     assert "| density | uplink Mbit/s | moves: 0.5 +10.0; 2.0 -10.0 |" in md
     assert "| density | driving score | not distinguishable at any value |" in md
+
+
+def test_a_study_moves_to_another_scenario_and_drops_the_factors_bound_to_its_own(grid_dir):
+    from crchfl_sumo.studies.mobility_study import BENCH_TOWNS, for_scenario
+
+    study = parse_study(read_toml(PRESETS / "mobility_quick.toml"), "mobility_quick.toml")
+    cfg = str(grid_dir / "grid.sumocfg")
+    moved, dropped = for_scenario(study, cfg)
+    assert dropped == ["edge-site placement"]
+    assert [f.name for f in moved.factors] == [f.name for f in study.factors if f.name != "edge-site placement"]
+    assert moved.data.scenario == moved.base["scenario"] == str(Path(cfg).resolve())
+    assert moved.bench_towns == (str(Path(cfg).resolve()),)  # it drives where it learned
+    assert moved.data.train_samples == study.data.train_samples  # the same samples per vehicle
+    paper, dropped = for_scenario(study, "paper")
+    assert paper.bench_towns == BENCH_TOWNS and dropped == ["edge-site placement"]
+    assert for_scenario(study, "paper_linked") == (study, [])
+
+
+def test_a_tiny_study_runs_in_a_plain_sumocfg(grid_dir, tmp_path):
+    from crchfl_sumo.studies.mobility_study import for_scenario
+
+    base = {"scenario": "unused", "federation": {"scheme": "hfl", "edge_interval": 1, "cloud_rounds": 1},
+            "ledger": {"nominal_model_mb": 10.0},
+            "train": {"device": "cpu"}, "clock": {"kind": "sumo"}}
+    study = parse_study({"data": {"scenario": "paper", "train_samples": 2, "test_samples": 2}, "run": base,
+                         "factor": [{"name": "edge interval", "key": "federation.edge_interval", "values": [1, 2]}],
+                         "bench_episodes": 1}, "tiny.toml")
+    study, _ = for_scenario(study, str(grid_dir / "grid.sumocfg"))
+    rows = run_study(study, tmp_path / "study", BackendConfig(num_cpus=2))
+    assert [r["point"] for r in rows] == [BASELINE, "federation.edge_interval=2"]
+    bench = json.loads((tmp_path / "study" / "bench" / BASELINE / "seed-0" / "summary.json").read_text())
+    assert set(bench["results"]) == {"grid"}  # driven in the scenario it learned in
+    assert json.loads((tmp_path / "study" / "study.json").read_text())["bench_towns"] == list(study.bench_towns)
