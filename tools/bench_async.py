@@ -79,7 +79,7 @@ def run_one(job: tuple[dict, str]) -> dict:
 def bench_one(job: tuple[str, str, int]) -> dict:
     """Child process: drive-bench of one run's best model."""
     os.environ["OMP_NUM_THREADS"] = "1"
-    from crchfl_sumo.driving.bench import run_benchmark
+    from crchfl_sumo.driving.drive_bench import run_benchmark
 
     model, out, episodes = job
     return run_benchmark(Path(model), Path(out), episodes=episodes, towns=("town01",), overwrite=True)

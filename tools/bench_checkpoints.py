@@ -6,7 +6,7 @@ evidence that a driver drives. Each checkpoint (or "reference") drives every ben
 (same draw, town, task and route), and per cell and over all the tool prints success with its
 Wilson 95 % interval, driving score with its t interval, and B - A paired by episode with its
 95 % interval, saying "not distinguishable" where that interval covers 0
-(crchfl_sumo.driving.bench_compare). Each drive-bench folder is kept under --out.
+(crchfl_sumo.driving.drive_bench_compare). Each drive-bench folder is kept under --out.
 
 Prints, last, the two named lines:
     closed-loop success B-A: +X points [LO, HI] (p P)
@@ -23,8 +23,8 @@ import argparse
 import json
 from pathlib import Path
 
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.bench_compare import ALL, compare_episodes, comparison_table
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench_compare import ALL, compare_episodes, comparison_table
 
 
 def drive_all(model: str, out: Path, seeds: list[int], episodes: int, towns: tuple, config: BenchConfig, jobs: int):

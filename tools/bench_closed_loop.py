@@ -27,7 +27,7 @@ from pathlib import Path
 
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.centralized import train_centralized
 

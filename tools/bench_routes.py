@@ -1,7 +1,7 @@
 """Benchmark: drive-bench's route drawing on a large network (bounded searches from sampled starts).
 
 Builds an N x N grid network with netgenerate (200 m blocks, one lane a direction: about
-4 N (N - 1) edges), then times `bench_tasks.draw_episodes` for the four suites. Prints
+4 N (N - 1) edges), then times `drive_bench_tasks.draw_episodes` for the four suites. Prints
 
     route drawing: E edges, C candidates, S s (straight K, one_turn K, navigation K)
 
@@ -17,7 +17,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from crchfl_sumo.driving.bench_tasks import TASKS, candidate_routes, draw_episodes
+from crchfl_sumo.driving.drive_bench_tasks import TASKS, candidate_routes, draw_episodes
 from crchfl_sumo.sumo.route import read_net
 from crchfl_sumo.sumo.installation import sumo_binary
 from crchfl_sumo.sumo.scenario import load_scenario

@@ -26,8 +26,8 @@ import numpy as np
 
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import STEER_CLASS_VALUES, nearest_bin, steer_bin_values
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.bench_tasks import TASK_NAMES
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench_tasks import TASK_NAMES
 from crchfl_sumo.driving.policies import RoutePolicy
 
 RACK = {"steer_knee": 0.275, "sharp_steer_gain": 2.0}
@@ -49,7 +49,7 @@ class Quantised:
 
 @dataclass
 class QuantisedReference:
-    """The benchmark's driver protocol (bench.run_benchmark): the reference, steering through ``values``."""
+    """The benchmark's driver protocol (drive_bench.run_benchmark): the reference, steering through ``values``."""
 
     label: str
     values: np.ndarray | None

@@ -26,9 +26,9 @@ from bench_closed_loop import task_columns  # tools/ is on the path when this sc
 
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.dagger import dagger_iterations
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, DaggerConfig
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
 from crchfl_sumo.learning.training import evaluate
 

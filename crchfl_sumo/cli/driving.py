@@ -25,7 +25,7 @@ def _decoding_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _towns_argument(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS
+    from crchfl_sumo.driving.drive_bench_tasks import DEFAULT_TOWNS
 
     towns = ",".join(DEFAULT_TOWNS)
     p.add_argument("--towns", default=towns,
@@ -83,7 +83,7 @@ def run_drive_compare(args) -> int:
 
 
 def add_drive_bench(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.driving.bench_tasks import TASK_NAMES
+    from crchfl_sumo.driving.drive_bench_tasks import TASK_NAMES
 
     p.add_argument("model", help="checkpoint.pt of a trained model, or 'reference' for the scripted route driver")
     p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -106,8 +106,8 @@ def add_drive_bench(p: argparse.ArgumentParser) -> None:
 
 
 def run_drive_bench(args) -> int:
-    from crchfl_sumo.driving.bench import BenchConfig, results_table, run_benchmark
-    from crchfl_sumo.driving.bench_tasks import TaskConfig
+    from crchfl_sumo.driving.drive_bench import BenchConfig, results_table, run_benchmark
+    from crchfl_sumo.driving.drive_bench_tasks import TaskConfig
 
     with output_folder(args, "drive-bench"):
         towns, tasks = comma_list(args.towns), comma_list(args.tasks)
@@ -129,8 +129,8 @@ def run_drive_bench(args) -> int:
 
 
 def add_dagger(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.driving.bench_tasks import TASK_NAMES
     from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
+    from crchfl_sumo.driving.drive_bench_tasks import TASK_NAMES
 
     p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
     p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")

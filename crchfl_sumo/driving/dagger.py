@@ -11,7 +11,7 @@ with the data set and fine-tuning on the whole is one DAgger iteration
 (``dagger_iterations``; `crchfl-sumo dagger` runs it, tools/dagger.py
 measures each iteration with drive-bench).
 
-Routes are drawn like drive-bench's episodes (bench_tasks.draw_episodes), by
+Routes are drawn like drive-bench's episodes (drive_bench_tasks.draw_episodes), by
 a seed of their own: use another seed than the benchmark's, so the learner
 is not trained on the episodes it is scored on.
 """
@@ -40,10 +40,10 @@ from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.driving.bench import SUMO_LOG_DIR, episode_log
-from crchfl_sumo.driving.bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import drive
+from crchfl_sumo.driving.drive_bench import SUMO_LOG_DIR, episode_log
+from crchfl_sumo.driving.drive_bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
 from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.centralized import train_centralized

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, check_range
-from crchfl_sumo.driving.bench import STUCK_S
-from crchfl_sumo.driving.bench_tasks import task_by_name
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.driving.drive_bench import STUCK_S
+from crchfl_sumo.driving.drive_bench_tasks import task_by_name
 from crchfl_sumo.driving.policies import RoutePolicyConfig
 
 # A learner standing within this of a stop line it must stop at is labelled to hold: the data set's

@@ -7,8 +7,8 @@ task's episodes in each town; success, route completion, driving score and infra
 
 Episodes run in groups, each group in its own spawned process when jobs > 1
 (libsumo holds one simulation per process); every group builds its town's
-renderer once. bench_tasks.py draws the episodes, bench_score.py scores them,
-bench_plots.py draws them. docs/drive.md describes the benchmark.
+renderer once. drive_bench_tasks.py draws the episodes, drive_bench_score.py scores them,
+drive_bench_plots.py draws them. docs/drive.md describes the benchmark.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.core.result_files import EPISODES_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
-from crchfl_sumo.driving.bench_behaviour import ABILITIES, behaviour
-from crchfl_sumo.driving.bench_plots import plot_benchmark
-from crchfl_sumo.driving.bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
-from crchfl_sumo.driving.bench_tasks import (
+from crchfl_sumo.driving.drive import DriveConfig, drive, sumo_warnings
+from crchfl_sumo.driving.drive_bench_behaviour import ABILITIES, behaviour
+from crchfl_sumo.driving.drive_bench_plots import plot_benchmark
+from crchfl_sumo.driving.drive_bench_score import INFRACTIONS, route_completion, score_episode, summarize_task
+from crchfl_sumo.driving.drive_bench_tasks import (
     DEFAULT_TOWNS,
     TASK_NAMES,
     TASKS,
@@ -41,7 +42,6 @@ from crchfl_sumo.driving.bench_tasks import (
     task_by_name,
     without_traffic,
 )
-from crchfl_sumo.driving.drive import DriveConfig, drive, sumo_warnings
 from crchfl_sumo.driving.drivers import ReferenceDriver, driver_for, single_torch_thread
 from crchfl_sumo.learning.settings import (
     DEFAULT_BRAKE_GAIN,
@@ -65,8 +65,8 @@ SUMMARY_KEYS = ("episodes", "success_rate", "route_completion", "driving_score",
 class BenchConfig:
     """Settings of a benchmark run.
 
-    tasks           the suites driven, in this order (bench_tasks.TASKS)
-    routes          how start/goal routes are drawn (bench_tasks.TaskConfig)
+    tasks           the suites driven, in this order (drive_bench_tasks.TASKS)
+    routes          how start/goal routes are drawn (drive_bench_tasks.TaskConfig)
     drive           the drive loop's settings (an episode ends stuck after STUCK_S); each episode
                     sets its own warm-up
     group_episodes  episodes a worker drives one after the other (one process start, one renderer each)

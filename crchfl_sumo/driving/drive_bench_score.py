@@ -16,7 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from crchfl_sumo.core.intervals import wilson_interval
-from crchfl_sumo.driving.bench_behaviour import ABILITIES
+from crchfl_sumo.driving.drive_bench_behaviour import ABILITIES
 
 # CARLA Leaderboard 1.0 infraction coefficients for the infractions the loop measures.
 # The towns have no pedestrians (0.50), static obstacles (0.65) or stop signs (0.80),
@@ -54,7 +54,7 @@ def succeeded(end_reason: str, collisions: int, off_road_events: int) -> bool:
 
 def score_episode(metrics: Mapping[str, Any], completion: float, min_speed_penalty: float = 1.0) -> dict[str, Any]:
     """success, strict_success, route_completion, penalty and driving_score of one episode from its drive
-    metrics; driving_score_lb2 adds Leaderboard 2.0's minimum-speed factor (bench_behaviour.min_speed_penalty).
+    metrics; driving_score_lb2 adds Leaderboard 2.0's minimum-speed factor (drive_bench_behaviour.min_speed_penalty).
 
     Strict success is success with no red light run either (the Leaderboard's "Perfect" without its
     minimum-speed events, which Bench2Drive leaves out of its success as well).

@@ -324,7 +324,7 @@ def draw_episodes(
         source = task_by_name(task.routes_of) if task.routes_of else task
         fewest, most = config.turns(source)
         pool = sorted((c for c in candidates if fewest <= c.turns <= most), key=lambda c: c.edges)
-        if not pool:  # the rest of the benchmark runs; bench.run_benchmark lists the task as skipped
+        if not pool:  # the rest of the benchmark runs; drive_bench.run_benchmark lists the task as skipped
             log.warning(
                 "town '%s' has no route for task '%s' (%d to %d turns, at most %g m, apart from the data vehicles' "
                 "routes): skipped", town, task.name, fewest, most, config.max_route_m,

@@ -28,10 +28,10 @@ import numpy as np
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.driving.bench import SUMO_LOG_DIR
-from crchfl_sumo.driving.bench_tasks import draw_episodes, task_by_name
 from crchfl_sumo.driving.dagger import labelled_drives, read_labels, write_labels
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
+from crchfl_sumo.driving.drive_bench import SUMO_LOG_DIR
+from crchfl_sumo.driving.drive_bench_tasks import draw_episodes, task_by_name
 from crchfl_sumo.driving.drivers import ModelDriver
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import RunData

@@ -377,7 +377,7 @@ def _drive_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) 
 
 def _bench_part(config: ReproduceConfig, out_dir: Path, part: ReproductionPart) -> None:
     """The closed-loop benchmark for one model (its own process already: the episodes run one by one)."""
-    from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+    from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 
     if part.scheme == REFERENCE:
         model = None

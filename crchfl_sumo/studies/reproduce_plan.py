@@ -19,9 +19,9 @@ from crchfl_sumo.core.resources import experiments_dir
 from crchfl_sumo.core.schemes import CENTRALIZED, CENTRALIZED_DAGGER, REFERENCE, SCHEMES
 from crchfl_sumo.data.generation import GenerateConfig
 from crchfl_sumo.data.settings import TownSplit
-from crchfl_sumo.driving.bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.driving.drive_bench_tasks import DEFAULT_TOWNS, TASK_NAMES, task_by_name
 from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.learning.settings import DEFAULT_STEER_DECODING, check_steer_decoding
 from crchfl_sumo.planning.settings import MAX_INTERVAL

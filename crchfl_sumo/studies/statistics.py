@@ -11,7 +11,7 @@ import numpy as np
 from crchfl_sumo.accounting.ledger import GIB, gb_label
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.intervals import paired_difference, t_interval
-from crchfl_sumo.driving.bench_score import pool_task_summaries
+from crchfl_sumo.driving.drive_bench_score import pool_task_summaries
 
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
 PAPER_GAINS_PERCENT = {"hfl": 10.33, "sfl": 12.41}

@@ -22,7 +22,7 @@ import pytest
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.settings import DatasetConfig, TownSplit
 from crchfl_sumo.data.generation import generate_dataset
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.dagger import dagger_iterations
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.learning.checkpoint import load_checkpoint, save_checkpoint

@@ -607,7 +607,7 @@ def test_a_corrections_only_labeller_keeps_exactly_the_corrected_steps(roads):
 
 
 def test_the_labeller_corrects_a_learner_that_stops_inside_a_junction(ladder):
-    from crchfl_sumo.driving.bench_tasks import without_traffic
+    from crchfl_sumo.driving.drive_bench_tasks import without_traffic
     from crchfl_sumo.sumo.route import inside_crossing
 
     scenario = without_traffic(load_scenario(ladder / "ladder.sumocfg"))

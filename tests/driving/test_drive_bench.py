@@ -14,9 +14,9 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.intervals import wilson_interval
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.bench_behaviour import ABILITIES
-from crchfl_sumo.driving.bench_score import (
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench_behaviour import ABILITIES
+from crchfl_sumo.driving.drive_bench_score import (
     penalty,
     pool_task_summaries,
     route_completion,
@@ -24,7 +24,7 @@ from crchfl_sumo.driving.bench_score import (
     succeeded,
     summarize_task,
 )
-from crchfl_sumo.driving.bench_tasks import (
+from crchfl_sumo.driving.drive_bench_tasks import (
     TASKS,
     TIME_BUDGET_SPEED_MPS,
     TaskConfig,
@@ -205,21 +205,21 @@ def test_episodes_are_drawn_by_seed_into_their_suites(ladder):
 
 
 def test_bounded_searches_find_the_shortest_routes_of_the_pairs_they_reach(ladder, monkeypatch):
-    from crchfl_sumo.driving import bench_tasks
+    from crchfl_sumo.driving import drive_bench_tasks
 
     scenario = load_scenario(ladder / "ladder.sumocfg")
     net = read_net(Path(scenario.net_path))
     # from AB within 250 m: AB alone (100 m), on to BC or BE (200 m each; the ladder has no U-turns)
-    paths = bench_tasks.shortest_paths_from(net.getEdge("AB"), 250.0)
+    paths = drive_bench_tasks.shortest_paths_from(net.getEdge("AB"), 250.0)
     assert {goal: [e.getID() for e in path] for goal, path in paths.items()} == {
         "AB": ["AB"], "BC": ["AB", "BC"], "BE": ["AB", "BE"]}
-    every = {c.edges: c for c in bench_tasks.candidate_routes(scenario)}
+    every = {c.edges: c for c in drive_bench_tasks.candidate_routes(scenario)}
     # as on a large network: sampled starts, a few goals each; each a shortest route of its pair
-    monkeypatch.setattr(bench_tasks, "ALL_PAIRS_MAX_EDGES", 0)
-    monkeypatch.setattr(bench_tasks, "BOUNDED_STARTS", 5)
-    monkeypatch.setattr(bench_tasks, "BOUNDED_GOALS", 3)
-    bounded = bench_tasks.candidate_routes(scenario)
-    assert 0 < len(bounded) <= 15 and bounded == bench_tasks.candidate_routes(scenario)
+    monkeypatch.setattr(drive_bench_tasks, "ALL_PAIRS_MAX_EDGES", 0)
+    monkeypatch.setattr(drive_bench_tasks, "BOUNDED_STARTS", 5)
+    monkeypatch.setattr(drive_bench_tasks, "BOUNDED_GOALS", 3)
+    bounded = drive_bench_tasks.candidate_routes(scenario)
+    assert 0 < len(bounded) <= 15 and bounded == drive_bench_tasks.candidate_routes(scenario)
     by_pair = {(c.edges[0], c.edges[-1]): c for c in every.values()}
     for c in bounded:
         assert c.length_m == pytest.approx(by_pair[(c.edges[0], c.edges[-1])].length_m)

@@ -1,4 +1,4 @@
-"""Leaderboard 2.0 and Bench2Drive figures of one drive (driving.bench_behaviour), by hand."""
+"""Leaderboard 2.0 and Bench2Drive figures of one drive (driving.drive_bench_behaviour), by hand."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from crchfl_sumo.driving.bench_behaviour import (
+from crchfl_sumo.driving.drive_bench_behaviour import (
     abilities,
     comfort_signals,
     min_speed_penalty,

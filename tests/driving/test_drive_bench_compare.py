@@ -1,4 +1,4 @@
-"""Two drivers on the same episodes compared pair by pair (driving.bench_compare)."""
+"""Two drivers on the same episodes compared pair by pair (driving.drive_bench_compare)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.intervals import wilson_interval
-from crchfl_sumo.driving.bench_compare import ALL, compare_episodes, comparison_table
+from crchfl_sumo.driving.drive_bench_compare import ALL, compare_episodes, comparison_table
 
 
 def _episode(task: str, index: int, success: bool, score: float, draw: int = 0) -> dict:

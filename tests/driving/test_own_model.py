@@ -13,8 +13,8 @@ import pytest
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.driving.bench import BenchConfig, run_benchmark
 from crchfl_sumo.driving.drive import DriveConfig
+from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
 from crchfl_sumo.federation.run import run_command
 from crchfl_sumo.learning.checkpoint import load_checkpoint, load_model
 from crchfl_sumo.learning.model import build_model, network_class

@@ -84,8 +84,8 @@ def test_lane_plans_need_connected_edges(fork):
 
 @pytest.mark.slow
 def test_the_reference_driver_changes_lane_and_turns(fork):
-    from crchfl_sumo.driving.bench_tasks import without_traffic
     from crchfl_sumo.driving.drive import DriveConfig, drive
+    from crchfl_sumo.driving.drive_bench_tasks import without_traffic
     from crchfl_sumo.driving.policies import RoutePolicy
     from crchfl_sumo.sumo.scenario import load_scenario
 
@@ -114,8 +114,8 @@ def test_sumo_keeps_the_ego_on_its_planned_lanes_wherever_it_drives(fork):
     """The ego's route plans AB's right lane (straight on to D), but it drives the geometry of the left
     turn (into AB's left lane, then towards C): SUMO has it on its planned lanes all the way, never on
     AB_1 or the left turn's internal lane."""
-    from crchfl_sumo.driving.bench_tasks import without_traffic
     from crchfl_sumo.driving.drive import DriveConfig, drive
+    from crchfl_sumo.driving.drive_bench_tasks import without_traffic
     from crchfl_sumo.driving.policies import RoutePolicy
     from crchfl_sumo.sumo.scenario import load_scenario
 

@@ -102,7 +102,7 @@ def test_gzipped_copy_of_a_builtin_town_simulates_like_the_plain_one(tmp_path):
     assert main(["simulate", str(tmp_path / "packed.sumocfg"), "--duration-s", "5", "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "handovers.csv").is_file()
     # The rasterizer's world and the benchmark's routes read the gzipped files too.
-    from crchfl_sumo.driving.bench_tasks import data_routes, longest_waits_s
+    from crchfl_sumo.driving.drive_bench_tasks import data_routes, longest_waits_s
     from crchfl_sumo.vision.world import build_world
 
     packed_world, plain_world = build_world(packed.net_path), build_world(plain.net_path)
