@@ -37,7 +37,14 @@ import numpy as np
 
 from crchfl_sumo.accounting.ledger import Ledger
 from crchfl_sumo.accounting.schedules import CLOUD, Transfer
-from crchfl_sumo.federation.loop import Federation, RelayedTransfer, _charge, _count, _wireless, _wireline
+from crchfl_sumo.federation.loop import (
+    Federation,
+    RelayedTransfer,
+    charge_transfers,
+    count_transfer,
+    wireless_event,
+    wireline_event,
+)
 from crchfl_sumo.federation.state import FederationState
 from crchfl_sumo.learning.aggregate import buffered_update, fedavg, staleness_factor
 from crchfl_sumo.links.clock import WirelessOutcome
@@ -97,11 +104,11 @@ class AsyncFederation(Federation):
     def _failed_upload(self, state: FederationState, ledger: Ledger, attempt: Attempt) -> None:
         """A failed upload: charged, its vehicle a straggler that trains again from the model it holds."""
         v, edge = attempt.vehicle, state.member[attempt.vehicle]
-        events = {(v, edge, "uplink"): _wireless(attempt.out)}
-        _count(state, "uploads", False)
+        events = {(v, edge, "uplink"): wireless_event(attempt.out)}
+        count_transfer(state, "uploads", False)
         self._straggler(state, v, "II", attempt.out.reason, attempt.out.end_s)
         schedule = (Transfer("wireless", "uplink", "II", v, edge, "model", self.setup.sizes.upload_bytes),)
-        if not _charge(ledger, schedule, events, self.setup.rule, state.cloud_rounds + 1, state):
+        if not charge_transfers(ledger, schedule, events, self.setup.rule, state.cloud_rounds + 1, state):
             state.stop_reason = "budget"
             return
         state.ready_s = {**state.ready_s, v: attempt.out.end_s}
@@ -116,8 +123,8 @@ class AsyncFederation(Federation):
         vehicles = [a.vehicle for a in buffer]
         events, relays = {}, []
         for a in buffer:
-            events[(a.vehicle, edge, "uplink")] = _wireless(a.out)
-            _count(state, "uploads", True)
+            events[(a.vehicle, edge, "uplink")] = wireless_event(a.out)
+            count_transfer(state, "uploads", True)
             relays.extend(a.relays)
         ready = dict(state.ready_s)
         delivered = set(self._send_down(state, edge, vehicles, at_s, "II", events, ready, relays))
@@ -134,7 +141,8 @@ class AsyncFederation(Federation):
         )
         schedule = tuple(Transfer("wireless", "uplink", "II", v, edge, "model", sizes.upload_bytes) for v in vehicles)
         schedule += tuple(Transfer("wireless", "downlink", "II", edge, v, "model", sizes.model_bytes) for v in vehicles)
-        if not _charge(ledger, schedule, events, setup.rule, state.cloud_rounds + 1, state, relays, setup.edges):
+        next_round = state.cloud_rounds + 1
+        if not charge_transfers(ledger, schedule, events, setup.rule, next_round, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
         models = dict(state.vehicle_models)
@@ -149,8 +157,11 @@ class AsyncFederation(Federation):
         state.edge_aggregations += 1
         state.tau += 1
         self._count_training(state, counts, setup.hyper.edge_interval)
-        edge_metrics = self._evaluate_edges({edge: edge_model}, {edge: 1.0}, [edge]) if self.config.evaluate_every_edge else None
-        self._line(state, ledger, "II", at_s, edge_metrics, received={edge: len(vehicles)}, samples=sum(counts.values()),
+        edge_metrics = None
+        if self.config.evaluate_every_edge:
+            edge_metrics = self._evaluate_edges({edge: edge_model}, {edge: 1.0}, [edge])
+        self._line(state, ledger, "II", at_s, edge_metrics, received={edge: len(vehicles)},
+                   samples=sum(counts.values()),
                    staleness=staleness)
         active = [e for e in setup.edges if any(m == e for m in state.member.values())]
         if state.tau >= setup.hyper.cloud_interval * len(active):
@@ -162,21 +173,21 @@ class AsyncFederation(Federation):
         weights = {e: float(sum(setup.count(v) for v in setup.vehicles if state.member[v] == e)) for e in edges}
         events = {}
         for e in edges:
-            events[(e, CLOUD, "uplink")] = _wireline(at_s, setup.sizes.model_bytes, setup.wireline)
+            events[(e, CLOUD, "uplink")] = wireline_event(at_s, setup.sizes.model_bytes, setup.wireline)
         cloud_s = max(events[(e, CLOUD, "uplink")].end_s for e in edges)
         for e in edges:
-            events[(CLOUD, e, "downlink")] = _wireline(cloud_s, setup.sizes.model_bytes, setup.wireline)
-        schedule = tuple(Transfer("wireline", "uplink", "III", e, CLOUD, "model", setup.sizes.model_bytes) for e in edges)
-        schedule += tuple(Transfer("wireline", "downlink", "III", CLOUD, e, "model", setup.sizes.model_bytes)
-                          for e in edges)
-        if not _charge(ledger, schedule, events, setup.rule, state.cloud_rounds + 1, state):
+            events[(CLOUD, e, "downlink")] = wireline_event(cloud_s, setup.sizes.model_bytes, setup.wireline)
+        size = setup.sizes.model_bytes
+        schedule = tuple(Transfer("wireline", "uplink", "III", e, CLOUD, "model", size) for e in edges)
+        schedule += tuple(Transfer("wireline", "downlink", "III", CLOUD, e, "model", size) for e in edges)
+        if not charge_transfers(ledger, schedule, events, setup.rule, state.cloud_rounds + 1, state):
             state.stop_reason = "budget"
             return
         cloud_model = fedavg([(state.edge_models[e], weights[e]) for e in edges])
         state.edge_models = {**state.edge_models, **dict.fromkeys(edges, cloud_model)}
         state.edge_weights = {**state.edge_weights, **weights}
-        state.edge_history = {**state.edge_history,
-                              **{e: [*state.edge_history.get(e, []), events[(CLOUD, e, "downlink")].end_s] for e in edges}}
+        released = {e: [*state.edge_history.get(e, []), events[(CLOUD, e, "downlink")].end_s] for e in edges}
+        state.edge_history = {**state.edge_history, **released}
         state.cloud_model = cloud_model
         state.cloud_rounds += 1
         state.tau = 0

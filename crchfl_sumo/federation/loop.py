@@ -98,11 +98,11 @@ class TransferEvent:
     wasted: bool = False
 
 
-def _wireline(start_s: float, size_bytes: int, cfg: WirelineConfig) -> TransferEvent:
+def wireline_event(start_s: float, size_bytes: int, cfg: WirelineConfig) -> TransferEvent:
     return TransferEvent(start_s, start_s + wireline_transfer_time_s(size_bytes, cfg), True, float(size_bytes))
 
 
-def _wireless(outcome: WirelessOutcome) -> TransferEvent:
+def wireless_event(outcome: WirelessOutcome) -> TransferEvent:
     return TransferEvent(outcome.start_s, outcome.end_s, outcome.ok, outcome.sent_bytes, wasted=not outcome.ok)
 
 
@@ -117,7 +117,7 @@ class RelayedTransfer:
     relays: tuple[Relay, ...]
 
 
-def _charge(
+def charge_transfers(
     ledger: Ledger,
     schedule: Sequence[Transfer],
     events: Mapping[tuple[str, str, str], TransferEvent],
@@ -161,7 +161,7 @@ def _charge(
     return True
 
 
-def _count(state: FederationState, kind: str, ok: bool) -> None:
+def count_transfer(state: FederationState, kind: str, ok: bool) -> None:
     """One more wireless transfer of ``kind`` (uploads, downloads) that started; ``{kind}_failed`` if it failed."""
     state.transfers[kind] = state.transfers.get(kind, 0) + 1
     state.transfers[f"{kind}_failed"] = state.transfers.get(f"{kind}_failed", 0) + (not ok)
@@ -360,7 +360,8 @@ class Federation:
     def _server_update(self, state: FederationState, tier: str, node: str, current: State, average: State) -> State:
         """The aggregator's new model from the FedAvg of what it received ([federation] strategy); what the
         strategy keeps at the node goes into ``state.strategy_memory``."""
-        new, memory = self.setup.strategy.server_update(tier, node, current, average, state.strategy_memory.get(node, {}))
+        kept = state.strategy_memory.get(node, {})
+        new, memory = self.setup.strategy.server_update(tier, node, current, average, kept)
         if memory or node in state.strategy_memory:
             state.strategy_memory = {**state.strategy_memory, node: memory}
         return new
@@ -500,8 +501,8 @@ class Federation:
                 continue
             if out.ok and cfg.handover_policy == "new_edge":
                 member[v] = setup.edges[out.site]
-            events[(v, member[v], "uplink")] = _wireless(out)
-            _count(state, "uploads", out.ok)
+            events[(v, member[v], "uplink")] = wireless_event(out)
+            count_transfer(state, "uploads", out.ok)
             arrival_s[v] = self._forward(out, member[v], shares[v] * sizes.sample_bytes, "samples", "I", relays)
             if out.ok and arrival_s[v] > window_end + _EPS_S:
                 events[(v, member[v], "uplink")] = dataclasses.replace(events[(v, member[v], "uplink")], wasted=True)
@@ -518,7 +519,7 @@ class Federation:
             ends = [min(arrival_s[v], state.open_s[e] + cfg.deadline_s) for v in vehicles if v in arrival_s]
             if ends:
                 n = sum(len(uploaded[v]) for v in vehicles if v in uploaded)
-                events[(e, CLOUD, "uplink")] = _wireline(max(ends), n * sizes.sample_bytes, setup.wireline)
+                events[(e, CLOUD, "uplink")] = wireline_event(max(ends), n * sizes.sample_bytes, setup.wireline)
                 relay_end[e] = events[(e, CLOUD, "uplink")].end_s
         start_s = max(relay_end.values(), default=max(state.ready_s.values()))
         n = sum(len(s) for s in uploaded.values())
@@ -532,14 +533,14 @@ class Federation:
         # release: cloud -> every edge (wireline), edge -> its vehicles (wireless)
         ready, models, open_s = dict(state.ready_s), dict(state.vehicle_models), dict(state.open_s)
         for e, vehicles in topology.active():
-            ev = _wireline(pretrained_s, sizes.model_bytes, setup.wireline)
+            ev = wireline_event(pretrained_s, sizes.model_bytes, setup.wireline)
             events[(CLOUD, e, "downlink")] = ev
             open_s[e] = ev.end_s
             delivered = self._send_down(state, e, vehicles, ev.end_s, "I", events, ready, relays)
             models.update(dict.fromkeys(delivered, model))
         received = {v: shares[v] for v in setup.vehicles}
         schedule = stage_one_schedule(setup.rule, cfg.scheme, topology, received, sizes)
-        if not _charge(ledger, schedule, events, setup.rule, 0, state, relays, setup.edges):
+        if not charge_transfers(ledger, schedule, events, setup.rule, 0, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.stage_one_done = True
@@ -576,13 +577,13 @@ class Federation:
         agg_s, received_by = self._edge_arrivals(state, topology, uploads, events, relays)
         for e in agg_s:
             # the edge -> cloud upload: real when a cloud aggregation follows; the paper rule charges it every time
-            events[(e, CLOUD, "uplink")] = _wireline(agg_s[e], sizes.model_bytes, setup.wireline)
+            events[(e, CLOUD, "uplink")] = wireline_event(agg_s[e], sizes.model_bytes, setup.wireline)
         cloud_s, release_s = None, agg_s
         if followed:
             cloud_s = max(events[(e, CLOUD, "uplink")].end_s for e in agg_s)
             release_s = {}
             for e in agg_s:
-                events[(CLOUD, e, "downlink")] = _wireline(cloud_s, sizes.model_bytes, setup.wireline)
+                events[(CLOUD, e, "downlink")] = wireline_event(cloud_s, sizes.model_bytes, setup.wireline)
                 release_s[e] = events[(CLOUD, e, "downlink")].end_s
         stage = "III" if followed else "II"
         ready, open_s, delivered = self._release(state, topology, release_s, events, stage, relays)
@@ -607,7 +608,7 @@ class Federation:
             models.update(dict.fromkeys((v for v in vehicles if v in delivered), edge_models[e]))
         next_round = state.cloud_rounds + 1
         schedule = self._step_schedule(topology, followed)
-        if not _charge(ledger, schedule, events, setup.rule, next_round, state, relays, setup.edges):
+        if not charge_transfers(ledger, schedule, events, setup.rule, next_round, state, relays, setup.edges):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s, state.open_s, state.member = models, ready, open_s, member
@@ -687,8 +688,8 @@ class Federation:
         delivered = []
         for v in vehicles:
             out, moved = self._download(v, start_s, self.setup.sizes.model_bytes, edge)
-            events[(sender, v, "downlink")] = _wireless(out)
-            _count(state, "downloads", out.ok)
+            events[(sender, v, "downlink")] = wireless_event(out)
+            count_transfer(state, "downloads", out.ok)
             if moved:
                 relays.append(RelayedTransfer(stage, "downlink", "model", moved))
             ready[v] = out.end_s
@@ -719,8 +720,8 @@ class Federation:
                 ends.append(missed_at(v))
                 self._straggler(state, v, stage, "no time to upload before the deadline", ends[-1], **late)
                 continue
-            events[(v, receiver, "uplink")] = _wireless(out)
-            _count(state, "uploads", out.ok)
+            events[(v, receiver, "uplink")] = wireless_event(out)
+            count_transfer(state, "uploads", out.ok)
             arrival_s = self._forward(out, receiver, self.setup.sizes.upload_bytes, "model", stage, relays)
             if out.ok and arrival_s > missed_at(v) + _EPS_S:  # forwarded past the deadline
                 events[(v, receiver, "uplink")] = dataclasses.replace(events[(v, receiver, "uplink")], wasted=True)
@@ -756,12 +757,14 @@ class Federation:
         log.info("step %d: %s straggles (%s, %s) at %.1f s", state.steps, vehicle, reason, cause, t_s)
 
     def _cause(
-        self, state: FederationState, vehicle: str, reason: str, t_s: float, window_end_s: float | None, edge: str | None
+        self, state: FederationState, vehicle: str, reason: str, t_s: float, window_end_s: float | None,
+        edge: str | None,
     ) -> str:
         """Why a vehicle straggled, the first that applies: "unavailable" (it was off at some moment between
-        holding its model and ``t_s``, either way round), "out_of_coverage" (its transfer lost coverage), "slow_compute" (it missed
-        the deadline, and an upload started when a vehicle of compute factor 1 would have finished training
-        makes it on the same links), "deadline" (its links were too slow for the deadline)."""
+        holding its model and ``t_s``, either way round), "out_of_coverage" (its transfer lost coverage),
+        "slow_compute" (it missed the deadline, and an upload started when a vehicle of compute factor 1
+        would have finished training makes it on the same links), "deadline" (its links were too slow for
+        the deadline)."""
         held_s = state.ready_s[vehicle]  # past t_s when its last download came late
         if self.setup.fleet.off_between(vehicle, min(held_s, t_s), max(held_s, t_s)):
             return "unavailable"
@@ -805,7 +808,7 @@ class Federation:
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = self._step_schedule(topology, followed=True)
-        if not _charge(ledger, schedule, events, setup.rule, next_round, state):
+        if not charge_transfers(ledger, schedule, events, setup.rule, next_round, state):
             state.stop_reason = "budget"
             return
         state.vehicle_models, state.ready_s = models, ready

@@ -165,7 +165,9 @@ def staleness_factor(staleness: int, exponent: float) -> float:
     return (1.0 + staleness) ** -exponent
 
 
-def buffered_update(current: StateDict, updates: Sequence[tuple[StateDict, StateDict, float, float]]) -> dict[str, torch.Tensor]:
+def buffered_update(
+    current: StateDict, updates: Sequence[tuple[StateDict, StateDict, float, float]]
+) -> dict[str, torch.Tensor]:
     """An asynchronous aggregator's step over its buffer (FedBuff):
     current + sum_i n_i f_i (trained_i - base_i) / sum_i n_i, for ``updates`` = [(base_i, trained_i, n_i, f_i)].
 

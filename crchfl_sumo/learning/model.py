@@ -363,7 +363,7 @@ def network_class(class_path: str) -> type[nn.Module]:
     try:
         module = importlib.import_module(module_name)
     except Exception as exc:  # the user's module: anything may go wrong in it, and it is reported in one line
-        raise CrchflError(f"model.class: importing {module_name!r} failed ({type(exc).__name__}: {exc}); fix that module")
+        raise CrchflError(f"model.class: importing {module_name!r} failed ({type(exc).__name__}: {exc})") from None
     cls = getattr(module, class_name, None)
     if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
         raise CrchflError(f"model.class: {class_path!r} is not a torch.nn.Module class in {module_name!r}; name one")

@@ -99,7 +99,9 @@ def strategy_from(name: str, options: Mapping[str, float]) -> Strategy:
     else:
         module_name, _, class_name = name.partition(":")
         if not class_name:
-            raise CrchflError(f"federation.strategy: {name!r} is neither {', '.join(BUILTIN)} nor \"package.module:Class\"")
+            raise CrchflError(
+                f"federation.strategy: {name!r} is neither {', '.join(BUILTIN)} nor \"package.module:Class\""
+            )
         try:
             found = importlib.util.find_spec(module_name)
         except (ImportError, ValueError):  # a parent package that is missing, or a malformed name

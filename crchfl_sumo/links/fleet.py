@@ -58,7 +58,8 @@ class FleetConfig:
     def __post_init__(self) -> None:
         if self.compute_profile not in COMPUTE_PROFILES:
             raise CrchflError(
-                f"clock.compute_profile: {self.compute_profile!r} is not one of {', '.join(map(repr, COMPUTE_PROFILES))}"
+                f"clock.compute_profile: {self.compute_profile!r} is not one of "
+                f"{', '.join(map(repr, COMPUTE_PROFILES))}"
             )
         check_range(self.compute_sigma, "clock.compute_sigma", 0, 3, "the spread of log(speed factor)")
         if not self.compute_tiers:
@@ -198,7 +199,9 @@ def read_availability_trace(path: Path, vehicles: Sequence[str]) -> dict[str, np
         try:
             start, end = float(row[1]), float(row[2])
         except ValueError:
-            raise CrchflError(f"{path}, line {line}: off_start_s and off_end_s must be numbers, got {row[1:]!r}") from None
+            raise CrchflError(
+                f"{path}, line {line}: off_start_s and off_end_s must be numbers, got {row[1:]!r}"
+            ) from None
         if not (math.isfinite(start) and math.isfinite(end) and 0 <= start < end):
             raise CrchflError(f"{path}, line {line}: need finite times with 0 <= off_start_s < off_end_s, "
                               f"got {start}, {end}")
