@@ -37,8 +37,6 @@ and are normalised inside the network, so uint8 can stay uint8 in memory.
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import math
 
 import numpy as np
@@ -46,6 +44,7 @@ import torch
 from torch import nn
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.imports import import_class
 from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.data.expert import (
     PASSENGER_MAX_ACCEL_MPS2,
@@ -352,21 +351,9 @@ def network(config: ModelConfig) -> nn.Module:
 def network_class(class_path: str) -> type[nn.Module]:
     """The class of ``"package.module:Class"``, imported (its module's code runs, as when it trained; nothing
     of it comes from a checkpoint); a CrchflError naming ``model.class`` and the fix otherwise."""
-    module_name, _, class_name = class_path.partition(":")
-    fix = "install the package or put its folder on PYTHONPATH (docs/own_model.md)"
-    try:
-        found = importlib.util.find_spec(module_name)
-    except (ImportError, ValueError):  # a parent package that is missing, or a malformed name
-        found = None
-    if found is None:
-        raise CrchflError(f"model.class: module {module_name!r} of {class_path!r} is not importable here; {fix}")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as exc:  # the user's module: anything may go wrong in it, and it is reported in one line
-        raise CrchflError(f"model.class: importing {module_name!r} failed ({type(exc).__name__}: {exc})") from None
-    cls = getattr(module, class_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
-        raise CrchflError(f"model.class: {class_path!r} is not a torch.nn.Module class in {module_name!r}; name one")
+    cls = import_class(class_path, "model.class")
+    if not issubclass(cls, nn.Module):
+        raise CrchflError(f"model.class: {class_path!r} is not a torch.nn.Module class; name one")
     return cls
 
 

@@ -31,13 +31,12 @@ options of any strategy (docs/beyond_paper.md).
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 from typing import Mapping, Protocol
 
 import torch
 
 from crchfl_sumo.core.errors import CrchflError
+from crchfl_sumo.core.imports import import_class
 
 State = Mapping[str, torch.Tensor]
 BUILTIN = ("fedavg", "fedavgm", "fedprox")
@@ -96,28 +95,18 @@ def strategy_from(name: str, options: Mapping[str, float]) -> Strategy:
     builtin = {"fedavg": FedAvg, "fedavgm": FedAvgM, "fedprox": FedProx}
     if name in builtin:
         cls = builtin[name]
+    elif ":" in name:
+        cls = import_class(name, "federation.strategy")
     else:
-        module_name, _, class_name = name.partition(":")
-        if not class_name:
-            raise CrchflError(
-                f"federation.strategy: {name!r} is neither {', '.join(BUILTIN)} nor \"package.module:Class\""
-            )
-        try:
-            found = importlib.util.find_spec(module_name)
-        except (ImportError, ValueError):  # a parent package that is missing, or a malformed name
-            found = None
-        if found is None:
-            raise CrchflError(f"federation.strategy: module {module_name!r} is not importable here; install it or "
-                              "put its folder on PYTHONPATH")
-        cls = getattr(importlib.import_module(module_name), class_name, None)
-        if not isinstance(cls, type):
-            raise CrchflError(f"federation.strategy: {name!r} names no class; name one")
+        raise CrchflError(
+            f"federation.strategy: {name!r} is neither {', '.join(BUILTIN)} nor \"package.module:Class\""
+        )
     try:
         strategy = cls(**options)
     except TypeError as exc:
         raise CrchflError(f"federation.strategy_options: {exc}; give the options {name!r} takes") from None
-    if not callable(getattr(strategy, "server_update", None)) or not isinstance(getattr(strategy, "proximal_mu", None),
-                                                                                 (int, float)):
+    mu = getattr(strategy, "proximal_mu", None)
+    if not callable(getattr(strategy, "server_update", None)) or not isinstance(mu, (int, float)):
         raise CrchflError(f"federation.strategy: {name!r} needs a server_update method and a proximal_mu number "
                           "(learning/strategies.py)")
     return strategy

@@ -67,8 +67,10 @@ def test_a_missing_or_wrong_import_path_is_refused_naming_model_class(example, t
         from_mapping(ModelConfig, {"class": "tiny driver"}, "run.toml.model")
     with pytest.raises(CrchflError, match="module 'no_such_package' of 'no_such_package:Net' is not importable"):
         network_class("no_such_package:Net")
-    with pytest.raises(CrchflError, match="'tiny_driver:COMMANDS' is not a torch.nn.Module class"):
+    with pytest.raises(CrchflError, match="'tiny_driver:COMMANDS' names no class"):
         network_class("tiny_driver:COMMANDS")
+    with pytest.raises(CrchflError, match="'torch:Tensor' is not a torch.nn.Module class"):
+        network_class("torch:Tensor")
     # on the command line: one line, status 2, for a run and for a checkpoint that names a lost class
     dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES)
     config = tmp_path / "run.toml"

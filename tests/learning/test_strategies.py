@@ -79,7 +79,7 @@ def test_strategies_by_name_and_by_import_path_and_refusals(tmp_path, monkeypatc
     assert half.server_update("cloud", "cloud", _w(1.0), _w(0.0), {})[0]["w"].tolist() == [0.75]
     for name, options, match in [
         ("fedsgd", {}, "neither fedavg, fedavgm, fedprox nor"),
-        ("no_such_module:X", {}, "module 'no_such_module' is not importable"),
+        ("no_such_module:X", {}, "federation.strategy: module 'no_such_module' of 'no_such_module:X' is not importable"),
         ("my_strategy:Missing", {}, "names no class"),
         ("fedavgm", {"speed": 1.0}, "strategy_options: .*speed"),
         ("fedavgm", {"momentum": 1.5}, "0 <= momentum < 1"),
