@@ -17,7 +17,7 @@ Prints, per arm, the mean over seeds with its t-based 95 % interval: final balan
 rounds, edge aggregations, simulated time at the end, stragglers, wasted MB and (with 3) the driving
 score and success; the paired differences async - sync; and
 
-    async time to sync's final balanced accuracy: <ratio> [lo, hi] (n = reached / seeds)
+    async time to sync's final balanced accuracy: <ratio> [lo, hi] (n = N), reached in N of S seeds; per seed [...]
 
 the simulated time at which async first reaches the balanced accuracy of sync's last evaluation,
 over the simulated time of that evaluation, per seed (a seed where async never reaches it counts
@@ -174,8 +174,8 @@ def main() -> None:
         print(f"  {key}: sync {interval(sync)}; async {interval(asyn)}{words}")
     ratios = [reach_ratio(evaluations(runs[("sync", s)]), evaluations(runs[("async", s)])) for s in seeds]
     reached = [r for r in ratios if r is not None]
-    print(f"async time to sync's final balanced accuracy: {interval(reached)} "
-          f"(n = {len(reached)} / {args.seeds}); per seed {[None if r is None else round(r, 3) for r in ratios]}")
+    print(f"async time to sync's final balanced accuracy: {interval(reached)}, reached in {len(reached)} of "
+          f"{args.seeds} seeds; per seed {[None if r is None else round(r, 3) for r in ratios]}")
 
 
 if __name__ == "__main__":
