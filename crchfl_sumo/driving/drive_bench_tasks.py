@@ -18,7 +18,6 @@ import dataclasses
 import heapq
 import itertools
 import logging
-import xml.etree.ElementTree as ET
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,16 +158,21 @@ def data_routes(scenario: Scenario) -> list[tuple[str, ...]]:
     wanted = {v for town in scenario.towns for v in town.data_vehicles}
     found: dict[str, tuple[str, ...]] = {}
     for path in route_files(scenario):
-        with sumolib.openz(str(path), "rb") as source:  # plain or gzipped
-            root = ET.parse(source).getroot()
-        named = {r.get("id"): tuple(r.get("edges", "").split()) for r in root.iter("route") if r.get("id")}
-        for vehicle in root.iter("vehicle"):
-            if vehicle.get("id") not in wanted:
+        named = {r.id: tuple(r.edges.split()) for r in _elements(path, "route") if r.hasAttribute("id")}
+        for vehicle in _elements(path, "vehicle"):
+            if vehicle.id not in wanted:
                 continue
-            inline = vehicle.find("route")
-            edges = tuple(inline.get("edges", "").split()) if inline is not None else named.get(vehicle.get("route"), ())
-            found[vehicle.get("id")] = edges
+            if vehicle.hasChild("route"):  # its own route, inside it
+                found[vehicle.id] = tuple(vehicle.getChild("route")[0].getAttributeSecure("edges", "").split())
+            else:
+                found[vehicle.id] = named.get(vehicle.getAttributeSecure("route", ""), ())
     return [found[v] for v in sorted(found)]
+
+
+def _elements(path: Path, name: str):
+    """The ``name`` elements of a SUMO XML file, plain or gzipped, as sumolib's compound objects."""
+    with sumolib.openz(str(path), "rb") as source:
+        yield from sumolib.xml.parse(source, name)
 
 
 def drives_stretch_of(edges: Sequence[str], data_route: Sequence[str]) -> bool:
@@ -195,24 +199,23 @@ def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
     the cycle wraps round, so a red at the end joins one at the start.
     """
     waits: dict[tuple[str, int], float] = {}
-    with sumolib.openz(str(net_path), "rb") as source:  # plain or gzipped
-        programs = [e for _, e in ET.iterparse(source) if e.tag == "tlLogic"]
-    for element in programs:
-        if element.get("id") in {k[0] for k in waits}:
+    for element in _elements(net_path, "tlLogic"):
+        if element.id in {k[0] for k in waits}:
             continue
-        phases = [(float(p.get("duration")), p.get("state", "")) for p in element.iter("phase")]
+        children = element.getChild("phase") if element.hasChild("phase") else []
+        phases = [(float(p.duration), p.getAttributeSecure("state", "")) for p in children]
         links = max((len(state) for _, state in phases), default=0)
         cycle = sum(d for d, _ in phases)
         for link in range(links):
             stopped = [(d, link < len(s) and s[link] not in GREEN_LETTERS) for d, s in phases]
             if all(stop for _, stop in stopped):
-                waits[(element.get("id"), link)] = cycle
+                waits[(element.id, link)] = cycle
                 continue
             longest = run = 0.0
             for duration, stop in stopped + stopped:  # twice round: runs across the cycle's end
                 run = run + duration if stop else 0.0
                 longest = max(longest, run)
-            waits[(element.get("id"), link)] = min(longest, cycle)
+            waits[(element.id, link)] = min(longest, cycle)
     return waits
 
 
