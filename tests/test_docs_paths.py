@@ -319,3 +319,9 @@ def test_a_made_up_reference_in_a_scratch_copy_of_a_doc_fails():
 )
 def test_real_references_pass(good):
     assert reference_problem(good) is None
+
+
+def test_every_reference_doc_is_at_most_20_kb():
+    # a newcomer reads a reference in minutes; dated figures go to the measurements record
+    sizes = {p.name: p.stat().st_size for p in (ROOT / "docs").glob("*.md") if p.name != "measurements.md"}
+    assert sizes and {name: size for name, size in sizes.items() if size > 20_000} == {}
