@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import output_folder, overwrite_argument, scenario_argument
+from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument, scenario_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import seed_arg
@@ -17,14 +17,20 @@ def add_dataset(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML: seed, [dataset], [raster], [world], [expert] (docs/dataset.md)")
+    p.add_argument("--sumo-output", default="",
+                   help="SUMO's own files of the data set's simulation run, as OUT/sumo-NAME.xml: any of fcd, "
+                   "tripinfo, summary, separated by commas")
 
 
 def run_dataset(args) -> int:
     from crchfl_sumo.data.generation import run_dataset_command
+    from crchfl_sumo.sumo.outputs import sumo_output_files
 
+    outputs = comma_list(args.sumo_output)
+    sumo_output_files(outputs, args.out)  # an unknown name is refused before --out is touched
     with output_folder(args, "dataset", resumable=True):
         with ProgressBars("sample") as bars:
-            manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, bars)
+            manifest = run_dataset_command(args.scenario, args.out, args.seed, args.config, bars, outputs)
     print(
         f"{manifest.scenario}: {len(manifest.shards)} shards, {manifest.samples} samples, "
         f"{manifest.png_bytes_per_sample:.0f} PNG bytes/sample -> {args.out}"

@@ -45,6 +45,9 @@ def add_drive(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup-s", type=number_arg(0, MAX_DRIVE_S, "simulated seconds"), default=20.0,
                    help="traffic runs this long before the ego starts (default 20)")
     p.add_argument("--no-video", action="store_true", help="skip drive.mp4")
+    p.add_argument("--sumo-output", default="",
+                   help="SUMO's own files of the drive, as OUT/sumo-NAME.xml: any of fcd, tripinfo, summary, "
+                   "separated by commas (the ego is in them as 'ego')")
     _decoding_arguments(p)
 
 
@@ -57,6 +60,7 @@ def run_drive(args) -> int:
             None if args.model == "reference" else args.model, args.scenario, args.route, args.out,
             args.seed, args.max_s, DriveConfig(warmup_s=args.warmup_s), video=not args.no_video,
             steer_decoding=args.steer_decoding, brake_gain=args.brake_gain,
+            sumo_outputs=comma_list(args.sumo_output),
         )
     print(
         f"{m['route']}: {m['end_reason']}, completion {100 * m['completion']:.0f}%, collisions {m['collisions']}, "

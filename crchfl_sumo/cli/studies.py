@@ -73,7 +73,8 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
 
 
 def run_simulate(args) -> int:
-    from crchfl_sumo.studies.simulate import run_simulate_command, sumo_output_files
+    from crchfl_sumo.studies.simulate import run_simulate_command
+    from crchfl_sumo.sumo.outputs import sumo_output_files
 
     outputs, routes = comma_list(args.sumo_output), tuple(Path(r) for r in comma_list(args.routes))
     sumo_output_files(outputs, args.out)  # an unknown name is refused before --out is touched

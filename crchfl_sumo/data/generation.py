@@ -34,7 +34,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -65,6 +65,7 @@ from crchfl_sumo.data.route_commands import CommandConfig, track_commands
 from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
 from crchfl_sumo.data.shards import DatasetWriter, ShardData
 from crchfl_sumo.sumo.frame import Frame
+from crchfl_sumo.sumo.outputs import sumo_output_files, sumo_output_options
 from crchfl_sumo.sumo.route import read_net
 from crchfl_sumo.sumo.scenario import DEFAULT_COVERAGE_RADIUS_M, Scenario, SumoConfig, configured_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
@@ -132,8 +133,12 @@ def generate_dataset(
     timings_s: dict[str, float] | None = None,
     command: CommandConfig = CommandConfig(),
     vehicles_per_call: int | None = None,
+    sumo_outputs: Mapping[str, Path] | None = None,
 ) -> Manifest:
     """Generate (or finish) the data set of ``scenario`` in ``out_dir``; returns its manifest.
+
+    ``sumo_outputs`` (sumo.outputs.sumo_output_files): SUMO's own files of the simulation run it makes
+    (a resumed generation's: of the run for its unfinished shards; none when none is left).
 
     ``timings_s``, when given, receives the wall seconds spent in each stage:
     simulate, world (static world build), label, render, write.
@@ -172,9 +177,10 @@ def generate_dataset(
         return writer.manifest
     log.info("%d of %d shards to write", len(pending), len(plan))
     needed = {vehicles[p.file]: p.samples for p in pending}
-    with clock("simulate"):
+    with clock("simulate"), sumo_output_options(sumo_outputs) as options:
         frames, sampled = record_run(
-            scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m
+            scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m,
+            sumo_options=options,
         )
     with clock("label"):
         tracks = tracks_from_frames(frames)
@@ -354,8 +360,10 @@ def run_dataset_command(
     seed: int | None = None,
     config_path: Path | None = None,
     progress: Progress | None = None,
+    sumo_outputs: Sequence[str] = (),
 ) -> Manifest:
-    """What `crchfl-sumo dataset SCENARIO --out DIR [--seed S] [--config TOML]` does."""
+    """What `crchfl-sumo dataset SCENARIO --out DIR [--seed S] [--config TOML] [--sumo-output NAMES]` does."""
+    files = sumo_output_files(sumo_outputs, out_dir)  # an unknown name is refused before anything runs
     config = load_generate_config(config_path, seed)
     scenario = configured_scenario(scenario_name, config.sumo, DEFAULT_COVERAGE_RADIUS_M)
     return generate_dataset(
@@ -368,4 +376,5 @@ def run_dataset_command(
         config.expert,
         progress,
         command=config.command,
+        sumo_outputs=files,
     )

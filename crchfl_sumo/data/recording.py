@@ -45,13 +45,14 @@ def record_run(
     progress: Progress | None = None,
     around_m: float | None = None,
     ahead_m: float = 0.0,
+    sumo_options: tuple[str, ...] = (),
 ) -> tuple[list[Frame], dict[str, list[int]]]:
     """Simulate until each vehicle in ``needed`` has its samples, then FUTURE_S more and until each
     has driven ``ahead_m`` past its last sample (or left the network).
 
     Returns every step's Frame (every vehicle, or with ``around_m`` only the
     needed vehicles and those within it of one) and, per vehicle, the indices
-    of its sampled frames.
+    of its sampled frames. ``sumo_options``: more of SUMO's options (its own output files).
     """
     step_s = scenario.step_length_s
     every = steps_per_sample(scenario, sample_period_s)
@@ -64,7 +65,8 @@ def record_run(
     driven_m = {v: 0.0 for v in needed}  # path driven since the vehicle's last sample
     last_xy: dict[str, tuple[float, float]] = {}
     focus = None if around_m is None else set(needed)  # without a radius, no vehicle may go missing
-    with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0) as sim:
+    with Simulation(scenario, seed=seed, watch=set(needed), focus=focus, around_m=around_m or 0.0,
+                    extra_options=sumo_options) as sim:
         if sim.injection_error is not None and set(needed) & set(scenario.injected):
             raise CrchflError(f"scenario '{scenario.name}': {sim.injection_error}")
         for step in range(max_steps):

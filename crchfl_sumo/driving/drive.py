@@ -242,12 +242,14 @@ def drive(
     expert: ExpertConfig = ExpertConfig(),
     keep_frames: bool = True,
     sumo_log: Path | None = None,
+    sumo_options: tuple[str, ...] = (),
 ) -> DriveResult:
     """Drive ``route`` in ``scenario`` with ``policy`` for at most ``max_s`` simulated seconds.
 
     ``renderer`` (raster.Renderer of the scenario's world) renders the ego's
     cameras for the policy every step; a policy without images passes None.
     ``sumo_log``: SUMO's warnings go to this file instead of the console (sumo_warnings counts them).
+    ``sumo_options``: more of SUMO's options (its own output files, sumo.outputs).
     """
     if not max_s > 0:
         raise CrchflError(f"--max-s must be > 0, got {max_s}")
@@ -257,7 +259,8 @@ def drive(
     rows: list[dict[str, Any]] = []
     frames: list[Frame] = []
     quiet = warnings_to(sumo_log)
-    with Simulation(scenario, seed=seed, extra_options=(*DRIVE_SUMO_OPTIONS, *quiet), watch=[ego]) as sim:
+    options = (*DRIVE_SUMO_OPTIONS, *quiet, *sumo_options)
+    with Simulation(scenario, seed=seed, extra_options=options, watch=[ego]) as sim:
         for _ in range(int(round(config.warmup_s / dt))):
             sim.step()
         type_id = config.type_id if config.type_id in sim.vehicle_type_ids() else DEFAULT_TYPE

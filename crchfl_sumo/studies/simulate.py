@@ -17,7 +17,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ from crchfl_sumo.core.result_files import SUMMARY_FILE
 from crchfl_sumo.links.channel import ChannelConfig
 from crchfl_sumo.links.mobility import NO_SITE, LinkModel, MobilityConfig, ping_pongs
 from crchfl_sumo.sumo.maps import draw_network
+from crchfl_sumo.sumo.outputs import sumo_output_files, sumo_output_options
 from crchfl_sumo.sumo.scenario import Scenario, load_scenario
 from crchfl_sumo.sumo.simulation import Simulation
 from crchfl_sumo.sumo.sites import EdgeSite
@@ -75,19 +75,6 @@ class Trace:
     collisions: int
 
 
-# SUMO's own outputs a simulation can write beside ours (`--sumo-output`): name -> its option; each file is
-# OUT/sumo-NAME.xml, written under a temporary name and renamed when SUMO has closed it.
-SUMO_OUTPUTS = {"fcd": "--fcd-output", "tripinfo": "--tripinfo-output", "summary": "--summary-output"}
-
-
-def sumo_output_files(names: Sequence[str], out_dir: Path) -> dict[str, Path]:
-    """name -> the file each asked-for SUMO output ends in; an unknown name is refused with the known ones."""
-    unknown = sorted(set(names) - set(SUMO_OUTPUTS))
-    if unknown:
-        raise CrchflError(f"--sumo-output: {', '.join(unknown)} unknown; choose from {', '.join(SUMO_OUTPUTS)}")
-    return {name: Path(out_dir) / f"sumo-{name}.xml" for name in dict.fromkeys(names)}
-
-
 def simulate(
     scenario: Scenario,
     duration_s: float,
@@ -103,12 +90,9 @@ def simulate(
     handovers = []
     total_steps = int(round(duration_s / scenario.step_length_s))
     # Positions and speeds are all the links and the trace read: no lanes, signals ahead or signal states.
-    sumo_outputs = dict(sumo_outputs or {})
-    partial = {name: path.with_name(f".{path.name}.partial") for name, path in sumo_outputs.items()}
-    options = tuple(f"{SUMO_OUTPUTS[name]}={path}" for name, path in partial.items())
-    for path in sumo_outputs.values():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    with Simulation(scenario, seed=cfg.seed, watch=(), signals=False, extra_options=options) as sim:
+    with sumo_output_options(sumo_outputs) as options, Simulation(
+        scenario, seed=cfg.seed, watch=(), signals=False, extra_options=options
+    ) as sim:
         for frame in sim.run(duration_s):
             # every vehicle here is a user already: of the background load only the cells' other users
             snapshot = links.step(frame, background_users=cell_users)
@@ -122,8 +106,6 @@ def simulate(
             handovers.extend(snapshot.handovers)
             report(progress, "simulate", len(columns["t_s"]), total_steps)
         stats = sim.stats()
-    for name, path in sumo_outputs.items():  # SUMO closed them with the simulation: complete now
-        os.replace(partial[name], path)
     joined = {
         k: np.concatenate(v) if v else np.zeros(0, dtype=str if k == "vehicle" else float) for k, v in columns.items()
     }
@@ -259,7 +241,7 @@ def run_simulate_command(
     routes: Sequence[Path] = (),
 ) -> dict:
     """What `crchfl-sumo simulate` does; returns the summary. ``sumo_outputs``: SUMO's own files to write
-    as well (SUMO_OUTPUTS' names). ``net`` (and ``routes``) instead of ``scenario_name``: a bare network,
+    as well (sumo.outputs.SUMO_OUTPUTS' names). ``net`` (and ``routes``) instead of ``scenario_name``: a bare network,
     run through a .sumocfg written into ``out_dir`` for it (sumocfg.write_sumocfg).
 
     ``duration_s`` None: the scenario's own length (its configuration's end), else DEFAULT_DURATION_S.

@@ -328,3 +328,18 @@ def test_render_groups_hold_the_shards_whose_images_fit_the_budget():
     # 10 bytes a sample, 60 bytes a group: 3+4 = 7 samples would be 70 bytes.
     groups = [[s.samples for s in group] for group in render_groups(shards, (2, 5), budget_bytes=60)]
     assert groups == [[3], [4, 2], [9], [1]]  # a shard over the budget still forms its own group
+
+
+def test_a_data_set_writes_sumos_own_fcd_of_its_run(grid_dir, tmp_path):
+    import sumolib
+
+    from crchfl_sumo.cli import main
+
+    (tmp_path / "small.toml").write_text(
+        '[dataset]\nsample_period_s = 1.0\ntowns = [{town = "grid", train_samples = [2, 2, 2, 2, 2], '
+        'test_samples = [2]}]\n[raster.camera]\nheight_px = 24\nwidth_px = 48\n')
+    out = tmp_path / "D"
+    assert main(["dataset", str(grid_dir / "grid.sumocfg"), "--out", str(out), "--config", str(tmp_path / "small.toml"),
+                 "--sumo-output", "fcd"]) == 0
+    fcd = {v.id for v in sumolib.xml.parse_fast(str(out / "sumo-fcd.xml"), "vehicle", ["id"])}
+    assert {s.vehicle for s in read_manifest(out).shards} <= fcd  # every data and test vehicle of the run

@@ -668,3 +668,21 @@ def test_expert_labelled_drive_records_the_route_policys_actions_on_the_learners
     assert arrays["steer_class"].tolist() == digitize_steer(arrays["actions"][:, 1]).tolist()
     assert arrays["actions"][0, 0] > 0  # from standstill on an empty road the expert pulls away
     assert arrays["images"].dtype == np.uint8 and arrays["images"].shape[1:] == (4, 64, 128, 3)
+
+
+def test_a_drive_writes_sumos_own_fcd_with_the_ego_in_it(roads, tmp_path, capsys):
+    import sumolib
+
+    from crchfl_sumo.cli import main
+
+    out = tmp_path / "drive"
+    assert main(["drive", "reference", "--route", "AB,BC", "--scenario", str(roads / "signal.sumocfg"), "--out",
+                 str(out), "--max-s", "10", "--warmup-s", "0", "--no-video", "--sumo-output", "fcd,tripinfo"]) == 0
+    steps = [(float(s.time), [v.id for v in (s.vehicle if s.hasChild("vehicle") else [])])
+             for s in sumolib.xml.parse(str(out / "sumo-fcd.xml"), "timestep")]
+    assert any("ego" in ids for _, ids in steps)  # SUMO's copy of the ego, step by step
+    assert (out / "sumo-tripinfo.xml").is_file() and not list(out.glob(".*.partial"))
+    capsys.readouterr()
+    assert main(["drive", "reference", "--route", "AB,BC", "--scenario", str(roads / "signal.sumocfg"), "--out",
+                 str(tmp_path / "bad"), "--sumo-output", "lanes"]) == 2
+    assert "--sumo-output: lanes unknown" in capsys.readouterr().err
