@@ -36,10 +36,10 @@ def read_net_bounds(net_path: Path) -> Bounds:
         raise CrchflError(f"{net_path}: network file not found; check <net-file> in the configuration")
     try:
         with sumolib.openz(str(net_path), "rb") as source:
-            for _, element in ET.iterparse(source, events=("start",)):
-                if element.tag == "location":
-                    xmin, ymin, xmax, ymax = (float(v) for v in element.get("convBoundary", "").split(","))
-                    return Bounds(xmin, ymin, xmax, ymax)
+            for location in sumolib.xml.parse(source, "location"):  # the first one: the rest is not read
+                bounds = location.getAttributeSecure("convBoundary", "")
+                xmin, ymin, xmax, ymax = (float(v) for v in bounds.split(","))
+                return Bounds(xmin, ymin, xmax, ymax)
     except (ET.ParseError, ValueError, OSError, EOFError) as exc:
         raise CrchflError(f"{net_path}: malformed SUMO network ({exc}); rebuild it with netconvert") from None
     raise CrchflError(f"{net_path}: no <location> element: not a SUMO network; rebuild it with netconvert")
