@@ -380,9 +380,10 @@ def summarize(
         "sim_time_s": sim_time_s(state),
         "stragglers": len(state.stragglers),
         "straggler_causes": dict(Counter(s.get("cause", "not recorded") for s in state.stragglers)),
-        "energy_j": vehicle_energy_j(state.records, state.train_s, setup.vehicles, config.energy),
+        "energy_j": vehicle_energy_j(state.records, state.train_s, setup.vehicles, config.energy,
+                                     setup.fleet.off_s_within),
         **({"compute_factors": dict(setup.fleet.compute_factor)} if setup.fleet.compute_factor else {}),
-        **({"off_periods": {v: len(p) for v, p in setup.fleet.off_s.items()}} if setup.fleet.intermittent else {}),
+        **({"off_share": off_share(setup, state)} if setup.fleet.intermittent else {}),
         "selection": config.federation.selection,
         "skipped_by_selection": state.skipped,
         "wasted_bytes": state.wasted_bytes,
@@ -400,6 +401,16 @@ def summarize(
         # [dagger]: the cloud rounds after which the vehicles drove and labelled (their labels: dagger/)
         **({"dagger_rounds": list(state.dagger_rounds)} if config.dagger.enabled else {}),
     }
+
+
+def off_share(setup: LoopInputs, state: FederationState) -> float:
+    """The share of the run's simulated time (from the federation's start to its latest moment) the
+    vehicles were off, over all of them (links/fleet.py)."""
+    start_s, end_s = setup.fleet.start_s, sim_time_s(state)
+    if end_s <= start_s:
+        return 0.0
+    off = sum(setup.fleet.off_s_within(v, start_s, end_s) for v in setup.vehicles)
+    return off / (len(setup.vehicles) * (end_s - start_s))
 
 
 def mean_uplink_rate_mbps(records) -> float | None:

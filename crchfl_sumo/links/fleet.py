@@ -86,10 +86,12 @@ class Fleet:
 
     compute_factor: vehicle -> factor on the nominal time per sample (a vehicle not named: 1).
     off_s: vehicle -> [N, 2] array of sorted, disjoint [start, end) periods it is off (not named: always on).
+    start_s: when the federation starts (the draws start there).
     """
 
     compute_factor: Mapping[str, float] = field(default_factory=dict)
     off_s: Mapping[str, np.ndarray] = field(default_factory=dict)
+    start_s: float = 0.0  # the federation's first moment
 
     @property
     def intermittent(self) -> bool:
@@ -105,6 +107,12 @@ class Fleet:
         periods = self._periods(vehicle)
         i = int(np.searchsorted(periods[:, 0], t_s, side="right")) - 1
         return i < 0 or t_s >= periods[i, 1]
+
+    def off_s_within(self, vehicle: str, from_s: float, to_s: float) -> float:
+        """How long ``vehicle`` is off within ``[from_s, to_s]`` [s]."""
+        periods = self._periods(vehicle)
+        overlap = np.minimum(periods[:, 1], to_s) - np.maximum(periods[:, 0], from_s)
+        return float(np.sum(np.maximum(overlap, 0.0)))
 
     def off_between(self, vehicle: str, from_s: float, to_s: float) -> bool:
         """Whether ``vehicle`` is off at any moment of ``[from_s, to_s]``."""
@@ -158,7 +166,7 @@ def draw_fleet(config: FleetConfig, vehicles: Sequence[str], seed: int, start_s:
         off = read_availability_trace(Path(config.availability_trace), vehicles)
     else:
         off = {}
-    return Fleet(factors, off)
+    return Fleet(factors, off, start_s)
 
 
 def _on_off_periods(config: FleetConfig, rng: np.random.Generator, start_s: float) -> np.ndarray:

@@ -24,6 +24,8 @@ def test_a_transfer_costs_its_megabits_and_its_airtime_under_the_lte_model():
     config = EnergyConfig()
     assert transfer_energy_j(UP, config) == pytest.approx((438.39 * 8 + 1288.04 * 2) / 1000)  # 6.0832 J
     assert transfer_energy_j(DOWN, config) == pytest.approx((51.97 * 8 + 1288.04 * 1) / 1000)  # 1.7038 J
+    # off for 0.5 s of the upload's 2 s: its radio draws the base power 1.5 s only
+    assert transfer_energy_j(UP, config, off_s=0.5) == pytest.approx((438.39 * 8 + 1288.04 * 1.5) / 1000)
 
 
 def test_each_vehicle_pays_its_own_wireless_transfers_and_its_training():

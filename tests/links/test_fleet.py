@@ -39,6 +39,8 @@ def test_on_and_off_at_the_period_ends():
     assert OFF.off_between("a", 0.0, 2.0) and OFF.off_between("a", 3.0, 3.5) and not OFF.off_between("a", 4.0, 5.9)
     assert not OFF.off_between("b", 0.0, 100.0)
     assert list(OFF.boundaries("a", 1.0, 6.5)) == [2.0, 4.0, 6.0]
+    assert OFF.off_s_within("a", 0.0, 10.0) == 3.0 and OFF.off_s_within("a", 3.0, 6.5) == 1.5
+    assert OFF.off_s_within("b", 0.0, 10.0) == 0.0
 
 
 def test_the_link_is_dead_exactly_while_the_vehicle_is_off():
