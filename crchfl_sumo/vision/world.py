@@ -24,7 +24,6 @@ lanes are painted as sidewalk too.
 from __future__ import annotations
 
 import math
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -216,13 +215,11 @@ def _read_lane_change_rules(net_path: Path) -> dict[str, tuple[bool, bool]]:
     """lane id -> (passenger may change left, may change right); sumolib does not keep these."""
     rules = {}
     with sumolib.openz(str(net_path), "rb") as source:  # plain or gzipped, as SUMO reads them
-        for _, element in ET.iterparse(source, events=("end",)):
-            if element.tag == "lane":
-                rules[element.get("id")] = (
-                    _change_allowed(element.get("changeLeft")),
-                    _change_allowed(element.get("changeRight")),
-                )
-        element.clear()
+        for lane in sumolib.xml.parse(source, "lane"):
+            rules[lane.id] = (
+                _change_allowed(lane.getAttributeSecure("changeLeft", None)),
+                _change_allowed(lane.getAttributeSecure("changeRight", None)),
+            )
     return rules
 
 
