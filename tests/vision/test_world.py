@@ -1,3 +1,4 @@
+"""The static world a rasterizer draws, read from a SUMO network (vision/world.py)."""
 
 
 def test_lane_change_rules_are_read_per_lane(tmp_path):
