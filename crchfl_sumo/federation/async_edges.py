@@ -102,7 +102,8 @@ class AsyncFederation(Federation):
         return best
 
     def _failed_upload(self, state: FederationState, ledger: Ledger, attempt: Attempt) -> None:
-        """A failed upload: charged, its vehicle a straggler that trains again from the model it holds."""
+        """A failed upload: charged, its vehicle a straggler that trains again from the model it holds (from the
+        failure, and a clock step after its last try at the soonest)."""
         v, edge = attempt.vehicle, state.member[attempt.vehicle]
         events = {(v, edge, "uplink"): wireless_event(attempt.out)}
         count_transfer(state, "uploads", False)
@@ -111,7 +112,9 @@ class AsyncFederation(Federation):
         if not charge_transfers(ledger, schedule, events, self.setup.rule, state.cloud_rounds + 1, state):
             state.stop_reason = "budget"
             return
-        state.ready_s = {**state.ready_s, v: attempt.out.end_s}
+        # it tries again at the failure, but at least one clock step on: an upload that fails at once (no
+        # coverage under "miss", no compute time) must not fail again at the same moment for ever
+        state.ready_s = {**state.ready_s, v: max(attempt.out.end_s, state.ready_s[v] + self.clock.step_s)}
 
     def _aggregate(self, state: FederationState, ledger: Ledger, edge: str, buffer: list[Attempt], samples) -> None:
         """``edge`` aggregates the updates of ``buffer`` when the last arrives, and sends its model back to them;

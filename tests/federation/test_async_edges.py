@@ -177,3 +177,26 @@ def test_an_async_run_killed_anywhere_resumes_to_the_same_files(tmp_path):
         run_federation_dir(config, inputs, out, trainer=SumTrainer(), resume=True)
         assert result_files(out) == result_files(tmp_path / "whole")
     assert not math.isnan(whole["consumed_bytes"])
+
+
+def test_a_vehicle_whose_uploads_fail_at_once_retries_a_clock_step_later_and_the_run_goes_on():
+    # c has no coverage at all, trains in no time and fails the moment it tries ("miss"); physical rule:
+    # its failures cost nothing, so only time can end its retries
+    home = {"a": 0, "b": 0, "c": 0}
+    tracks = {v: [Segment(0.0, 0, 8e6)] for v in "ab"}
+    config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=3, compute_s_per_sample=0.0,
+                              aggregation="async", async_buffer=2, handover_policy="miss")
+    hyper = HyperParameters(0, 1, 1, 3)
+    setup = LoopInputs(config=config, hyper=hyper, vehicles=("a", "b", "c"), samples={v: _samples(2) for v in "abc"},
+                       home_site=home, edges=("e0",), sizes=resolve_sizes(SMALL), rule="physical",
+                       wireline=WirelineConfig())
+    trainer = PlusCount()
+    federation = AsyncFederation(setup, ScriptedClock(tracks, step_s=0.5), trainer)
+    state = initial_state(setup, trainer, 0.0)
+    for _ in range(500):  # a bounded number of steps: retries at one moment would never end
+        if state.done:
+            break
+        state = federation.step(state)
+    assert state.done and state.cloud_rounds == 3
+    tries = [s["t_s"] for s in state.stragglers if s["vehicle"] == "c"]
+    assert tries and all(b - a >= 0.5 - 1e-9 for a, b in zip(tries, tries[1:]))  # a step apart at least
