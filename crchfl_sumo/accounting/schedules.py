@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Iterable, Literal, Mapping, Sequence
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.schemes import SCHEMES, Scheme
+from crchfl_sumo.core.schemes import SCHEMES, SHAPES, Scheme
 
 Rule = Literal["paper", "physical"]
 
@@ -171,7 +171,7 @@ def stage_one_schedule(
     if sum(samples_per_vehicle.values()) == 0:
         return ()
     out: list[Transfer] = []
-    if scheme == "sfl":
+    if not SHAPES[scheme].edge_tier:
         for v in topology.all_vehicles:
             n = samples_per_vehicle.get(v, 0)
             if n:
@@ -209,8 +209,8 @@ def edge_aggregation_schedule(
     ``cloud_aggregation_schedule``.
     """
     _check_rule_scheme(rule, scheme)
-    if scheme == "sfl":
-        raise ValueError("sfl has no edge aggregation; use cloud_aggregation_schedule")
+    if not SHAPES[scheme].edge_tier:
+        raise ValueError(f"{scheme} has no edge aggregation; use cloud_aggregation_schedule")
     out = [_model("wireless", "uplink", "II", v, e, sizes) for e, vs in topology.active() for v in vs]
     if rule == "paper":
         out += [_model("wireline", "uplink", "III", e, CLOUD, sizes) for e, _ in topology.active()]
@@ -228,7 +228,7 @@ def cloud_aggregation_schedule(rule: Rule, scheme: Scheme, topology: Topology, s
     link, one model each, under both rules.
     """
     _check_rule_scheme(rule, scheme)
-    if scheme == "sfl":
+    if not SHAPES[scheme].edge_tier:
         up = [_model("wireless", "uplink", "III", v, CLOUD, sizes) for v in topology.all_vehicles]
         down = [_model("wireless", "downlink", "III", CLOUD, v, sizes) for v in topology.all_vehicles]
         return tuple(up + down)
@@ -250,9 +250,9 @@ def cloud_round_schedule(
     """
     if cloud_interval < 1:
         raise ValueError(f"cloud_interval must be >= 1, got {cloud_interval}")
-    if scheme == "sfl":
+    if not SHAPES[scheme].edge_tier:
         if cloud_interval != 1:
-            raise ValueError("sfl has no edge tier: cloud_interval must be 1")
+            raise ValueError(f"{scheme} has no edge tier: cloud_interval must be 1")
         return cloud_aggregation_schedule(rule, scheme, topology, sizes)
     out: list[Transfer] = []
     for tau in range(1, cloud_interval + 1):

@@ -19,7 +19,7 @@ from crchfl_sumo.core.numbers import (
     check_range,
     check_seed,
 )
-from crchfl_sumo.core.schemes import SCHEMES, Scheme
+from crchfl_sumo.core.schemes import DISPLAY_NAMES, SCHEMES, SHAPES, Scheme
 from crchfl_sumo.links.clock import DOWNLOAD_HANDOVERS, DownloadHandover
 
 HandoverPolicy = Literal["new_edge", "forward", "wait", "miss"]
@@ -129,6 +129,8 @@ class FederationConfig:
     strategy_options: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.scheme not in SCHEMES:
+            raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
         for key, value in self.strategy_options.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise CrchflError(f"federation.strategy_options.{key}: {value!r} is not a finite number")
@@ -143,8 +145,7 @@ class FederationConfig:
                 f"federation.update_codec: {self.update_codec!r} is not one of {', '.join(map(repr, UPDATE_CODECS))}"
             )
         check_range(self.topk_fraction, "federation.topk_fraction", 0, 1, "a share of the entries", lo_open=True)
-        if self.scheme not in SCHEMES:
-            raise CrchflError(f"federation.scheme: {self.scheme!r} is not one of 'crchfl', 'hfl', 'sfl'")
+        shape, name = SHAPES[self.scheme], DISPLAY_NAMES[self.scheme]
         if self.handover_policy not in get_args(HandoverPolicy):
             raise CrchflError(
                 f"federation.handover_policy: {self.handover_policy!r} is not one of 'new_edge', 'forward', 'wait', 'miss'"
@@ -158,13 +159,13 @@ class FederationConfig:
                 f"federation.selection: {self.selection!r} is not one of "
                 f"{', '.join(repr(name) for name in CLIENT_SELECTIONS)}"
             )
-        if self.selection != "all" and self.scheme == "sfl":
+        if self.selection != "all" and not shape.edge_tier:
             raise CrchflError(
-                f"federation.selection = {self.selection!r} predicts the time left in an edge cell; SFL has no "
+                f"federation.selection = {self.selection!r} predicts the time left in an edge cell; {name} has no "
                 "edge tier: set selection = \"all\" or use crchfl/hfl"
             )
-        if self.use_plan and self.scheme != "crchfl":
-            raise CrchflError("federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for HFL/SFL")
+        if self.use_plan and not shape.planned:
+            raise CrchflError(f"federation.use_plan: only CRCHFL asks the optimizer; set use_plan = false for {name}")
         if self.use_plan:
             # The plan replaces these four: a value set beside it would be ignored (a sweep over one would
             # run the same plan at every point), so it is refused. One set to its default is not seen.
@@ -178,14 +179,14 @@ class FederationConfig:
                     )
         check_range(self.pretrain_batch, "federation.pretrain_batch", 0, MAX_SAMPLES,
                     "a number of samples (0 = no stage I)")
-        if self.pretrain_batch > 0 and self.scheme != "crchfl":
+        if self.pretrain_batch > 0 and not shape.pretraining:
             raise CrchflError(
-                f"federation.pretrain_batch: {self.scheme.upper()} has no pretraining stage; set it to 0 or use crchfl"
+                f"federation.pretrain_batch: {name} has no pretraining stage; set it to 0 or use crchfl"
             )
         check_range(self.edge_interval, "federation.edge_interval", 1, MAX_EPOCHS, "a number of local epochs")
         check_range(self.cloud_interval, "federation.cloud_interval", 1, MAX_EPOCHS, "a number of edge aggregations")
-        if self.scheme == "sfl" and self.cloud_interval != 1:
-            raise CrchflError("federation.cloud_interval: SFL has no edge tier; set cloud_interval = 1")
+        if not shape.edge_tier and self.cloud_interval != 1:
+            raise CrchflError(f"federation.cloud_interval: {name} has no edge tier; set cloud_interval = 1")
         check_range(self.cloud_rounds, "federation.cloud_rounds", 0, MAX_EPOCHS,
                     "a number of rounds (0 = until the budget is spent)")
         check_range(self.pretrain_epochs, "federation.pretrain_epochs", 1, MAX_EPOCHS, "a number of epochs")
@@ -202,12 +203,13 @@ class FederationConfig:
 
     @property
     def hierarchical(self) -> bool:
-        return self.scheme != "sfl"
+        """Vehicles reach the cloud through edges (core.schemes.SchemeShape.edge_tier)."""
+        return SHAPES[self.scheme].edge_tier
 
     def _check_async(self) -> None:
         """What asynchronous edges do not combine with: each refused by its key."""
         refusals = {
-            "scheme": (self.scheme == "sfl", "SFL has no edges to aggregate asynchronously; use hfl or crchfl"),
+            "scheme": (not self.hierarchical, "it has no edges to aggregate asynchronously; use hfl or crchfl"),
             "deadline_s": (math.isfinite(self.deadline_s),
                            "an asynchronous edge waits for no deadline (staleness weights late updates); remove it"),
             "handover_policy": (self.handover_policy == "wait", "'wait' needs a deadline; use new_edge, forward or miss"),
