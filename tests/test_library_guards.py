@@ -64,3 +64,15 @@ def test_data_and_link_entry_points_refuse_a_bad_seed(tmp_path):
         LinkModel([site], seed=2**64)
     LinkModel([site], seed=np.random.default_rng(2**64))  # a generator of the caller's is taken as it is
     assert list(tmp_path.iterdir()) == []
+
+
+def test_no_code_compares_a_schemes_name_outside_its_shape_table():
+    # a scheme's behaviour is read from core.schemes.SHAPES; the studies name the paper's comparisons
+    import re
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parents[1] / "crchfl_sumo"
+    pattern = re.compile(r"""scheme\s*(==|!=)\s*["'](crchfl|hfl|sfl)["']""")
+    found = [f"{p.relative_to(package)}:{i}" for p in package.rglob("*.py") if p.parts[-2] != "studies"
+             and p.name != "schemes.py" for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
+    assert found == []
