@@ -37,6 +37,10 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--red-window-m", type=number_arg(0, MAX_RED_WINDOW_M, "metres before a stop line", lo_open=True),
                    default=TrainConfig.red_window_m,
                    help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
+    p.add_argument("--class-weighting", choices=("none", "inverse", "sqrt_inverse"),
+                   default=TrainConfig.class_weighting,
+                   help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
+                   "multi-lane grid 'none' kept the straight head straight (docs/measurements.md)")
 
 
 def run_train(args) -> int:
@@ -45,9 +49,12 @@ def run_train(args) -> int:
     # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
     # precision its epochs trained in), which folders marked while it was kept still allow
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
-                         red_weight=args.red_weight, red_window_m=args.red_window_m)  # refused before any file
+                         red_weight=args.red_weight, red_window_m=args.red_window_m,
+                         class_weighting=args.class_weighting)  # refused before any file
     if args.red_weight == TrainConfig.red_weight:  # off: a folder trained before these options existed still resumes
         del args.red_weight, args.red_window_m
+    if args.class_weighting == TrainConfig.class_weighting:  # the default: so too
+        del args.class_weighting
     with output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,

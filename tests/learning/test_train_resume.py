@@ -159,9 +159,10 @@ def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(t
     assert main([*argv, "--epochs", "1"]) == 0
     marker = tmp_path / "out" / ".crchfl-sumo-train.json"
     args = vars(build_parser().parse_args([*argv, "--epochs", "1"]))
-    # (nor did --red-weight / --red-window-m exist then; off, they are left out of the settings)
+    # (nor did --red-weight / --red-window-m / --class-weighting exist then; at their defaults, they are left
+    # out of the settings)
     formerly = {k: v for k, v in sorted(args.items())
-                if k not in NOT_SETTINGS and k not in ("epochs", "red_weight", "red_window_m")}
+                if k not in NOT_SETTINGS and k not in ("epochs", "red_weight", "red_window_m", "class_weighting")}
     stored = json.loads(marker.read_text())
     assert stored["resume_fingerprint"] != fingerprint(formerly)  # today's leaves precision out
     marker.write_text(json.dumps({**stored, "resume_fingerprint": fingerprint(formerly)}))
@@ -210,3 +211,14 @@ def test_a_checkpoint_is_not_continued_in_another_precision(data, tmp_path):
     state = load_checkpoint(tmp_path / "a" / "checkpoint.pt").state_dict
     expected = load_checkpoint(tmp_path / "whole" / "checkpoint.pt").state_dict
     assert all(torch.equal(state[k], expected[k]) for k in state)
+
+
+def test_train_takes_the_class_weighting_and_a_folder_of_the_default_still_resumes(tmp_path):
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--precision", "fp32"]
+    assert main([*argv, "--out", str(tmp_path / "none"), "--epochs", "1", "--class-weighting", "none"]) == 0
+    assert load_checkpoint(tmp_path / "none" / "checkpoint.pt").extra["train_config"]["class_weighting"] == "none"
+    assert main([*argv, "--out", str(tmp_path / "none"), "--epochs", "2", "--resume"]) == 2  # another setting
+    assert main([*argv, "--out", str(tmp_path / "none"), "--epochs", "2", "--resume", "--class-weighting", "none"]) == 0
