@@ -233,30 +233,27 @@ def _relative(path: Path) -> str:
     return str(path.relative_to(ROOT))
 
 
-def test_docs_name_existing_package_paths():
-    problems = [
+def _docs_problems(check) -> list[tuple[str, int, str, str]]:
+    """(doc, line, text, why) of every problem ``check`` finds in a doc's text."""
+    return [
         (_relative(path), line, text, why)
         for path in doc_files()
-        for line, text, why in path_problems(path.read_text(encoding="utf-8"))
+        for line, text, why in check(path.read_text(encoding="utf-8"))
     ]
+
+
+def test_docs_name_existing_package_paths():
+    problems = _docs_problems(path_problems)
     assert not problems, _report("paths", problems)
 
 
 def test_docs_name_existing_test_files():
-    problems = [
-        (_relative(path), line, text, why)
-        for path in doc_files()
-        for line, text, why in missing_test_files(path.read_text(encoding="utf-8"))
-    ]
+    problems = _docs_problems(missing_test_files)
     assert not problems, _report("test files", problems)
 
 
 def test_docs_dotted_references_exist():
-    problems = [
-        (_relative(path), line, text, why)
-        for path in doc_files()
-        for line, text, why in dotted_problems(path.read_text(encoding="utf-8"))
-    ]
+    problems = _docs_problems(dotted_problems)
     assert not problems, _report("dotted references", problems)
 
 

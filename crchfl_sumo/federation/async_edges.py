@@ -64,6 +64,12 @@ class Attempt:
 class AsyncFederation(Federation):
     """The loop with asynchronous edges; stage I and everything else as ``Federation``."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # vehicle -> (what its next attempt depends on, the attempt): most vehicles have not moved on since the
+        # last step, and their attempt (a transfer integrated over the clock) is the same
+        self._attempts: dict[str, tuple[tuple, Attempt]] = {}
+
     def _edge_step(self, state: FederationState, ledger: Ledger) -> None:
         samples = self._data(state, ledger)
         attempts = [self._attempt(state, v, len(samples[v])) for v in self.setup.vehicles]
@@ -79,6 +85,13 @@ class AsyncFederation(Federation):
     # -- events
 
     def _attempt(self, state: FederationState, vehicle: str, samples: int) -> Attempt:
+        key = (state.ready_s[vehicle], state.member[vehicle], samples)
+        known = self._attempts.get(vehicle)
+        if known is None or known[0] != key:
+            self._attempts[vehicle] = key, self._new_attempt(state, vehicle, samples)
+        return self._attempts[vehicle][1]
+
+    def _new_attempt(self, state: FederationState, vehicle: str, samples: int) -> Attempt:
         edge = state.member[vehicle]
         size = self.setup.sizes.upload_bytes
         trained_s = self._trained_s(vehicle, state.ready_s[vehicle], samples, self.setup.hyper.edge_interval)

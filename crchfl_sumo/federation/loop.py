@@ -260,19 +260,21 @@ class Federation:
         """Nominal training time: a vehicle of compute factor 1 that stays on."""
         return epochs * samples * self.config.compute_s_per_sample
 
+    def _own_compute_s(self, vehicle: str, samples: int, epochs: int) -> float:
+        """``vehicle``'s training time at its own speed (links/fleet.py), not counting time off."""
+        return self._compute_s(samples, epochs) * self.setup.fleet.factor(vehicle)
+
     def _count_training(self, state: FederationState, counts: Mapping[str, int], epochs: int) -> None:
         """A counted step's training time of each vehicle that trained, at its own speed (its energy)."""
-        own = {v: self._compute_s(n, epochs) * self.setup.fleet.factor(v) for v, n in counts.items()}
+        own = {v: self._own_compute_s(v, n, epochs) for v, n in counts.items()}
         state.train_s = {v: state.train_s.get(v, 0.0) + own.get(v, 0.0) for v in self.setup.vehicles
                          if v in state.train_s or v in own}
 
     def _trained_s(self, vehicle: str, start_s: float, samples: int, epochs: int) -> float:
         """When ``vehicle``, starting at ``start_s``, has trained: at its own speed, paused while it is off."""
-        fleet = self.setup.fleet
-        nominal_s = self._compute_s(samples, epochs)
-        own_s = nominal_s * fleet.factor(vehicle)
-        self._slowed_s[vehicle] = own_s - nominal_s
-        self._trained_at[vehicle] = fleet.work_end_s(vehicle, start_s, own_s)
+        own_s = self._own_compute_s(vehicle, samples, epochs)
+        self._slowed_s[vehicle] = own_s - self._compute_s(samples, epochs)
+        self._trained_at[vehicle] = self.setup.fleet.work_end_s(vehicle, start_s, own_s)
         return self._trained_at[vehicle]
 
     def _upload(

@@ -104,9 +104,7 @@ class Fleet:
         return self.off_s.get(vehicle, _NONE)
 
     def is_on(self, vehicle: str, t_s: float) -> bool:
-        periods = self._periods(vehicle)
-        i = int(np.searchsorted(periods[:, 0], t_s, side="right")) - 1
-        return i < 0 or t_s >= periods[i, 1]
+        return bool(self.on_mask(vehicle, np.array([t_s]))[0])
 
     def off_s_within(self, vehicle: str, from_s: float, to_s: float) -> float:
         """How long ``vehicle`` is off within ``[from_s, to_s]`` [s]."""

@@ -219,14 +219,9 @@ def for_scenario(study: Study, name_or_path: str) -> tuple[Study, list[str]]:
     drive the benchmark in that scenario itself (in Town01 and Town02 where
     it has both); factors whose values are places of the preset's scenario are dropped, and named in the
     returned list. A scenario without data or test vehicles (a plain .sumocfg gets them added) is refused."""
-    from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.sumo.scenario import study_scenario
 
-    scenario = load_scenario(name_or_path)
-    if Path(name_or_path).exists():  # a path: absolute, so that every run (and a Ray task) finds it
-        name_or_path = str(Path(name_or_path).resolve())
-    if not all(any(getattr(t, kind) for t in scenario.towns) for kind in ("data_vehicles", "test_vehicles")):
-        raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
-                          "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
+    scenario, name_or_path = study_scenario(name_or_path)
     if name_or_path == study.data.scenario:
         return study, []
     dropped = [f.name for f in study.factors if f.param.path in SCENARIO_BOUND_KEYS]

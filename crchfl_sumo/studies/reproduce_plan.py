@@ -201,20 +201,15 @@ def for_scenario(config: ReproduceConfig, name_or_path: str) -> ReproduceConfig:
     in total, are shared evenly among the scenario's data and test vehicles; the named drive routes,
     which run in the built-in towns, are dropped; and the benchmark drives in the scenario itself.
     """
-    from crchfl_sumo.sumo.scenario import load_scenario
+    from crchfl_sumo.sumo.scenario import study_scenario
 
-    scenario = load_scenario(name_or_path)
-    if Path(name_or_path).exists():  # a path: absolute, so that every part (and a Ray task) finds it
-        name_or_path = str(Path(name_or_path).resolve())
+    scenario, name_or_path = study_scenario(name_or_path)
     sizes = config.generate.dataset
     names = {town.name for town in scenario.towns}
     if {split.town for split in sizes.towns} <= names:
-        return dataclasses.replace(config, scenario=str(name_or_path))
+        return dataclasses.replace(config, scenario=name_or_path)
     data = sum(len(town.data_vehicles) for town in scenario.towns)
     tests = sum(len(town.test_vehicles) for town in scenario.towns)
-    if not data or not tests:
-        raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
-                          "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
     train_total = sum(n for split in sizes.towns for n in split.train_samples)
     test_total = sum(n for split in sizes.towns for n in split.test_samples)
     towns = tuple(
@@ -223,8 +218,8 @@ def for_scenario(config: ReproduceConfig, name_or_path: str) -> ReproduceConfig:
         for town in scenario.towns if town.data_vehicles and town.test_vehicles
     )
     generate = dataclasses.replace(config.generate, dataset=dataclasses.replace(sizes, towns=towns))
-    return dataclasses.replace(config, scenario=str(name_or_path), generate=generate, drive_routes=(),
-                               bench_towns=(str(name_or_path),))
+    return dataclasses.replace(config, scenario=name_or_path, generate=generate, drive_routes=(),
+                               bench_towns=(name_or_path,))
 
 
 def run_budget_gb(config: ReproduceConfig, scheme: str) -> float:

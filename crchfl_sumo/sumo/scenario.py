@@ -291,3 +291,16 @@ def load_scenario(
         injected=injected,
         inject_seed=inject.seed,
     )
+
+
+def study_scenario(name_or_path: str) -> tuple[Scenario, str]:
+    """The scenario a study moves to (`reproduce --scenario S`, `mobility-study --scenario S`) and the name its
+    runs take: a path made absolute, so that every run (and a Ray task) finds it. One whose towns name no
+    data or no test vehicles is refused (a plain .sumocfg gets them added)."""
+    scenario = load_scenario(name_or_path)
+    if Path(name_or_path).exists():
+        name_or_path = str(Path(name_or_path).resolve())
+    if not all(any(getattr(t, kind) for t in scenario.towns) for kind in ("data_vehicles", "test_vehicles")):
+        raise CrchflError(f"--scenario {name_or_path}: its towns name no data or no test vehicles; name them in a "
+                          "scenario.toml, or let it have some added ([sumo] data_vehicles, docs/scenarios.md)")
+    return scenario, str(name_or_path)
