@@ -115,6 +115,9 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], where: str = "config") -
 
 
 KEY = "key"  # a field's metadata entry naming its key where the field's name cannot be it
+# a field's metadata entry: leave the field out of a mapping while it holds its default (a setting added later,
+# so that what was written before it existed, checkpoints and summaries, stays as it was)
+OMIT_DEFAULT = "omit_default"
 
 
 def _key(f: dataclasses.Field) -> str:
@@ -150,7 +153,11 @@ def _check_finite(value: Any, where: str, allow_inf: bool) -> None:
 def to_mapping(obj: Any) -> Any:
     """Dataclass -> plain dict/list structure (TOML/JSON friendly), the inverse of from_mapping."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {_key(f): to_mapping(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {
+            _key(f): to_mapping(getattr(obj, f.name))
+            for f in dataclasses.fields(obj)
+            if not (f.metadata.get(OMIT_DEFAULT) and getattr(obj, f.name) == f.default)
+        }
     if isinstance(obj, (list, tuple)):
         return [to_mapping(v) for v in obj]
     if isinstance(obj, Path):

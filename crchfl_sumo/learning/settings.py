@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Literal
 
-from crchfl_sumo.core.config import KEY
+from crchfl_sumo.core.config import KEY, OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S, MAX_SPEED_HORIZON_S
@@ -118,7 +118,7 @@ class ModelConfig:
     longitudinal: Literal["pedals", "target_speed"] | None = None
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
     steer_bins: int | None = None
-    class_path: str = field(default="", metadata={KEY: "class"})
+    class_path: str = field(default="", metadata={KEY: "class", OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
         if self.class_path and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", self.class_path):

@@ -294,7 +294,7 @@ def test_config_validation_and_round_trip():
         "size": "paper", "image_height": 64, "image_width": 96,
         "arch": "cil", "norm": "batch", "command_input": "concat", "command_pedals": True, "speed_input": True,
         "steer_speed_input": True,
-        "longitudinal": "target_speed", "speed_horizon_s": 1.5, "steer_bins": 21, "class": "",
+        "longitudinal": "target_speed", "speed_horizon_s": 1.5, "steer_bins": 21,
     }
     for bad in (6, 8, 5, 203, 7.0, True):
         with pytest.raises(CrchflError, match="model.steer_bins"):

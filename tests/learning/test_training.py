@@ -123,7 +123,7 @@ def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
         "size": "compact", "image_height": 48, "image_width": 64,
         "arch": "cil", "norm": "group", "command_input": "branched", "command_pedals": SMALL.command_pedals,
         "speed_input": False, "steer_speed_input": True, "longitudinal": "target_speed", "speed_horizon_s": 1.0,
-        "steer_bins": 21, "class": "",
+        "steer_bins": 21,
     }
     checkpoint = load_checkpoint(path)
     assert checkpoint.model_config == SMALL and checkpoint.extra == {"epoch": 3, "note": "x"}
