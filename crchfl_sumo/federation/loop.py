@@ -69,6 +69,7 @@ from crchfl_sumo.federation.state import FederationState, Labeller, LoopInputs, 
 from crchfl_sumo.learning import codecs
 from crchfl_sumo.learning.aggregate import RunningAverage, fedavg
 from crchfl_sumo.learning.model import State
+from crchfl_sumo.learning.strategies import taking_part
 from crchfl_sumo.links.channel import WirelineConfig
 from crchfl_sumo.links.clock import Clock, Relay, WirelessOutcome, edge_download, wireless_transfer, with_deadline
 from crchfl_sumo.links.fleet import AvailableClock
@@ -453,6 +454,20 @@ class Federation:
                          residence[v], needed[v])
         return picked
 
+    def _taking_part(self, state: FederationState, candidates: Sequence[str]) -> tuple[str, ...]:
+        """The vehicles of ``candidates`` that the strategy's ``configure`` chooses, aggregator by aggregator: each
+        edge among its members, or the cloud among all in SFL (learning/strategies.py)."""
+        def seed(index: int) -> int:
+            return int(np.random.SeedSequence([self.config.seed, 4, state.steps, index]).generate_state(1)[0])
+
+        strategy, candidates = self.setup.strategy, tuple(candidates)
+        if not self.config.hierarchical:
+            return taking_part(strategy, "cloud", CLOUD, candidates, seed(0))
+        chosen: set[str] = set()
+        for i, e in enumerate(self.setup.edges, start=1):
+            chosen.update(taking_part(strategy, "edge", e, tuple(v for v in candidates if state.member[v] == e), seed(i)))
+        return tuple(v for v in candidates if v in chosen)
+
     def _line(
         self, state: FederationState, ledger: Ledger, stage: str, t_s: float, metrics: Mapping | None = None, **extra
     ) -> dict:
@@ -569,7 +584,7 @@ class Federation:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         followed = state.tau + 1 == setup.hyper.cloud_interval
         samples = self._data(state, ledger)
-        picked = self._select(state, samples)
+        picked = self._taking_part(state, self._select(state, samples))
         counts = {v: len(samples[v]) for v in picked}  # |T_nk| of the vehicles that train
         skipped = [v for v in setup.vehicles if v not in picked]
         events: dict[tuple[str, str, str], TransferEvent] = {}
@@ -620,7 +635,7 @@ class Federation:
         state.tau += 1
         state.skipped += len(skipped)
         received = {e: len(vs) for e, vs in received_by.items()}
-        extra = {} if cfg.selection == "all" else {"skipped": skipped}
+        extra = {"skipped": skipped} if skipped or cfg.selection != "all" else {}
         t_s = max(agg_s.values())
         self._line(state, ledger, "II", t_s, edge_metrics, received=received, samples=sum(counts.values()), **extra)
         if followed:
@@ -786,7 +801,9 @@ class Federation:
         setup, cfg, sizes = self.setup, self.config, self.setup.sizes
         epochs = setup.hyper.edge_interval
         samples = self._data(state, ledger)
-        counts = {v: len(samples[v]) for v in samples}
+        picked = self._taking_part(state, tuple(samples))
+        counts = {v: len(samples[v]) for v in picked}
+        skipped = [v for v in setup.vehicles if v not in picked]
         window_end = state.open_s[CLOUD] + cfg.deadline_s
         events: dict[tuple[str, str, str], TransferEvent] = {}
         relays: list[RelayedTransfer] = []
@@ -794,19 +811,22 @@ class Federation:
             v: self._upload(
                 v, None, self._trained_s(v, state.ready_s[v], counts[v], epochs), sizes.upload_bytes, window_end
             )
-            for v in setup.vehicles
+            for v in picked
         }
         ends, received = self._gather_uploads(state, uploads, CLOUD, "III", lambda v: window_end, events, relays)
         cloud_s = max(ends)
         ready = dict(state.ready_s)
         delivered = set(self._send_down(state, CLOUD, setup.vehicles, cloud_s, "III", events, ready, relays))
         # the times first, the training last (as in _edge_step)
-        averages, kept = self._train_and_average(state, epochs, samples, {CLOUD: received}, set(samples) - delivered)
+        averages, kept = self._train_and_average(
+            state, epochs, {v: samples[v] for v in picked}, {CLOUD: received}, set(picked) - delivered
+        )
         cloud_model = state.cloud_model
         if CLOUD in averages:
             average = self._server_update(state, "cloud", CLOUD, state.cloud_model, averages[CLOUD])
             cloud_model = self._sent(average, state.cloud_model)
-        models = {v: cloud_model if v in delivered else kept[v] for v in setup.vehicles}
+        # a vehicle whose download failed keeps what it trained, or, if it sat the round out, what it held
+        models = {v: cloud_model if v in delivered else kept.get(v, state.vehicle_models[v]) for v in setup.vehicles}
         topology = Topology((SFL_LINK,), (setup.vehicles,))
         next_round = state.cloud_rounds + 1
         schedule = self._step_schedule(topology, followed=True)
@@ -816,9 +836,11 @@ class Federation:
         state.vehicle_models, state.ready_s = models, ready
         state.open_s = {CLOUD: cloud_s}
         self._count_training(state, counts, epochs)
+        state.skipped += len(skipped)
         state.cloud_model = cloud_model
         state.cloud_rounds = next_round
-        self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received), samples=sum(counts.values()))
+        extra = {"skipped": skipped} if skipped else {}
+        self._evaluate_cloud(state, ledger, "III", cloud_s, received=len(received), samples=sum(counts.values()), **extra)
 
 
 def _rank(line: Mapping[str, Any]) -> tuple[float, float, float]:

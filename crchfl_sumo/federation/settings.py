@@ -216,6 +216,8 @@ class FederationConfig:
             "selection": (self.selection != "all", "client selection predicts a synchronous window; use \"all\""),
             "update_codec": (self.update_codec != "none", "compressed transfers assume synchronous rounds; use \"none\""),
             "strategy": (self.strategy != "fedavg", "asynchronous edges weight by staleness; use \"fedavg\""),
+            "strategy_options": (bool(self.strategy_options), "an asynchronous edge takes every update that arrives; "
+                                 "remove them"),
         }
         for key, (refused, why) in refusals.items():
             if refused:

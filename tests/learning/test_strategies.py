@@ -16,7 +16,7 @@ from crchfl_sumo.federation.run_config import RunConfig
 from crchfl_sumo.federation.run_data import read_inputs
 from crchfl_sumo.learning.model import build_model
 from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
-from crchfl_sumo.learning.strategies import FedAvg, FedAvgM, strategy_from
+from crchfl_sumo.learning.strategies import FedAvg, FedAvgM, strategy_from, taking_part
 from crchfl_sumo.learning.training import train_vehicle
 
 from helpers import PAPER_VEHICLES, Killed, SumTrainer, kill_after, random_samples, result_files, run_config, write_dataset
@@ -129,3 +129,53 @@ def test_fedavgm_keeps_its_momentum_across_a_kill_and_resume(tmp_path):
         run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), after_checkpoint=kill_after(2))
     run_federation_dir(config, inputs, tmp_path / "killed", trainer=SumTrainer(), resume=True)
     assert result_files(tmp_path / "killed") == result_files(tmp_path / "whole")
+
+
+def test_fraction_draws_each_aggregators_share_by_seed_in_the_candidates_order():
+    candidates = ("a", "b", "c", "d", "e")
+    assert FedAvg().configure("edge", "e0", candidates, 1) is candidates  # every candidate, no draw
+    half = FedAvg(fraction=0.5)
+    chosen = half.configure("edge", "e0", candidates, 7)
+    assert len(chosen) == 3 and set(chosen) <= set(candidates)  # 2.5 rounds up
+    assert list(chosen) == sorted(chosen, key=candidates.index)
+    assert half.configure("edge", "e0", candidates, 7) == chosen  # the same seed, the same draw
+    assert len({half.configure("edge", "e0", candidates, s) for s in range(20)}) > 1
+    assert FedAvg(fraction=0.01).configure("cloud", "cloud", candidates, 3) != ()  # at least one
+    assert strategy_from("fedprox", {"fraction": 0.4}).fraction == 0.4
+    with pytest.raises(CrchflError, match="fraction must lie in"):
+        strategy_from("fedavg", {"fraction": 0.0})
+
+
+def test_a_strategy_without_configure_takes_all_and_one_choosing_strangers_is_refused():
+    class Plain:
+        proximal_mu = 0.0
+
+    class Stranger(Plain):
+        def configure(self, tier, node, candidates, seed):
+            return ("x",)
+
+    assert taking_part(Plain(), "edge", "e0", ("a", "b"), 0) == ("a", "b")
+    with pytest.raises(CrchflError, match="federation.strategy: configure chose \\['x'\\] for e0"):
+        taking_part(Stranger(), "edge", "e0", ("a", "b"), 0)
+
+
+@pytest.mark.parametrize("scheme, fraction, sits_out", [("hfl", 0.5, 2), ("sfl", 0.4, 3)])
+def test_a_fraction_of_the_vehicles_trains_in_a_run_and_the_rest_is_skipped(tmp_path, scheme, fraction, sits_out):
+    """HFL, 0.5: edge01 has 2 members (1 trains), edge02 3 (2 train, 1.5 rounded up); SFL, 0.4 of 5: 2 train."""
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    counts = dict(zip((v for v, _, _ in PAPER_VEHICLES), (2, 3, 2, 2, 1)))
+    lines = {}
+    for name in ("a", "b"):
+        config = from_mapping(RunConfig, run_config(dataset, scheme=scheme, cloud_rounds=3,
+                                                    strategy_options={"fraction": fraction}))
+        summary = run_federation_dir(config, read_inputs(config), tmp_path / name, trainer=SumTrainer())
+        lines[name] = [json.loads(x) for x in (tmp_path / name / "metrics.jsonl").read_text().splitlines()]
+    trained = [x for x in lines["a"] if "skipped" in x]
+    assert len(trained) == 3 and summary["cloud_rounds"] == 3
+    for x in trained:
+        assert len(x["skipped"]) == sits_out
+        assert x["samples"] == sum(n for v, n in counts.items() if v not in x["skipped"])
+    assert [x["skipped"] for x in lines["a"] if "skipped" in x] == [x["skipped"] for x in lines["b"] if "skipped" in x]
+    with pytest.raises(CrchflError, match="federation.strategy_options: .* with aggregation"):
+        from_mapping(RunConfig, {"federation": {"scheme": "hfl", "aggregation": "async",
+                                                "strategy_options": {"fraction": 0.5}}}, "r")
