@@ -318,7 +318,7 @@ def drive(
                 rows.append(record | {"throttle": math.nan, "steer": math.nan, "brake": math.nan})
                 break
             images = renderer.render(frame, [ego])[0] if renderer is not None else None
-            throttle, steer, brake = policy(Observation(frame, ego, row, s, images, offset, lane_width))
+            throttle, steer, brake = policy(Observation(frame, ego, row, s, images, offset, lane_width, dt))
             rows.append(record | {"throttle": throttle, "steer": steer, "brake": brake})
             accel = acceleration_from_pedals(throttle, brake, state.speed_mps, max_accel, max_decel, expert)
             new_state = bicycle_step(state, accel, steer, dt, expert)

@@ -50,6 +50,7 @@ class Observation:
     images: np.ndarray | None  # uint8 [4, H, W, 3] when the loop renders, else None
     offset_m: float = 0.0  # the ego centre's signed distance from the route's centre line (LEFT +)
     lane_width_m: float = math.inf  # the planned lane's width there
+    step_s: float = 0.0  # the loop's step: the action holds this long (0: not known)
 
 
 Policy = Callable[[Observation], Action]
@@ -72,7 +73,8 @@ class RoutePolicyConfig:
     """A scripted driver that knows the route (no images): the reference the models are compared to.
 
     target_speed_mps        cruise speed
-    lookahead_min_m, lookahead_time_s  pure-pursuit look-ahead max(min, time * speed) on the centre line
+    lookahead_min_m, lookahead_time_s  pure-pursuit look-ahead max(min, time * speed) on the centre line,
+                            and at least LOOKAHEAD_STEPS steps of travel
     speed_gain_per_s        desired acceleration per m/s of speed error
     headway_s, standstill_gap_m  distance kept to a vehicle ahead in the lane: gap >= standstill + headway * v
     comfort_decel_mps2      deceleration planned for stopping at a light
@@ -124,6 +126,12 @@ def leader_gap_m(
     return float((s_o - s_m - frame.length_m[rows] / 2.0 - half_length_m)[ahead].min())
 
 
+# Pure pursuit aims at a point it reaches in about one step when the look-ahead is one step's travel, and then
+# swings from side to side (A10KW's 0.5 s steps at 8 m/s: 4 m a step against a 4 m look-ahead): it looks at least
+# this many steps ahead. The towns' 0.25 s steps give 0.5 s * speed, their look-ahead time already.
+LOOKAHEAD_STEPS = 2.0
+
+
 class RoutePolicy:
     """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane.
 
@@ -142,9 +150,11 @@ class RoutePolicy:
         self.config = config
         self.expert = expert
 
-    def steer(self, x_m: float, y_m: float, heading_rad: float, speed_mps: float, progress_m: float) -> float:
+    def steer(
+        self, x_m: float, y_m: float, heading_rad: float, speed_mps: float, progress_m: float, step_s: float = 0.0
+    ) -> float:
         cfg = self.config
-        look = max(cfg.lookahead_min_m, cfg.lookahead_time_s * speed_mps)
+        look = max(cfg.lookahead_min_m, max(cfg.lookahead_time_s, LOOKAHEAD_STEPS * step_s) * speed_mps)
         tx, ty, _ = point_at(self.route, progress_m + look)
         dx, dy = tx - x_m, ty - y_m
         chord = math.hypot(dx, dy)
@@ -211,7 +221,8 @@ class RoutePolicy:
         frame, row = observation.frame, observation.ego_row
         v = float(frame.speed_mps[row])
         steer = self.steer(
-            float(frame.x_m[row]), float(frame.y_m[row]), float(frame.heading_rad[row]), v, observation.progress_m
+            float(frame.x_m[row]), float(frame.y_m[row]), float(frame.heading_rad[row]), v, observation.progress_m,
+            observation.step_s,
         )
         wanted = accel = self.wanted_accel_mps2(observation)
         if v < self.expert.stop_speed_mps and accel < 0:
