@@ -18,6 +18,7 @@ import dataclasses
 import heapq
 import itertools
 import logging
+import math
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +28,9 @@ import numpy as np
 import sumolib
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.route import GREEN_LETTERS, RouteGeometry, read_net, route_geometry
+from crchfl_sumo.sumo.route import GREEN_LETTERS, Crossing, RouteGeometry, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import Scenario
+from crchfl_sumo.sumo.turns import HEADING_CHORD_M
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +38,14 @@ DEFAULT_TOWNS = ("town01", "town02")  # where the benchmark drives unless told o
 
 TURN_DIRECTIONS = ("l", "r", "L", "R")  # SUMO link directions that need the wheel turned
 U_TURN_DIRECTIONS = ("t", "T")  # routes with a U-turn are not drawn (the towns have none)
+# Nor are routes that turn back through a junction SUMO does not call a U-turn: the end of a dual carriageway,
+# where one carriageway's edge meets the other's (A10KW: links 's', 'l' and 'R' that turn 146 to 179 degrees,
+# tighter than the car's lock). The towns turn at most 90 degrees, A10KW's and DRT's other links at most 127.
+U_TURN_MIN_RAD = math.radians(135.0)
+# A signal that holds a link red for longer than a drive may stand still (drive_bench.STUCK_S) ends a drive that
+# obeys it stuck: such routes are not drawn. A10KW's signals are the SUMO game's, switched by its player: their
+# phases last 10000 s. The towns' longest red is 50 s.
+MAX_RED_S = 90.0
 # CoRL2017's time budget (CARLA driving-benchmarks, calculate_time_out): the route at
 # 10 km/h plus 10 s. Added here: each signal on the route may hold the ego for its
 # longest red, which the towns' in-phase signals make up to 47 s.
@@ -219,6 +229,30 @@ def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
     return waits
 
 
+def crossing_turn_rad(route: RouteGeometry, crossing: Crossing) -> float:
+    """How far the route turns through a crossing: its direction over HEADING_CHORD_M after the junction minus that
+    over HEADING_CHORD_M before the stop line, wrapped to [-pi, pi], left positive."""
+    def chord_rad(a_m: float, b_m: float) -> float:
+        (xa, ya, _), (xb, yb, _) = point_at(route, a_m), point_at(route, b_m)
+        return math.atan2(yb - ya, xb - xa)
+
+    turn = chord_rad(crossing.s_end_m, crossing.s_end_m + HEADING_CHORD_M) - chord_rad(
+        crossing.s_start_m - HEADING_CHORD_M, crossing.s_start_m
+    )
+    return math.remainder(turn, 2.0 * math.pi)
+
+
+def drawable(route: RouteGeometry, waits: dict[tuple[str, int], float]) -> bool:
+    """No U-turn (SUMO's, or a turn through a junction of more than U_TURN_MIN_RAD) and no link red for longer
+    than MAX_RED_S."""
+    return not any(
+        c.direction in U_TURN_DIRECTIONS
+        or abs(crossing_turn_rad(route, c)) > U_TURN_MIN_RAD
+        or waits.get((c.tls_id, c.link_index), 0.0) > MAX_RED_S
+        for c in route.crossings
+    )
+
+
 def time_limit_s(route: RouteGeometry, waits: dict[tuple[str, int], float]) -> float:
     """CoRL2017's budget (the route at 10 km/h + 10 s) plus the longest red of each signal passed."""
     held = sum(waits.get((c.tls_id, c.link_index), 0.0) for c in route.crossings if c.tls_id)
@@ -298,9 +332,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
         if not apart_from_data(ids, excluded):
             continue
         geometry = route_geometry(net, ids)  # a shortest path's edges connect; lane changes are planned
-        if not config.min_route_m <= geometry.length_m <= config.max_route_m or any(
-            c.direction in U_TURN_DIRECTIONS for c in geometry.crossings
-        ):
+        if not config.min_route_m <= geometry.length_m <= config.max_route_m or not drawable(geometry, waits):
             continue
         candidates.append(Candidate(ids, geometry.length_m, count_turns(geometry), time_limit_s(geometry, waits)))
     return candidates

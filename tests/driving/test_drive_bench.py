@@ -14,7 +14,7 @@ import pytest
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.intervals import wilson_interval
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
+from crchfl_sumo.driving.drive_bench import STUCK_S, BenchConfig, run_benchmark
 from crchfl_sumo.driving.drive_bench_behaviour import ABILITIES
 from crchfl_sumo.driving.drive_bench_score import (
     penalty,
@@ -26,13 +26,16 @@ from crchfl_sumo.driving.drive_bench_score import (
 )
 from crchfl_sumo.driving.drive_bench_tasks import (
     TASKS,
+    MAX_RED_S,
     TIME_BUDGET_SPEED_MPS,
     TaskConfig,
     Candidate,
     apart_from_data,
     candidate_routes,
     count_turns,
+    crossing_turn_rad,
     data_routes,
+    drawable,
     draw_episodes,
     drives_stretch_of,
     longest_waits_s,
@@ -163,6 +166,28 @@ def test_longest_waits_wrap_round_the_cycle_and_time_limit_by_hand(tmp_path):
                           (Crossing(100.0, 110.0, "J", 1, "s"), Crossing(200.0, 210.0, "", -1, "l")))
     assert TIME_BUDGET_SPEED_MPS == pytest.approx(10 / 3.6)
     assert time_limit_s(route, waits) == pytest.approx(250.0 / (10 / 3.6) + 10.0 + 18.0)  # 90 + 10 + 18 s
+
+
+def test_turning_back_and_a_red_longer_than_a_drive_may_stand_are_not_drawn():
+    """A10KW's dual carriageways end in links SUMO calls 's' or 'l' that turn back by 150 degrees or more, and its
+    signals (the SUMO game's, switched by a player) hold a link red for 20012 s: the reference driver left the road
+    turning back and ended stuck at the red. A 90 degree turn and a 90 s red are drawn."""
+    def route(points, crossing):
+        xy = np.asarray(points, dtype=np.float64)
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        return RouteGeometry(("a", "b"), xy, s, np.full(len(xy) - 1, 3.2), np.zeros(len(xy) - 1, bool), (crossing,))
+
+    # stop line at s = 20, junction to s = 26 (6 m across), then out: left by 90 degrees, or back 6 m to the left
+    left = route([(0, 0), (20, 0), (26, 0), (26, 30)], Crossing(20.0, 26.0, "", -1, "l"))
+    back = route([(0, 0), (20, 0), (26, 0), (26, 6), (0, 6)], Crossing(20.0, 32.0, "", -1, "s"))
+    assert crossing_turn_rad(left, left.crossings[0]) == pytest.approx(math.pi / 2)
+    assert abs(crossing_turn_rad(back, back.crossings[0])) == pytest.approx(math.pi)
+    assert drawable(left, {}) and not drawable(back, {})
+    assert not drawable(route([(0, 0), (20, 0), (40, 0)], Crossing(20.0, 26.0, "", -1, "t")), {})  # SUMO's U-turn
+    assert MAX_RED_S <= STUCK_S  # a drive obeying a longer red would end stuck
+    signal = route([(0, 0), (20, 0), (40, 0)], Crossing(20.0, 26.0, "J", 0, "s"))
+    assert drawable(signal, {("J", 0): 90.0})
+    assert not drawable(signal, {("J", 0): 20012.0})
 
 
 # --- routes on a known network ----------------------------------------------------------------------
