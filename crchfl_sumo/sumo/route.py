@@ -92,10 +92,10 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     """The centre line of ``edges`` through ``net`` (a sumolib net read with internal lanes).
 
     Lane-level: ``plan_lanes`` takes, on each edge, a lane with a connection to the next edge, with the
-    fewest lane changes (ties: the connection listed first from the lane the vehicle is on; on the first
-    edge the rightmost lane). Where an edge's exit lane differs from the lane the route entered it on,
-    the centre line moves over smoothly (``lane_change_shape``), finished LANE_CHANGE_END_M before
-    the stop line. Between two edges it follows the connection's internal lanes. A single edge is
+    fewest lane changes (ties: the connection listed first from the lane the vehicle is on), starting on
+    the lane SUMO inserts the ego on (``start_lane``). Where an edge's exit lane differs from the lane the
+    route entered it on, the centre line moves over smoothly (``lane_change_shape``), finished
+    LANE_CHANGE_END_M before the stop line. Between two edges it follows the connection's internal lanes. A single edge is
     driven on ``lane_index``.
     """
     edges = tuple(edges)
@@ -179,12 +179,20 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     )
 
 
+def start_lane(edge, vclass: str = "passenger"):
+    """The lane SUMO inserts a vehicle on at the start of ``edge`` (its default departLane "first"): the rightmost
+    lane that allows ``vclass``, else the rightmost."""
+    return next((lane for lane in edge.getLanes() if lane.allows(vclass)), edge.getLanes()[0])
+
+
 def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, Any, Any]]:
     """Per edge of a route (sumolib edges): (the lane it is entered on, the lane it is left from, the connection
     to the next edge; None on the last), with the fewest lane changes (a change of k lanes counts k).
 
-    Ties go to the rightmost first lane and to the connection listed first, so a route that needs no change
-    keeps the lanes it always had. A route whose edges do not connect is refused.
+    The first edge is entered on ``start_lane``, where SUMO inserts the ego: a route that leaves it from another
+    lane changes lanes on it (planned from the rightmost lane, the ego started one lane width or two off its
+    centre line on A10KW). Ties go to the connection listed first, so a route that needs no change keeps the
+    lanes it always had. A route whose edges do not connect is refused.
     """
     n = len(objects)
     options = []
@@ -199,14 +207,13 @@ def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, A
     cost: list[dict[str, int]] = [dict() for _ in range(n)]
     cost[n - 1] = {lane.getID(): 0 for lane in objects[n - 1].getLanes()}
 
-    def best(i: int, entry_index: int | None):
-        """Edge i's best connection for a vehicle on lane ``entry_index`` (None: free, the first edge)."""
+    def best(i: int, entry_index: int):
+        """Edge i's best connection for a vehicle on lane ``entry_index``."""
         ranked = []
         for order, c in enumerate(options[i]):
-            change = 0 if entry_index is None else abs(c.getFromLane().getIndex() - entry_index)
-            total = change + cost[i + 1][c.getToLane().getID()]
-            ranked.append((total, change, c.getFromLane().getIndex() if entry_index is None else 0, order, c))
-        return min(ranked, key=lambda r: r[:4])
+            change = abs(c.getFromLane().getIndex() - entry_index)
+            ranked.append((change + cost[i + 1][c.getToLane().getID()], change, order, c))
+        return min(ranked, key=lambda r: r[:3])
 
     for i in range(n - 2, -1, -1):
         cost[i] = {lane.getID(): best(i, lane.getIndex())[0] for lane in objects[i].getLanes()}
@@ -214,11 +221,10 @@ def plan_lanes(objects: Sequence[Any], lane_index: int = 0) -> list[tuple[Any, A
         lane = objects[0].getLanes()[lane_index]
         return [(lane, lane, None)]
     plan = []
-    entry = None
+    entry = start_lane(objects[0])
     for i in range(n - 1):
-        connection = best(i, None if entry is None else entry.getIndex())[4]
-        exit_lane = connection.getFromLane()
-        plan.append((entry if entry is not None else exit_lane, exit_lane, connection))
+        connection = best(i, entry.getIndex())[3]
+        plan.append((entry, connection.getFromLane(), connection))
         entry = connection.getToLane()
     plan.append((entry, entry, None))
     return plan

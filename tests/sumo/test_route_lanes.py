@@ -72,6 +72,35 @@ def test_a_turn_from_the_other_lane_plans_a_lane_change_finished_before_the_stop
     assert np.abs(offset).max() < 1e-6
 
 
+def test_a_route_starts_on_the_lane_sumo_inserts_the_ego_on(fork):
+    """SUMO inserts the ego on the first edge's rightmost lane (departLane "first"): a route starting on AB that
+    turns left to C changes lanes on AB, as one entering AB from Z does; it was planned on AB's left lane all
+    along, and the ego stood one lane width off its centre line (A10KW: one or two)."""
+    net = read_net(fork)
+    plan = plan_lanes([net.getEdge(e) for e in ("AB", "BC")])
+    assert [(entry.getID(), exit_lane.getID()) for entry, exit_lane, _ in plan] == [("AB_0", "AB_1"), ("BC_0", "BC_0")]
+    route = route_geometry(net, ["AB", "BC"])
+    right = np.asarray(net.getEdge("AB").getLane(0).getShape())
+    assert np.allclose(route.xy_m[0], right[0]) and route.lane_at(1.0) == "AB_0"
+    assert route.lane_at(route.crossings[0].s_start_m - 1.0) == "AB_1"
+
+
+@pytest.mark.slow
+def test_the_reference_driver_starts_on_its_route(fork):
+    from crchfl_sumo.driving.drive import DriveConfig, drive
+    from crchfl_sumo.driving.drive_bench_tasks import without_traffic
+    from crchfl_sumo.driving.policies import RoutePolicy
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    (fork.parent / "f.sumocfg").write_text('<configuration><input><net-file value="f.net.xml"/></input>'
+                                           '<time><step-length value="0.25"/></time></configuration>')
+    scenario = without_traffic(load_scenario(fork.parent / "f.sumocfg"))
+    route = route_geometry(read_net(fork), ["AB", "BC"])
+    result = drive(scenario, route, RoutePolicy(route), max_s=90.0, config=DriveConfig(warmup_s=0.0))
+    assert abs(result.log.offset_m[0]) < 0.05  # was 3.2 m: inserted on AB_0, planned on AB_1
+    assert result.metrics["end_reason"] == "completed" and result.metrics["lane_departures"] == 0
+
+
 def test_lane_plans_need_connected_edges(fork):
     net = read_net(fork)
     with pytest.raises(CrchflError, match="edge 'BC' does not lead to 'AB'"):
