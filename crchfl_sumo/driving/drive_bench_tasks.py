@@ -242,10 +242,30 @@ def crossing_turn_rad(route: RouteGeometry, crossing: Crossing) -> float:
     return math.remainder(turn, 2.0 * math.pi)
 
 
-def drawable(route: RouteGeometry, waits: dict[tuple[str, int], float]) -> bool:
-    """No U-turn (SUMO's, or a turn through a junction of more than U_TURN_MIN_RAD) and no link red for longer
-    than MAX_RED_S."""
-    return not any(
+def queue_edges(net, waits: dict[tuple[str, int], float]) -> set[str]:
+    """Edges from which every way on (for passenger cars) waits at a link red for longer than MAX_RED_S, at once or
+    after more such edges: the traffic queues there and the queue only grows (A10KW: the game's red spills back
+    over 200 m of two edges a route may end on, and the ego waited in it until it ended stuck)."""
+    def blocked(edge) -> bool:
+        ways = [(to, c) for to, connections in edge.getOutgoing().items() if to.allows("passenger") for c in connections]
+        return bool(ways) and all(
+            to.getID() in found or waits.get((c.getTLSID(), c.getTLLinkIndex()), 0.0) > MAX_RED_S for to, c in ways
+        )
+
+    found: set[str] = set()
+    pending = list(net.getEdges(withInternal=False))
+    while pending:  # an edge found blocked may block the edges leading to it
+        edge = pending.pop()
+        if edge.getID() not in found and blocked(edge):
+            found.add(edge.getID())
+            pending += [e for e in edge.getIncoming() if e.getFunction() != "internal"]
+    return found
+
+
+def drawable(route: RouteGeometry, waits: dict[tuple[str, int], float], queues: set[str] = frozenset()) -> bool:
+    """No U-turn (SUMO's, or a turn through a junction of more than U_TURN_MIN_RAD), no link red for longer
+    than MAX_RED_S and no edge of ``queues`` (queue_edges)."""
+    return not any(e in queues for e in route.edges) and not any(
         c.direction in U_TURN_DIRECTIONS
         or abs(crossing_turn_rad(route, c)) > U_TURN_MIN_RAD
         or waits.get((c.tls_id, c.link_index), 0.0) > MAX_RED_S
@@ -320,6 +340,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
     net_path = Path(scenario.net_path)
     net = read_net(net_path)
     waits = longest_waits_s(net_path)
+    queues = queue_edges(net, waits)
     excluded = data_routes(scenario)
     candidates = []
     edges = sorted((e for e in net.getEdges(withInternal=False) if e.allows("passenger")), key=lambda e: e.getID())
@@ -332,7 +353,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
         if not apart_from_data(ids, excluded):
             continue
         geometry = route_geometry(net, ids)  # a shortest path's edges connect; lane changes are planned
-        if not config.min_route_m <= geometry.length_m <= config.max_route_m or not drawable(geometry, waits):
+        if not config.min_route_m <= geometry.length_m <= config.max_route_m or not drawable(geometry, waits, queues):
             continue
         candidates.append(Candidate(ids, geometry.length_m, count_turns(geometry), time_limit_s(geometry, waits)))
     return candidates

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import netconvert
+
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.intervals import wilson_interval
 from crchfl_sumo.data.expert import ExpertConfig
@@ -37,6 +39,7 @@ from crchfl_sumo.driving.drive_bench_tasks import (
     data_routes,
     drawable,
     draw_episodes,
+    queue_edges,
     drives_stretch_of,
     longest_waits_s,
     task_by_name,
@@ -188,6 +191,30 @@ def test_turning_back_and_a_red_longer_than_a_drive_may_stand_are_not_drawn():
     signal = route([(0, 0), (20, 0), (40, 0)], Crossing(20.0, 26.0, "J", 0, "s"))
     assert drawable(signal, {("J", 0): 90.0})
     assert not drawable(signal, {("J", 0): 20012.0})
+
+
+def test_edges_whose_every_way_on_waits_at_a_red_longer_than_a_drive_are_queues(tmp_path):
+    """Z -> A, then A -> D (free) or A -> M -> B -> C with a signal at B: with B's link red for 20012 s (A10KW's
+    game signals) MB and AM, whose only way on is MB, fill with a queue that never moves; ZA can turn to D. With a
+    50 s red (the towns' longest) nothing queues for ever."""
+    (tmp_path / "q.nod.xml").write_text(
+        '<nodes><node id="Z" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="D" x="0" y="-100"/>'
+        '<node id="M" x="100" y="0"/><node id="B" x="200" y="0" type="traffic_light"/><node id="C" x="300" y="0"/>'
+        '</nodes>'
+    )
+    (tmp_path / "q.edg.xml").write_text(
+        "<edges>" + "".join(f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="1" speed="13.89"/>'
+                            for a, b in ("ZA", "AD", "AM", "MB", "BC")) + "</edges>"
+    )
+    netconvert(tmp_path / "q.nod.xml", tmp_path / "q.edg.xml", tmp_path / "q.net.xml")
+    net = read_net(tmp_path / "q.net.xml")
+    (link,) = net.getEdge("MB").getConnections(net.getEdge("BC"))
+    assert (link.getTLSID(), link.getTLLinkIndex()) == ("B", 0)
+    assert queue_edges(net, {("B", 0): 20012.0}) == {"MB", "AM"}
+    assert queue_edges(net, {("B", 0): 50.0}) == set()
+    route = RouteGeometry(("ZA", "AM"), np.array([[-100.0, 0.0], [100.0, 0.0]]), np.array([0.0, 200.0]),
+                          np.array([3.2]), np.array([False]), ())
+    assert drawable(route, {}) and not drawable(route, {}, {"MB", "AM"})
 
 
 # --- routes on a known network ----------------------------------------------------------------------
