@@ -8,7 +8,7 @@ from pathlib import Path
 from crchfl_sumo.cli.arguments import output_folder, overwrite_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
-from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, TrainConfig
+from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, SPEED_INPUTS, TrainConfig
 
 
 def add_train(p: argparse.ArgumentParser) -> None:
@@ -41,6 +41,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    default=TrainConfig.class_weighting,
                    help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
                    "multi-lane grid 'none' kept the straight head straight (docs/measurements.md)")
+    p.add_argument("--speed-input", choices=tuple(SPEED_INPUTS), default="none",
+                   help="the ego's speed as an input of the throttle/brake branch (longitudinal) or of both branches; "
+                   "default none (the paper's); measured in docs/measurements.md")
 
 
 def run_train(args) -> int:
@@ -55,10 +58,13 @@ def run_train(args) -> int:
         del args.red_weight, args.red_window_m
     if args.class_weighting == TrainConfig.class_weighting:  # the default: so too
         del args.class_weighting
+    speed_input = args.speed_input
+    if speed_input == "none":  # so too
+        del args.speed_input
     with output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
-                                 resume=args.resume, overwrite=args.overwrite, progress=bars)
+                                 resume=args.resume, overwrite=args.overwrite, progress=bars, speed_input=speed_input)
         straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "

@@ -27,6 +27,13 @@ SPEED_SCALE_MPS = 10.0  # speed enters the network as speed_mps / 10: about [0, 
 
 
 ARCHS = ("cil", "paper")
+# `train --speed-input`: the ModelConfig fields each choice sets (the ego's speed into branch I, and into the
+# steer branch too); "none" leaves the defaults, the paper's network without the speed
+SPEED_INPUTS = {
+    "none": {},
+    "longitudinal": {"speed_input": True, "steer_speed_input": False},
+    "both": {"speed_input": True, "steer_speed_input": True},
+}
 
 
 NORMS = ("group", "batch", "layer", "none")

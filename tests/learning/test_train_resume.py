@@ -222,3 +222,23 @@ def test_train_takes_the_class_weighting_and_a_folder_of_the_default_still_resum
     assert load_checkpoint(tmp_path / "none" / "checkpoint.pt").extra["train_config"]["class_weighting"] == "none"
     assert main([*argv, "--out", str(tmp_path / "none"), "--epochs", "2", "--resume"]) == 2  # another setting
     assert main([*argv, "--out", str(tmp_path / "none"), "--epochs", "2", "--resume", "--class-weighting", "none"]) == 0
+
+
+def test_train_feeds_the_speed_as_speed_input_says_and_the_default_leaves_the_config_as_before(tmp_path):
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+    from crchfl_sumo.learning.settings import ModelConfig
+
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--precision", "fp32", "--epochs", "1"]
+    configs = {}
+    for choice in ("none", "longitudinal", "both"):
+        assert main([*argv, "--out", str(tmp_path / choice), "--speed-input", choice]) == 0
+        configs[choice] = load_checkpoint(tmp_path / choice / "checkpoint.pt").model_config
+    assert configs["none"] == ModelConfig("compact", 48, 64, speed_horizon_s=configs["none"].speed_horizon_s)
+    assert (configs["longitudinal"].speed_input, configs["longitudinal"].steer_speed_input) == (True, False)
+    assert (configs["both"].speed_input, configs["both"].steer_speed_input) == (True, True)
+    # the default leaves the folder's marker as a training from before the option existed wrote it
+    assert main([*argv, "--out", str(tmp_path / "plain")]) == 0
+    assert (tmp_path / "plain" / ".crchfl-sumo-train.json").read_text() == \
+        (tmp_path / "none" / ".crchfl-sumo-train.json").read_text()
+    assert main([*argv, "--out", str(tmp_path / "longitudinal"), "--epochs", "2", "--resume"]) == 2  # another setting
