@@ -154,12 +154,12 @@ def count_turns(route: RouteGeometry) -> int:
 # --- the routes of the training data ---------------------------------------------------------------
 
 
-def route_files(scenario: Scenario) -> list[Path]:
-    """The route files a scenario's SUMO loads."""
+def route_files(scenario: Scenario, option: str = "--route-files") -> list[Path]:
+    """The route files (or the files of another list ``option``, e.g. --additional-files) a scenario's SUMO loads."""
     files = []
-    for option in scenario.sumo_options:
-        if option.startswith("--route-files="):
-            files += [Path(f) for f in option.split("=", 1)[1].split(",") if f]
+    for given in scenario.sumo_options:
+        if given.startswith(option + "="):
+            files += [Path(f) for f in given.split("=", 1)[1].split(",") if f]
     return files
 
 
@@ -202,16 +202,19 @@ def apart_from_data(edges: Sequence[str], routes: Sequence[Sequence[str]]) -> bo
 # --- signals and the time limit ---------------------------------------------------------------------
 
 
-def longest_waits_s(net_path: Path) -> dict[tuple[str, int], float]:
+def longest_waits_s(net_path: Path, additional_files: Sequence[Path] = ()) -> dict[tuple[str, int], float]:
     """(signal id, link index) -> the longest time the link's signal is not green in its cycle [s].
 
-    Read from the network's tlLogic programs (the first program of each signal);
-    the cycle wraps round, so a red at the end joins one at the start.
+    Read from the program each signal runs: SUMO starts the last tlLogic it loads for a signal, from the network
+    and then the additional files in order (bs3d's net holds four programs of its game signal; the first gives
+    green to links that the fourth, the one SUMO runs, holds red for 1006 s). The cycle wraps round, so a red at
+    the end joins one at the start.
     """
+    programs = {}
+    for path in (net_path, *additional_files):
+        programs.update((element.id, element) for element in _elements(path, "tlLogic"))
     waits: dict[tuple[str, int], float] = {}
-    for element in _elements(net_path, "tlLogic"):
-        if element.id in {k[0] for k in waits}:
-            continue
+    for element in programs.values():
         children = element.getChild("phase") if element.hasChild("phase") else []
         phases = [(float(p.duration), p.getAttributeSecure("state", "")) for p in children]
         links = max((len(state) for _, state in phases), default=0)
@@ -339,7 +342,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
     sampled starts (the same for a town whatever the benchmark's seed)."""
     net_path = Path(scenario.net_path)
     net = read_net(net_path)
-    waits = longest_waits_s(net_path)
+    waits = longest_waits_s(net_path, route_files(scenario, "--additional-files"))
     queues = queue_edges(net, waits)
     excluded = data_routes(scenario)
     candidates = []

@@ -7,6 +7,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -42,6 +43,7 @@ from crchfl_sumo.driving.drive_bench_tasks import (
     queue_edges,
     drives_stretch_of,
     longest_waits_s,
+    route_files,
     task_by_name,
     time_limit_s,
     without_traffic,
@@ -171,6 +173,31 @@ def test_longest_waits_wrap_round_the_cycle_and_time_limit_by_hand(tmp_path):
     assert time_limit_s(route, waits) == pytest.approx(250.0 / (10 / 3.6) + 10.0 + 18.0)  # 90 + 10 + 18 s
 
 
+def test_longest_waits_read_the_program_sumo_runs_the_last_loaded(tmp_path):
+    """bs3d's net holds four programs of its game signal and SUMO runs the last (traci: program '3'); reading the
+    first, drive-bench drew routes through links the running program holds red for 1006 s and the reference ended
+    stuck at them. An additional file's program comes after the net's."""
+    net = tmp_path / "tls.net.xml"
+    net.write_text(
+        '<net><tlLogic id="J" type="static" programID="0" offset="0">'
+        '<phase duration="4" state="rG"/><phase duration="1000" state="rG"/></tlLogic>'
+        '<tlLogic id="J" type="static" programID="1" offset="0">'
+        '<phase duration="4" state="yr"/><phase duration="1000" state="Gr"/></tlLogic></net>'
+    )
+    waits = longest_waits_s(net)
+    assert waits[("J", 0)] == pytest.approx(4.0)  # program 1's yellow
+    assert waits[("J", 1)] == pytest.approx(1004.0)  # never green in program 1
+    extra = tmp_path / "tls.add.xml"
+    extra.write_text(
+        '<additional><tlLogic id="J" type="static" programID="2" offset="0">'
+        '<phase duration="30" state="Gr"/><phase duration="20" state="rG"/></tlLogic></additional>'
+    )
+    assert longest_waits_s(net, [extra]) == {("J", 0): pytest.approx(20.0), ("J", 1): pytest.approx(30.0)}
+    scenario = SimpleNamespace(sumo_options=("--route-files=a.rou.xml", f"--additional-files={extra},b.add.xml"))
+    assert route_files(scenario, "--additional-files") == [extra, Path("b.add.xml")]
+    assert route_files(scenario) == [Path("a.rou.xml")]
+
+
 def test_turning_back_and_a_red_longer_than_a_drive_may_stand_are_not_drawn():
     """A10KW's dual carriageways end in links SUMO calls 's' or 'l' that turn back by 150 degrees or more, and its
     signals (the SUMO game's, switched by a player) hold a link red for 20012 s: the reference driver left the road
@@ -215,7 +242,6 @@ def test_edges_whose_every_way_on_waits_at_a_red_longer_than_a_drive_are_queues(
     route = RouteGeometry(("ZA", "AM"), np.array([[-100.0, 0.0], [100.0, 0.0]]), np.array([0.0, 200.0]),
                           np.array([3.2]), np.array([False]), ())
     assert drawable(route, {}) and not drawable(route, {}, {"MB", "AM"})
-
 
 # --- routes on a known network ----------------------------------------------------------------------
 
