@@ -247,12 +247,18 @@ def crossing_turn_rad(route: RouteGeometry, crossing: Crossing) -> float:
 
 def queue_edges(net, waits: dict[tuple[str, int], float]) -> set[str]:
     """Edges from which every way on (for passenger cars) waits at a link red for longer than MAX_RED_S, at once or
-    after more such edges: the traffic queues there and the queue only grows (A10KW: the game's red spills back
-    over 200 m of two edges a route may end on, and the ego waited in it until it ended stuck)."""
+    after more such edges, and edges each of whose lanes has such a link: the traffic queues there and the queue
+    only grows (A10KW: the game's red spills back over 200 m of two edges a route may end on, and the ego waited
+    in it until it ended stuck; bs3d: the cars for a red link stand at the head of a lane whose other link is
+    green, and the ego stood behind them)."""
+    def red(connection) -> bool:
+        return waits.get((connection.getTLSID(), connection.getTLLinkIndex()), 0.0) > MAX_RED_S
+
     def blocked(edge) -> bool:
         ways = [(to, c) for to, connections in edge.getOutgoing().items() if to.allows("passenger") for c in connections]
-        return bool(ways) and all(
-            to.getID() in found or waits.get((c.getTLSID(), c.getTLLinkIndex()), 0.0) > MAX_RED_S for to, c in ways
+        lanes = [lane for lane in edge.getLanes() if lane.allows("passenger")]
+        return (bool(ways) and all(to.getID() in found or red(c) for to, c in ways)) or (
+            bool(lanes) and all(any(red(c) for c in lane.getOutgoing() if c.getTo().allows("passenger")) for lane in lanes)
         )
 
     found: set[str] = set()

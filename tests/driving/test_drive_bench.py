@@ -243,6 +243,38 @@ def test_edges_whose_every_way_on_waits_at_a_red_longer_than_a_drive_are_queues(
                           np.array([3.2]), np.array([False]), ())
     assert drawable(route, {}) and not drawable(route, {}, {"MB", "AM"})
 
+
+
+def test_an_edge_each_of_whose_lanes_has_a_red_longer_than_a_drive_is_a_queue(tmp_path):
+    """bs3d: the game signal holds an approach's straight links red for 1006 s and its left turn green, on a lane
+    shared with a straight link; the cars for the red stand at that lane's head and the ego, turning left behind
+    them, ended stuck. A -> M -> B, then B -> C (straight) or B -> D (left), signal at B."""
+    (tmp_path / "l.nod.xml").write_text(
+        '<nodes><node id="A" x="0" y="0"/><node id="M" x="100" y="0"/><node id="B" x="200" y="0" type="traffic_light"/>'
+        '<node id="C" x="300" y="0"/><node id="D" x="200" y="100"/></nodes>'
+    )
+    def net_with(lanes: int, connections: str):
+        (tmp_path / "l.edg.xml").write_text(
+            "<edges>" + "".join(f'<edge id="{a}{b}" from="{a}" to="{b}" numLanes="{n}" speed="13.89"/>'
+                                for a, b, n in (("A", "M", 1), ("M", "B", lanes), ("B", "C", 1), ("B", "D", 1)))
+            + "</edges>"
+        )
+        (tmp_path / "l.con.xml").write_text(f"<connections>{connections}</connections>")
+        out = tmp_path / f"l{lanes}.net.xml"  # read_net caches by path
+        netconvert(tmp_path / "l.nod.xml", tmp_path / "l.edg.xml", out, "-x", str(tmp_path / "l.con.xml"))
+        net = read_net(out)
+        (straight,) = net.getEdge("MB").getConnections(net.getEdge("BC"))
+        (left,) = net.getEdge("MB").getConnections(net.getEdge("BD"))
+        return net, {(straight.getTLSID(), straight.getTLLinkIndex()): 1006.0, (left.getTLSID(), left.getTLLinkIndex()): 6.0}
+
+    # one lane, both links from it: its head is blocked for ever, and AM, whose only way on is MB, queues too
+    net, waits = net_with(1, '<connection from="MB" to="BC"/><connection from="MB" to="BD"/>')
+    assert queue_edges(net, waits) == {"MB", "AM"}
+    # two lanes, the left turn on its own: the queue for the red leaves it free
+    net, waits = net_with(2, '<connection from="MB" to="BC" fromLane="0" toLane="0"/>'
+                             '<connection from="MB" to="BD" fromLane="1" toLane="0"/>')
+    assert queue_edges(net, waits) == set()
+
 # --- routes on a known network ----------------------------------------------------------------------
 
 
