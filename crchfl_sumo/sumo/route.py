@@ -313,16 +313,26 @@ class RoadArea:
 
 
 def road_area(net) -> RoadArea:
-    """All lanes (internal ones too) and junction shapes of a sumolib network."""
+    """All lanes (internal ones too) and junction shapes of a sumolib network, and the strips between neighbouring
+    lanes of an edge: their centre lines may lie further apart than their widths (bs3d: 3.3 m apart, 3.2 m wide),
+    and a lane change crossed the 0.1 m crack between them as off the road."""
     a, b, half = [], [], []
-    for edge in net.getEdges(withInternal=True):
-        for lane in edge.getLanes():
-            shape = np.asarray(lane.getShape(), dtype=np.float64)
-            if len(shape) < 2:
-                continue
+
+    def add(shape: np.ndarray, half_width_m: float) -> None:
+        if len(shape) >= 2:
             a.append(shape[:-1])
             b.append(shape[1:])
-            half.append(np.full(len(shape) - 1, lane.getWidth() / 2.0))
+            half.append(np.full(len(shape) - 1, half_width_m))
+
+    for edge in net.getEdges(withInternal=True):
+        lanes = edge.getLanes()
+        shapes = [np.asarray(lane.getShape(), dtype=np.float64) for lane in lanes]
+        for lane, shape in zip(lanes, shapes):
+            add(shape, lane.getWidth() / 2.0)
+        for (right, left), (shape_r, shape_l) in zip(zip(lanes, lanes[1:]), zip(shapes, shapes[1:])):
+            if len(shape_r) == len(shape_l):  # netconvert offsets an edge's lanes from one shape, point for point
+                # the midway line, as wide as the narrower lane: it covers no more than the lanes' two centre lines
+                add((shape_r + shape_l) / 2.0, min(right.getWidth(), left.getWidth()) / 2.0)
     junctions = tuple(
         np.asarray(node.getShape(), dtype=np.float64) for node in net.getNodes() if len(node.getShape()) >= 3
     )

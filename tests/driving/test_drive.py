@@ -429,6 +429,22 @@ def test_on_road_by_hand(roads):
     assert not on_road(area, 100.0, -5.0) and not on_road(area, 100.0, 20.0)
 
 
+
+def test_the_crack_between_two_lanes_of_an_edge_is_road(tmp_path):
+    """bs3d's lanes lie 3.3 m apart and 3.2 m wide: a lane change crossed the 0.1 m between them off the road. The
+    strip between the centre lines is road; beyond them it is as before (a lane's half width, 1.6 m)."""
+    net = tmp_path / "crack.net.xml"
+    net.write_text(
+        '<net version="1.20"><edge id="e" from="A" to="B"><lane id="e_0" index="0" speed="13.89" length="100" width="3.2" '
+        'shape="0,0 100,0"/><lane id="e_1" index="1" speed="13.89" length="100" width="3.2" shape="0,3.3 100,3.3"/>'
+        '</edge><junction id="A" type="priority" x="0" y="0" incLanes="" intLanes="" shape=""/>'
+        '<junction id="B" type="priority" x="100" y="0" incLanes="e_0 e_1" intLanes="" shape=""/></net>'
+    )
+    area = road_area(read_net(net))
+    assert on_road(area, 50.0, 1.65)  # 1.65 m from both centres: in the crack
+    assert on_road(area, 50.0, -1.59) and on_road(area, 50.0, 4.89)
+    assert not on_road(area, 50.0, -1.61) and not on_road(area, 50.0, 4.91)  # outside the outer lanes' edges
+
 def _straight_road_with_cameras(roads):
     """The straight road's scenario, route AC, its commands and a renderer: what a model needs to drive it."""
     scenario = load_scenario(roads / "straight.sumocfg")
