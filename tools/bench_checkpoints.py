@@ -12,9 +12,18 @@ Prints, last, the two named lines:
     closed-loop success B-A: +X points [LO, HI] (p P)
     closed-loop driving score B-A: +X [LO, HI] (p P)
 
-Usage: python tools/bench_checkpoints.py A.pt B.pt --out DIR [--seeds 0,8461] [--episodes 10]
-       [--towns town01,town02] [--tasks straight,one_turn,navigation,navigation_traffic] [--jobs 1]
-       [--labels A,B]
+Two recipes trained with several seeds: give each side's checkpoints separated by commas, the
+k-th of A and of B trained with the same seed. Every model drives the same draws; the tool prints
+each model's success, strict success, driving score and red lights per km, and per figure B - A
+paired by seed (crchfl_sumo.driving.drive_bench_compare.compare_models), ending with the named lines
+    closed-loop success B-A over seeds: +X points [LO, HI] (p P)
+    closed-loop strict success B-A over seeds: ...
+    closed-loop driving score B-A over seeds: ...
+    closed-loop red lights per km B-A over seeds: ...
+
+Usage: python tools/bench_checkpoints.py A.pt[,A2.pt,...] B.pt[,B2.pt,...] --out DIR [--seeds 0,8461]
+       [--episodes 10] [--towns town01,town02] [--tasks straight,one_turn,navigation,navigation_traffic]
+       [--jobs 1] [--labels A,B]
 """
 
 from __future__ import annotations
@@ -24,7 +33,8 @@ import json
 from pathlib import Path
 
 from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
-from crchfl_sumo.driving.drive_bench_compare import ALL, compare_episodes, comparison_table
+from crchfl_sumo.core.intervals import distinguishable
+from crchfl_sumo.driving.drive_bench_compare import ALL, MODEL_FIGURES, compare_episodes, compare_models, comparison_table
 
 
 def drive_all(model: str, out: Path, seeds: list[int], episodes: int, towns: tuple, config: BenchConfig, jobs: int):
@@ -46,10 +56,56 @@ def named_line(what: str, difference: dict, scale: float) -> str:
     return f"closed-loop {what} B-A: {scale * difference['mean']:+.1f}{' points' if what == 'success' else ''}{interval}{p}"
 
 
+# How each MODEL_FIGURES figure is printed: its name in the named lines, the scale and the unit.
+_PRINTED = {"success": ("success", 100, " points"), "strict_success": ("strict success", 100, " points"),
+            "driving_score": ("driving score", 100, ""), "red_lights_per_km": ("red lights per km", 1, "")}
+
+
+def seeds_table(comparison: dict, labels: tuple[str, str]) -> str:
+    """Each model's figures, side by side by seed, and B - A paired by seed."""
+    lines = ["| model (seed order) | " + " | ".join(f"{_PRINTED[f][0]} {x}" for f in MODEL_FIGURES for x in labels) + " |",
+             "| --- |" + " --- |" * (2 * len(MODEL_FIGURES))]
+    for k, (ma, mb) in enumerate(zip(comparison["a"]["models"], comparison["b"]["models"])):
+        cells = [f"{_PRINTED[f][1] * m[f]:.2f}" for f in MODEL_FIGURES for m in (ma, mb)]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def seeds_line(figure: str, difference: dict) -> str:
+    name, scale, unit = _PRINTED[figure]
+    ci = difference["ci95"]
+    interval = f" [{scale * ci[0]:+.2f}, {scale * ci[1]:+.2f}]" if ci else ""
+    p = f" (p {difference['p']:.3g})" if difference["p"] is not None else ""
+    words = "" if distinguishable(ci) else ", not distinguishable"
+    return f"closed-loop {name} B-A over seeds: {scale * difference['mean']:+.2f}{unit}{interval}{p}{words}"
+
+
+def compare_seeds(models_a: list[str], models_b: list[str], args, seeds, towns, config) -> None:
+    """Several models a side: each drives every draw; the comparison model by model, paired by seed."""
+    a = [drive_all(m, args.out / "a" / f"model-{k}", seeds, args.episodes, towns, config, args.jobs)
+         for k, m in enumerate(models_a)]
+    b = [drive_all(m, args.out / "b" / f"model-{k}", seeds, args.episodes, towns, config, args.jobs)
+         for k, m in enumerate(models_b)]
+    comparison = compare_models(a, b)
+    labels = tuple(args.labels.split(","))
+    table = seeds_table(comparison, labels)
+    (args.out / "comparison.json").write_text(json.dumps({"a": models_a, "b": models_b, "seeds": seeds,
+                                                          **comparison}, indent=1) + "\n")
+    (args.out / "comparison.md").write_text(table)
+    print(f"A = {models_a}, B = {models_b}; draws {seeds}, {args.episodes} episodes per task, town and draw")
+    for side, label in zip("ab", labels):
+        c = comparison[side]
+        lo, hi = c["success_ci95"]
+        print(f"{label}: success {100 * c['success_rate']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}] of {c['episodes']}")
+    print(table)
+    for figure in MODEL_FIGURES:
+        print(seeds_line(figure, comparison["differences"][figure]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("a", help="checkpoint A (the code or recipe before), or 'reference'")
-    parser.add_argument("b", help="checkpoint B (the change), or 'reference'")
+    parser.add_argument("a", help="checkpoint A (the code or recipe before), or 'reference'; several: one per seed")
+    parser.add_argument("b", help="checkpoint B (the change), or 'reference'; several: one per seed, as A's")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seeds", default="0,8461", help="benchmark draws, separated by commas (default 0,8461)")
     parser.add_argument("--episodes", type=int, default=10, help="episodes per task and town and draw")
@@ -62,6 +118,10 @@ def main() -> None:
     towns = tuple(args.towns.split(","))
     label_a, label_b = args.labels.split(",")
     config = BenchConfig(tasks=tuple(args.tasks.split(",")))
+    models_a, models_b = args.a.split(","), args.b.split(",")
+    if len(models_a) > 1 or len(models_b) > 1:
+        compare_seeds(models_a, models_b, args, seeds, towns, config)
+        return
     a = drive_all(args.a, args.out / "a", seeds, args.episodes, towns, config, args.jobs)
     b = drive_all(args.b, args.out / "b", seeds, args.episodes, towns, config, args.jobs)
     comparison = compare_episodes(a, b)

@@ -1,5 +1,7 @@
 """Two drivers on the same benchmark episodes, compared pair by pair: success and driving score per
 cell with Wilson and t intervals, and the paired difference (B - A) with its interval and p-value.
+Two recipes, each trained with several seeds, compared model by model (``compare_models``): each
+model's success, strict success, driving score and red lights per km, paired by seed.
 
 Pure: it reads the episode records drive-bench writes (episodes.json) and returns numbers and a
 table. tools/bench_closed_loop.py drives both checkpoints and prints the comparison; the closed-loop
@@ -99,3 +101,46 @@ def comparison_table(comparison: Mapping[str, Mapping[str, Any]], label_a: str =
             f"| {_difference(c['driving_score_difference'], 100, 1)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+# What a model's benchmark is summed up by when recipes are compared seed by seed (compare_models).
+MODEL_FIGURES = ("success", "strict_success", "driving_score", "red_lights_per_km")
+
+
+def model_figures(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """One model's episodes -> its success and strict success rates, mean driving score (0-1) and red
+    lights per km driven."""
+    if not records:
+        raise CrchflError("a model with no benchmark episode cannot be compared")
+    km = sum(float(r["distance_m"]) for r in records) / 1000.0
+    return {
+        "success": float(np.mean([bool(r["success"]) for r in records])),
+        "strict_success": float(np.mean([bool(r["strict_success"]) for r in records])),
+        "driving_score": float(np.mean([float(r["driving_score"]) for r in records])),
+        "red_lights_per_km": sum(int(r["red_light_violations"]) for r in records) / km if km > 0 else 0.0,
+    }
+
+
+def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequence[Mapping[str, Any]]]) -> dict:
+    """Recipe A's and B's models (one episode list per model; the k-th of each trained with the same seed)
+    on the same episodes: per recipe the pooled success with its Wilson interval and each model's
+    MODEL_FIGURES, and per figure B - A paired by seed (core.intervals.paired_difference)."""
+    if len(a) != len(b) or not a:
+        raise CrchflError(f"compare the same seeds: {len(a)} models of A against {len(b)} of B")
+    for models_a, models_b in zip(a, b):
+        compare_episodes(models_a, models_b)  # refuses models that drove other episodes
+    sides = {}
+    for name, models in (("a", a), ("b", b)):
+        pooled = [r for m in models for r in m]
+        successes = sum(bool(r["success"]) for r in pooled)
+        sides[name] = {
+            "episodes": len(pooled),
+            "success_rate": successes / len(pooled),
+            "success_ci95": list(wilson_interval(successes, len(pooled))),
+            "models": [model_figures(m) for m in models],
+        }
+    differences = {
+        figure: paired_difference([m[figure] for m in sides["a"]["models"]], [m[figure] for m in sides["b"]["models"]])
+        for figure in MODEL_FIGURES
+    }
+    return {**sides, "differences": differences}

@@ -6,7 +6,7 @@ import pytest
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.intervals import wilson_interval
-from crchfl_sumo.driving.drive_bench_compare import ALL, compare_episodes, comparison_table
+from crchfl_sumo.driving.drive_bench_compare import ALL, compare_episodes, compare_models, comparison_table
 
 
 def _episode(task: str, index: int, success: bool, score: float, draw: int = 0) -> dict:
@@ -40,3 +40,29 @@ def test_episodes_of_other_draws_or_routes_are_refused():
         compare_episodes(a, [_episode("straight", 0, True, 1.0, draw=1)])
     with pytest.raises(CrchflError, match="different episodes"):
         compare_episodes(a, [{**a[0], "edges": ["other"]}])
+
+
+def _run(outcomes, draw=0):
+    """One model's episodes: (success, strict, score, red lights, metres) per straight episode."""
+    return [{**_episode("straight", i, ok, score, draw), "strict_success": strict, "red_light_violations": red,
+             "distance_m": metres} for i, (ok, strict, score, red, metres) in enumerate(outcomes)]
+
+
+def test_recipes_compared_model_by_model_paired_by_seed():
+    a = [_run([(True, False, 0.8, 1, 500.0), (True, True, 1.0, 0, 500.0)]),   # success 1, strict 0.5, 1 red/km
+         _run([(False, False, 0.2, 0, 250.0), (True, True, 1.0, 0, 250.0)])]  # 0.5, 0.5, 0 red/km
+    b = [_run([(True, True, 1.0, 0, 500.0), (True, True, 1.0, 0, 500.0)]),    # 1, 1, 0 red/km
+         _run([(True, True, 0.9, 0, 250.0), (True, False, 0.6, 1, 250.0)])]   # 1, 0.5, 2 red/km
+    result = compare_models(a, b)
+    assert result["a"]["episodes"] == 4 and result["a"]["success_rate"] == 0.75
+    assert result["a"]["success_ci95"] == list(wilson_interval(3, 4))
+    assert [m["red_lights_per_km"] for m in result["a"]["models"]] == [1.0, 0.0]
+    assert [m["driving_score"] for m in result["b"]["models"]] == pytest.approx([1.0, 0.75])
+    d = result["differences"]
+    assert d["success"]["mean"] == pytest.approx(0.25) and d["success"]["n"] == 2  # (0 + 0.5) / 2
+    assert d["strict_success"]["mean"] == pytest.approx(0.25)  # (0.5 + 0) / 2
+    assert d["red_lights_per_km"]["mean"] == pytest.approx(0.5)  # (-1 + 2) / 2
+    with pytest.raises(CrchflError, match="the same seeds"):
+        compare_models(a, b[:1])
+    with pytest.raises(CrchflError, match="same --seed"):
+        compare_models(a, [b[0], _run([(True, True, 1.0, 0, 1.0)] * 2, draw=1)])
