@@ -49,11 +49,16 @@ def drive_all(model: str, out: Path, seeds: list[int], episodes: int, towns: tup
     return records
 
 
-def named_line(what: str, difference: dict, scale: float) -> str:
+def _estimate(difference: dict, scale: float, digits: int, unit: str = "") -> str:
+    """A paired difference as "+X[unit] [LO, HI] (p P)"."""
     ci = difference["ci95"]
-    interval = f" [{scale * ci[0]:+.1f}, {scale * ci[1]:+.1f}]" if ci else ""
+    interval = f" [{scale * ci[0]:+.{digits}f}, {scale * ci[1]:+.{digits}f}]" if ci else ""
     p = f" (p {difference['p']:.3g})" if difference["p"] is not None else ""
-    return f"closed-loop {what} B-A: {scale * difference['mean']:+.1f}{' points' if what == 'success' else ''}{interval}{p}"
+    return f"{scale * difference['mean']:+.{digits}f}{unit}{interval}{p}"
+
+
+def named_line(what: str, difference: dict, scale: float) -> str:
+    return f"closed-loop {what} B-A: {_estimate(difference, scale, 1, ' points' if what == 'success' else '')}"
 
 
 # How each MODEL_FIGURES figure is printed: its name in the named lines, the scale and the unit.
@@ -73,11 +78,8 @@ def seeds_table(comparison: dict, labels: tuple[str, str]) -> str:
 
 def seeds_line(figure: str, difference: dict) -> str:
     name, scale, unit = _PRINTED[figure]
-    ci = difference["ci95"]
-    interval = f" [{scale * ci[0]:+.2f}, {scale * ci[1]:+.2f}]" if ci else ""
-    p = f" (p {difference['p']:.3g})" if difference["p"] is not None else ""
-    words = "" if distinguishable(ci) else ", not distinguishable"
-    return f"closed-loop {name} B-A over seeds: {scale * difference['mean']:+.2f}{unit}{interval}{p}{words}"
+    words = "" if distinguishable(difference["ci95"]) else ", not distinguishable"
+    return f"closed-loop {name} B-A over seeds: {_estimate(difference, scale, 2, unit)}{words}"
 
 
 def compare_seeds(models_a: list[str], models_b: list[str], args, seeds, towns, config) -> None:

@@ -15,6 +15,15 @@ def overwrite_argument(p: argparse.ArgumentParser, file: bool = False) -> None:
                    "write into --out even if it holds earlier results (files of the same names are replaced)")
 
 
+def sumo_output_argument(p: argparse.ArgumentParser, of: str, note: str = "") -> None:
+    """--sumo-output: SUMO's own files of the command's simulation run (sumo/outputs.py)."""
+    from crchfl_sumo.sumo.outputs import SUMO_OUTPUTS
+
+    p.add_argument("--sumo-output", default="",
+                   help=f"SUMO's own files of {of}, as OUT/sumo-NAME.xml: any of {', '.join(SUMO_OUTPUTS)}, "
+                   f"separated by commas{note}")
+
+
 def output_folder(
     args, command: str, out: Path | None = None, resumable: bool = False, beside=(), extendable=(), formerly_kept=()
 ):

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument, scenario_argument
+from crchfl_sumo.cli.arguments import (
+    comma_list, output_folder, overwrite_argument, scenario_argument, sumo_output_argument,
+)
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import seed_arg
@@ -17,9 +19,7 @@ def add_dataset(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML: seed, [dataset], [raster], [world], [expert] (docs/dataset.md)")
-    p.add_argument("--sumo-output", default="",
-                   help="SUMO's own files of the data set's simulation run, as OUT/sumo-NAME.xml: any of fcd, "
-                   "tripinfo, summary, separated by commas")
+    sumo_output_argument(p, "the data set's simulation run")
 
 
 def run_dataset(args) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument
+from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument, sumo_output_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, MAX_JOBS, integer_arg, number_arg, seed_arg
@@ -45,9 +45,7 @@ def add_drive(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup-s", type=number_arg(0, MAX_DRIVE_S, "simulated seconds"), default=20.0,
                    help="traffic runs this long before the ego starts (default 20)")
     p.add_argument("--no-video", action="store_true", help="skip drive.mp4")
-    p.add_argument("--sumo-output", default="",
-                   help="SUMO's own files of the drive, as OUT/sumo-NAME.xml: any of fcd, tripinfo, summary, "
-                   "separated by commas (the ego is in them as 'ego')")
+    sumo_output_argument(p, "the drive", " (the ego is in them as 'ego')")
     _decoding_arguments(p)
 
 

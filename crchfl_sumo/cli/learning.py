@@ -8,7 +8,9 @@ from pathlib import Path
 from crchfl_sumo.cli.arguments import output_folder, overwrite_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
-from crchfl_sumo.learning.settings import ARCHS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, SPEED_INPUTS, TrainConfig
+from crchfl_sumo.learning.settings import (
+    ARCHS, CLASS_WEIGHTINGS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, SPEED_INPUTS, TrainConfig,
+)
 
 
 def add_train(p: argparse.ArgumentParser) -> None:
@@ -37,7 +39,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--red-window-m", type=number_arg(0, MAX_RED_WINDOW_M, "metres before a stop line", lo_open=True),
                    default=TrainConfig.red_window_m,
                    help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
-    p.add_argument("--class-weighting", choices=("none", "inverse", "sqrt_inverse"),
+    p.add_argument("--class-weighting", choices=CLASS_WEIGHTINGS,
                    default=TrainConfig.class_weighting,
                    help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
                    "multi-lane grid 'none' kept the straight head straight (docs/measurements.md)")
@@ -54,13 +56,15 @@ def run_train(args) -> int:
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          class_weighting=args.class_weighting)  # refused before any file
-    if args.red_weight == TrainConfig.red_weight:  # off: a folder trained before these options existed still resumes
-        del args.red_weight, args.red_window_m
-    if args.class_weighting == TrainConfig.class_weighting:  # the default: so too
-        del args.class_weighting
     speed_input = args.speed_input
-    if speed_input == "none":  # so too
-        del args.speed_input
+    # an option added later is left out of the folder's settings at its default: a folder trained before it
+    # existed still resumes
+    for names, at_default in ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
+                              (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
+                              (("speed_input",), speed_input == "none")):
+        if at_default:
+            for name in names:
+                delattr(args, name)
     with output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,

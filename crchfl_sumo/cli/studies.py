@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import backend_arguments, comma_list, output_folder, overwrite_argument, scenario_names
+from crchfl_sumo.cli.arguments import (
+    backend_arguments, comma_list, output_folder, overwrite_argument, scenario_names, sumo_output_argument,
+)
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_JOBS, MAX_SIMULATED_S, integer_arg, number_arg, seed_arg
@@ -68,8 +70,7 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_arg, default=None, help="seed (overrides the config's; 0 .. 2**31 - 1)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML with seed, [[edge_sites]], [channel], [mobility] (docs/links.md)")
-    p.add_argument("--sumo-output", default="",
-                   help="SUMO's own outputs to write as OUT/sumo-NAME.xml, separated by commas: fcd, tripinfo, summary")
+    sumo_output_argument(p, "the simulation")
 
 
 def run_simulate(args) -> int:

@@ -38,6 +38,16 @@ def success_stats(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     }
 
 
+def paired_episodes(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> list[tuple]:
+    """Each record of ``a`` with the record of ``b`` of the same episode; a CrchflError if they drove others."""
+    by_key_b = {_key(r): r for r in b}
+    if len(by_key_b) != len(b) or {_key(r) for r in a} != set(by_key_b):
+        raise CrchflError(
+            "the two benchmarks drove different episodes; run both with the same --seed, --episodes, --towns and --tasks"
+        )
+    return [(r, by_key_b[_key(r)]) for r in a]
+
+
 def compare_episodes(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per (town, task) cell and over all (key ALL): A's and B's success_stats and B - A paired by episode.
 
@@ -45,12 +55,7 @@ def compare_episodes(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, An
     naming the benchmark seed) of the same episodes; a record of one without its pair in the other
     is a CrchflError (compare the same --seed, --episodes, towns and tasks).
     """
-    by_key_b = {_key(r): r for r in b}
-    if len(by_key_b) != len(b) or {_key(r) for r in a} != set(by_key_b):
-        raise CrchflError(
-            "the two benchmarks drove different episodes; run both with the same --seed, --episodes, --towns and --tasks"
-        )
-    pairs = [(r, by_key_b[_key(r)]) for r in a]
+    pairs = paired_episodes(a, b)
     cells: dict[str, list] = {}
     for ra, rb in pairs:
         cells.setdefault(f"{ra['town']}/{ra['task']}", []).append((ra, rb))
@@ -128,7 +133,7 @@ def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequenc
     if len(a) != len(b) or not a:
         raise CrchflError(f"compare the same seeds: {len(a)} models of A against {len(b)} of B")
     for models_a, models_b in zip(a, b):
-        compare_episodes(models_a, models_b)  # refuses models that drove other episodes
+        paired_episodes(models_a, models_b)  # refuses models that drove other episodes
     sides = {}
     for name, models in (("a", a), ("b", b)):
         pooled = [r for m in models for r in m]

@@ -154,13 +154,18 @@ def count_turns(route: RouteGeometry) -> int:
 # --- the routes of the training data ---------------------------------------------------------------
 
 
-def route_files(scenario: Scenario, option: str = "--route-files") -> list[Path]:
-    """The route files (or the files of another list ``option``, e.g. --additional-files) a scenario's SUMO loads."""
+def listed_files(scenario: Scenario, option: str) -> list[Path]:
+    """The files of a file-list ``option`` (--route-files, --additional-files) a scenario's SUMO loads."""
     files = []
     for given in scenario.sumo_options:
         if given.startswith(option + "="):
             files += [Path(f) for f in given.split("=", 1)[1].split(",") if f]
     return files
+
+
+def route_files(scenario: Scenario) -> list[Path]:
+    """The route files a scenario's SUMO loads."""
+    return listed_files(scenario, "--route-files")
 
 
 def data_routes(scenario: Scenario) -> list[tuple[str, ...]]:
@@ -348,7 +353,7 @@ def candidate_routes(scenario: Scenario, config: TaskConfig = TaskConfig()) -> l
     sampled starts (the same for a town whatever the benchmark's seed)."""
     net_path = Path(scenario.net_path)
     net = read_net(net_path)
-    waits = longest_waits_s(net_path, route_files(scenario, "--additional-files"))
+    waits = longest_waits_s(net_path, listed_files(scenario, "--additional-files"))
     queues = queue_edges(net, waits)
     excluded = data_routes(scenario)
     candidates = []

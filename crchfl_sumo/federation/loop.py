@@ -463,9 +463,13 @@ class Federation:
         strategy, candidates = self.setup.strategy, tuple(candidates)
         if not self.config.hierarchical:
             return taking_part(strategy, "cloud", CLOUD, candidates, seed(0))
+        members: dict[str, list[str]] = {}
+        for v in candidates:
+            members.setdefault(state.member[v], []).append(v)
         chosen: set[str] = set()
-        for i, e in enumerate(self.setup.edges, start=1):
-            chosen.update(taking_part(strategy, "edge", e, tuple(v for v in candidates if state.member[v] == e), seed(i)))
+        for i, e in enumerate(self.setup.edges, start=1):  # the edge's index seeds its draw
+            if e in members:
+                chosen.update(taking_part(strategy, "edge", e, tuple(members[e]), seed(i)))
         return tuple(v for v in candidates if v in chosen)
 
     def _line(

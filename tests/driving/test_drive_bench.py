@@ -43,6 +43,7 @@ from crchfl_sumo.driving.drive_bench_tasks import (
     queue_edges,
     drives_stretch_of,
     longest_waits_s,
+    listed_files,
     route_files,
     task_by_name,
     time_limit_s,
@@ -194,7 +195,7 @@ def test_longest_waits_read_the_program_sumo_runs_the_last_loaded(tmp_path):
     )
     assert longest_waits_s(net, [extra]) == {("J", 0): pytest.approx(20.0), ("J", 1): pytest.approx(30.0)}
     scenario = SimpleNamespace(sumo_options=("--route-files=a.rou.xml", f"--additional-files={extra},b.add.xml"))
-    assert route_files(scenario, "--additional-files") == [extra, Path("b.add.xml")]
+    assert listed_files(scenario, "--additional-files") == [extra, Path("b.add.xml")]
     assert route_files(scenario) == [Path("a.rou.xml")]
 
 
