@@ -168,7 +168,8 @@ class Track:
     """One vehicle's recorded states in time order; every array is [T].
 
     max_accel_mps2 / max_decel_mps2 are the vehicle type's limits (constant
-    along a track, kept per sample for simple vectorised maths).
+    along a track, kept per sample for simple vectorised maths). lane_id: the
+    SUMO lane of each row ('' where not read; None for a track made by hand).
     """
 
     vehicle: str
@@ -180,6 +181,7 @@ class Track:
     accel_mps2: np.ndarray
     max_accel_mps2: np.ndarray
     max_decel_mps2: np.ndarray
+    lane_id: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -193,14 +195,15 @@ def tracks_from_frames(frames: Sequence[Frame]) -> dict[str, Track]:
     ids = np.concatenate([f.ids for f in frames])
     t_s = np.concatenate([np.full(len(f), f.t_s, dtype=np.float64) for f in frames])
     stacked = {c: np.concatenate([getattr(f, c) for f in frames]).astype(np.float64) for c in columns}
+    lanes = np.concatenate([f.lane_id for f in frames])
     # A stable sort by id keeps each vehicle's rows in frame (time) order.
     order = np.argsort(ids, kind="stable")
-    ids, t_s = ids[order], t_s[order]
+    ids, t_s, lanes = ids[order], t_s[order], lanes[order]
     stacked = {c: v[order] for c, v in stacked.items()}
     names, starts = np.unique(ids, return_index=True)
     ends = np.append(starts[1:], len(ids))
     return {
-        str(name): Track(str(name), t_s[a:b], **{c: stacked[c][a:b] for c in columns})
+        str(name): Track(str(name), t_s[a:b], **{c: stacked[c][a:b] for c in columns}, lane_id=lanes[a:b])
         for name, a, b in zip(names, starts, ends)
     }
 

@@ -61,15 +61,15 @@ from crchfl_sumo.data.recovery import (
     recovery_steer,
 )
 from crchfl_sumo.data.rendering import RenderJob, render_groups, render_samples
-from crchfl_sumo.data.route_commands import CommandConfig, track_commands
+from crchfl_sumo.data.route_commands import CommandConfig, track_commands, track_lane_changes
 from crchfl_sumo.data.settings import PAPER_TOWNS, DatasetConfig, PlannedShard, TownSplit, shard_plan
 from crchfl_sumo.data.shards import DatasetWriter, ShardData
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.outputs import sumo_output_files, sumo_output_options
-from crchfl_sumo.sumo.route import read_net
+from crchfl_sumo.sumo.route import LaneChange, read_net
 from crchfl_sumo.sumo.scenario import DEFAULT_COVERAGE_RADIUS_M, Scenario, SumoConfig, configured_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
-from crchfl_sumo.sumo.turns import choice_junctions
+from crchfl_sumo.sumo.turns import arc_length_m, choice_junctions
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
 
@@ -161,6 +161,7 @@ def generate_dataset(
             **label_schema(),
             "expert": to_mapping(expert),
             "command": to_mapping(command),
+            "lane_change_s": sizes.lane_change_s,
             "recovery": {
                 "share": sizes.recovery_share,
                 "lateral_m": sizes.recovery_lateral_m,
@@ -177,14 +178,16 @@ def generate_dataset(
         return writer.manifest
     log.info("%d of %d shards to write", len(pending), len(plan))
     needed = {vehicles[p.file]: p.samples for p in pending}
+    net = read_net(Path(scenario.net_path))
+    lane_change_s = sizes.lane_change_s if multi_lane(net) else 0.0
     with clock("simulate"), sumo_output_options(sumo_outputs) as options:
         frames, sampled = record_run(
             scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m,
-            sumo_options=options,
+            sumo_options=(*options, "--lanechange.duration", f"{lane_change_s:g}") if lane_change_s else options,
         )
     with clock("label"):
         tracks = tracks_from_frames(frames)
-        junctions = choice_junctions(read_net(Path(scenario.net_path)))
+        junctions = choice_junctions(net)
     with clock("world"):
         renderer = Renderer(build_world(scenario.net_path, world), raster)
     total = sum(needed.values())
@@ -201,7 +204,9 @@ def generate_dataset(
                 gap_m = None if sizes.recovery_queue_share == 0 else np.array(
                     [gap_ahead(frames[i], vehicle, expert.stop_speed_mps) for i in frame_rows]
                 )
-                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m)
+                changes = track_lane_changes(arc_length_m(np.stack([track.x_m, track.y_m], axis=1)), track.t_s,
+                                             track.lane_id, net, lane_change_s)
+                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m, changes)
             labelled.append((shard, vehicle, rows, labels, RenderJob(vehicle, frame_rows, labels.perturbation)))
         with clock("render"):
             images = render_samples(
@@ -230,6 +235,13 @@ def generate_dataset(
             done += len(rows)
             report(progress, "write", done, total)
     return writer.manifest
+
+
+def multi_lane(net) -> bool:
+    """Has the network an edge of two lanes or more? Only there does a data run set SUMO's
+    --lanechange.duration: on the towns' single lanes it still changed SUMO's driving (measured: the same
+    seed's tracks parted after 36 s), and they have no lane to change to."""
+    return any(edge.getLaneNumber() > 1 for edge in net.getEdges())
 
 
 def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray) -> dict[str, np.ndarray]:
@@ -266,11 +278,13 @@ def sample_labels(
     command: CommandConfig,
     rng: np.random.Generator,
     gap_m: np.ndarray | None = None,
+    lane_changes: Sequence[LaneChange] = (),
 ) -> SampleLabels:
     """Labels of the samples at track rows ``rows``, recovery draws included (``rng`` draws them).
 
     ``gap_m`` [R]: each sample's gap to a standing leader ahead (recovery.gap_ahead; inf for
-    none), which queue samples need; None: no sample has one.
+    none), which queue samples need; None: no sample has one. ``lane_changes``: the track's
+    (route_commands.track_lane_changes).
     """
     actions, _ = expert_labels(track, expert)
     actions = actions[rows]
@@ -287,7 +301,7 @@ def sample_labels(
     return SampleLabels(
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),
-        command=track_commands(track.x_m, track.y_m, junctions, command)[rows],
+        command=track_commands(track.x_m, track.y_m, junctions, command, lane_changes)[rows],
         speed_mps=track.speed_mps[rows].astype(np.float32),
         target_speed_mps=target_speed,
         perturbation=perturbation,

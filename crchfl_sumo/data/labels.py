@@ -7,7 +7,11 @@ convention; its left turn at a T-junction carries steer -0.275).
 Route command (Conditional Imitation Learning, Codevilla et al. 2018): what
 the vehicle's route does at the next junction within the command look-ahead
 (data/route_commands.py): follow the lane (no junction near), turn left, turn right,
-or go straight across. Code k is COMMAND_NAMES[k].
+or go straight across; on a multi-lane road, also change to the lane on the
+left or on the right (CARLA's CHANGELANELEFT and CHANGELANERIGHT), from a
+little before the sideways move until it ends. Code k is COMMAND_NAMES[k].
+A network of JUNCTION_COMMANDS heads (the paper's and CIL's four) reads a
+lane-change command as follow (``known_commands``).
 
 Signal ahead (data set format 5): the state of the next signal on the sample's
 route for its link, code k = SIGNAL_NAMES[k] ("unknown" where the data does not
@@ -24,9 +28,16 @@ ACTION_NAMES = ("throttle", "steer", "brake")
 STEER_CLASS_VALUES = np.array([0.0, 0.125, 0.275, 0.425, -0.125, -0.275, -0.425], dtype=np.float32)
 NUM_STEER_CLASSES = len(STEER_CLASS_VALUES)
 
-COMMAND_NAMES = ("follow", "left", "right", "straight")
-FOLLOW, LEFT, RIGHT, STRAIGHT = range(len(COMMAND_NAMES))
+COMMAND_NAMES = ("follow", "left", "right", "straight", "change_left", "change_right")
+FOLLOW, LEFT, RIGHT, STRAIGHT, CHANGE_LEFT, CHANGE_RIGHT = range(len(COMMAND_NAMES))
 NUM_COMMANDS = len(COMMAND_NAMES)
+JUNCTION_COMMANDS = 4  # follow, left, right, straight: the commands of a network without lane-change heads
+
+
+def known_commands(command: np.ndarray, heads: int) -> np.ndarray:
+    """Command codes as a network of ``heads`` commands reads them: a code it has no head for is FOLLOW."""
+    command = np.asarray(command)
+    return np.where(command < heads, command, FOLLOW).astype(command.dtype)
 
 
 SIGNAL_NAMES = ("unknown", "none", "red", "yellow", "green", "green_minor", "off")

@@ -28,8 +28,10 @@ from crchfl_sumo.vision.raster import camera_settings
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "crchfl-sumo-dataset"
-FORMAT_VERSION = 5  # 2: command, speed_mps, perturbation; 3: target_speed_mps; 4: forward_m; 5: signal_*, yield_gap_m
-READ_VERSIONS = (4, 5)  # a format-4 data set loads: its samples' signal is "unknown"
+# 2: command, speed_mps, perturbation; 3: target_speed_mps; 4: forward_m; 5: signal_*, yield_gap_m; 6: the commands
+# change_left and change_right (codes 4 and 5; older data sets hold codes 0..3, which mean what they meant)
+FORMAT_VERSION = 6
+READ_VERSIONS = (4, 5, 6)  # a format-4 data set loads: its samples' signal is "unknown"
 NOMINAL_SAMPLE_BYTES = 1800 * 1024  # the paper's charge per sample: four PNGs of ~450 KB (FACTS.md)
 SPLITS = ("train", "test")
 MAX_MANIFEST_BYTES = 64 * 1024 * 1024
@@ -158,7 +160,7 @@ class Manifest:
         if data.get("version") not in READ_VERSIONS:
             raise CrchflError(
                 f"{where}: format version {data.get('version')}, this code reads "
-                f"{' and '.join(map(str, READ_VERSIONS))}; regenerate the data set"
+                f"{', '.join(map(str, READ_VERSIONS))}; regenerate the data set"
             )
         known = {f.name for f in dataclasses.fields(Manifest)}
         missing = sorted(known - set(data))

@@ -33,7 +33,7 @@ class Samples:
     """N samples as torch tensors on the CPU (or any one device).
 
     images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N];
-    command: int64 [N] (0..3, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N];
+    command: int64 [N] (0..5, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N];
     signal_state: int64 [N] (labels.SIGNAL_NAMES; None: all unknown); signal_distance_m: float32 [N]
     (inf: none; None: all inf).
     """

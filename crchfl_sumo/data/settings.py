@@ -60,6 +60,9 @@ PAPER_TOWNS = (
 )
 
 
+MAX_LANE_CHANGE_S = 60.0
+
+
 @dataclass(frozen=True)
 class DatasetConfig:
     """How big a data set is and how its samples are charged.
@@ -77,6 +80,12 @@ class DatasetConfig:
         2 to 5 m ahead rendered moved closer to it (0.5 to 2 m, nearer than SUMO
         ever stands) and labelled to stay (data/recovery.py); 0 (default) turns
         it off: measured, it did not help (docs/dataset.md).
+    lane_change_s: how long SUMO takes to move a data vehicle over to another
+        lane (its --lanechange.duration; SUMO's default 0 jumps in one step), so
+        that the track, the images and the steer labels of a lane change are a
+        smooth sideways move. 3 s is 42 m at the towns' 13.9 m/s, about the
+        30 m over which a planned route changes lanes (sumo/route.py). It changes
+        nothing on roads of one lane per direction (Town01, Town02).
 
     What a sample costs in the byte ledger is the ledger's setting
     (``ledger.sample_size``); ``measured_sample_bytes`` supplies the measured size.
@@ -89,6 +98,7 @@ class DatasetConfig:
     recovery_lateral_m: float = 1.0
     recovery_yaw_deg: float = 15.0
     recovery_queue_share: float = 0.0
+    lane_change_s: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("recovery_share", "recovery_queue_share"):
@@ -100,6 +110,8 @@ class DatasetConfig:
             )
         if not 0 <= self.recovery_yaw_deg <= 45:
             raise CrchflError(f"dataset.recovery_yaw_deg must lie in [0, 45], got {self.recovery_yaw_deg}")
+        # a lane change of a minute is a drift, not a manoeuvre
+        check_range(self.lane_change_s, "dataset.lane_change_s", 0, MAX_LANE_CHANGE_S, "seconds")
         check_range(self.sample_period_s, "dataset.sample_period_s", 0, MAX_SAMPLE_PERIOD_S, "simulated seconds",
                     lo_open=True)
         names = [t.town for t in self.towns]

@@ -12,7 +12,8 @@ Layout of a data set folder::
                           (lateral_m, yaw_deg, forward_m of a recovery sample's pose), t_s,
                           x_m, y_m, heading_rad float64 [N], signal_state int8 [N]
                           (labels.SIGNAL_NAMES), signal_distance_m, yield_gap_m
-                          float32 [N] (inf: none; format 5); attributes
+                          float32 [N] (inf: none; format 5); command codes 4 and 5, the
+                          lane changes, from format 6; attributes
                           vehicle, town, edge, split
 
 Both files are plain formats (h5py / json suffice to read them). Every file is

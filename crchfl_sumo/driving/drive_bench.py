@@ -144,7 +144,7 @@ def episode_record(episode: Episode, result, finish_before_end_m: float, step_s:
         log.progress_m, log.on_road, float(log.progress_m[0]), result.route.length_m - finish_before_end_m
     )
     extra = behaviour(log, result.route.crossings, float(log.progress_m[0]),
-                      result.route.length_m - finish_before_end_m, step_s)
+                      result.route.length_m - finish_before_end_m, step_s, result.route.lane_changes)
     every = max(1, round(PATH_EVERY_S / step_s))
     keep = list(range(0, len(log), every)) + ([len(log) - 1] if (len(log) - 1) % every else [])
     return {
@@ -303,17 +303,20 @@ def _percent(value, scale: float = 1.0) -> str:
 
 
 def _ability_lines(summary: dict) -> list[str]:
-    """Per town, each ability's successes of attempts over all its tasks."""
+    """Per town, each ability's successes of attempts over all its tasks (those it never attempted left out:
+    the towns have no lane to change to)."""
     lines = []
     for town, tasks in summary["results"].items():
         if not all("abilities" in r for r in tasks.values()):
             continue
         parts = []
         for name in ABILITIES:
-            attempts = sum(r["abilities"][name]["attempts"] for r in tasks.values())
-            ok = sum(r["abilities"][name]["successes"] for r in tasks.values())
-            parts.append(f"{name.replace('_', ' ')} {ok} of {attempts}")
-        lines.append(f"Abilities in {town}: " + ", ".join(parts) + ".")
+            attempts = sum(r["abilities"].get(name, {}).get("attempts", 0) for r in tasks.values())
+            ok = sum(r["abilities"].get(name, {}).get("successes", 0) for r in tasks.values())
+            if attempts:
+                parts.append(f"{name.replace('_', ' ')} {ok} of {attempts}")
+        if parts:
+            lines.append(f"Abilities in {town}: " + ", ".join(parts) + ".")
     return lines
 
 

@@ -17,8 +17,8 @@ tools/efficiency_smoothness_benchmark.py and tools/ability_benchmark.py; nuPlan'
   checks the yaw rate where it names the yaw acceleration and takes CARLA's degrees for radians:
   not copied).
 - Abilities (``abilities``): per junction approached, whether the ego turned through it, stopped
-  at its red, went at its green, yielded on its minor green; per episode, whether it followed a
-  leader without a collision. Bench2Drive groups its routes by scenario type; the towns' routes
+  at its red, went at its green, yielded on its minor green; per planned lane change, whether it
+  ended up on the lane planned; per episode, whether it followed a leader without a collision. Bench2Drive groups its routes by scenario type; the towns' routes
   have no scenarios, so the abilities are read off the drive itself.
 """
 
@@ -30,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.signal import savgol_filter
 
-from crchfl_sumo.sumo.route import RED_LETTERS, Crossing
+from crchfl_sumo.sumo.route import RED_LETTERS, Crossing, LaneChange
 
 # Leaderboard 2.0: MinimumSpeedRouteTest(checkpoints=4) and PENALTY_PERC_DICT[MIN_SPEED] = [0.7, 'decreases'];
 # Bench2Drive: checkpoints=20 for its efficiency.
@@ -59,7 +59,9 @@ GREEN_HESITATION_S = 2.0  # standing this long at a green with the road ahead fr
 FREE_ROAD_M = 15.0  # a leader farther than this leaves the road free
 FOLLOW_GAP_M = 20.0  # a leader this close ...
 FOLLOW_MIN_S = 5.0  # ... for this long makes an episode a "follow a leader" attempt
-ABILITIES = ("turn_at_junction", "stop_at_red", "go_at_green", "yield_on_minor_green", "follow_a_leader")
+SETTLE_M = 5.0  # a lane change is judged this far past the end of its planned move
+ABILITIES = ("turn_at_junction", "stop_at_red", "go_at_green", "yield_on_minor_green", "follow_a_leader",
+             "change_lane")
 
 
 # Traffic that stands (a queue at a light, vehicles waiting to be inserted) gives no speed to compare with:
@@ -136,7 +138,9 @@ def _longest_run_s(mask: np.ndarray, step_s: float) -> float:
     return longest * step_s
 
 
-def abilities(log, crossings: Sequence[Crossing], step_s: float) -> dict[str, list[int]]:
+def abilities(
+    log, crossings: Sequence[Crossing], step_s: float, lane_changes: Sequence[LaneChange] = ()
+) -> dict[str, list[int]]:
     """Per ability, [attempts, successes] in one drive.
 
     A junction is approached when the front bumper comes within APPROACH_M of its stop line. Then:
@@ -147,6 +151,9 @@ def abilities(log, crossings: Sequence[Crossing], step_s: float) -> dict[str, li
       GREEN_HESITATION_S or longer while it showed green and the road ahead was free;
     - yield_on_minor_green (a minor green, 'g', during the approach): no collision from the approach
       until the ego left the junction (or the drive ended);
+    per planned lane change whose move the ego's centre reached, change_lane: success when, SETTLE_M past
+    the move's end, the ego is within half a lane width of the route's centre line (on the lane planned),
+    with no collision from the move's start until then;
     and per drive, follow_a_leader (a leader within FOLLOW_GAP_M for FOLLOW_MIN_S in all): no collision.
     """
     tally = {name: [0, 0] for name in ABILITIES}
@@ -183,17 +190,30 @@ def abilities(log, crossings: Sequence[Crossing], step_s: float) -> dict[str, li
             count("go_at_green", _longest_run_s(green_free & (speed < STAND_MPS), step_s) < GREEN_HESITATION_S)
         if "g" in seen:
             count("yield_on_minor_green", clean)
+    for change in lane_changes:
+        reached = np.flatnonzero(progress >= change.s_start_m)
+        if not len(reached):
+            continue
+        settled = np.flatnonzero(progress >= change.s_end_m + SETTLE_M)
+        tally["change_lane"][0] += 1
+        if len(settled):
+            at = int(settled[0])
+            on_lane = abs(float(log.offset_m[at])) <= float(log.lane_width_m[at]) / 2.0
+            tally["change_lane"][1] += int(on_lane and not colliding[reached[0] : at + 1].any())
     if float(np.count_nonzero(gap <= FOLLOW_GAP_M)) * step_s >= FOLLOW_MIN_S:
         tally["follow_a_leader"] = [1, int(not colliding.any())]
     return tally
 
 
-def behaviour(log, crossings: Sequence[Crossing], start_m: float, goal_m: float, step_s: float) -> dict[str, Any]:
+def behaviour(
+    log, crossings: Sequence[Crossing], start_m: float, goal_m: float, step_s: float,
+    lane_changes: Sequence[LaneChange] = (),
+) -> dict[str, Any]:
     """One episode's Leaderboard 2.0 and Bench2Drive figures (JSON-ready)."""
     efficiency = traffic_speed_ratios(log, start_m, goal_m, EFFICIENCY_CHECKPOINTS)
     return {
         "min_speed_penalty": min_speed_penalty(traffic_speed_ratios(log, start_m, goal_m, MIN_SPEED_CHECKPOINTS)),
         "efficiency": float(np.mean(efficiency)) if efficiency else None,
         "smoothness": smoothness(log.speed_mps, log.heading_rad, step_s),
-        "abilities": abilities(log, crossings, step_s),
+        "abilities": abilities(log, crossings, step_s, lane_changes),
     }

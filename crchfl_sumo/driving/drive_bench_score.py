@@ -85,7 +85,8 @@ def summarize_task(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     counts = {k: int(sum(r[k] for r in records)) for k in INFRACTIONS}
     successes = sum(bool(r["success"]) for r in records)
     strict = sum(bool(r["strict_success"]) for r in records)
-    tally = {name: [sum(r["abilities"][name][i] for r in records) for i in (0, 1)] for name in ABILITIES}
+    # an episode recorded before an ability existed did not attempt it
+    tally = {name: [sum(r["abilities"].get(name, (0, 0))[i] for r in records) for i in (0, 1)] for name in ABILITIES}
     return {
         "episodes": len(records),
         "success_rate": successes / len(records),
@@ -160,7 +161,7 @@ def pool_task_summaries(summaries: Sequence[Mapping[str, Any]]) -> dict[str, Any
         kept = [(s[key], s[f"{key}_episodes"]) for s in summaries if s[key] is not None]
         return (sum(v * k for v, k in kept) / n if n else None, n)
 
-    tally = {name: [sum(s["abilities"][name][k] for s in summaries) for k in ("attempts", "successes")]
+    tally = {name: [sum(s["abilities"].get(name, {}).get(k, 0) for s in summaries) for k in ("attempts", "successes")]
              for name in ABILITIES}
     return pooled | _behaviour_keys(
         total, round(pooled["success_rate"] * total), round(mean("strict_success_rate") * total), km,

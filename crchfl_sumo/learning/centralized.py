@@ -25,7 +25,7 @@ from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_chec
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import State, build_model, model_from_state
-from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig
+from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig, with_data_commands
 from crchfl_sumo.learning.training import Learner, evaluate
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,8 @@ def train_centralized(
 
     ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
     kept in the checkpoint's extra so that a drive renders and steers as the model learned.
+    A new model whose ``commands`` is unset gets the lane-change heads where ``train`` holds a
+    lane-change command (settings.with_data_commands).
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch and the test metrics of evaluation.py: loss,
@@ -78,6 +80,8 @@ def train_centralized(
             f"model.image_height/image_width: {model_config.image_height} x {model_config.image_width} does not "
             f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
         )
+    if initial_state is None:  # a network of its own takes the data's lane-change commands; weights keep theirs
+        model_config = with_data_commands(model_config, train.command.numpy())
     configure_determinism(config.deterministic)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

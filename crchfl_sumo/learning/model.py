@@ -52,7 +52,9 @@ from crchfl_sumo.data.expert import (
     ExpertConfig,
     pedals_towards,
 )
-from crchfl_sumo.data.labels import NUM_COMMANDS, NUM_STEER_CLASSES, digitize_steer, steer_bin_values
+from crchfl_sumo.data.labels import (
+    FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, digitize_steer, steer_bin_values,
+)
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
     SPEED_SCALE_MPS,
@@ -163,7 +165,7 @@ class ConditionedBranch(nn.Module):
 
     def __init__(
         self, in_channels: int, num_outputs: int, shape: BranchShape, norm: str, num_heads: int, command_one_hot: bool,
-        speed_input: bool,
+        speed_input: bool, num_commands: int = JUNCTION_COMMANDS,
     ) -> None:
         super().__init__()
         layers: list[nn.Module] = []
@@ -177,8 +179,8 @@ class ConditionedBranch(nn.Module):
         layers += [GridAveragePool(shape.pool_hw), nn.Flatten()]
         layers += [nn.Linear(channels * shape.pool_hw[0] * shape.pool_hw[1], shape.hidden[0]), nn.ReLU()]
         self.features = nn.Sequential(*layers)
-        self.command_one_hot, self.speed_input = command_one_hot, speed_input
-        width = shape.hidden[0] + (NUM_COMMANDS if command_one_hot else 0) + (1 if speed_input else 0)
+        self.command_one_hot, self.speed_input, self.num_commands = command_one_hot, speed_input, num_commands
+        width = shape.hidden[0] + (num_commands if command_one_hot else 0) + (1 if speed_input else 0)
         self.heads = nn.ModuleList(
             nn.Sequential(nn.Linear(width, shape.hidden[1]), nn.ReLU(), nn.Linear(shape.hidden[1], num_outputs))
             for _ in range(num_heads)
@@ -187,7 +189,7 @@ class ConditionedBranch(nn.Module):
     def forward(self, x: torch.Tensor, command: torch.Tensor, speed_mps: torch.Tensor) -> torch.Tensor:
         parts = [self.features(x)]
         if self.command_one_hot:  # a comparison, not F.one_hot: it works under vmap
-            codes = torch.arange(NUM_COMMANDS, device=command.device)
+            codes = torch.arange(self.num_commands, device=command.device)
             parts.append((command[:, None] == codes).to(parts[0].dtype))
         if self.speed_input:
             parts.append((speed_mps.to(parts[0].dtype) / SPEED_SCALE_MPS)[:, None])
@@ -221,7 +223,8 @@ class DrivingModel(nn.Module):
 
     Branch I gives throttle and brake in [0, 1], or (longitudinal "target_speed")
     the target speed / SPEED_SCALE_MPS, unbounded (longitudinal_target says what
-    it learns). Commands are 0..3 (labels.COMMAND_NAMES); the paper
+    it learns). Commands are 0..5 (labels.COMMAND_NAMES); a network of
+    ``config.num_commands`` = 4 reads 4 and 5 (the lane changes) as follow. The paper
     architecture ignores command and speed.
     """
 
@@ -233,14 +236,16 @@ class DrivingModel(nn.Module):
             self.branch_throttle_brake = Branch(3, 2, shape)  # branch I: CamH
             self.branch_steer = Branch(9, NUM_STEER_CLASSES, shape)  # branch II: CamF|CamL|CamR
             return
-        heads = NUM_COMMANDS if config.command_input == "branched" else 1
+        commands = config.num_commands
+        heads = commands if config.command_input == "branched" else 1
         one_hot = config.command_input == "concat"
         pedal_heads, pedal_one_hot = (heads, one_hot) if config.command_pedals else (1, False)
         self.branch_throttle_brake = ConditionedBranch(
-            3, longitudinal_width(config), shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input
+            3, longitudinal_width(config), shape, config.norm, pedal_heads, pedal_one_hot, config.speed_input, commands
         )
         self.branch_steer = ConditionedBranch(
-            9, config.steer_bins, shape, config.norm, heads, one_hot, config.speed_input and config.steer_speed_input
+            9, config.steer_bins, shape, config.norm, heads, one_hot, config.speed_input and config.steer_speed_input,
+            commands,
         )
         _initialise(self)
 
@@ -258,6 +263,8 @@ class DrivingModel(nn.Module):
         # [B, H, W, C] -> [B, C, H, W] is a view in channels_last layout: no copy.
         head = _normalised(images[:, 0], dtype).permute(0, 3, 1, 2)
         sides = _normalised(sides, dtype).permute(0, 3, 1, 2)
+        # a command the network has no head for (a lane change, to a 4-command network) is follow
+        command = torch.where(command < self.config.num_commands, command, FOLLOW)
         longitudinal = self.branch_throttle_brake(head, command, speed_mps)
         if self.config.longitudinal == "pedals":
             longitudinal = torch.sigmoid(longitudinal)

@@ -6,15 +6,18 @@ reason); TrainConfig is training.py's and centralized.py's.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass, field
 from typing import Literal
+
+import numpy as np
 
 from crchfl_sumo.core.config import KEY, OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S, MAX_SPEED_HORIZON_S
-from crchfl_sumo.data.labels import NUM_STEER_CLASSES
+from crchfl_sumo.data.labels import JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES
 from crchfl_sumo.vision.camera import MAX_HEIGHT_PX, MAX_WIDTH_PX
 
 MIN_IMAGE_HEIGHT = 48
@@ -109,6 +112,10 @@ class ModelConfig:
         architecture's default: 21 for "cil" (the paper's sharpest class, 17
         degrees, cannot take the towns' turns: docs/model.md), 7 for "paper",
         which takes no other.
+    commands: the route commands the network tells apart (arch "cil"): 4, the paper's and CIL's
+        follow, left, right and straight, or 6, with change_left and change_right for multi-lane
+        roads (labels.COMMAND_NAMES). Unset: 6 where the training data hold a lane-change command,
+        else 4 (``with_data_commands``). A 4-command network reads a lane-change command as follow.
     class (TOML key; ``class_path`` here): "package.module:Class", your own network in place of the
         built-in one (learning/model.py ``network``; docs/own_model.md); "" (default): the built-in.
     """
@@ -125,6 +132,7 @@ class ModelConfig:
     longitudinal: Literal["pedals", "target_speed"] | None = None
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
     steer_bins: int | None = None
+    commands: int | None = field(default=None, metadata={OMIT_DEFAULT: True})
     class_path: str = field(default="", metadata={KEY: "class", OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
@@ -157,9 +165,15 @@ class ModelConfig:
             raise CrchflError(
                 f"model.steer_bins: {bins!r}; use 7 (the paper's classes) or an odd count up to {MAX_STEER_BINS}"
             )
+        if self.commands not in (None, *COMMAND_COUNTS):
+            raise CrchflError(
+                f"model.commands: {self.commands!r}; use 4 (follow, left, right, straight) or 6 (with change_left "
+                "and change_right), or leave it out to take the data's"
+            )
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
-            paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input")}
+            paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input",
+                                                             "commands")}
             for key, value in {**paper_values, "longitudinal": "pedals", "steer_bins": NUM_STEER_CLASSES}.items():
                 if getattr(self, key) != value:
                     raise CrchflError(
@@ -182,6 +196,22 @@ class ModelConfig:
     def shape(self) -> BranchShape:
         """Widths of each branch for this size."""
         return SIZES[self.size]
+
+    @property
+    def num_commands(self) -> int:
+        """The commands the network has heads (or one-hot places) for."""
+        return self.commands or JUNCTION_COMMANDS
+
+
+COMMAND_COUNTS = (JUNCTION_COMMANDS, NUM_COMMANDS)
+
+
+def with_data_commands(config: ModelConfig, command: np.ndarray) -> ModelConfig:
+    """``config`` with ``commands`` taken from the training data where it is unset: 6 where ``command`` (the
+    samples' codes) holds a lane-change command, else unchanged (4), so the towns' models stay as they were."""
+    if config.commands is None and config.arch != "paper" and len(command) and int(np.max(command)) >= JUNCTION_COMMANDS:
+        return dataclasses.replace(config, commands=NUM_COMMANDS)
+    return config
 
 
 # How a steer head's class scores become one steer value (learning.model.predict_actions):

@@ -41,13 +41,23 @@ class Crossing:
 
 
 @dataclass(frozen=True)
+class LaneChange:
+    """A planned lane change on a route: the sideways move from arc position s_start_m to s_end_m, to the
+    neighbouring lane on the left (side +1) or on the right (side -1)."""
+
+    s_start_m: float
+    s_end_m: float
+    side: int
+
+
+@dataclass(frozen=True)
 class RouteGeometry:
     """The lane centre line a route's vehicle should drive, as one polyline.
 
     xy_m [N, 2] vertices, s_m [N] arc length at each, width_m [N-1] and
     in_junction [N-1] the lane width and kind of each segment; lane_ids [N-1] the SUMO lane each
     segment lies on (during a planned lane change: the lane it starts on, then, from halfway, the
-    one it ends on), or () for a geometry made by hand.
+    one it ends on), or () for a geometry made by hand; lane_changes the planned lane changes in driving order.
     """
 
     edges: tuple[str, ...]
@@ -57,6 +67,7 @@ class RouteGeometry:
     in_junction: np.ndarray
     crossings: tuple[Crossing, ...]
     lane_ids: tuple[str, ...] = ()
+    lane_changes: tuple[LaneChange, ...] = ()
 
     @property
     def length_m(self) -> float:
@@ -112,6 +123,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         raise CrchflError(f"route: edge '{objects[0].getID()}' has no lane {lane_index}")
     plan = plan_lanes(objects, lane_index)
     pieces: list[tuple[np.ndarray, float, bool, list[str]]] = []  # (shape, lane width, inside a junction, lane ids)
+    moves: dict[int, tuple[int, int, int]] = {}  # piece -> its lane change: (first, last vertex of the move, side)
     # Per crossing: positions in ``pieces`` of its first and last internal lane, and the connection.
     links: list[tuple[int, int, Any]] = []
     for (entry, exit_lane, connection) in plan:
@@ -121,6 +133,8 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         else:
             shape, weight = lane_change_shape(entry, exit_lane)
             lanes = [entry.getID() if w < 0.5 else exit_lane.getID() for w in weight]
+            starts = max(int(np.flatnonzero(weight > 0)[0]) - 1, 0)  # the last vertex still on the entry lane
+            moves[len(pieces)] = (starts, int(np.flatnonzero(weight >= 1.0)[0]), lane_side(entry, exit_lane))
             pieces.append((shape, float(exit_lane.getWidth()), False, lanes))
         if connection is None:
             break
@@ -138,9 +152,13 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
     junction: list[bool] = []
     segment_lanes: list[str] = []  # a segment's lane: the one of the vertex it ends at
     lane_end_vertex: list[int] = []  # index of each lane's last vertex in the joined polyline
-    for shape, width, inside, lanes in pieces:
-        if points and np.hypot(*(shape[0] - points[-1])) < 1e-3:
-            shape, lanes = shape[1:], lanes[1:]
+    move_vertices: list[tuple[int, int, int]] = []  # per lane change: its first and last vertex there, its side
+    for number, (shape, width, inside, lanes) in enumerate(pieces):
+        dropped = 1 if points and np.hypot(*(shape[0] - points[-1])) < 1e-3 else 0
+        if number in moves:  # a dropped first vertex lies where the previous piece's last one does
+            starts, ends, side = moves[number]
+            move_vertices.append((len(points) + starts - dropped, len(points) + ends - dropped, side))
+        shape, lanes = shape[dropped:], lanes[dropped:]
         for p, lane in zip(shape, lanes):
             if points:
                 widths.append(width)
@@ -155,6 +173,8 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         xy, widths, junction = xy[keep], np.asarray(widths)[seg_keep], np.asarray(junction)[seg_keep]
         segment_lanes = [lane for lane, kept in zip(segment_lanes, seg_keep) if kept]
         lane_end_vertex = [int(np.count_nonzero(keep[: v + 1]) - 1) for v in lane_end_vertex]
+        move_vertices = [(int(np.count_nonzero(keep[: a + 1]) - 1), int(np.count_nonzero(keep[: b + 1]) - 1), side)
+                         for a, b, side in move_vertices]
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     crossings = []
     for first, last, connection in links:
@@ -176,6 +196,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
         in_junction=np.asarray(junction, dtype=bool),
         crossings=tuple(crossings),
         lane_ids=tuple(segment_lanes),
+        lane_changes=tuple(LaneChange(float(s[a]), float(s[b]), side) for a, b, side in move_vertices),
     )
 
 
@@ -244,6 +265,20 @@ def lane_change_shape(entry, exit_lane) -> tuple[np.ndarray, np.ndarray]:
     weight = t * t * (3.0 - 2.0 * t)  # smoothstep: no kink where the move begins or ends
     shape = (1.0 - weight)[:, None] * _along(a, s / length) + weight[:, None] * _along(b, s / length)
     return shape, weight
+
+
+def lane_side(lane, other) -> int:
+    """+1 if lane ``other`` lies left of ``lane`` (two lanes of one edge, sumolib), else -1: the side of the
+    other's midpoint from the nearest segment of the lane, in driving direction. Geometry, not lane indices,
+    which count from the outer edge of the road and so run the other way in left-hand networks."""
+    a = np.asarray(lane.getShape(), np.float64)
+    b = np.asarray(other.getShape(), np.float64)
+    point = _along(b, np.array([0.5]))[0]
+    d = np.diff(a, axis=0)
+    rel = point - a[:-1]
+    t = np.clip(np.einsum("kd,kd->k", rel, d) / np.maximum(np.einsum("kd,kd->k", d, d), 1e-12), 0.0, 1.0)
+    k = int(np.argmin(np.hypot(*(rel - t[:, None] * d).T)))
+    return 1 if d[k, 0] * rel[k, 1] - d[k, 1] * rel[k, 0] > 0 else -1
 
 
 def _polyline_length(xy: np.ndarray) -> float:

@@ -261,7 +261,7 @@ def test_dataset_stats_counts_and_files(tmp_path):
     assert stats["train"]["steer_class_counts"] == np.bincount(train.steer_class.numpy(), minlength=7).tolist()
     assert stats["train"]["throttle_hist"] == np.histogram(train.actions[:, 0].numpy(), PEDAL_BINS)[0].tolist()
     assert sum(stats["all"]["brake_hist"]) == 18
-    assert stats["train"]["command_counts"] == np.bincount(train.command.numpy(), minlength=4).tolist()
+    assert stats["train"]["command_counts"] == np.bincount(train.command.numpy(), minlength=6).tolist()
     assert stats["train"]["standing_share"] == pytest.approx(float((train.speed_mps < 0.1).float().mean()), abs=1e-4)
     assert stats["train"]["speed_mean"] == pytest.approx(float(train.speed_mps.mean()), abs=1e-4)
     perturbed = [np.any(read_shard(tmp_path / "data", e).perturbation != 0, axis=1) for e in read_manifest(tmp_path / "data").shards]

@@ -28,7 +28,8 @@ def route_through_square(turn: str) -> np.ndarray:
 
 
 def test_vocabulary():
-    assert COMMAND_NAMES == ("follow", "left", "right", "straight")
+    # the four junction commands keep the codes of every data set before format 6
+    assert COMMAND_NAMES == ("follow", "left", "right", "straight", "change_left", "change_right")
     assert (FOLLOW, LEFT, RIGHT, STRAIGHT) == (0, 1, 2, 3)
 
 

@@ -65,7 +65,7 @@ def test_validation_rejects_bad_shapes_and_classes():
     with pytest.raises(ValueError, match="steer_class"):
         Samples(s.images, s.actions, torch.tensor([0, 7, 1]), *rest)
     with pytest.raises(ValueError, match="command"):
-        Samples(s.images, s.actions, s.steer_class, torch.tensor([0, 4, 1]), *rest[1:])
+        Samples(s.images, s.actions, s.steer_class, torch.tensor([0, 6, 1]), *rest[1:])  # 0..5: COMMAND_NAMES
     with pytest.raises(ValueError, match="command"):
         Samples(s.images, s.actions, s.steer_class, s.command.int(), *rest[1:])
     with pytest.raises(ValueError, match="speed_mps"):

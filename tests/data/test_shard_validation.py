@@ -90,7 +90,7 @@ def test_a_valid_data_set_loads(data):
     [
         ("steer_class", np.array([0, 99, 2]), "steer_class holds 99; steer classes are 0..6"),
         ("steer_class", np.array([0, -1, 2]), "steer_class holds -1; steer classes are 0..6"),
-        ("command", np.array([0, 1, 4]), "command holds 4; commands are 0..3"),
+        ("command", np.array([0, 1, 6]), "command holds 6; commands are 0..5"),
         ("actions", np.array([[0.5, 0, 0], [1.5, 0, 0], [0, 0, 0]], np.float32), "throttle holds 1.5; throttle lies in"),
         ("actions", np.array([[0.5, -2, 0], [0, 0, 0], [0, 0, 0]], np.float32), r"steer holds -2.0; steer lies in \[-1, 1\]"),
         ("actions", np.array([[0.5, 0, np.nan], [0, 0, 0], [0, 0, 0]], np.float32), "actions holds nan; labels must be finite"),

@@ -154,7 +154,7 @@ def test_signal_columns_round_trip_through_a_shard_and_old_shards_read_as_unknow
     # ... and a data set of a format this code does not know is refused by name
     raw["version"] = 3
     (root / MANIFEST_NAME).write_text(json.dumps(raw))
-    with pytest.raises(CrchflError, match="format version 3, this code reads 4 and 5; regenerate"):
+    with pytest.raises(CrchflError, match="format version 3, this code reads 4, 5, 6; regenerate"):
         load_samples(root, "train")
 
 

@@ -15,7 +15,7 @@ from crchfl_sumo.driving.drive_bench_behaviour import (
     smoothness,
     traffic_speed_ratios,
 )
-from crchfl_sumo.sumo.route import Crossing
+from crchfl_sumo.sumo.route import Crossing, LaneChange
 
 STEP_S = 0.25
 
@@ -114,3 +114,34 @@ def test_abilities_failed_running_the_red_hesitating_and_colliding():
     assert queued["go_at_green"] == [0, 0] and queued["follow_a_leader"] == [1, 1]
     crashed = abilities(_approach("gggg", [5, 5, 5, 5], colliding_at=5), CROSSINGS, STEP_S)
     assert crashed["yield_on_minor_green"] == [1, 0] and crashed["turn_at_junction"] == [1, 0]
+
+
+def _lane_change_drive(offset_at_end: float, colliding_at=None, stop_at=None):
+    """A straight drive 0 .. 100 m, 1 m a step, through a planned lane change moving from 40 to 70 m; the ego's
+    offset from the route's centre line (the new lane's, after the move) is ``offset_at_end`` from 70 m on."""
+    progress = np.arange(0.0, 101.0) if stop_at is None else np.arange(0.0, stop_at + 1.0)
+    n = len(progress)
+    log = SimpleNamespace(
+        progress_m=progress, crossing_ahead=np.full(n, -1), signal_dist_m=np.full(n, math.inf),
+        signal_letter=np.full(n, ""), speed_mps=np.full(n, 8.0), red_light=np.zeros(n, bool),
+        colliding=np.zeros(n, bool), leader_gap_m=np.full(n, math.inf),
+        offset_m=np.where(progress >= 70.0, offset_at_end, 0.0), lane_width_m=np.full(n, 3.2),
+    )
+    if colliding_at is not None:
+        log.colliding[colliding_at] = True
+    return log
+
+
+def test_change_lane_counts_a_planned_change_reached_and_succeeds_on_the_planned_lane():
+    change = [LaneChange(40.0, 70.0, 1)]
+    assert abilities(_lane_change_drive(0.3), [], STEP_S, change)["change_lane"] == [1, 1]
+    # 5 m past the move it is still 1.7 m off the planned lane's centre, past the half width of 1.6 m: failed
+    assert abilities(_lane_change_drive(-1.7), [], STEP_S, change)["change_lane"] == [1, 0]
+    assert abilities(_lane_change_drive(1.5), [], STEP_S, change)["change_lane"] == [1, 1]
+    assert abilities(_lane_change_drive(0.0, colliding_at=60), [], STEP_S, change)["change_lane"] == [1, 0]
+    # a collision before the move began does not count against it
+    assert abilities(_lane_change_drive(0.0, colliding_at=30), [], STEP_S, change)["change_lane"] == [1, 1]
+    # the drive ended during the move: attempted, not done; before it: not attempted
+    assert abilities(_lane_change_drive(0.0, stop_at=60), [], STEP_S, change)["change_lane"] == [1, 0]
+    assert abilities(_lane_change_drive(0.0, stop_at=35), [], STEP_S, change)["change_lane"] == [0, 0]
+    assert abilities(_lane_change_drive(0.0), [], STEP_S)["change_lane"] == [0, 0]  # none planned

@@ -266,8 +266,10 @@ def test_predict_actions_passes_command_and_speed():
     assert one == pytest.approx(actions[1], abs=1e-6)
     with pytest.raises(ValueError, match="3 images, 2 commands"):
         predict_actions(model, images, torch.tensor([0, 1]), speed)
-    with pytest.raises(ValueError, match="commands must lie in 0..3"):
-        predict_actions(model, images, torch.tensor([0, 1, 4]), speed)
+    with pytest.raises(ValueError, match="commands must lie in 0..5"):
+        predict_actions(model, images, torch.tensor([0, 1, 6]), speed)
+    with pytest.raises(ValueError, match="commands must lie in 0..5"):
+        predict_actions(model, images, torch.tensor([0, -1, 2]), speed)
 
 
 def test_paper_size_matches_the_reference_implementation():
@@ -428,3 +430,42 @@ def test_model_from_state_keeps_batch_norm_counters_integer_so_its_checkpoint_lo
     assert copied["branch_steer.features.1.num_batches_tracked"].dtype == torch.int64
     save_checkpoint(tmp_path / "model.pt", config, copied)
     assert all(torch.equal(load_model(tmp_path / "model.pt").state_dict()[k], v) for k, v in copied.items())
+
+
+def test_a_six_command_network_has_a_head_per_lane_change_and_a_four_command_one_reads_them_as_follow():
+    six = build_model(ModelConfig("compact", 48, 64, steer_bins=7, commands=6), seed=0)
+    four = build_model(SEVEN, seed=0)
+    assert len(six.branch_steer.heads) == 6 and len(four.branch_steer.heads) == 4
+    for model in (six, four):
+        with torch.no_grad():
+            for k, head in enumerate(model.branch_steer.heads):
+                head[-1].weight.zero_()
+                head[-1].bias.copy_(torch.nn.functional.one_hot(torch.tensor(k), 7) * 5.0)  # head k says class k
+    commands = torch.tensor([0, 1, 2, 3, 4, 5])
+    assert _run(six, _images(6), commands)[1].argmax(dim=1).tolist() == [0, 1, 2, 3, 4, 5]
+    assert _run(four, _images(6), commands)[1].argmax(dim=1).tolist() == [0, 1, 2, 3, 0, 0]  # 4, 5: follow's head
+    # the one-hot input has a place per command: six of them
+    concat = build_model(ModelConfig("compact", 48, 64, command_input="concat", commands=6), seed=0)
+    assert concat.branch_steer.heads[0][0].in_features == SMALL.shape.hidden[0] + 6
+    actions = predict_actions(six, _images(2), torch.tensor([4, 5]), torch.tensor([5.0, 5.0]))
+    assert actions.shape == (2, 3)
+    with pytest.raises(ValueError, match="0..5"):
+        predict_actions(six, _images(1), torch.tensor([6]), torch.tensor([5.0]))
+
+
+def test_the_commands_setting_takes_the_datas_lane_changes_and_is_checked():
+    from crchfl_sumo.learning.settings import with_data_commands
+
+    assert SMALL.commands is None and SMALL.num_commands == 4
+    assert "commands" not in to_mapping(SMALL)  # unset: the towns' configs and checkpoints read as before
+    assert with_data_commands(SMALL, np.array([0, 1, 2, 3])) is SMALL
+    lanes = with_data_commands(SMALL, np.array([0, 3, 5]))
+    assert lanes.commands == 6 and lanes.num_commands == 6 and to_mapping(lanes)["commands"] == 6
+    set_four = ModelConfig("compact", 48, 64, commands=4)
+    assert with_data_commands(set_four, np.array([0, 5])).num_commands == 4  # a setting given stays
+    assert with_data_commands(PAPER_ARCH, np.array([0, 5])) is PAPER_ARCH  # the paper's network has no command
+    assert from_mapping(ModelConfig, to_mapping(lanes)) == lanes
+    with pytest.raises(CrchflError, match="model.commands: 5; use 4"):
+        ModelConfig("compact", 48, 64, commands=5)
+    with pytest.raises(CrchflError, match="model.commands"):
+        ModelConfig("compact", 48, 64, arch="paper", commands=6)
