@@ -241,7 +241,7 @@ def multi_lane(net) -> bool:
     """Has the network an edge of two lanes or more? Only there does a data run set SUMO's
     --lanechange.duration: on the towns' single lanes it still changed SUMO's driving (measured: the same
     seed's tracks parted after 36 s), and they have no lane to change to."""
-    return any(edge.getLaneNumber() > 1 for edge in net.getEdges())
+    return any(edge.getLaneNumber() > 1 for edge in net.getEdges(withInternal=False))
 
 
 def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray) -> dict[str, np.ndarray]:
