@@ -220,7 +220,7 @@ class TimedTrainer:
 
 
 def timed_running_average(watch: Stopwatch):
-    """loop.RunningAverage with its folds timed as FedAvg (a result counts as one average)."""
+    """services.RunningAverage with its folds timed as FedAvg (a result counts as one average)."""
     from crchfl_sumo.learning.aggregate import RunningAverage
 
     class Timed(RunningAverage):
@@ -283,7 +283,7 @@ def run_config(args: argparse.Namespace, data_dir: Path):
 
 
 def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
-    from crchfl_sumo.federation import loop as federation_module
+    from crchfl_sumo.federation import scheme_steps, services
     from crchfl_sumo.federation import run as run_module
     from crchfl_sumo.federation import run_data
     from crchfl_sumo.learning.trainers import TorchTrainer
@@ -326,9 +326,9 @@ def federate(args: argparse.Namespace, data_dir: Path, out_dir: Path) -> dict:
     with stack:
         stack.enter_context(patched(Simulation, "step", watch.wrap("clock: SUMO step", Simulation.step)))
         stack.enter_context(patched(LinkModel, "step", watch.wrap("clock: link models", LinkModel.step)))
-        stack.enter_context(patched(federation_module, "fedavg", watch.wrap("FedAvg", federation_module.fedavg)))
-        if hasattr(federation_module, "RunningAverage"):  # edge FedAvg folded in as the models come
-            stack.enter_context(patched(federation_module, "RunningAverage", timed_running_average(watch)))
+        # the cloud's FedAvg of the edge models (a step's), and the FedAvg folded in as the models come (the services')
+        stack.enter_context(patched(scheme_steps, "fedavg", watch.wrap("FedAvg", scheme_steps.fedavg)))
+        stack.enter_context(patched(services, "RunningAverage", timed_running_average(watch)))
         for name in ("append_logs", "_save_state", "_write_outputs"):  # run.py's per-step files
             if hasattr(run_module, name):
                 timed = watch.wrap("checkpoint + outputs", getattr(run_module, name))

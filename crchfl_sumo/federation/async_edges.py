@@ -37,9 +37,9 @@ import numpy as np
 
 from crchfl_sumo.accounting.ledger import Ledger
 from crchfl_sumo.accounting.schedules import CLOUD, Transfer
-from crchfl_sumo.federation.loop import (
-    Federation,
+from crchfl_sumo.federation.services import (
     RelayedTransfer,
+    StepServices,
     charge_transfers,
     count_transfer,
     wireless_event,
@@ -61,78 +61,80 @@ class Attempt:
     relays: tuple[RelayedTransfer, ...]
 
 
-class AsyncFederation(Federation):
-    """The loop with asynchronous edges; stage I and everything else as ``Federation``."""
+class AsyncEdgeStep:
+    """One event of asynchronous edges: the training step of CRCHFL and HFL with ``aggregation = "async"``
+    (federation/scheme_steps.py: the step protocol; stage I as with synchronous edges)."""
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
+    def __init__(self) -> None:
         # vehicle -> (what its next attempt depends on, the attempt): most vehicles have not moved on since the
         # last step, and their attempt (a transfer integrated over the clock) is the same
         self._attempts: dict[str, tuple[tuple, Attempt]] = {}
 
-    def _edge_step(self, state: FederationState, ledger: Ledger) -> None:
-        samples = self._data(state, ledger)
-        attempts = [self._attempt(state, v, len(samples[v])) for v in self.setup.vehicles]
+    def run(self, services: StepServices, state: FederationState, ledger: Ledger) -> None:
+        samples = services.training_data(state, ledger)
+        attempts = [self._attempt(services, state, v, len(samples[v])) for v in services.setup.vehicles]
         failure = min((a for a in attempts if not a.out.ok), key=lambda a: a.arrival_s, default=None)
-        edge, buffer = self._first_full_buffer(state, attempts)
+        edge, buffer = self._first_full_buffer(services, state, attempts)
         if failure is not None and (edge is None or failure.arrival_s <= buffer[-1].arrival_s):
-            self._failed_upload(state, ledger, failure)
+            self._failed_upload(services, state, ledger, failure)
         elif edge is not None:
-            self._aggregate(state, ledger, edge, buffer, samples)
+            self._aggregate(services, state, ledger, edge, buffer, samples)
         else:  # no upload can arrive and none failed: nothing will ever happen
             state.stop_reason = "no_progress"
 
     # -- events
 
-    def _attempt(self, state: FederationState, vehicle: str, samples: int) -> Attempt:
+    def _attempt(self, services: StepServices, state: FederationState, vehicle: str, samples: int) -> Attempt:
         key = (state.ready_s[vehicle], state.member[vehicle], samples)
         known = self._attempts.get(vehicle)
         if known is None or known[0] != key:
-            self._attempts[vehicle] = key, self._new_attempt(state, vehicle, samples)
+            self._attempts[vehicle] = key, self._new_attempt(services, state, vehicle, samples)
         return self._attempts[vehicle][1]
 
-    def _new_attempt(self, state: FederationState, vehicle: str, samples: int) -> Attempt:
+    def _new_attempt(self, services: StepServices, state: FederationState, vehicle: str, samples: int) -> Attempt:
         edge = state.member[vehicle]
-        size = self.setup.sizes.upload_bytes
-        trained_s = self._trained_s(vehicle, state.ready_s[vehicle], samples, self.setup.hyper.edge_interval)
-        out = self._upload(vehicle, edge, trained_s, size, math.inf)
+        size = services.setup.sizes.upload_bytes
+        trained_s = services.trained_s(vehicle, state.ready_s[vehicle], samples, services.setup.hyper.edge_interval)
+        out = services.upload(vehicle, edge, trained_s, size, math.inf)
         relays: list[RelayedTransfer] = []
         if not out.ok:
             return Attempt(vehicle, out, out.end_s, edge, ())
-        receiver = self.setup.edges[out.site] if self.config.handover_policy == "new_edge" else edge
-        arrival_s = self._forward(out, receiver, size, "model", "II", relays)
+        receiver = services.setup.edges[out.site] if services.config.handover_policy == "new_edge" else edge
+        arrival_s = services.forward(out, receiver, size, "model", "II", relays)
         return Attempt(vehicle, out, arrival_s, receiver, tuple(relays))
 
-    def _first_full_buffer(self, state: FederationState, attempts: list[Attempt]):
+    def _first_full_buffer(self, services: StepServices, state: FederationState, attempts: list[Attempt]):
         """The edge whose buffer fills first and the updates in it (in arrival order); (None, []) if none fills."""
         members = Counter(state.member.values())
         best = None, []
-        for e in self.setup.edges:
+        for e in services.setup.edges:
             arriving = sorted((a for a in attempts if a.out.ok and a.receiver == e), key=lambda a: a.arrival_s)
-            size = min(self.config.async_buffer, max(members[e], 1))
+            size = min(services.config.async_buffer, max(members[e], 1))
             if len(arriving) >= size and (best[0] is None or arriving[size - 1].arrival_s < best[1][-1].arrival_s):
                 best = e, arriving[:size]
         return best
 
-    def _failed_upload(self, state: FederationState, ledger: Ledger, attempt: Attempt) -> None:
+    def _failed_upload(self, services: StepServices, state: FederationState, ledger: Ledger, attempt: Attempt) -> None:
         """A failed upload: charged, its vehicle a straggler that trains again from the model it holds (from the
         failure, and a clock step after its last try at the soonest)."""
         v, edge = attempt.vehicle, state.member[attempt.vehicle]
         events = {(v, edge, "uplink"): wireless_event(attempt.out)}
         count_transfer(state, "uploads", False)
-        self._straggler(state, v, "II", attempt.out.reason, attempt.out.end_s)
-        schedule = (Transfer("wireless", "uplink", "II", v, edge, "model", self.setup.sizes.upload_bytes),)
-        if not charge_transfers(ledger, schedule, events, self.setup.rule, state.cloud_rounds + 1, state):
+        services.straggler(state, v, "II", attempt.out.reason, attempt.out.end_s)
+        schedule = (Transfer("wireless", "uplink", "II", v, edge, "model", services.setup.sizes.upload_bytes),)
+        if not charge_transfers(ledger, schedule, events, services.setup.rule, state.cloud_rounds + 1, state):
             state.stop_reason = "budget"
             return
         # it tries again at the failure, but at least one clock step on: an upload that fails at once (no
         # coverage under "miss", no compute time) must not fail again at the same moment for ever
-        state.ready_s = {**state.ready_s, v: max(attempt.out.end_s, state.ready_s[v] + self.clock.step_s)}
+        state.ready_s = {**state.ready_s, v: max(attempt.out.end_s, state.ready_s[v] + services.clock.step_s)}
 
-    def _aggregate(self, state: FederationState, ledger: Ledger, edge: str, buffer: list[Attempt], samples) -> None:
+    def _aggregate(
+        self, services: StepServices, state: FederationState, ledger: Ledger, edge: str, buffer: list[Attempt], samples
+    ) -> None:
         """``edge`` aggregates the updates of ``buffer`` when the last arrives, and sends its model back to them;
         the cloud aggregates when its turn has come."""
-        setup, sizes = self.setup, self.setup.sizes
+        setup, sizes = services.setup, services.setup.sizes
         at_s = buffer[-1].arrival_s
         order = {v: i for i, v in enumerate(setup.vehicles)}
         buffer = sorted(buffer, key=lambda a: order[a.vehicle])  # the sums in the vehicles' order: reproducible
@@ -143,14 +145,14 @@ class AsyncFederation(Federation):
             count_transfer(state, "uploads", True)
             relays.extend(a.relays)
         ready = dict(state.ready_s)
-        delivered = set(self._send_down(state, edge, vehicles, at_s, "II", events, ready, relays))
+        delivered = set(services.send_down(state, edge, vehicles, at_s, "II", events, ready, relays))
         history = state.edge_history.get(edge, [])
         staleness = {v: sum(t > state.base_s.get(v, -math.inf) for t in history) for v in vehicles}
-        factors = {v: staleness_factor(staleness[v], self.config.staleness_exponent) for v in vehicles}
+        factors = {v: staleness_factor(staleness[v], services.config.staleness_exponent) for v in vehicles}
         counts = {v: len(samples[v]) for v in vehicles}
-        seed = int(np.random.SeedSequence([self.config.seed, 1, state.steps]).generate_state(1)[0])
+        seed = int(np.random.SeedSequence([services.config.seed, 1, state.steps]).generate_state(1)[0])
         starts = [state.vehicle_models[v] for v in vehicles]
-        trained = list(self.trainer.train(starts, [samples[v] for v in vehicles], setup.hyper.edge_interval, seed))
+        trained = list(services.trainer.train(starts, [samples[v] for v in vehicles], setup.hyper.edge_interval, seed))
         edge_model = buffered_update(
             state.edge_models[edge],
             [(start, model, counts[v], factors[v]) for v, start, model in zip(vehicles, starts, trained, strict=True)],
@@ -172,20 +174,21 @@ class AsyncFederation(Federation):
         state.edge_weights = {**state.edge_weights, edge: float(sum(counts.values()))}
         state.edge_aggregations += 1
         state.tau += 1
-        self._count_training(state, counts, setup.hyper.edge_interval)
+        services.count_training(state, counts, setup.hyper.edge_interval)
         edge_metrics = None
-        if self.config.evaluate_every_edge:
-            edge_metrics = self._evaluate_edges({edge: edge_model}, {edge: 1.0}, [edge])
-        self._line(state, ledger, "II", at_s, edge_metrics, received={edge: len(vehicles)},
-                   samples=sum(counts.values()),
-                   staleness=staleness)
+        if services.config.evaluate_every_edge:
+            edge_metrics = services.evaluate_edges({edge: edge_model}, {edge: 1.0}, [edge])
+        services.line(state, ledger, "II", at_s, edge_metrics, received={edge: len(vehicles)},
+                      samples=sum(counts.values()), staleness=staleness)
         active = [e for e in setup.edges if any(m == e for m in state.member.values())]
         if state.tau >= setup.hyper.cloud_interval * len(active):
-            self._cloud_round(state, ledger, active, at_s)
+            self._cloud_round(services, state, ledger, active, at_s)
 
-    def _cloud_round(self, state: FederationState, ledger: Ledger, edges: list[str], at_s: float) -> None:
+    def _cloud_round(
+        self, services: StepServices, state: FederationState, ledger: Ledger, edges: list[str], at_s: float
+    ) -> None:
         """Every edge with vehicles sends its model up; the cloud averages them and sends the result back."""
-        setup = self.setup
+        setup = services.setup
         weights = {e: float(sum(setup.count(v) for v in setup.vehicles if state.member[v] == e)) for e in edges}
         events = {}
         for e in edges:
@@ -207,4 +210,4 @@ class AsyncFederation(Federation):
         state.cloud_model = cloud_model
         state.cloud_rounds += 1
         state.tau = 0
-        self._evaluate_cloud(state, ledger, "III", cloud_s)
+        services.evaluate_cloud(state, ledger, "III", cloud_s)

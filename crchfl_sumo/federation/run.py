@@ -71,7 +71,6 @@ from crchfl_sumo.core.result_files import (
     SUMMARY_FILE,
 )
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.async_edges import AsyncFederation
 from crchfl_sumo.federation.logs import LOGS, Marks, append_logs, restore_logs, start_logs
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run_config import (
@@ -281,8 +280,7 @@ def _run_with_trainer(
             state = initial_state(setup, trainer, clock.start_s)
             marks = start_logs(out_dir, sizes)
         data = _online_data(clock, inputs) if config.data_mode == "online" else None
-        loop = AsyncFederation if fed.aggregation == "async" else Federation
-        federation = loop(setup, clock, trainer, data, labeller)
+        federation = Federation(setup, clock, trainer, data, labeller)
 
         def save_step(new: FederationState, handovers: int | None) -> None:
             # on the saver's thread; the logs reach the disk before the checkpoint that names their ends
@@ -346,7 +344,7 @@ def summarize(
     handovers: int | None = None,
     baseline: Mapping[str, float] | None = None,
 ) -> dict:
-    """summary.json. The best model is the cloud model of the highest balanced accuracy (loop._rank);
+    """summary.json. The best model is the cloud model of the highest balanced accuracy (services._rank);
     best_* are its figures. ``baseline``: the always-straight prediction on the same test set."""
     ledger = Ledger(setup.sizes, byte_totals=state.ledger_totals)
     final = next((m for m in reversed(state.metrics) if m["stage"] in ("I", "III")), None)

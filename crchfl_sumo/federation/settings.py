@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
+from crchfl_sumo.core.config import OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import (
     MAX_DRIVE_S,
@@ -104,6 +105,9 @@ class FederationConfig:
         (learning/strategies.py): "fedavg" (the paper), "fedavgm" (server momentum), "fedprox" (a
         proximal term in local training) or "package.module:Class" (your own).
     strategy_options: the strategy's options, e.g. {momentum = 0.9} or {proximal_mu = 0.01}.
+    scheme_steps: "package.module:Class": your own sequence of the scheme's steps
+        (federation/scheme_steps.py): ``Class(builtin)`` is given the scheme's built-in ``SchemeSteps``
+        and answers ``next_step(state)``; "" (default) = the built-in.
     """
 
     scheme: Scheme = "crchfl"
@@ -127,6 +131,7 @@ class FederationConfig:
     staleness_exponent: float = 0.5
     strategy: str = "fedavg"
     strategy_options: dict[str, float] = field(default_factory=dict)
+    scheme_steps: str = field(default="", metadata={OMIT_DEFAULT: True})  # config.json of older runs: no key
 
     def __post_init__(self) -> None:
         if self.scheme not in SCHEMES:

@@ -12,9 +12,9 @@ into its new model. The three steps of Flower's configure/aggregate protocol, on
    skipped) and still receive the new model. A strategy without ``configure`` takes every candidate.
 2. **What each is sent, and trains on:** the aggregator's model (through ``[federation]
    update_codec``), trained locally with ``proximal_mu``/2 ||w - w_start||^2 added to the loss.
-3. **How results are aggregated.** The loop (federation/loop.py) folds the models that reach an edge
-   or the cloud into their sample-weighted FedAvg as they come (so a thousand vehicles' models are
-   never held at once) and then asks the strategy for the aggregator's new model:
+3. **How results are aggregated.** The loop's steps (federation/scheme_steps.py) fold the models that
+   reach an edge or the cloud into their sample-weighted FedAvg as they come (so a thousand vehicles'
+   models are never held at once) and then ask the strategy for the aggregator's new model:
 
     new, memory = strategy.server_update(tier, node, current, average, memory)
 

@@ -13,7 +13,6 @@ from crchfl_sumo.accounting.ledger import MIB, LedgerConfig, resolve_sizes
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.async_edges import AsyncFederation
 from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.run import run_federation_dir
 from crchfl_sumo.federation.run_config import RunConfig
@@ -70,8 +69,8 @@ def _setup(config, counts, home, edges, fleet=Fleet()):
                       fleet=fleet)
 
 
-def _run(loop, setup, clock, trainer):
-    return loop(setup, clock, trainer).run(initial_state(setup, trainer, clock.start_s))
+def _run(setup, clock, trainer):
+    return Federation(setup, clock, trainer).run(initial_state(setup, trainer, clock.start_s))
 
 
 def test_staleness_weights_and_the_buffered_update_by_hand():
@@ -93,7 +92,7 @@ def test_an_edge_aggregates_its_first_two_updates_and_weights_a_stale_one_by_han
                               aggregation="async", async_buffer=2, staleness_exponent=0.5)
     fleet = Fleet(compute_factor={"b": 2.0, "c": 4.0})  # training 1, 2 and 4 s
     setup = _setup(config, {"a": 2, "b": 2, "c": 2}, home, ("e0",), fleet)
-    state = _run(AsyncFederation, setup, ScriptedClock.constant(home, 8e6), PlusCount())
+    state = _run(setup, ScriptedClock.constant(home, 8e6), PlusCount())
     lines = [m for m in state.metrics if m["stage"] == "II"]
     # 1: a (1 + W) and b (2 + W) fill the buffer: fresh, 0 + (2 * 2 + 2 * 2) / 4 = 2
     assert lines[0]["sim_time_s"] == pytest.approx(2 + W) and lines[0]["staleness"] == {"a": 0, "b": 0}
@@ -114,8 +113,7 @@ def test_with_every_update_fresh_async_gives_the_synchronous_fedavg_and_bytes():
         config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=1, compute_s_per_sample=0.5,
                                   aggregation=aggregation, async_buffer=buffer)
         setup = _setup(config, counts, home, ("e0", "e1"))
-        loop = AsyncFederation if aggregation == "async" else Federation
-        results[aggregation] = _run(loop, setup, ScriptedClock.constant(home, 8e6), trainer)
+        results[aggregation] = _run(setup, ScriptedClock.constant(home, 8e6), trainer)
     sync, asyn = results["sync"], results["async"]
     assert asyn.cloud_model["w"].tolist() == pytest.approx(sync.cloud_model["w"].tolist())
     assert asyn.edge_aggregations == 2 and asyn.cloud_rounds == 1
@@ -129,7 +127,7 @@ def test_a_vehicle_out_of_coverage_straggles_and_contributes_later_with_its_stal
     config = FederationConfig(scheme="hfl", edge_interval=1, cloud_rounds=60, compute_s_per_sample=0.5,
                               aggregation="async", async_buffer=2)
     setup = _setup(config, {"a": 2, "b": 2, "c": 2}, home, ("e0",))
-    state = _run(AsyncFederation, setup, ScriptedClock(tracks), PlusCount())
+    state = _run(setup, ScriptedClock(tracks), PlusCount())
     first = next(m for m in state.metrics if m["stage"] == "II")
     assert set(first["staleness"]) == {"a", "b"}  # the edge did not wait for c
     c_missed = [s for s in state.stragglers if s["vehicle"] == "c"]
@@ -191,7 +189,7 @@ def test_a_vehicle_whose_uploads_fail_at_once_retries_a_clock_step_later_and_the
                        home_site=home, edges=("e0",), sizes=resolve_sizes(SMALL), rule="physical",
                        wireline=WirelineConfig())
     trainer = PlusCount()
-    federation = AsyncFederation(setup, ScriptedClock(tracks, step_s=0.5), trainer)
+    federation = Federation(setup, ScriptedClock(tracks, step_s=0.5), trainer)
     state = initial_state(setup, trainer, 0.0)
     for _ in range(500):  # a bounded number of steps: retries at one moment would never end
         if state.done:

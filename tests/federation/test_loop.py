@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from crchfl_sumo.accounting.ledger import MIB, Ledger, LedgerConfig, replay, resolve_sizes
-from crchfl_sumo.accounting.schedules import Topology, cloud_round_schedule
+from crchfl_sumo.accounting.schedules import CLOUD, Topology, cloud_round_schedule
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.samples import Samples
-from crchfl_sumo.federation.loop import CLOUD, Federation
+from crchfl_sumo.federation.loop import Federation
 from crchfl_sumo.federation.settings import FederationConfig, HyperParameters
 from crchfl_sumo.federation.state import LoopInputs, initial_state
 from crchfl_sumo.learning.aggregate import weighted_average
