@@ -22,8 +22,9 @@ PAPER_VEHICLES = [
 ]
 
 
-def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0) -> Path:
-    """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard."""
+def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0, commands=4) -> Path:
+    """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard; route commands
+    drawn from 0 .. ``commands`` - 1 (6: the lane changes too)."""
     rng = np.random.default_rng(seed)
     header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
     writer = DatasetWriter(root, header)
@@ -34,7 +35,7 @@ def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4,
             rng.integers(0, 256, (n, 4, 48, 64, 3), dtype=np.uint8),
             rng.random((n, 3), dtype=np.float32),
             rng.integers(0, 7, n),
-            rng.integers(0, 4, n),
+            rng.integers(0, commands, n),
             rng.uniform(0, 14, n).astype(np.float32),
             rng.uniform(0, 14, n).astype(np.float32),
             np.zeros((n, 3), np.float32),

@@ -4,7 +4,7 @@ Each vehicle carries the route expert. After the cloud rounds [dagger] names, ev
 model it holds on routes of its own town, and the expert labels the states that model visits, as
 `crchfl-sumo dagger` does for one model (driving/dagger.py: ExpertLabelled; by default only the states
 where the expert would step in). The labels stay on the vehicle: the loop adds them to its local data
-from then on (federation/loop.py, ``Federation._data``). Only models cross the links, charged as before.
+from then on (federation/services.py, ``StepServices.training_data``). Only models cross the links, charged as before.
 
 In the run folder:
 

@@ -45,6 +45,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+import numpy as np
 import torch
 
 from crchfl_sumo.accounting.energy import vehicle_energy_j
@@ -96,6 +97,7 @@ from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.codecs import encoded_fraction
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import state_size_bytes
+from crchfl_sumo.learning.settings import with_data_commands
 from crchfl_sumo.learning.strategies import strategy_from
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
@@ -200,6 +202,9 @@ def run_federation_dir(
     before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
+    # [model] commands unset: the lane-change heads where the vehicles' data hold a lane-change command
+    commands = np.concatenate([s.command.numpy() for s in inputs.samples.values()])
+    config = dataclasses.replace(config, model=with_data_commands(config.model, commands))
     adopt_legacy_state(out_dir)
     if ((out_dir / STATE_FILE).exists() or (out_dir / PREVIOUS_STATE_FILE).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")

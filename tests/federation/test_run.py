@@ -74,6 +74,21 @@ def test_run_command_writes_the_results_folder(tmp_path, dataset):
     assert result_files(out) == before
 
 
+def test_a_run_on_lane_change_data_gives_its_network_the_lane_change_heads(tmp_path):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(8, 8, 8, 8, 8), commands=6, seed=3)
+    config = from_mapping(RunConfig, run_config(data, cloud_rounds=1))
+    assert config.model.commands is None
+    summary = run_federation_dir(config, read_inputs(config), tmp_path / "run")
+    assert summary["model"]["commands"] == 6
+    checkpoint = load_checkpoint(tmp_path / "run" / "final_model.pt")
+    assert checkpoint.model_config.num_commands == 6
+    assert sum(k.startswith("branch_steer.heads.") and k.endswith(".0.weight") for k in checkpoint.state_dict) == 6
+    # a setting given stays: 4 heads, which read the lane changes as follow
+    four = from_mapping(RunConfig, {**run_config(data, cloud_rounds=1), "model": {
+        "image_height": 48, "image_width": 64, "commands": 4}})
+    assert run_federation_dir(four, read_inputs(four), tmp_path / "four")["model"]["commands"] == 4
+
+
 def test_torch_run_killed_and_resumed_ends_like_an_uninterrupted_one(tmp_path, dataset):
     config = from_mapping(
         RunConfig, run_config(dataset, scheme="crchfl", pretrain_batch=4, pretrain_epochs=1, cloud_interval=2, cloud_rounds=1)
