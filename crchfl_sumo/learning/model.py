@@ -272,6 +272,19 @@ class DrivingModel(nn.Module):
         return longitudinal, steer_logits
 
 
+def mode_steer(probabilities: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """[B] steer: the most likely class and its neighbours in value (at most one either side), their values
+    weighted by their probabilities (STEER_DECODINGS "mode")."""
+    order = np.argsort(values)  # neighbours in value: the paper's 7 classes are not listed in order
+    ranked = probabilities[:, order]
+    top = ranked.argmax(axis=1)
+    window = np.zeros_like(ranked, dtype=bool)
+    for shift in (-1, 0, 1):
+        window[np.arange(len(top)), np.clip(top + shift, 0, ranked.shape[1] - 1)] = True
+    kept = np.where(window, ranked, 0.0)
+    return (kept @ values[order]) / kept.sum(axis=1)
+
+
 def _normalised(images: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """uint8 pixels -> [-1, 1] in ``dtype``."""
     return images.to(dtype) * (1.0 / 127.5) - 1.0
@@ -411,7 +424,8 @@ def predict_actions(
     "argmax" is the paper's DAC, the value of the most likely class; "expected"
     is the classes' values weighted by their softmax probabilities, a steer
     between the classes (0.125 steps are a 33 m radius each: argmax can only
-    steer in those steps); "auto" is argmax for the paper's 7 classes and
+    steer in those steps); "mode" weights only the most likely class and its
+    neighbours (``mode_steer``); "auto" is argmax for the paper's 7 classes and
     expected for a finer head (settings.resolved_steer_decoding).
     """
     steer_decoding = resolved_steer_decoding(steer_decoding, model.config.steer_bins)
@@ -437,6 +451,8 @@ def predict_actions(
     if steer_decoding == "expected":
         probabilities = torch.softmax(steer_logits.float(), dim=1).cpu().numpy()
         steer = probabilities @ values
+    elif steer_decoding == "mode":
+        steer = mode_steer(torch.softmax(steer_logits.float(), dim=1).cpu().numpy(), values)
     else:
         steer = values[steer_logits.argmax(dim=1).cpu().numpy()]
     actions = np.stack([throttle, steer, brake], axis=1).astype(np.float32)

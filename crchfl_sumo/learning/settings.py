@@ -219,7 +219,9 @@ def with_data_commands(config: ModelConfig, command: np.ndarray) -> ModelConfig:
 # argmax for the paper's 7 classes, expected for a finer head. Measured (docs/model.md): with
 # 7 classes expected drove worse in Town02 traffic (2/6 against 4/6); with 21 bins argmax turns
 # too tightly where the probability sits on several bins and leaves the road, expected does not.
-STEER_DECODINGS = ("auto", "argmax", "expected")
+# "mode": the probability-weighted values of the most likely class and its two neighbours only, the
+# argmax's choice of a turn or not with a steer between its classes (a lane change's small steer).
+STEER_DECODINGS = ("auto", "argmax", "expected", "mode")
 DEFAULT_STEER_DECODING = "auto"
 
 
@@ -231,7 +233,7 @@ def check_steer_decoding(steer_decoding: str, where: str = "--steer-decoding") -
 
 
 def resolved_steer_decoding(steer_decoding: str, steer_bins: int) -> str:
-    """"argmax" or "expected": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
+    """"argmax", "expected" or "mode": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
     if check_steer_decoding(steer_decoding) != "auto":
         return steer_decoding
     return "argmax" if steer_bins == NUM_STEER_CLASSES else "expected"

@@ -469,3 +469,21 @@ def test_the_commands_setting_takes_the_datas_lane_changes_and_is_checked():
         ModelConfig("compact", 48, 64, commands=5)
     with pytest.raises(CrchflError, match="model.commands"):
         ModelConfig("compact", 48, 64, arch="paper", commands=6)
+
+
+def test_mode_decoding_weights_the_most_likely_class_and_its_neighbours_only():
+    from crchfl_sumo.learning.model import mode_steer
+
+    values = np.linspace(-1.0, 1.0, 21, dtype=np.float32)  # 0.1 apart; index 10 is 0
+    p = np.zeros((3, 21), np.float32)
+    p[0, 10], p[0, 9] = 0.6, 0.4  # straight on or a little left: -0.04
+    p[1, 10], p[1, 5], p[1, 4] = 0.4, 0.35, 0.25  # a turn (-0.5, -0.6) or not: the mode is 0 alone
+    p[2, 0], p[2, 1] = 0.7, 0.3  # at the edge: one neighbour only
+    assert mode_steer(p, values) == pytest.approx([-0.04, 0.0, -0.97], abs=1e-6)
+    # the paper's 7 classes are not in value order: neighbours are by value (0.125 and 0.275 beside 0.275's)
+    seven = np.zeros((1, 7), np.float32)
+    seven[0, 2], seven[0, 1], seven[0, 3], seven[0, 4] = 0.5, 0.2, 0.2, 0.1  # 0.275, 0.125, 0.425, -0.125
+    assert mode_steer(seven, STEER_CLASS_VALUES) == pytest.approx((0.5 * 0.275 + 0.2 * 0.125 + 0.2 * 0.425) / 0.9)
+    model = build_model(SMALL, seed=0)  # through predict_actions: a steer within the classes' range
+    actions = predict_actions(model, _images(2), torch.tensor([0, 1]), torch.tensor([5.0, 5.0]), steer_decoding="mode")
+    assert np.all(np.abs(actions[:, 1]) <= 1.0)
