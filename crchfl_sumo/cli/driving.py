@@ -17,8 +17,9 @@ def _decoding_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--steer-decoding", choices=STEER_DECODINGS, default=DEFAULT_STEER_DECODING,
                    help="a model's steer: 'argmax' (the paper's DAC: the likeliest class's value), 'expected' "
-                        "(the class values weighted by probability) or 'auto' (argmax for the paper's 7 classes, "
-                        f"expected for a finer steer head); default {DEFAULT_STEER_DECODING}")
+                        "(the class values weighted by probability), 'mode' (the same over the likeliest class and "
+                        "its neighbours) or 'auto' (argmax for the paper's 7 classes, mode for a finer steer head); "
+                        f"default {DEFAULT_STEER_DECODING}")
     p.add_argument("--brake-gain", type=number_arg(0, 100, "a gain", lo_open=True), default=DEFAULT_BRAKE_GAIN,
                    help="a target-speed model reaches a lower target in its speed horizon / this "
                         f"(1 = as the labels were made; default {DEFAULT_BRAKE_GAIN:g})")

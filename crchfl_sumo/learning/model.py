@@ -426,7 +426,7 @@ def predict_actions(
     between the classes (0.125 steps are a 33 m radius each: argmax can only
     steer in those steps); "mode" weights only the most likely class and its
     neighbours (``mode_steer``); "auto" is argmax for the paper's 7 classes and
-    expected for a finer head (settings.resolved_steer_decoding).
+    mode for a finer head (settings.resolved_steer_decoding).
     """
     steer_decoding = resolved_steer_decoding(steer_decoding, model.config.steer_bins)
     single = images.dim() == 4

@@ -215,12 +215,14 @@ def with_data_commands(config: ModelConfig, command: np.ndarray) -> ModelConfig:
 
 
 # How a steer head's class scores become one steer value (learning.model.predict_actions):
-# the paper's DAC ("argmax"), the probability-weighted class values ("expected"), or "auto":
-# argmax for the paper's 7 classes, expected for a finer head. Measured (docs/model.md): with
-# 7 classes expected drove worse in Town02 traffic (2/6 against 4/6); with 21 bins argmax turns
-# too tightly where the probability sits on several bins and leaves the road, expected does not.
-# "mode": the probability-weighted values of the most likely class and its two neighbours only, the
-# argmax's choice of a turn or not with a steer between its classes (a lane change's small steer).
+# the paper's DAC ("argmax"), the probability-weighted class values ("expected"), "mode" (the
+# probability-weighted values of the most likely class and its two neighbours only: argmax's choice
+# of a turn or not, with a steer between its classes), or "auto": argmax for the paper's 7 classes,
+# mode for a finer head. Measured (docs/model.md): with 7 classes expected drove worse in Town02
+# traffic (2/6 against 4/6); with 21 bins argmax turns too tightly where the probability sits on
+# several bins and leaves the road in the towns, and expected averages a turn with going straight
+# on the two-lane grid (one-turn 2/30) and rounds a lane change's small steer to none; mode drives
+# the towns as expected does and makes the grid's lane changes (docs/measurements.md, 2026-12-05, sixth).
 STEER_DECODINGS = ("auto", "argmax", "expected", "mode")
 DEFAULT_STEER_DECODING = "auto"
 
@@ -236,7 +238,7 @@ def resolved_steer_decoding(steer_decoding: str, steer_bins: int) -> str:
     """"argmax", "expected" or "mode": what ``steer_decoding`` means for a head of ``steer_bins`` classes."""
     if check_steer_decoding(steer_decoding) != "auto":
         return steer_decoding
-    return "argmax" if steer_bins == NUM_STEER_CLASSES else "expected"
+    return "argmax" if steer_bins == NUM_STEER_CLASSES else "mode"
 # A driving target-speed model reaches a lower target in half its speed horizon
 # (expert.pedals_towards): its targets under-state the expert's braking, as a
 # regression between stopping and going does. Town02 traffic suite 0/6 -> 4/6

@@ -56,8 +56,8 @@ class ReproduceConfig:
         each scheme's best model, the centralized model and the reference drive; 0 = no benchmark.
     bench_towns, bench_tasks, bench_seed: the benchmark's towns, task suites and seed.
     steer_decoding: how the drives and the benchmark turn each model's steer scores into a steer
-        (learning.settings.STEER_DECODINGS; "auto": the DAC for 7 classes, the probability-weighted
-        bins for a finer head).
+        (learning.settings.STEER_DECODINGS; "auto": the DAC for 7 classes, the likeliest bin and its
+        neighbours weighted by probability for a finer head).
     bench_all_seeds: the benchmark drives every seed's model (each scheme's best_model.pt of
         every seed, every centralized seed's last epoch), so that the report gives the spread over
         seeds; false: only the model of the seed with the highest balanced accuracy drives.

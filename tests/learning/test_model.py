@@ -239,7 +239,7 @@ def test_expected_steer_decoding_weights_the_class_values_by_probability():
         predict_actions(model, images, torch.tensor([0, 0]), torch.zeros(2), "mean")
 
 
-def test_auto_decoding_weights_a_fine_steer_head_by_probability():
+def test_auto_decoding_weights_a_fine_steer_heads_likeliest_bins_by_probability():
     model = build_model(ModelConfig("compact", 48, 64), seed=0)  # cil: 21 bins 0.1 apart over [-1, 1]
     assert model.config.steer_bins == 21
     logits = torch.full((21,), -50.0)
@@ -251,6 +251,16 @@ def test_auto_decoding_weights_a_fine_steer_head_by_probability():
     images = _images(2)
     auto = predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2))
     assert auto[:, 1] == pytest.approx([0.125, 0.125], abs=1e-6)
+    # a far bin is left out by auto (mode), not by expected: 0.6 on 0.1, 0.2 on 0.2, 0.2 on -0.5
+    logits = torch.full((21,), -50.0)
+    logits[11], logits[12], logits[5] = float(np.log(3.0)), 0.0, 0.0
+    with torch.no_grad():
+        for head in model.branch_steer.heads:
+            head[-1].bias.copy_(logits)
+    auto = predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2))
+    assert auto[:, 1] == pytest.approx([0.125, 0.125], abs=1e-6)
+    expected = predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2), "expected")
+    assert expected[:, 1] == pytest.approx([0.6 * 0.1 + 0.2 * 0.2 - 0.2 * 0.5] * 2, abs=1e-6)
     assert predict_actions(model, images, torch.tensor([0, 1]), torch.zeros(2), "argmax")[:, 1] == pytest.approx([0.1, 0.1])
 
 
@@ -375,11 +385,13 @@ def test_a_finer_steer_head_learns_the_nearest_bin_and_reads_as_the_papers_class
     # each bin's paper class: -1 .. -0.4 -> 6 (-0.425), -0.3 -> 5, -0.2 and -0.1 -> 4, 0 -> 0, ..., 0.4 .. 1 -> 3
     assert paper_class_of_bin(fine).tolist() == [6] * 7 + [5, 4, 4, 0, 1, 1, 2] + [3] * 7
     assert paper_class_of_bin(ModelConfig(steer_bins=7)).tolist() == list(range(7))
-    # argmax drives with the bin's value; auto (the default) weighs the 21 values, so it lies between bins
+    # argmax drives with the bin's value; auto (the default, mode) weighs it and its neighbours, so it lies
+    # within a bin of argmax's
     actions = predict_actions(model, images[0], 0, 0.0, steer_decoding="argmax")
     assert np.isclose(actions[1], np.round(actions[1], 1))
-    expected = predict_actions(model, images[0], 0, 0.0, steer_decoding="expected")
-    assert np.isclose(predict_actions(model, images[0], 0, 0.0)[1], expected[1])
+    mode = predict_actions(model, images[0], 0, 0.0, steer_decoding="mode")
+    assert np.isclose(predict_actions(model, images[0], 0, 0.0)[1], mode[1])
+    assert abs(mode[1] - actions[1]) <= 0.1 + 1e-6
 
 
 def test_group_norm_on_bfloat16_channels_last_follows_float32():
