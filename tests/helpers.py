@@ -128,3 +128,43 @@ def netconvert(nodes: Path, edges: Path, out: Path, *extra: str) -> None:
          "--no-turnarounds=true", "--offset.disable-normalization=true", "-o", str(out)],
         check=True, capture_output=True,
     )
+
+
+def fork_network(folder: Path, approach_lanes: int = 1) -> Path:
+    """A hand-made fork: Z -> A (``approach_lanes`` lanes, 100 m), A -> B (two lanes, 200 m), then B -> C left
+    (from AB's left lane only) or B -> D straight on (from its right lane only); lanes 3.2 m wide. Each lane of
+    ZA continues on the lane of AB of its index. Returns the .net.xml path."""
+    (folder / "f.nod.xml").write_text(
+        '<nodes><node id="Z" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="B" x="200" y="0"/>'
+        '<node id="C" x="200" y="200"/><node id="D" x="400" y="0"/></nodes>'
+    )
+    (folder / "f.edg.xml").write_text(
+        f'<edges><edge id="ZA" from="Z" to="A" numLanes="{approach_lanes}" speed="13.89" width="3.2"/>'
+        '<edge id="AB" from="A" to="B" numLanes="2" speed="13.89" width="3.2"/>'
+        '<edge id="BC" from="B" to="C" numLanes="1" speed="13.89" width="3.2"/>'
+        '<edge id="BD" from="B" to="D" numLanes="1" speed="13.89" width="3.2"/></edges>'
+    )
+    straight_on = "".join(f'<connection from="ZA" to="AB" fromLane="{i}" toLane="{i}"/>' for i in range(approach_lanes))
+    (folder / "f.con.xml").write_text(
+        f'<connections>{straight_on}<connection from="AB" to="BC" fromLane="1" toLane="0"/>'
+        '<connection from="AB" to="BD" fromLane="0" toLane="0"/></connections>'
+    )
+    netconvert(folder / "f.nod.xml", folder / "f.edg.xml", folder / "f.net.xml", "--connection-files",
+               str(folder / "f.con.xml"))
+    return folder / "f.net.xml"
+
+
+def one_car_scenario(net: Path, edges: str, step_s: float = 0.25, **vehicle: str) -> Path:
+    """A .sumocfg beside ``net`` (NAME.net.xml -> NAME.sumocfg, NAME.rou.xml) with one car "ego" (4.5 m, sigma 0)
+    departing at 0 s at its top speed along ``edges``; ``vehicle``: more of its attributes (departLane="0")."""
+    stem = net.name.removesuffix(".net.xml")
+    extra = "".join(f' {key}="{value}"' for key, value in vehicle.items())
+    (net.parent / f"{stem}.rou.xml").write_text(
+        f'<routes><vType id="car" length="4.5" sigma="0"/><vehicle id="ego" type="car" depart="0"{extra} '
+        f'departSpeed="max"><route edges="{edges}"/></vehicle></routes>'
+    )
+    (net.parent / f"{stem}.sumocfg").write_text(
+        f'<configuration><input><net-file value="{net.name}"/><route-files value="{stem}.rou.xml"/></input>'
+        f'<time><step-length value="{step_s:g}"/></time></configuration>'
+    )
+    return net.parent / f"{stem}.sumocfg"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import netconvert
+from helpers import fork_network, one_car_scenario
 
 from crchfl_sumo.data.expert import expert_labels, tracks_from_frames
 from crchfl_sumo.data.generation import multi_lane
@@ -28,34 +28,8 @@ STEP_S = 0.25
 def fork(tmp_path_factory) -> Path:
     """Z -> A -> B, 300 m straight on two lanes, then B -> C left (from the left lane only) or B -> D straight on
     (from the right lane only); one car, inserted on the right lane at Z, turns left at B."""
-    folder = tmp_path_factory.mktemp("fork")
-    (folder / "f.nod.xml").write_text(
-        '<nodes><node id="Z" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="B" x="200" y="0"/>'
-        '<node id="C" x="200" y="200"/><node id="D" x="400" y="0"/></nodes>'
-    )
-    (folder / "f.edg.xml").write_text(
-        '<edges><edge id="ZA" from="Z" to="A" numLanes="2" speed="13.89" width="3.2"/>'
-        '<edge id="AB" from="A" to="B" numLanes="2" speed="13.89" width="3.2"/>'
-        '<edge id="BC" from="B" to="C" numLanes="1" speed="13.89" width="3.2"/>'
-        '<edge id="BD" from="B" to="D" numLanes="1" speed="13.89" width="3.2"/></edges>'
-    )
-    (folder / "f.con.xml").write_text(
-        '<connections><connection from="ZA" to="AB" fromLane="0" toLane="0"/>'
-        '<connection from="ZA" to="AB" fromLane="1" toLane="1"/>'
-        '<connection from="AB" to="BC" fromLane="1" toLane="0"/>'
-        '<connection from="AB" to="BD" fromLane="0" toLane="0"/></connections>'
-    )
-    netconvert(folder / "f.nod.xml", folder / "f.edg.xml", folder / "f.net.xml", "--connection-files",
-               str(folder / "f.con.xml"))
-    (folder / "f.rou.xml").write_text(
-        '<routes><vType id="car" length="4.5" sigma="0"/><vehicle id="ego" type="car" depart="0" departLane="0" '
-        'departSpeed="max"><route edges="ZA AB BC"/></vehicle></routes>'
-    )
-    (folder / "f.sumocfg").write_text(
-        '<configuration><input><net-file value="f.net.xml"/><route-files value="f.rou.xml"/></input>'
-        f'<time><step-length value="{STEP_S}"/></time></configuration>'
-    )
-    return folder / "f.sumocfg"
+    net = fork_network(tmp_path_factory.mktemp("fork"), approach_lanes=2)
+    return one_car_scenario(net, "ZA AB BC", STEP_S, departLane="0")
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import netconvert
+from helpers import netconvert, one_car_scenario
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import load_samples
@@ -51,15 +51,7 @@ def red_light(tmp_path_factory) -> Path:
     )
     netconvert(folder / "r.nod.xml", folder / "r.edg.xml", folder / "r.net.xml", "--tllogic-files",
                str(folder / "r.tll.xml"))
-    (folder / "r.rou.xml").write_text(
-        '<routes><vType id="car" length="4.5" sigma="0"/><vehicle id="ego" type="car" depart="0" departSpeed="max">'
-        '<route edges="AB BC"/></vehicle></routes>'
-    )
-    (folder / "r.sumocfg").write_text(
-        '<configuration><input><net-file value="r.net.xml"/><route-files value="r.rou.xml"/></input>'
-        '<time><step-length value="0.25"/></time></configuration>'
-    )
-    return folder / "r.sumocfg"
+    return one_car_scenario(folder / "r.net.xml", "AB BC")
 
 
 def test_the_signal_ahead_of_an_approach_to_red_then_green(red_light):

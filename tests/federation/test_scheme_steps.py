@@ -8,7 +8,6 @@ After an intended change of the asynchronous results, write the file anew:
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -33,7 +32,6 @@ from crchfl_sumo.links.clock import ScriptedClock
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from helpers import PAPER_VEHICLES, SumTrainer, result_files, run_config, write_dataset  # noqa: E402
 
-ASYNC_GOLDEN = Path(__file__).resolve().parents[1] / "fixtures" / "async_summaries.json"
 
 
 HOME = {"a": 0, "b": 0, "c": 1, "d": 1, "e": 1}
@@ -132,31 +130,3 @@ def test_a_users_scheme_steps_named_by_import_path_drive_the_run(tmp_path, monke
     for bad in ("test_scheme_steps:HOME", "test_scheme_steps:NoNextStep", "test_scheme_steps:FlatRoundStep"):
         with pytest.raises(CrchflError, match="federation.scheme_steps"):  # no class, no next_step, no argument
             steps_for(FederationConfig(scheme_steps=bad))
-
-
-def async_summary_of(name: str, tmp: Path) -> dict:
-    """summary.json of the built-in config ``name`` with asynchronous edges (vehicles of two compute tiers, so
-    updates arrive stale), on the tiny data set, constant clock, SumTrainer."""
-    mapping = read_toml(builtin_experiments()[name])
-    mapping["dataset"] = str(write_dataset(tmp / "data", PAPER_VEHICLES))
-    mapping["clock"] = {"kind": "constant", "compute_profile": "tiers", "compute_tiers": [1.0, 3.0]}
-    mapping["federation"] |= {"aggregation": "async", "async_buffer": 2}
-    mapping.setdefault("model", {}).update(image_height=48, image_width=64)
-    config = from_mapping(RunConfig, mapping)
-    return json.loads(json.dumps(run_federation_dir(config, read_inputs(config), tmp / name, trainer=SumTrainer())))
-
-
-@pytest.mark.parametrize("name", ["crchfl", "hfl"])
-def test_async_edges_give_the_summary_they_gave(name, tmp_path):
-    golden = json.loads(ASYNC_GOLDEN.read_text())[name]
-    summary = async_summary_of(name, tmp_path)
-    assert {key: summary.get(key) for key in golden} == golden
-
-
-if __name__ == "__main__":
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        summaries = {name: async_summary_of(name, Path(tmp) / name) for name in ("crchfl", "hfl")}
-        ASYNC_GOLDEN.write_text(json.dumps(summaries, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {ASYNC_GOLDEN}")

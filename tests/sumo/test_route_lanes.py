@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import netconvert
+from helpers import fork_network
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.route import LANE_CHANGE_END_M, LANE_CHANGE_M, plan_lanes, project_points, read_net, route_geometry
@@ -19,25 +19,7 @@ WIDTH = 3.2
 def fork(tmp_path_factory) -> Path:
     """Z -> A (one lane), A -> B (two lanes, 200 m), then B -> C left (from the left lane only) or B -> D
     straight on (from the right lane only)."""
-    folder = tmp_path_factory.mktemp("fork")
-    (folder / "f.nod.xml").write_text(
-        '<nodes><node id="Z" x="-100" y="0"/><node id="A" x="0" y="0"/><node id="B" x="200" y="0"/>'
-        '<node id="C" x="200" y="200"/><node id="D" x="400" y="0"/></nodes>'
-    )
-    (folder / "f.edg.xml").write_text(
-        '<edges><edge id="ZA" from="Z" to="A" numLanes="1" speed="13.89" width="3.2"/>'
-        '<edge id="AB" from="A" to="B" numLanes="2" speed="13.89" width="3.2"/>'
-        '<edge id="BC" from="B" to="C" numLanes="1" speed="13.89" width="3.2"/>'
-        '<edge id="BD" from="B" to="D" numLanes="1" speed="13.89" width="3.2"/></edges>'
-    )
-    (folder / "f.con.xml").write_text(
-        '<connections><connection from="ZA" to="AB" fromLane="0" toLane="0"/>'
-        '<connection from="AB" to="BC" fromLane="1" toLane="0"/>'
-        '<connection from="AB" to="BD" fromLane="0" toLane="0"/></connections>'
-    )
-    netconvert(folder / "f.nod.xml", folder / "f.edg.xml", folder / "f.net.xml", "--connection-files",
-               str(folder / "f.con.xml"))
-    return folder / "f.net.xml"
+    return fork_network(tmp_path_factory.mktemp("fork"))
 
 
 def test_a_turn_from_the_other_lane_plans_a_lane_change_finished_before_the_stop_line(fork):
