@@ -17,7 +17,7 @@ from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.data.labels import SIGNAL_RED, digitize_steer
-from crchfl_sumo.data.samples import FIELDS
+from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, ExpertLabelled, collect, dagger_iterations
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.driving.drive import DriveConfig
@@ -93,8 +93,14 @@ def test_the_samples_do_not_depend_on_how_many_processes_drive(start, ladder):
     assert len(one) > 0
     for name in FIELDS:
         assert torch.equal(getattr(one, name), getattr(two, name)), name
-    # With corrections only, this model's drives keep nothing: empty arrays of the right shape.
-    none = collect(checkpoint, towns, dataclasses.replace(config, corrections_only=True))
+    # With corrections only at most as many states are kept, the same however many processes drive
+    corrections = dataclasses.replace(config, corrections_only=True)
+    kept = collect(checkpoint, towns, corrections, jobs=1)
+    assert len(kept) <= len(one) and torch.equal(kept.actions, collect(checkpoint, towns, corrections, jobs=2).actions)
+    # A drive that keeps nothing gives empty arrays of the right shape
+    learner = _Learner()
+    learner.model = SimpleNamespace(config=SimpleNamespace(speed_horizon_s=1.0, image_height=48, image_width=64))
+    none = Samples.from_numpy(**ExpertLabelled(learner, _Expert()).arrays())
     assert len(none) == 0 and tuple(none.images.shape[1:]) == (4, 48, 64, 3)
 
 
