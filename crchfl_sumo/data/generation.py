@@ -69,7 +69,7 @@ from crchfl_sumo.sumo.outputs import sumo_output_files, sumo_output_options
 from crchfl_sumo.sumo.route import LaneChange, read_net
 from crchfl_sumo.sumo.scenario import DEFAULT_COVERAGE_RADIUS_M, Scenario, SumoConfig, configured_scenario
 from crchfl_sumo.sumo.sites import EdgeSite
-from crchfl_sumo.sumo.turns import arc_length_m, choice_junctions
+from crchfl_sumo.sumo.turns import choice_junctions
 from crchfl_sumo.vision.raster import RasterConfig, Renderer, neighbourhood_m
 from crchfl_sumo.vision.world import WorldConfig, build_world
 
@@ -204,8 +204,7 @@ def generate_dataset(
                 gap_m = None if sizes.recovery_queue_share == 0 else np.array(
                     [gap_ahead(frames[i], vehicle, expert.stop_speed_mps) for i in frame_rows]
                 )
-                changes = track_lane_changes(arc_length_m(np.stack([track.x_m, track.y_m], axis=1)), track.t_s,
-                                             track.lane_id, net, lane_change_s)
+                changes = track_lane_changes(track, net, lane_change_s)
                 labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m, changes)
             labelled.append((shard, vehicle, rows, labels, RenderJob(vehicle, frame_rows, labels.perturbation)))
         with clock("render"):

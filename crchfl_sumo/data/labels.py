@@ -11,7 +11,7 @@ or go straight across; on a multi-lane road, also change to the lane on the
 left or on the right (CARLA's CHANGELANELEFT and CHANGELANERIGHT), from a
 little before the sideways move until it ends. Code k is COMMAND_NAMES[k].
 A network of JUNCTION_COMMANDS heads (the paper's and CIL's four) reads a
-lane-change command as follow (``known_commands``).
+lane-change command as follow (learning/model.py).
 
 Signal ahead (data set format 5): the state of the next signal on the sample's
 route for its link, code k = SIGNAL_NAMES[k] ("unknown" where the data does not
@@ -32,12 +32,6 @@ COMMAND_NAMES = ("follow", "left", "right", "straight", "change_left", "change_r
 FOLLOW, LEFT, RIGHT, STRAIGHT, CHANGE_LEFT, CHANGE_RIGHT = range(len(COMMAND_NAMES))
 NUM_COMMANDS = len(COMMAND_NAMES)
 JUNCTION_COMMANDS = 4  # follow, left, right, straight: the commands of a network without lane-change heads
-
-
-def known_commands(command: np.ndarray, heads: int) -> np.ndarray:
-    """Command codes as a network of ``heads`` commands reads them: a code it has no head for is FOLLOW."""
-    command = np.asarray(command)
-    return np.where(command < heads, command, FOLLOW).astype(command.dtype)
 
 
 SIGNAL_NAMES = ("unknown", "none", "red", "yellow", "green", "green_minor", "off")

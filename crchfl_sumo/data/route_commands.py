@@ -30,6 +30,7 @@ import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
+from crchfl_sumo.data.expert import Track
 from crchfl_sumo.data.labels import CHANGE_LEFT, CHANGE_RIGHT, FOLLOW, LEFT, RIGHT, STRAIGHT
 from crchfl_sumo.sumo.route import LaneChange, RouteGeometry, lane_side
 from crchfl_sumo.sumo.turns import Junction, arc_length_m, junction_passages, next_passage
@@ -105,12 +106,13 @@ class PathCommands:
         return codes
 
 
-def track_lane_changes(track_s_m: np.ndarray, t_s: np.ndarray, lane_ids: Sequence[str], net, move_s: float
-                       ) -> tuple[LaneChange, ...]:
-    """The lane changes of a recorded track (arc positions ``track_s_m`` at times ``t_s``, its lane per row):
-    a row whose lane is another lane of the previous row's edge is where SUMO switched the vehicle over. SUMO
-    moves it sideways over ``move_s`` seconds (its --lanechange.duration; 0: in one step) and switches its lane
+def track_lane_changes(track: Track, net, move_s: float) -> tuple[LaneChange, ...]:
+    """The lane changes of a recorded track (``Track.lane_id`` per row), at arc positions along it: a row whose
+    lane is another lane of the previous row's edge is where SUMO switched the vehicle over. SUMO moves it
+    sideways over ``move_s`` seconds (its --lanechange.duration; 0: in one step) and switches its lane
     halfway, so the move spans move_s / 2 either side of the switch. ``net``: the sumolib network, for the side."""
+    track_s_m = arc_length_m(np.stack([track.x_m, track.y_m], axis=1))
+    t_s, lane_ids = track.t_s, track.lane_id if track.lane_id is not None else ()
     changes = []
     for row in range(1, len(lane_ids)):
         before, after = str(lane_ids[row - 1]), str(lane_ids[row])

@@ -45,7 +45,6 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-import numpy as np
 import torch
 
 from crchfl_sumo.accounting.energy import vehicle_energy_j
@@ -203,8 +202,8 @@ def run_federation_dir(
     """
     out_dir = Path(out_dir)
     # [model] commands unset: the lane-change heads where the vehicles' data hold a lane-change command
-    commands = np.concatenate([s.command.numpy() for s in inputs.samples.values()])
-    config = dataclasses.replace(config, model=with_data_commands(config.model, commands))
+    largest = max((int(s.command.max()) for s in inputs.samples.values() if len(s)), default=0)
+    config = dataclasses.replace(config, model=with_data_commands(config.model, largest))
     adopt_legacy_state(out_dir)
     if ((out_dir / STATE_FILE).exists() or (out_dir / PREVIOUS_STATE_FILE).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")

@@ -81,7 +81,7 @@ def train_centralized(
             f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
         )
     if initial_state is None:  # a network of its own takes the data's lane-change commands; weights keep theirs
-        model_config = with_data_commands(model_config, train.command.numpy())
+        model_config = with_data_commands(model_config, int(train.command.max()))
     configure_determinism(config.deterministic)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

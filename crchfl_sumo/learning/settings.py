@@ -11,8 +11,6 @@ import re
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numpy as np
-
 from crchfl_sumo.core.config import KEY, OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
@@ -70,6 +68,9 @@ SIZES: dict[str, BranchShape] = {
         hidden=(2256, 1024, 256),
     ),
 }
+
+
+COMMAND_COUNTS = (JUNCTION_COMMANDS, NUM_COMMANDS)  # ModelConfig.commands: without or with the lane changes
 
 
 @dataclass(frozen=True)
@@ -203,13 +204,11 @@ class ModelConfig:
         return self.commands or JUNCTION_COMMANDS
 
 
-COMMAND_COUNTS = (JUNCTION_COMMANDS, NUM_COMMANDS)
 
-
-def with_data_commands(config: ModelConfig, command: np.ndarray) -> ModelConfig:
-    """``config`` with ``commands`` taken from the training data where it is unset: 6 where ``command`` (the
-    samples' codes) holds a lane-change command, else unchanged (4), so the towns' models stay as they were."""
-    if config.commands is None and config.arch != "paper" and len(command) and int(np.max(command)) >= JUNCTION_COMMANDS:
+def with_data_commands(config: ModelConfig, largest_command: int) -> ModelConfig:
+    """``config`` with ``commands`` taken from the training data where it is unset: 6 where the data's largest
+    command code is a lane change, else unchanged (4), so the towns' models stay as they were."""
+    if config.commands is None and config.arch != "paper" and largest_command >= JUNCTION_COMMANDS:
         return dataclasses.replace(config, commands=NUM_COMMANDS)
     return config
 

@@ -269,16 +269,15 @@ def lane_change_shape(entry, exit_lane) -> tuple[np.ndarray, np.ndarray]:
 
 def lane_side(lane, other) -> int:
     """+1 if lane ``other`` lies left of ``lane`` (two lanes of one edge, sumolib), else -1: the side of the
-    other's midpoint from the nearest segment of the lane, in driving direction. Geometry, not lane indices,
-    which count from the outer edge of the road and so run the other way in left-hand networks."""
-    a = np.asarray(lane.getShape(), np.float64)
-    b = np.asarray(other.getShape(), np.float64)
-    point = _along(b, np.array([0.5]))[0]
-    d = np.diff(a, axis=0)
-    rel = point - a[:-1]
-    t = np.clip(np.einsum("kd,kd->k", rel, d) / np.maximum(np.einsum("kd,kd->k", d, d), 1e-12), 0.0, 1.0)
-    k = int(np.argmin(np.hypot(*(rel - t[:, None] * d).T)))
-    return 1 if d[k, 0] * rel[k, 1] - d[k, 1] * rel[k, 0] > 0 else -1
+    other's midpoint from the lane's centre line, in driving direction (``project_points``). Geometry, not lane
+    indices, which count from the outer edge of the road and so run the other way in left-hand networks."""
+    shape = np.asarray(lane.getShape(), np.float64)
+    s_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+    segments = len(shape) - 1
+    centre = RouteGeometry((), shape, s_m, np.zeros(segments), np.zeros(segments, dtype=bool), ())
+    x, y = _along(np.asarray(other.getShape(), np.float64), np.array([0.5]))[0]
+    _, offset, _ = project_points(centre, x, y)
+    return 1 if offset[0] > 0 else -1
 
 
 def _polyline_length(xy: np.ndarray) -> float:

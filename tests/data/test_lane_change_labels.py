@@ -13,7 +13,7 @@ from helpers import fork_network, one_car_scenario
 
 from crchfl_sumo.data.expert import expert_labels, tracks_from_frames
 from crchfl_sumo.data.generation import multi_lane
-from crchfl_sumo.data.labels import CHANGE_LEFT, CHANGE_RIGHT, COMMAND_NAMES, FOLLOW, LEFT, known_commands
+from crchfl_sumo.data.labels import CHANGE_LEFT, CHANGE_RIGHT, COMMAND_NAMES, FOLLOW, LEFT
 from crchfl_sumo.data.route_commands import CommandConfig, RouteCommands, track_commands, track_lane_changes
 from crchfl_sumo.sumo.route import LaneChange, lane_side, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
@@ -42,7 +42,7 @@ def drive(fork):
     track = tracks_from_frames(frames)["ego"]
     s = arc_length_m(np.stack([track.x_m, track.y_m], axis=1))
     net = read_net(fork.parent / "f.net.xml")
-    return track, s, track_lane_changes(s, track.t_s, track.lane_id, net, MOVE_S), net
+    return track, s, track_lane_changes(track, net, MOVE_S), net
 
 
 def test_a_sumo_lane_change_is_found_on_the_track_with_its_side_and_its_sideways_move(drive):
@@ -121,7 +121,5 @@ def test_a_change_to_the_right_reads_change_right_and_an_instant_change_holds_fr
     assert codes.tolist() == [FOLLOW, CHANGE_RIGHT, CHANGE_RIGHT, FOLLOW]  # an empty move: its lead only
 
 
-def test_a_four_command_network_reads_a_lane_change_as_follow():
+def test_the_lane_change_commands_are_named_once():  # a 4-command network reading them: tests/learning/test_model.py
     assert COMMAND_NAMES[CHANGE_LEFT] == "change_left" and COMMAND_NAMES[CHANGE_RIGHT] == "change_right"
-    assert known_commands(np.array([0, 1, 2, 3, 4, 5]), 4).tolist() == [0, 1, 2, 3, FOLLOW, FOLLOW]
-    assert known_commands(np.array([0, 4, 5]), 6).tolist() == [0, 4, 5]

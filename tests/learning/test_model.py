@@ -470,12 +470,12 @@ def test_the_commands_setting_takes_the_datas_lane_changes_and_is_checked():
 
     assert SMALL.commands is None and SMALL.num_commands == 4
     assert "commands" not in to_mapping(SMALL)  # unset: the towns' configs and checkpoints read as before
-    assert with_data_commands(SMALL, np.array([0, 1, 2, 3])) is SMALL
-    lanes = with_data_commands(SMALL, np.array([0, 3, 5]))
+    assert with_data_commands(SMALL, 3) is SMALL
+    lanes = with_data_commands(SMALL, 5)
     assert lanes.commands == 6 and lanes.num_commands == 6 and to_mapping(lanes)["commands"] == 6
     set_four = ModelConfig("compact", 48, 64, commands=4)
-    assert with_data_commands(set_four, np.array([0, 5])).num_commands == 4  # a setting given stays
-    assert with_data_commands(PAPER_ARCH, np.array([0, 5])) is PAPER_ARCH  # the paper's network has no command
+    assert with_data_commands(set_four, 5).num_commands == 4  # a setting given stays
+    assert with_data_commands(PAPER_ARCH, 5) is PAPER_ARCH  # the paper's network has no command
     assert from_mapping(ModelConfig, to_mapping(lanes)) == lanes
     with pytest.raises(CrchflError, match="model.commands: 5; use 4"):
         ModelConfig("compact", 48, 64, commands=5)
