@@ -53,7 +53,8 @@ from crchfl_sumo.data.expert import (
     pedals_towards,
 )
 from crchfl_sumo.data.labels import (
-    FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, digitize_steer, steer_bin_values,
+    FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_RED, SIGNAL_YELLOW, digitize_steer,
+    steer_bin_values,
 )
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
@@ -310,16 +311,55 @@ def steer_targets(config: ModelConfig, steer_class: torch.Tensor, steer: torch.T
     return (steer.to(values.dtype)[:, None] - values).abs().argmin(dim=1)
 
 
+# The stop head (ModelConfig.stop_head): branch I's second output is the distance to the stop line of the
+# route's next red or yellow signal, up to STOP_RANGE_M (the range, also with no such signal), scaled by
+# 1/STOP_RANGE_M. The controller caps the target speed at the speed from which STOP_DECEL_MPS2 stops the car
+# STOP_MARGIN_M before that line, unless the car could not stop there even at its full deceleration (then
+# it is committed, as SUMO's drivers are at a yellow light).
+STOP_RANGE_M = 40.0  # the farthest the 64 x 128 head camera shows a lamp (docs/measurements.md)
+STOP_MARGIN_M = 2.0
+STOP_DECEL_MPS2 = 2.5
+
+
 def longitudinal_width(config: ModelConfig) -> int:
-    """Branch I's outputs: throttle and brake, or one target speed."""
-    return 2 if config.longitudinal == "pedals" else 1
+    """Branch I's outputs: throttle and brake, or one target speed (and the stop distance, with a stop head)."""
+    return 2 if config.longitudinal == "pedals" or config.stop_head else 1
 
 
-def longitudinal_target(config: ModelConfig, actions: torch.Tensor, target_speed_mps: torch.Tensor) -> torch.Tensor:
-    """What branch I learns, [B, longitudinal_width]: (throttle, brake) of ``actions``, or the scaled target speed."""
+def longitudinal_target(
+    config: ModelConfig, actions: torch.Tensor, target_speed_mps: torch.Tensor,
+    signal_state: torch.Tensor | None = None, signal_distance_m: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """What branch I learns, [B, longitudinal_width]: (throttle, brake) of ``actions``, or the scaled target speed
+    (and, with a stop head, the scaled stop distance, which needs the samples' signal state and distance)."""
     if config.longitudinal == "pedals":
         return actions[:, [0, 2]]
-    return (target_speed_mps / SPEED_SCALE_MPS)[:, None]
+    speed = (target_speed_mps / SPEED_SCALE_MPS)[:, None]
+    if not config.stop_head:
+        return speed
+    if signal_state is None or signal_distance_m is None:
+        raise ValueError("longitudinal_target: a stop head learns from the samples' signal state and distance")
+    return torch.cat([speed, (stop_distance_m(signal_state, signal_distance_m) / STOP_RANGE_M)[:, None]], dim=1)
+
+
+def stop_distance_m(signal_state: torch.Tensor, signal_distance_m: torch.Tensor) -> torch.Tensor:
+    """float32 [B]: the distance to the stop line of a red or yellow next signal, at most STOP_RANGE_M (also where
+    the next signal shows another state, is unknown, or there is none)."""
+    stopping = (signal_state == SIGNAL_RED) | (signal_state == SIGNAL_YELLOW)
+    distance = torch.where(stopping, signal_distance_m.float(), torch.full_like(signal_distance_m.float(), STOP_RANGE_M))
+    return distance.clamp(0.0, STOP_RANGE_M)
+
+
+def stop_capped_speed(
+    target_mps: np.ndarray, stop_m: np.ndarray, speed_mps: np.ndarray, max_decel_mps2: np.ndarray | float,
+) -> np.ndarray:
+    """The target speed capped so that STOP_DECEL_MPS2 stops the car STOP_MARGIN_M before a stop line ``stop_m``
+    ahead; uncapped where the car could not stop before the line even at ``max_decel_mps2`` (committed)."""
+    stop_m = np.asarray(stop_m, dtype=np.float64)
+    speed = np.asarray(speed_mps, dtype=np.float64)
+    allowed = np.sqrt(2.0 * STOP_DECEL_MPS2 * np.maximum(stop_m - STOP_MARGIN_M, 0.0))
+    committed = speed**2 > 2.0 * np.asarray(max_decel_mps2, dtype=np.float64) * np.maximum(stop_m, 0.0)
+    return np.where(committed, target_mps, np.minimum(target_mps, allowed))
 
 
 def longitudinal_pedals(
@@ -330,7 +370,8 @@ def longitudinal_pedals(
     max_decel_mps2: np.ndarray | float = PASSENGER_MAX_DECEL_MPS2,
     brake_gain: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Branch I's output [B, width] -> (throttle [B], brake [B]); a target speed through expert.pedals_towards.
+    """Branch I's output [B, width] -> (throttle [B], brake [B]); a target speed through expert.pedals_towards
+    (with a stop head, capped by stop_capped_speed at the predicted stop distance).
 
     The vehicle's acceleration limits scale a target speed's pedals (SUMO's
     passenger car unless given); predicted pedals pass through. ``brake_gain``
@@ -340,6 +381,8 @@ def longitudinal_pedals(
     if config.longitudinal == "pedals":
         return longitudinal[:, 0], longitudinal[:, 1]
     target = np.maximum(longitudinal[:, 0] * SPEED_SCALE_MPS, 0.0)
+    if config.stop_head:
+        target = stop_capped_speed(target, longitudinal[:, 1] * STOP_RANGE_M, speed_mps, max_decel_mps2)
     horizon = ExpertConfig(speed_horizon_s=config.speed_horizon_s)
     return pedals_towards(speed_mps, target, max_accel_mps2, max_decel_mps2, horizon, brake_gain)
 

@@ -117,6 +117,11 @@ class ModelConfig:
         follow, left, right and straight, or 6, with change_left and change_right for multi-lane
         roads (labels.COMMAND_NAMES). Unset: 6 where the training data hold a lane-change command,
         else 4 (``with_data_commands``). A 4-command network reads a lane-change command as follow.
+    stop_head: branch I also learns how far ahead the route's next signal shows red or yellow
+        (``stop_distance_m`` of the data set's signal_state and signal_distance_m, up to STOP_RANGE_M),
+        and the controller caps the target speed so that the car can stop before that line
+        (model.longitudinal_pedals). Target-speed models only; default off (docs/model.md,
+        "A stop head").
     class (TOML key; ``class_path`` here): "package.module:Class", your own network in place of the
         built-in one (learning/model.py ``network``; docs/own_model.md); "" (default): the built-in.
     """
@@ -134,6 +139,7 @@ class ModelConfig:
     speed_horizon_s: float = DEFAULT_SPEED_HORIZON_S
     steer_bins: int | None = None
     commands: int | None = field(default=None, metadata={OMIT_DEFAULT: True})
+    stop_head: bool = field(default=False, metadata={OMIT_DEFAULT: True})
     class_path: str = field(default="", metadata={KEY: "class", OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
@@ -158,7 +164,7 @@ class ModelConfig:
             raise CrchflError(
                 f"model.speed_horizon_s must lie in (0, {MAX_SPEED_HORIZON_S:g}] s, got {self.speed_horizon_s!r}"
             )
-        for key in ("command_pedals", "speed_input", "steer_speed_input"):
+        for key in ("command_pedals", "speed_input", "steer_speed_input", "stop_head"):
             if not isinstance(getattr(self, key), bool):
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         bins = self.steer_bins
@@ -171,6 +177,9 @@ class ModelConfig:
                 f"model.commands: {self.commands!r}; use 4 (follow, left, right, straight) or 6 (with change_left "
                 "and change_right), or leave it out to take the data's"
             )
+        if self.stop_head and self.longitudinal != "target_speed":
+            raise CrchflError("model.stop_head: applies to a target-speed branch I only; drop it or set "
+                              "longitudinal = 'target_speed'")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
             paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input",
