@@ -37,6 +37,19 @@ def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
     assert load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config.image_height == 48
 
 
+def test_train_stop_head_and_command_pedals_reach_the_checkpoint(tmp_path):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "1", "--stop-head",
+                 "--command-pedals"]) == 0
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+    config = load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config
+    assert config.stop_head and config.command_pedals
+    assert main(["train", str(data), "--out", str(tmp_path / "u"), "--epochs", "1"]) == 0
+    config = load_checkpoint(tmp_path / "u" / "checkpoint.pt").model_config
+    assert not config.stop_head and not config.command_pedals
+
+
 def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):
     assert main(["train", str(tmp_path / "none"), "--out", str(tmp_path / "t")]) == 2
     assert "manifest" in capsys.readouterr().err

@@ -46,6 +46,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed-input", choices=tuple(SPEED_INPUTS), default="none",
                    help="the ego's speed as an input of the throttle/brake branch (longitudinal) or of both branches; "
                    "default none (the paper's); measured in docs/measurements.md")
+    p.add_argument("--command-pedals", action="store_true",
+                   help="the route command conditions the throttle/brake branch too (model.command_pedals): a "
+                   "lane's heads show one light per movement, and only the command tells which is the car's")
     p.add_argument("--stop-head", action="store_true",
                    help="branch I also learns the distance to a red or yellow signal's stop line, and the controller "
                    "slows to stop before it (model.stop_head; needs a data set of format 5; docs/model.md)")
@@ -59,12 +62,13 @@ def run_train(args) -> int:
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          class_weighting=args.class_weighting)  # refused before any file
-    speed_input, stop_head = args.speed_input, args.stop_head
+    speed_input, stop_head, command_pedals = args.speed_input, args.stop_head, args.command_pedals
     # an option added later is left out of the folder's settings at its default: a folder trained before it
     # existed still resumes
     for names, at_default in ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                               (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
-                              (("speed_input",), speed_input == "none"), (("stop_head",), not args.stop_head)):
+                              (("speed_input",), speed_input == "none"), (("stop_head",), not args.stop_head),
+                              (("command_pedals",), not args.command_pedals)):
         if at_default:
             for name in names:
                 delattr(args, name)
@@ -72,7 +76,7 @@ def run_train(args) -> int:
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
                                  resume=args.resume, overwrite=args.overwrite, progress=bars, speed_input=speed_input,
-                                 stop_head=stop_head)
+                                 stop_head=stop_head, command_pedals=command_pedals)
         straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "

@@ -232,15 +232,15 @@ def _resumable_checkpoint(path: Path) -> Checkpoint:
 def train_command(
     dataset: str | Path, out_dir: str | Path, epochs: int, size: str, arch: str, config: TrainConfig, seed: int,
     resume: bool = False, overwrite: bool = False, progress: Progress | None = None, speed_input: str = "none",
-    stop_head: bool = False,
+    stop_head: bool = False, command_pedals: bool = False,
 ) -> dict[str, Any]:
     """What `crchfl-sumo train` does: the model of ``size`` and ``arch`` at the data set's image size and speed
-    horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``: ModelConfig's),
+    horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``: ModelConfig's),
     trained on its train shards and evaluated on its test shards; the last epoch's metrics line."""
     train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
     manifest = read_manifest(dataset)
     model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s,
-                               stop_head=stop_head, **SPEED_INPUTS[speed_input])
+                               stop_head=stop_head, command_pedals=command_pedals, **SPEED_INPUTS[speed_input])
     records = train_centralized(
         train, test, epochs, out_dir, model_config, config, seed, progress=progress,
         drive_settings=manifest.drive_settings(f"{dataset}/manifest.json"), resume=resume, overwrite=overwrite,
