@@ -49,6 +49,7 @@ from crchfl_sumo.core.numbers import check_seed
 from crchfl_sumo.data.expert import (
     PASSENGER_MAX_ACCEL_MPS2,
     PASSENGER_MAX_DECEL_MPS2,
+    STAND_TARGET_MPS,
     ExpertConfig,
     pedals_towards,
 )
@@ -315,10 +316,13 @@ def steer_targets(config: ModelConfig, steer_class: torch.Tensor, steer: torch.T
 # route's next red or yellow signal, up to STOP_RANGE_M (the range, also with no such signal), scaled by
 # 1/STOP_RANGE_M. The controller caps the target speed at the speed from which STOP_DECEL_MPS2 stops the car
 # STOP_MARGIN_M before that line, unless the car could not stop there even at its full deceleration (then
-# it is committed, as SUMO's drivers are at a yellow light).
+# it is committed, as SUMO's drivers are at a yellow light). A car slower than STAND_TARGET_MPS starts only
+# when the head sees no red line within STOP_START_M: standing at a red line, the models guessed the green a
+# second early from the crossing road's lights turning red, and rolled over the line (docs/measurements.md).
 STOP_RANGE_M = 40.0  # the farthest the 64 x 128 head camera shows a lamp (docs/measurements.md)
 STOP_MARGIN_M = 2.0
 STOP_DECEL_MPS2 = 2.5
+STOP_START_M = 10.0
 
 
 def longitudinal_width(config: ModelConfig) -> int:
@@ -354,10 +358,12 @@ def stop_capped_speed(
     target_mps: np.ndarray, stop_m: np.ndarray, speed_mps: np.ndarray, max_decel_mps2: np.ndarray | float,
 ) -> np.ndarray:
     """The target speed capped so that STOP_DECEL_MPS2 stops the car STOP_MARGIN_M before a stop line ``stop_m``
-    ahead; uncapped where the car could not stop before the line even at ``max_decel_mps2`` (committed)."""
+    ahead; uncapped where the car could not stop before the line even at ``max_decel_mps2`` (committed); 0 for
+    a car slower than STAND_TARGET_MPS with a stop line nearer than STOP_START_M."""
     stop_m = np.asarray(stop_m, dtype=np.float64)
     speed = np.asarray(speed_mps, dtype=np.float64)
     allowed = np.sqrt(2.0 * STOP_DECEL_MPS2 * np.maximum(stop_m - STOP_MARGIN_M, 0.0))
+    allowed = np.where((speed < STAND_TARGET_MPS) & (stop_m < STOP_START_M), 0.0, allowed)
     committed = speed**2 > 2.0 * np.asarray(max_decel_mps2, dtype=np.float64) * np.maximum(stop_m, 0.0)
     return np.where(committed, target_mps, np.minimum(target_mps, allowed))
 

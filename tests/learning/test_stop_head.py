@@ -47,6 +47,10 @@ def test_the_cap_stops_the_car_before_the_line_unless_it_is_committed():
     # standing 1 m short: 0; a lower target stays; 8 m/s at 3 m cannot stop (64 > 2 * 4.5 * 3 = 27): committed
     assert capped.tolist() == pytest.approx([8.0, 8.0, 0.0, 0.0, 3.0, 8.0])
     assert stop_capped_speed(np.array([8.0]), np.array([7.0]), np.array([6.0]), 4.5)[0] == pytest.approx(5.0)
+    # standing (under 1 m/s), a car starts only when no red line is within 10 m: at 9 m it stays (the cap
+    # alone would allow sqrt(2 * 2.5 * 7) = 5.9 m/s), at 11 m it goes; rolling at 2 m/s, 9 m caps at 5.9
+    held = stop_capped_speed(np.array([3.0, 3.0, 8.0]), np.array([9.0, 11.0, 9.0]), np.array([0.0, 0.5, 2.0]), 4.5)
+    assert held.tolist() == pytest.approx([0.0, 3.0, math.sqrt(35.0)])
 
 
 def test_predict_actions_brakes_for_a_predicted_red_line_and_drives_on_without_one():
