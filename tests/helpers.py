@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crchfl_sumo.data.labels import SIGNAL_GREEN, SIGNAL_RED
 from crchfl_sumo.data.manifest import Manifest
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.shards import DatasetWriter, ShardData
@@ -22,9 +23,11 @@ PAPER_VEHICLES = [
 ]
 
 
-def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0, commands=4) -> Path:
+def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4, seed=0, commands=4,
+                  signals=False) -> Path:
     """A tiny data set of random 48 x 64 samples, one train shard per vehicle and one test shard; route commands
-    drawn from 0 .. ``commands`` - 1 (6: the lane changes too)."""
+    drawn from 0 .. ``commands`` - 1 (6: the lane changes too); ``signals``: random red or green next signals
+    0 to 60 m ahead (else unknown, as in data sets before format 5)."""
     rng = np.random.default_rng(seed)
     header = Manifest(scenario="paper", seed=0, sample_period_s=0.25, image_height=48, image_width=64, compression="none")
     writer = DatasetWriter(root, header)
@@ -43,6 +46,8 @@ def write_dataset(root: Path, vehicles, samples=(2, 3, 2, 2, 1), test_samples=4,
             zeros,
             zeros,
             zeros,
+            signal_state=rng.choice([SIGNAL_RED, SIGNAL_GREEN], n).astype(np.int8) if signals else None,
+            signal_distance_m=rng.uniform(0, 60, n).astype(np.float32) if signals else None,
         )
 
     for i, ((vehicle, town, edge), n) in enumerate(zip(vehicles, samples)):

@@ -37,17 +37,26 @@ def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
     assert load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config.image_height == 48
 
 
-def test_train_stop_head_and_command_pedals_reach_the_checkpoint(tmp_path):
-    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+def test_train_stop_head_command_pedals_and_red_hold_reach_the_checkpoint(tmp_path):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5, signals=True)
     assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "1", "--stop-head",
-                 "--command-pedals"]) == 0
+                 "--command-pedals", "--red-hold"]) == 0
     from crchfl_sumo.learning.checkpoint import load_checkpoint
 
     config = load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config
-    assert config.stop_head and config.command_pedals
+    assert config.stop_head and config.command_pedals and config.red_hold
     assert main(["train", str(data), "--out", str(tmp_path / "u"), "--epochs", "1"]) == 0
     config = load_checkpoint(tmp_path / "u" / "checkpoint.pt").model_config
-    assert not config.stop_head and not config.command_pedals
+    assert not config.stop_head and not config.command_pedals and not config.red_hold
+
+
+def test_train_refuses_signal_labels_from_a_data_set_without_signal_states(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    for flag in ("--stop-head", "--red-hold"):
+        assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "1", flag]) == 2
+        err = capsys.readouterr().err
+        assert "no signal states" in err and flag in err and "Traceback" not in err
+        assert not (tmp_path / "t" / "checkpoint.pt").exists()
 
 
 def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):

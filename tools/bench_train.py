@@ -73,7 +73,7 @@ def train_flops_per_sample(model_config: ModelConfig, batch_size: int) -> float:
     batch = synthetic_samples(batch_size, model_config.image_height, model_config.image_width, np.random.default_rng(0))
     with FlopCounterMode(display=False) as counter:
         longitudinal, steer_logits = model(batch.images, batch.command, batch.speed_mps)
-        target = longitudinal_target(model_config, batch.actions, batch.target_speed_mps)
+        target = longitudinal_target(model_config, batch)
         loss_tb, loss_steer = branch_losses(longitudinal, steer_logits, target, batch.steer_class)
         (loss_tb + loss_steer).backward()
     return counter.get_total_flops() / batch_size

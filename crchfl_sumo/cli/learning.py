@@ -52,6 +52,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stop-head", action="store_true",
                    help="branch I also learns the distance to a red or yellow signal's stop line, and the controller "
                    "slows to stop before it (model.stop_head; needs a data set of format 5; docs/model.md)")
+    p.add_argument("--red-hold", action="store_true",
+                   help="while the route's next signal shows red, the target-speed label stops the car before the "
+                   "line (model.red_hold; needs a data set of format 5; docs/model.md)")
 
 
 def run_train(args) -> int:
@@ -62,13 +65,13 @@ def run_train(args) -> int:
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          class_weighting=args.class_weighting)  # refused before any file
-    speed_input, stop_head, command_pedals = args.speed_input, args.stop_head, args.command_pedals
+    speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
     # an option added later is left out of the folder's settings at its default: a folder trained before it
     # existed still resumes
     for names, at_default in ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                               (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
                               (("speed_input",), speed_input == "none"), (("stop_head",), not args.stop_head),
-                              (("command_pedals",), not args.command_pedals)):
+                              (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold)):
         if at_default:
             for name in names:
                 delattr(args, name)
@@ -76,7 +79,7 @@ def run_train(args) -> int:
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
                                  resume=args.resume, overwrite=args.overwrite, progress=bars, speed_input=speed_input,
-                                 stop_head=stop_head, command_pedals=command_pedals)
+                                 stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold)
         straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "

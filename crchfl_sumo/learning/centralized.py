@@ -20,6 +20,7 @@ from crchfl_sumo.core.progress import Progress
 from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
+from crchfl_sumo.data.labels import SIGNAL_UNKNOWN
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
@@ -232,15 +233,20 @@ def _resumable_checkpoint(path: Path) -> Checkpoint:
 def train_command(
     dataset: str | Path, out_dir: str | Path, epochs: int, size: str, arch: str, config: TrainConfig, seed: int,
     resume: bool = False, overwrite: bool = False, progress: Progress | None = None, speed_input: str = "none",
-    stop_head: bool = False, command_pedals: bool = False,
+    stop_head: bool = False, command_pedals: bool = False, red_hold: bool = False,
 ) -> dict[str, Any]:
     """What `crchfl-sumo train` does: the model of ``size`` and ``arch`` at the data set's image size and speed
-    horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``: ModelConfig's),
+    horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``, ``red_hold``: ModelConfig's),
     trained on its train shards and evaluated on its test shards; the last epoch's metrics line."""
     train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
     manifest = read_manifest(dataset)
     model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s,
-                               stop_head=stop_head, command_pedals=command_pedals, **SPEED_INPUTS[speed_input])
+                               stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
+                               **SPEED_INPUTS[speed_input])
+    if (stop_head or red_hold) and len(train) and bool((train.signal_state == SIGNAL_UNKNOWN).all()):
+        flag = "--stop-head" if stop_head else "--red-hold"
+        raise CrchflError(f"{dataset}: its samples hold no signal states (written before data set format 5), which "
+                          f"{flag} learns from; generate the data set again with `crchfl-sumo dataset`, or drop {flag}")
     records = train_centralized(
         train, test, epochs, out_dir, model_config, config, seed, progress=progress,
         drive_settings=manifest.drive_settings(f"{dataset}/manifest.json"), resume=resume, overwrite=overwrite,

@@ -137,8 +137,7 @@ def evaluate_model(model: DrivingModel, samples: Samples, eval_batch_size: int =
             batch = samples.subset(slice(start, start + eval_batch_size)).to(device)
             longitudinal, steer_logits = model(batch.images, batch.command, batch.speed_mps)
             guess = steer_logits.argmax(dim=1)  # the steer head's class
-            target = longitudinal_target(model.config, batch.actions, batch.target_speed_mps, batch.signal_state,
-                                         batch.signal_distance_m)
+            target = longitudinal_target(model.config, batch)
             output = longitudinal.double().cpu().numpy()
             throttle, brake = longitudinal_pedals(model.config, output, batch.speed_mps.cpu().numpy())
             actions = batch.actions.double().cpu().numpy()

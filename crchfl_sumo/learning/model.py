@@ -57,6 +57,7 @@ from crchfl_sumo.data.labels import (
     FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_RED, SIGNAL_YELLOW, digitize_steer,
     steer_bin_values,
 )
+from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.settings import (
     DEFAULT_STEER_DECODING,
     SPEED_SCALE_MPS,
@@ -331,19 +332,44 @@ def longitudinal_width(config: ModelConfig) -> int:
 
 
 def longitudinal_target(
-    config: ModelConfig, actions: torch.Tensor, target_speed_mps: torch.Tensor,
-    signal_state: torch.Tensor | None = None, signal_distance_m: torch.Tensor | None = None,
+    config: ModelConfig, samples: Samples, indices: torch.Tensor | slice | None = None,
 ) -> torch.Tensor:
-    """What branch I learns, [B, longitudinal_width]: (throttle, brake) of ``actions``, or the scaled target speed
-    (and, with a stop head, the scaled stop distance, which needs the samples' signal state and distance)."""
+    """What branch I learns from ``samples`` (the rows ``indices``, else all), [B, longitudinal_width]: (throttle,
+    brake), or the scaled target speed (held by ``red_held_speed_mps`` with ModelConfig.red_hold; with a stop
+    head also the scaled stop distance). Only these read the samples' signal columns."""
+    def column(name: str) -> torch.Tensor:
+        values = getattr(samples, name)
+        return values if indices is None else values[indices]
+
     if config.longitudinal == "pedals":
-        return actions[:, [0, 2]]
-    speed = (target_speed_mps / SPEED_SCALE_MPS)[:, None]
+        return column("actions")[:, [0, 2]]
+    speed = column("target_speed_mps")
+    if config.red_hold:
+        speed = red_held_speed_mps(speed, column("signal_state"), column("signal_distance_m"))
+    speed = (speed / SPEED_SCALE_MPS)[:, None]
     if not config.stop_head:
         return speed
-    if signal_state is None or signal_distance_m is None:
-        raise ValueError("longitudinal_target: a stop head learns from the samples' signal state and distance")
-    return torch.cat([speed, (stop_distance_m(signal_state, signal_distance_m) / STOP_RANGE_M)[:, None]], dim=1)
+    stop = stop_distance_m(column("signal_state"), column("signal_distance_m"))
+    return torch.cat([speed, (stop / STOP_RANGE_M)[:, None]], dim=1)
+
+
+def stop_line_speed_mps(stop_m):
+    """The speed from which STOP_DECEL_MPS2 stops the car STOP_MARGIN_M before a stop line ``stop_m`` ahead
+    (a numpy array or a tensor; 0 within the margin)."""
+    return (2.0 * STOP_DECEL_MPS2 * (stop_m - STOP_MARGIN_M).clip(min=0.0)) ** 0.5
+
+
+def red_held_speed_mps(
+    target_speed_mps: torch.Tensor, signal_state: torch.Tensor, signal_distance_m: torch.Tensor,
+) -> torch.Tensor:
+    """float32 [B]: the target-speed labels of ModelConfig.red_hold: at most stop_line_speed_mps of the stop line
+    while the route's next signal shows red (so 0 for a car standing at its line), else as recorded.
+
+    The recorded label is the expert's speed a horizon ahead, so it rises up to a horizon before the green:
+    the models learnt to guess the green from the crossing road's lights and rolled over a red line
+    (docs/measurements.md, 2026-12-05, seventh)."""
+    held = torch.minimum(target_speed_mps, stop_line_speed_mps(signal_distance_m.float()))
+    return torch.where(signal_state == SIGNAL_RED, held, target_speed_mps)
 
 
 def stop_distance_m(signal_state: torch.Tensor, signal_distance_m: torch.Tensor) -> torch.Tensor:
@@ -362,7 +388,7 @@ def stop_capped_speed(
     a car slower than STAND_TARGET_MPS with a stop line nearer than STOP_START_M."""
     stop_m = np.asarray(stop_m, dtype=np.float64)
     speed = np.asarray(speed_mps, dtype=np.float64)
-    allowed = np.sqrt(2.0 * STOP_DECEL_MPS2 * np.maximum(stop_m - STOP_MARGIN_M, 0.0))
+    allowed = stop_line_speed_mps(stop_m)
     allowed = np.where((speed < STAND_TARGET_MPS) & (stop_m < STOP_START_M), 0.0, allowed)
     committed = speed**2 > 2.0 * np.asarray(max_decel_mps2, dtype=np.float64) * np.maximum(stop_m, 0.0)
     return np.where(committed, target_mps, np.minimum(target_mps, allowed))

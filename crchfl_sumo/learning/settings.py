@@ -122,6 +122,10 @@ class ModelConfig:
         and the controller caps the target speed so that the car can stop before that line
         (model.longitudinal_pedals). Target-speed models only; default off (docs/model.md,
         "A stop head").
+    red_hold: while the route's next signal shows red, the target-speed label never exceeds the
+        speed from which the stop head's deceleration stops the car before the line
+        (model.red_held_speed_mps): 0 standing at the line, where the recorded label (the speed a
+        horizon ahead) rises a horizon before the green. Target-speed models only; default off.
     class (TOML key; ``class_path`` here): "package.module:Class", your own network in place of the
         built-in one (learning/model.py ``network``; docs/own_model.md); "" (default): the built-in.
     """
@@ -140,6 +144,7 @@ class ModelConfig:
     steer_bins: int | None = None
     commands: int | None = field(default=None, metadata={OMIT_DEFAULT: True})
     stop_head: bool = field(default=False, metadata={OMIT_DEFAULT: True})
+    red_hold: bool = field(default=False, metadata={OMIT_DEFAULT: True})
     class_path: str = field(default="", metadata={KEY: "class", OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
@@ -164,7 +169,7 @@ class ModelConfig:
             raise CrchflError(
                 f"model.speed_horizon_s must lie in (0, {MAX_SPEED_HORIZON_S:g}] s, got {self.speed_horizon_s!r}"
             )
-        for key in ("command_pedals", "speed_input", "steer_speed_input", "stop_head"):
+        for key in ("command_pedals", "speed_input", "steer_speed_input", "stop_head", "red_hold"):
             if not isinstance(getattr(self, key), bool):
                 raise CrchflError(f"model.{key}: {getattr(self, key)!r} must be true or false")
         bins = self.steer_bins
@@ -177,9 +182,10 @@ class ModelConfig:
                 f"model.commands: {self.commands!r}; use 4 (follow, left, right, straight) or 6 (with change_left "
                 "and change_right), or leave it out to take the data's"
             )
-        if self.stop_head and self.longitudinal != "target_speed":
-            raise CrchflError("model.stop_head: applies to a target-speed branch I only; drop it or set "
-                              "longitudinal = 'target_speed'")
+        for key in ("stop_head", "red_hold"):
+            if getattr(self, key) and self.longitudinal != "target_speed":
+                raise CrchflError(f"model.{key}: applies to a target-speed branch I only; drop it or set "
+                                  "longitudinal = 'target_speed'")
         if self.arch == "paper":
             defaults = ModelConfig.__dataclass_fields__
             paper_values = {k: defaults[k].default for k in ("norm", "command_input", "command_pedals", "speed_input",

@@ -165,8 +165,7 @@ class Learner:
                                      self.config.red_weight, self.config.red_window_m):
             indices = indices.to(self.device)
             images, steer_class = samples.images[indices], classes[indices]
-            target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices],
-                                         samples.signal_state[indices], samples.signal_distance_m[indices])
+            target = longitudinal_target(model_config, samples, indices)
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
             with forward_precision(self.precision, self.device):
@@ -331,8 +330,7 @@ def _train_vehicles_vmap(
             images.append(samples.images[indices])
             commands.append(samples.command[indices])
             speeds.append(samples.speed_mps[indices])
-            target = longitudinal_target(model_config, samples.actions[indices], samples.target_speed_mps[indices],
-                                         samples.signal_state[indices], samples.signal_distance_m[indices])
+            target = longitudinal_target(model_config, samples, indices)
             targets.append(target)
             classes.append(vehicle_classes[v][indices])
             paper_classes.append(samples.steer_class[indices])

@@ -1,4 +1,5 @@
-"""The stop head (ModelConfig.stop_head): its targets, the controller's cap, training and checkpoints."""
+"""The stop head (ModelConfig.stop_head) and the red hold (ModelConfig.red_hold): their targets, the
+controller's cap, training and checkpoints."""
 
 import math
 
@@ -21,21 +22,39 @@ from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import train_vehicles
 
 STOP = ModelConfig("compact", 48, 64, stop_head=True)
+HOLD = ModelConfig("compact", 48, 64, red_hold=True)
+
+
+def _labelled(state, distance_m, target_mps):
+    n = len(state)
+    return Samples.from_numpy(np.zeros((n, 4, 48, 64, 3), np.uint8), np.zeros((n, 3)), np.zeros(n), np.zeros(n),
+                              np.zeros(n), target_mps, signal_state=state, signal_distance_m=distance_m)
 
 
 def test_the_targets_are_the_red_or_yellow_stop_line_distance_within_range():
-    state = torch.tensor([SIGNAL_RED, SIGNAL_YELLOW, SIGNAL_GREEN, SIGNAL_RED, SIGNAL_NONE, SIGNAL_UNKNOWN])
-    distance = torch.tensor([12.0, 4.0, 5.0, 70.0, math.inf, 3.0])
-    target = longitudinal_target(STOP, torch.zeros(6, 3), torch.full((6,), 5.0), state, distance)
+    samples = _labelled([SIGNAL_RED, SIGNAL_YELLOW, SIGNAL_GREEN, SIGNAL_RED, SIGNAL_NONE, SIGNAL_UNKNOWN],
+                        [12.0, 4.0, 5.0, 70.0, math.inf, 3.0], np.full(6, 5.0))
+    target = longitudinal_target(STOP, samples)
     assert target.shape == (6, 2)
     assert target[:, 0].tolist() == pytest.approx([0.5] * 6)  # the target speed / 10, as without the head
     # red 12 m, yellow 4 m, green: range, red beyond the range: range, no signal, unknown: range
     assert target[:, 1].tolist() == pytest.approx([12 / 40, 4 / 40, 1.0, 1.0, 1.0, 1.0])
-    with pytest.raises(ValueError, match="signal state"):
-        longitudinal_target(STOP, torch.zeros(6, 3), torch.full((6,), 5.0))
+    assert longitudinal_target(STOP, samples, torch.tensor([3, 0]))[:, 1].tolist() == pytest.approx([1.0, 12 / 40])
     # without the head nothing changes
-    plain = longitudinal_target(ModelConfig("compact", 48, 64), torch.zeros(6, 3), torch.full((6,), 5.0), state, distance)
-    assert plain.shape == (6, 1)
+    assert longitudinal_target(ModelConfig("compact", 48, 64), samples).shape == (6, 1)
+
+
+def test_the_red_hold_caps_the_label_before_a_red_line_only():
+    samples = _labelled([SIGNAL_RED, SIGNAL_RED, SIGNAL_RED, SIGNAL_RED, SIGNAL_GREEN, SIGNAL_YELLOW, SIGNAL_UNKNOWN],
+                        [1.0, 12.0, 40.0, 2.5, 1.0, 1.0, 1.0], [2.0, 8.0, 8.0, 0.5, 2.0, 2.0, 2.0])
+    # red: standing 1 m short (inside the 2 m margin) -> 0; 12 m: sqrt(2 * 2.5 * 10) = 7.07 < 8; 40 m:
+    # sqrt(2 * 2.5 * 38) = 13.8 > 8, kept; 2.5 m: sqrt(2.5) = 1.58 > 0.5, kept; green, yellow, unknown: kept
+    held = longitudinal_target(HOLD, samples)[:, 0] * 10.0
+    assert held.tolist() == pytest.approx([0.0, math.sqrt(50.0), 8.0, 0.5, 2.0, 2.0, 2.0], abs=1e-5)
+    plain = longitudinal_target(ModelConfig("compact", 48, 64), samples)[:, 0] * 10.0
+    assert plain.tolist() == pytest.approx([2.0, 8.0, 8.0, 0.5, 2.0, 2.0, 2.0])
+    both = longitudinal_target(ModelConfig("compact", 48, 64, red_hold=True, stop_head=True), samples)
+    assert both.shape == (7, 2) and both[0, 0] == 0 and both[1, 1] == pytest.approx(12 / 40)
 
 
 def test_the_cap_stops_the_car_before_the_line_unless_it_is_committed():
@@ -98,8 +117,9 @@ def test_the_stop_head_trains_alike_in_the_sequential_and_the_vmap_trainer_and_r
     assert loaded.config.stop_head
 
 
-def test_a_pedal_model_has_no_stop_head():
-    with pytest.raises(CrchflError, match="stop_head"):
-        ModelConfig("compact", 48, 64, longitudinal="pedals", stop_head=True)
-    with pytest.raises(CrchflError, match="stop_head"):
-        ModelConfig("compact", 48, 64, stop_head=1)
+def test_a_pedal_model_has_no_stop_head_and_no_red_hold():
+    for key in ("stop_head", "red_hold"):
+        with pytest.raises(CrchflError, match=key):
+            ModelConfig("compact", 48, 64, longitudinal="pedals", **{key: True})
+        with pytest.raises(CrchflError, match=key):
+            ModelConfig("compact", 48, 64, **{key: 1})
