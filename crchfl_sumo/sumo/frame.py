@@ -38,6 +38,7 @@ class Frame:
       tls_ahead_state [V] str   its one-letter state for this vehicle's link
                                 (SUMO letters: r y g G u o O s; '' if none)
       tls_ahead_dist_m [V] f64  distance to its stop line (inf if none)
+      tls_ahead_link  [V] i64   the link index of this vehicle's link at it (-1 if none)
       foe_gap_m       [V] f64   at a junction within FOE_RANGE_M ahead (sim.py): the distance
                                 to the conflict point of the nearest vehicle this one
                                 must yield to (SUMO's junction foes; inf if none)
@@ -65,6 +66,7 @@ class Frame:
     tls_ahead_state: np.ndarray
     tls_ahead_dist_m: np.ndarray
     foe_gap_m: np.ndarray
+    tls_ahead_link: np.ndarray
     tls_states: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -119,6 +121,8 @@ def make_frame(t_s: float = 0.0, tls_states: dict[str, str] | None = None, **col
         arrays[name] = (
             np.full(n, default, dtype=np.float64) if value is None else np.asarray(value, dtype=np.float64)
         )
+    link = columns.pop("tls_ahead_link", None)
+    arrays["tls_ahead_link"] = np.full(n, -1, dtype=np.int64) if link is None else np.asarray(link, dtype=np.int64)
     for name in ("lane_id", "tls_ahead_id", "tls_ahead_state"):
         value = columns.pop(name, None)
         arrays[name] = np.full(n, "", dtype=object).astype(str) if value is None else np.asarray(value, dtype=str)

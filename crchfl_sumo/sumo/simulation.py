@@ -349,6 +349,8 @@ class Simulation:
         ahead = [next(iter(vehicle.getNextTLS(v)), ("", -1, np.inf, "")) for v in watched]
         tls_dist = np.full(n, np.inf)
         tls_dist[rows] = [a[2] for a in ahead]
+        tls_link = np.full(n, -1, dtype=np.int64)
+        tls_link[rows] = [int(a[1]) for a in ahead]
         foe_gap = np.full(n, np.inf)
         foe_gap[rows] = [yield_gap_m(vehicle.getJunctionFoes(v, FOE_RANGE_M)) for v in watched]
         tls_results = self._api.trafficlight.getAllSubscriptionResults() if self._tls_ids else {}
@@ -371,6 +373,7 @@ class Simulation:
             tls_ahead_state=_strings(n, rows, [a[3] for a in ahead]),
             tls_ahead_dist_m=tls_dist,
             foe_gap_m=foe_gap,
+            tls_ahead_link=tls_link,
             tls_states={tls: tls_results[tls][rygs] for tls in self._tls_ids},
         )
 

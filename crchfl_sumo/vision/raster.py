@@ -31,7 +31,7 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
-from crchfl_sumo.core.config import from_mapping
+from crchfl_sumo.core.config import OMIT_DEFAULT, from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.sumo.frame import Frame
@@ -91,6 +91,11 @@ class RasterConfig:
                            turn across oncoming traffic) lights in its own colour
                            (objects.LAMP_PERMISSIVE_RGB) instead of green; off by
                            default: measured, it did not help (docs/raster.md)
+    route_signal           of the heads of the lane a camera's vehicle approaches its next
+                           signal on, only the one of the link its route takes lights (an
+                           ideal reader of arrow lamps: side by side, a lane's heads are too
+                           close to tell apart at 64 x 128, so a red and a green one merged);
+                           the vehicle's link is SUMO's (Frame.tls_ahead_link). Off by default
     """
 
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -100,6 +105,7 @@ class RasterConfig:
     lamp_min_radius_px: float = 2.5
     interpolation: Literal["nearest", "linear"] = "nearest"
     mark_permissive: bool = False
+    route_signal: bool = field(default=False, metadata={OMIT_DEFAULT: True})  # manifests before it: no key
 
     def __post_init__(self):
         for name in ("max_ground_distance_m", "max_object_distance_m"):
@@ -219,6 +225,23 @@ class Renderer:
             lamps[:, k, 1] = y - np.sin(heading) * face_offset
             lamps[:, k, 2] = z
         self._lamp_world = lamps
+        # route_signal: the heads of each (signal, lane), and each (signal, link)'s head
+        self._head_of_link = {(h.tls_id, h.link_index): i for i, h in enumerate(heads)}
+        self._lane_heads: dict[tuple[str, str], list[int]] = {}
+        for i, h in enumerate(heads):
+            self._lane_heads.setdefault((h.tls_id, h.lane_id), []).append(i)
+
+    def _unlit_heads(self, frame: Frame, ego_rows: np.ndarray) -> list[set[int]]:
+        """Per ego, the heads route_signal leaves dark: the other links' heads of the lane of its next link."""
+        dark: list[set[int]] = []
+        for row in ego_rows.tolist():
+            own = self._head_of_link.get((str(frame.tls_ahead_id[row]), int(frame.tls_ahead_link[row])))
+            if own is None:
+                dark.append(set())
+                continue
+            head = self.world.heads[own]
+            dark.append(set(self._lane_heads[(head.tls_id, head.lane_id)]) - {own})
+        return dark
 
     # -- per frame ------------------------------------------------------------------
     def render(self, frame: Frame, vehicle_ids: Sequence[str], poses: np.ndarray | None = None) -> np.ndarray:
@@ -333,6 +356,7 @@ class Renderer:
         images = [[out[e, c] for c in range(len(CAMERA_NAMES))] for e in range(len(ego_rows))]
         lamps = lit_lamps(self.world, frame.tls_states, self.config.mark_permissive) if len(self.world.heads) else []
         head_of = head_of_box.tolist()
+        dark = self._unlit_heads(frame, ego_rows) if cfg.route_signal else [set()] * len(ego_rows)
         rows = zip(p_idx.tolist(), pair_ego[p_idx].tolist(), c_idx.tolist(), f_idx.tolist(), box_idx,
                    clip[p_idx, c_idx, f_idx].tolist())
         for i, (p, e, c, f, b, needs_clip) in enumerate(rows):
@@ -341,7 +365,7 @@ class Renderer:
                 self._fill_clipped(image, pts[p, c, FACES[f]], face_rgb[b][f])
             else:
                 cv2.fillConvexPoly(image, polygons[i], face_rgb[b][f], cv2.LINE_8, _SHIFT)
-            if f == REAR_FACE and head_of[b] >= 0 and lamps[head_of[b]]:
+            if f == REAR_FACE and head_of[b] >= 0 and lamps[head_of[b]] and head_of[b] not in dark[e]:
                 camera_from_world = np.hstack([cfw_rot[e, c], cfw_trans[e, c][:, None]])
                 self._draw_lamps(image, camera_from_world, head_of[b], lamps[head_of[b]])
 

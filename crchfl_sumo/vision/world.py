@@ -127,6 +127,7 @@ class SignalHead:
     heading_rad: float
     tls_id: str
     link_index: int
+    lane_id: str = ""  # the lane it controls: a lane with several links has a head for each
 
 
 @dataclass(frozen=True)
@@ -273,7 +274,7 @@ def road_geometry_from_net(net_path: str | Path) -> RoadGeometry:
             # Heads stand just right of the lane, one per link, stepping outwards.
             for step, link_index in enumerate(sorted(link_indices)):
                 foot = end - left * (half + 0.4 + 0.4 * step)
-                heads.append(SignalHead(float(foot[0]), float(foot[1]), heading, tls.getID(), link_index))
+                heads.append(SignalHead(float(foot[0]), float(foot[1]), heading, tls.getID(), link_index, lane_id))
     return RoadGeometry(road, junctions, sidewalks, markings, stop_lines, heads)
 
 

@@ -51,6 +51,11 @@ def test_frame_geometry_matches_the_network(grid):
     assert ahead.any()
     assert set(frame.tls_ahead_state[ahead]) <= set("rygGuoOs")
     assert np.all(frame.tls_ahead_dist_m[ahead] >= 0) and np.all(np.isinf(frame.tls_ahead_dist_m[~ahead]))
+    # the link index points at the vehicle's own letter in its signal's state string
+    for row in np.flatnonzero(ahead):
+        tls, link = str(frame.tls_ahead_id[row]), int(frame.tls_ahead_link[row])
+        assert frame.tls_states[tls][link] == frame.tls_ahead_state[row]
+    assert np.all(frame.tls_ahead_link[~ahead] == -1)
 
 
 def test_libsumo_and_traci_give_the_same_frames(grid):

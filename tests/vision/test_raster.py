@@ -236,6 +236,31 @@ def test_a_permissive_green_is_drawn_at_the_green_lamp_in_its_own_colour(rendere
     assert camera_settings({"raster": {"mark_permissive": True}, "world": {}}, "data")[0].mark_permissive is True
 
 
+def test_route_signal_lights_only_the_routes_head_of_a_lanes_two(renderer):
+    # one lane, two links (0: straight, 1: a turn), heads 0.4 m apart: state "Gr", straight green, turn red
+    geometry = dataclasses.replace(straight_geometry(), signal_heads=[
+        SignalHead(STOP_X, -3.9, 0.0, "J", 0, "e_0"), SignalHead(STOP_X, -4.3, 0.0, "J", 1, "e_0")])
+    world = paint_world(geometry, WorldConfig())
+    ego_x = STOP_X - 20.0
+
+    def lit(config, link):
+        frame = make_frame(ids=["ego"], x_m=[ego_x], y_m=[LANE_Y], tls_states={"J": "Gr"}, tls_ahead_id=["J"],
+                           tls_ahead_link=[link])
+        image = Renderer(world, config).render(frame, ["ego"])[0, CAM_H]
+        return [int((image == rgb).all(axis=-1).sum()) for rgb in (LAMP_RED_RGB, LAMP_GREEN_RGB)]
+
+    both = lit(RasterConfig(), 1)
+    assert both[0] > 0 and both[1] > 0  # default: both lamps drawn, 0.7 px apart at 20 m, overlapping
+    assert lit(RasterConfig(), 0) == both  # the route does not matter
+    route = RasterConfig(route_signal=True)
+    turn, straight = lit(route, 1), lit(route, 0)
+    assert turn[0] > 0 and turn[1] == 0  # turning: only the red head lights
+    assert straight[0] == 0 and straight[1] > 0  # going straight: only the green one
+    # a vehicle with no signal ahead (or another signal's link) sees both
+    assert lit(route, -1) == both
+    assert camera_settings({"raster": {"route_signal": True}, "world": {}}, "data")[0].route_signal is True
+
+
 def test_lamps_face_the_approaching_traffic_only(renderer):
     ego = (70.0, -LANE_Y, math.pi)  # westbound, looking at the back of the head
     red = renderer.render(ego_and({}, ego, tls="r"), ["ego"])[0]
