@@ -232,14 +232,15 @@ class Renderer:
             self._lane_heads.setdefault((h.tls_id, h.lane_id), []).append(i)
 
     def _unlit_heads(self, frame: Frame, ego_rows: np.ndarray) -> list[set[int]]:
-        """Per ego, the heads route_signal leaves dark: the other links' heads of the lane of its next link."""
+        """Per ego, the heads route_signal leaves dark: the other links' heads of the lane of its next link
+        (none where that head names no lane, as a hand-built RoadGeometry's may not)."""
         dark: list[set[int]] = []
         for row in ego_rows.tolist():
             own = self._head_of_link.get((str(frame.tls_ahead_id[row]), int(frame.tls_ahead_link[row])))
-            if own is None:
+            head = None if own is None else self.world.heads[own]
+            if head is None or not head.lane_id:
                 dark.append(set())
                 continue
-            head = self.world.heads[own]
             dark.append(set(self._lane_heads[(head.tls_id, head.lane_id)]) - {own})
         return dark
 

@@ -258,6 +258,10 @@ def test_route_signal_lights_only_the_routes_head_of_a_lanes_two(renderer):
     assert straight[0] == 0 and straight[1] > 0  # going straight: only the green one
     # a vehicle with no signal ahead (or another signal's link) sees both
     assert lit(route, -1) == both
+    # heads that name no lane (a hand-built geometry) are never grouped: both light
+    world = paint_world(dataclasses.replace(geometry, signal_heads=[
+        dataclasses.replace(h, lane_id="") for h in geometry.signal_heads]), WorldConfig())
+    assert lit(route, 1) == both
     assert camera_settings({"raster": {"route_signal": True}, "world": {}}, "data")[0].route_signal is True
 
 
