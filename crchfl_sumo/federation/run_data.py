@@ -35,8 +35,11 @@ class RunData:
 
 def read_inputs(config: RunConfig) -> RunData:
     """Load the data set (train shards per vehicle, test shards) and map vehicles to edge sites."""
+    import torch
+
     from crchfl_sumo.data.dataset import load_samples, load_vehicle_samples, measured_sample_bytes
     from crchfl_sumo.data.manifest import read_manifest
+    from crchfl_sumo.learning.model import check_signal_labels
 
     root = Path(config.dataset)
     manifest = read_manifest(root)
@@ -50,6 +53,7 @@ def read_inputs(config: RunConfig) -> RunData:
     samples = load_vehicle_samples(root, "train")
     if not samples:
         raise CrchflError(f"{root}: the data set has no train shards; generate it with `crchfl-sumo dataset`")
+    check_signal_labels(config.model, torch.cat([s.signal_state for s in samples.values()]), str(root))
     test = load_samples(root, "test")
     if len(test) == 0:
         raise CrchflError(f"{root}: the data set has no test shards; the run evaluates on them")

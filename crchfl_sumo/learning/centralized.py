@@ -20,12 +20,11 @@ from crchfl_sumo.core.progress import Progress
 from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
-from crchfl_sumo.data.labels import SIGNAL_UNKNOWN
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
 from crchfl_sumo.learning.evaluation import always_straight
-from crchfl_sumo.learning.model import State, build_model, model_from_state
+from crchfl_sumo.learning.model import State, build_model, check_signal_labels, model_from_state
 from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig, with_data_commands
 from crchfl_sumo.learning.training import Learner, evaluate
 
@@ -243,10 +242,7 @@ def train_command(
     model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s,
                                stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
                                **SPEED_INPUTS[speed_input])
-    if (stop_head or red_hold) and len(train) and bool((train.signal_state == SIGNAL_UNKNOWN).all()):
-        flag = "--stop-head" if stop_head else "--red-hold"
-        raise CrchflError(f"{dataset}: its samples hold no signal states (written before data set format 5), which "
-                          f"{flag} learns from; generate the data set again with `crchfl-sumo dataset`, or drop {flag}")
+    check_signal_labels(model_config, train.signal_state, str(dataset))
     records = train_centralized(
         train, test, epochs, out_dir, model_config, config, seed, progress=progress,
         drive_settings=manifest.drive_settings(f"{dataset}/manifest.json"), resume=resume, overwrite=overwrite,

@@ -54,7 +54,8 @@ from crchfl_sumo.data.expert import (
     pedals_towards,
 )
 from crchfl_sumo.data.labels import (
-    FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_RED, SIGNAL_YELLOW, digitize_steer,
+    FOLLOW, JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_RED, SIGNAL_UNKNOWN, SIGNAL_YELLOW,
+    digitize_steer,
     steer_bin_values,
 )
 from crchfl_sumo.data.samples import Samples
@@ -344,13 +345,27 @@ def longitudinal_target(
     if config.longitudinal == "pedals":
         return column("actions")[:, [0, 2]]
     speed = column("target_speed_mps")
+    if not (config.red_hold or config.stop_head):
+        return (speed / SPEED_SCALE_MPS)[:, None]
+    state, distance = column("signal_state"), column("signal_distance_m")
     if config.red_hold:
-        speed = red_held_speed_mps(speed, column("signal_state"), column("signal_distance_m"))
+        speed = red_held_speed_mps(speed, state, distance)
     speed = (speed / SPEED_SCALE_MPS)[:, None]
     if not config.stop_head:
         return speed
-    stop = stop_distance_m(column("signal_state"), column("signal_distance_m"))
-    return torch.cat([speed, (stop / STOP_RANGE_M)[:, None]], dim=1)
+    return torch.cat([speed, (stop_distance_m(state, distance) / STOP_RANGE_M)[:, None]], dim=1)
+
+
+def check_signal_labels(config: ModelConfig, signal_state: torch.Tensor, where: str) -> None:
+    """Refuse a stop head or a red hold on samples whose signal states are all unknown (a data set written
+    before format 5, ``where``): their targets would carry no signal at all."""
+    for key in ("stop_head", "red_hold"):
+        if getattr(config, key) and len(signal_state) and bool((signal_state == SIGNAL_UNKNOWN).all()):
+            flag = "--" + key.replace("_", "-")
+            raise CrchflError(
+                f"{where}: its samples hold no signal states (written before data set format 5), which model.{key} "
+                f"(train {flag}) learns from; generate the data set again with `crchfl-sumo dataset`, or drop {flag}"
+            )
 
 
 def stop_line_speed_mps(stop_m):

@@ -225,24 +225,21 @@ class Renderer:
             lamps[:, k, 1] = y - np.sin(heading) * face_offset
             lamps[:, k, 2] = z
         self._lamp_world = lamps
-        # route_signal: the heads of each (signal, lane), and each (signal, link)'s head
-        self._head_of_link = {(h.tls_id, h.link_index): i for i, h in enumerate(heads)}
-        self._lane_heads: dict[tuple[str, str], list[int]] = {}
+        # route_signal: per (signal, link), the other heads of its lane, which a vehicle taking that link
+        # sees dark (none for a head that names no lane, as a hand-built RoadGeometry's may not)
+        lane_heads: dict[tuple[str, str], set[int]] = {}
         for i, h in enumerate(heads):
-            self._lane_heads.setdefault((h.tls_id, h.lane_id), []).append(i)
+            if h.lane_id:
+                lane_heads.setdefault((h.tls_id, h.lane_id), set()).add(i)
+        self._dark_for_link = {
+            (h.tls_id, h.link_index): frozenset(lane_heads[(h.tls_id, h.lane_id)] - {i})
+            for i, h in enumerate(heads) if h.lane_id
+        }
 
-    def _unlit_heads(self, frame: Frame, ego_rows: np.ndarray) -> list[set[int]]:
-        """Per ego, the heads route_signal leaves dark: the other links' heads of the lane of its next link
-        (none where that head names no lane, as a hand-built RoadGeometry's may not)."""
-        dark: list[set[int]] = []
-        for row in ego_rows.tolist():
-            own = self._head_of_link.get((str(frame.tls_ahead_id[row]), int(frame.tls_ahead_link[row])))
-            head = None if own is None else self.world.heads[own]
-            if head is None or not head.lane_id:
-                dark.append(set())
-                continue
-            dark.append(set(self._lane_heads[(head.tls_id, head.lane_id)]) - {own})
-        return dark
+    def _unlit_heads(self, frame: Frame, ego_rows: np.ndarray) -> list[frozenset[int]]:
+        """Per ego, the heads route_signal leaves dark: the other links' heads of the lane of its next link."""
+        return [self._dark_for_link.get((str(frame.tls_ahead_id[row]), int(frame.tls_ahead_link[row])), frozenset())
+                for row in ego_rows.tolist()]
 
     # -- per frame ------------------------------------------------------------------
     def render(self, frame: Frame, vehicle_ids: Sequence[str], poses: np.ndarray | None = None) -> np.ndarray:
@@ -357,7 +354,7 @@ class Renderer:
         images = [[out[e, c] for c in range(len(CAMERA_NAMES))] for e in range(len(ego_rows))]
         lamps = lit_lamps(self.world, frame.tls_states, self.config.mark_permissive) if len(self.world.heads) else []
         head_of = head_of_box.tolist()
-        dark = self._unlit_heads(frame, ego_rows) if cfg.route_signal else [set()] * len(ego_rows)
+        dark = self._unlit_heads(frame, ego_rows) if cfg.route_signal else [frozenset()] * len(ego_rows)
         rows = zip(p_idx.tolist(), pair_ego[p_idx].tolist(), c_idx.tolist(), f_idx.tolist(), box_idx,
                    clip[p_idx, c_idx, f_idx].tolist())
         for i, (p, e, c, f, b, needs_clip) in enumerate(rows):

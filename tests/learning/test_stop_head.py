@@ -123,3 +123,21 @@ def test_a_pedal_model_has_no_stop_head_and_no_red_hold():
             ModelConfig("compact", 48, 64, longitudinal="pedals", **{key: True})
         with pytest.raises(CrchflError, match=key):
             ModelConfig("compact", 48, 64, **{key: 1})
+
+
+def test_a_federated_run_refuses_signal_targets_from_a_data_set_without_signal_states(tmp_path):
+    from crchfl_sumo.core.config import from_mapping
+    from crchfl_sumo.federation.run_config import RunConfig
+    from crchfl_sumo.federation.run_data import read_inputs
+
+    from helpers import PAPER_VEHICLES, run_config, write_dataset
+
+    plain = write_dataset(tmp_path / "plain", PAPER_VEHICLES)
+    signalled = write_dataset(tmp_path / "signalled", PAPER_VEHICLES, signals=True)
+    for key in ("stop_head", "red_hold"):
+        config = run_config(plain)
+        config["model"][key] = True
+        with pytest.raises(CrchflError, match=f"no signal states.*model.{key}"):
+            read_inputs(from_mapping(RunConfig, config))
+        config["dataset"] = str(signalled)
+        assert read_inputs(from_mapping(RunConfig, config)).vehicles  # with signal states it loads
