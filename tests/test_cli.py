@@ -34,7 +34,9 @@ def test_train_writes_metrics_and_a_loadable_checkpoint(tmp_path, capsys):
     assert "epoch 2" in capsys.readouterr().out
     from crchfl_sumo.learning.checkpoint import load_checkpoint
 
-    assert load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config.image_height == 48
+    config = load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config
+    assert config.image_height == 48
+    assert not config.stop_head  # a data set without signal states: no stop head by default
 
 
 def test_train_stop_head_command_pedals_and_red_hold_reach_the_checkpoint(tmp_path):
@@ -45,9 +47,11 @@ def test_train_stop_head_command_pedals_and_red_hold_reach_the_checkpoint(tmp_pa
 
     config = load_checkpoint(tmp_path / "t" / "checkpoint.pt").model_config
     assert config.stop_head and config.command_pedals and config.red_hold
-    assert main(["train", str(data), "--out", str(tmp_path / "u"), "--epochs", "1"]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "u"), "--epochs", "1", "--no-stop-head"]) == 0
     config = load_checkpoint(tmp_path / "u" / "checkpoint.pt").model_config
-    assert not config.stop_head and not config.command_pedals and not config.red_hold
+    assert config.stop_head is False and not config.command_pedals and not config.red_hold
+    assert main(["train", str(data), "--out", str(tmp_path / "v"), "--epochs", "1"]) == 0
+    assert load_checkpoint(tmp_path / "v" / "checkpoint.pt").model_config.stop_head is True  # signal states: on
 
 
 def test_train_refuses_signal_labels_from_a_data_set_without_signal_states(tmp_path, capsys):

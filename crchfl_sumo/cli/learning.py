@@ -49,9 +49,10 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--command-pedals", action="store_true",
                    help="the route command conditions the throttle/brake branch too (model.command_pedals): a "
                    "lane's heads show one light per movement, and only the command tells which is the car's")
-    p.add_argument("--stop-head", action="store_true",
+    p.add_argument("--stop-head", action=argparse.BooleanOptionalAction, default=None,
                    help="branch I also learns the distance to a red or yellow signal's stop line, and the controller "
-                   "slows to stop before it (model.stop_head; needs a data set of format 5; docs/model.md)")
+                   "slows to stop before it (model.stop_head; needs a data set of format 5; docs/model.md); default: "
+                   "on where the data set holds signal states")
     p.add_argument("--red-hold", action="store_true",
                    help="while the route's next signal shows red, the target-speed label stops the car before the "
                    "line (model.red_hold; needs a data set of format 5; docs/model.md)")
@@ -70,7 +71,7 @@ def run_train(args) -> int:
     # existed still resumes
     for names, at_default in ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                               (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
-                              (("speed_input",), speed_input == "none"), (("stop_head",), not args.stop_head),
+                              (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
                               (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold)):
         if at_default:
             for name in names:

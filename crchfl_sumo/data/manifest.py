@@ -121,6 +121,23 @@ class Manifest:
         if model_config.longitudinal == "target_speed":
             self.check_horizon(model_config.speed_horizon_s, where)
 
+    def check_camera(self, model_camera: dict | None, where: str, model_where: str) -> None:
+        """Refuse fine-tuning a model on images drawn otherwise than its own data set's: ``model_camera`` is its
+        checkpoint's copy of that manifest's camera block (not checked where either holds none)."""
+        if not model_camera or not self.camera:
+            return
+        ours = camera_settings(self.camera, f"{where}: camera")
+        theirs = camera_settings(model_camera, f"{model_where}: extra.camera")
+        if ours != theirs:
+            mine, its = to_mapping(ours[0]), to_mapping(theirs[0])
+            differ = [f"raster.{k} {mine[k]!r} against {its.get(k)!r}" for k in mine if mine[k] != its.get(k)]
+            differ += ["the world settings"] if ours[1] != theirs[1] else []
+            raise CrchflError(
+                f"{where}: its images are drawn otherwise than those of the data set {model_where} trained on "
+                f"({'; '.join(differ)}); give that data set, or draw one with its settings (`crchfl-sumo dataset "
+                "--config` with a [raster] table)"
+            )
+
     def check_horizon(self, model_speed_horizon_s: float, where: str) -> None:
         """Refuse a target-speed model of another horizon than these labels'."""
         if abs(model_speed_horizon_s - self.speed_horizon_s) > 1e-9:

@@ -348,9 +348,11 @@ def dagger_command(
     learning_rate: float = FINE_TUNE_LEARNING_RATE, overwrite: bool = False,
 ) -> list[dict]:
     """What `crchfl-sumo dagger` does: ``dagger_iterations`` from ``model`` on the data set it was trained on
-    (checked against it first); ``overwrite`` starts afresh, without the earlier iterations' samples."""
+    (checked against it first: the horizon and the camera settings); ``overwrite`` starts afresh, without the earlier iterations' samples."""
     start = load_checkpoint(model)
-    read_manifest(dataset).check_model(start.model_config, str(dataset))
+    manifest = read_manifest(dataset)
+    manifest.check_model(start.model_config, str(dataset))
+    manifest.check_camera(start.extra.get("camera"), str(dataset), str(model))  # e.g. raster.route_signal
     train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
     if overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
         for old in sorted(Path(out_dir).glob("iteration-*")):

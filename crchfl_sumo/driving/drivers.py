@@ -101,11 +101,11 @@ def driver_for(
 def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], where: str) -> Renderer:
     """A model's cameras as its training data drew them: the data set's raster and world settings
     (a checkpoint's extra "camera", copied from the manifest), or today's defaults at the model's image
-    size for a checkpoint written without them."""
+    size for a checkpoint written without them (every head lit, as then)."""
     camera = extra.get("camera")
     if not camera:  # written without it (or from a data set that recorded none)
         size = CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width)
-        raster = RasterConfig(camera=size)
+        raster = RasterConfig(camera=size, route_signal=False)
         return Renderer(build_world(net_path), raster)
     raster, world = camera_settings(camera, f"{where}: extra.camera")
     return Renderer(build_world(net_path, world), raster)

@@ -95,8 +95,8 @@ from crchfl_sumo.federation.state import (
 from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.codecs import encoded_fraction
 from crchfl_sumo.learning.evaluation import always_straight
-from crchfl_sumo.learning.model import state_size_bytes
-from crchfl_sumo.learning.settings import with_data_commands
+from crchfl_sumo.learning.model import holds_signal_states, state_size_bytes
+from crchfl_sumo.learning.settings import with_data_commands, with_data_signals
 from crchfl_sumo.learning.strategies import strategy_from
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
@@ -204,6 +204,9 @@ def run_federation_dir(
     # [model] commands unset: the lane-change heads where the vehicles' data hold a lane-change command
     largest = max((int(s.command.max()) for s in inputs.samples.values() if len(s)), default=0)
     config = dataclasses.replace(config, model=with_data_commands(config.model, largest))
+    # [model] stop_head unset: a stop head where the vehicles' data hold signal states
+    known = any(holds_signal_states(s.signal_state) for s in inputs.samples.values())
+    config = dataclasses.replace(config, model=with_data_signals(config.model, known))
     adopt_legacy_state(out_dir)
     if ((out_dir / STATE_FILE).exists() or (out_dir / PREVIOUS_STATE_FILE).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")

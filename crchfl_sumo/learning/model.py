@@ -356,11 +356,16 @@ def longitudinal_target(
     return torch.cat([speed, (stop_distance_m(state, distance) / STOP_RANGE_M)[:, None]], dim=1)
 
 
+def holds_signal_states(signal_state: torch.Tensor) -> bool:
+    """Whether samples' signal states say anything (a data set of format 5 on), not all unknown."""
+    return bool((signal_state != SIGNAL_UNKNOWN).any())
+
+
 def check_signal_labels(config: ModelConfig, signal_state: torch.Tensor, where: str) -> None:
     """Refuse a stop head or a red hold on samples whose signal states are all unknown (a data set written
     before format 5, ``where``): their targets would carry no signal at all."""
     for key in ("stop_head", "red_hold"):
-        if getattr(config, key) and len(signal_state) and bool((signal_state == SIGNAL_UNKNOWN).all()):
+        if getattr(config, key) and len(signal_state) and not holds_signal_states(signal_state):
             flag = "--" + key.replace("_", "-")
             raise CrchflError(
                 f"{where}: its samples hold no signal states (written before data set format 5), which model.{key} "

@@ -57,7 +57,7 @@ from crchfl_sumo.federation.run_config import (
     resolved_config,
     with_backend,
 )
-from crchfl_sumo.learning.settings import RESOLVED_PRECISIONS
+from crchfl_sumo.learning.settings import DATA_DECIDED_KEYS, RESOLVED_PRECISIONS
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -257,6 +257,10 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
     if point.train.precision == "auto" and isinstance(train, dict) and train.get("precision") in RESOLVED_PRECISIONS:
         # "auto" was decided where the point ran (a Ray worker's CPU may differ from this one's): it stands
         wanted["train"]["precision"] = train["precision"]
+    model = finished.get("model")
+    for key in DATA_DECIDED_KEYS:  # unset in the point: the run decided it from its data
+        if isinstance(model, dict) and key in model and key not in wanted["model"]:
+            wanted["model"][key] = model[key]
     if finished != wanted:
         raise CrchflError(
             f"{run_dir} holds a run made with other settings than this sweep's point (see its config.json); "

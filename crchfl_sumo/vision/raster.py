@@ -31,7 +31,7 @@ from typing import Literal, Sequence
 import cv2
 import numpy as np
 
-from crchfl_sumo.core.config import OMIT_DEFAULT, from_mapping
+from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.sumo.frame import Frame
@@ -95,7 +95,10 @@ class RasterConfig:
                            signal on, only the one of the link its route takes lights (an
                            ideal reader of arrow lamps: side by side, a lane's heads are too
                            close to tell apart at 64 x 128, so a red and a green one merged);
-                           the vehicle's link is SUMO's (Frame.tls_ahead_link). Off by default
+                           the vehicle's link is SUMO's (Frame.tls_ahead_link). On by default
+                           since 2026-12-06 (with the stop head, 6 to 8 times fewer red lights;
+                           docs/raster.md); a camera block written before has no key and drew
+                           every head (camera_settings reads it so)
     """
 
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -105,7 +108,7 @@ class RasterConfig:
     lamp_min_radius_px: float = 2.5
     interpolation: Literal["nearest", "linear"] = "nearest"
     mark_permissive: bool = False
-    route_signal: bool = field(default=False, metadata={OMIT_DEFAULT: True})  # manifests before it: no key
+    route_signal: bool = True
 
     def __post_init__(self):
         for name in ("max_ground_distance_m", "max_object_distance_m"):
@@ -464,7 +467,10 @@ def camera_settings(camera: dict, where: str) -> tuple[RasterConfig, WorldConfig
     """(RasterConfig, WorldConfig) of a data set's camera block (Manifest.camera, or a checkpoint's copy of it)."""
     if not isinstance(camera, dict):
         raise CrchflError(f"{where}: expected a table of raster and world settings, got {type(camera).__name__}")
-    raster = from_mapping(RasterConfig, camera.get("raster", {}), f"{where}.raster")
+    # a block written before route_signal existed (or while it was off by default and left out) drew every head
+    raster = camera.get("raster", {})
+    raster = {"route_signal": False, **raster} if isinstance(raster, dict) else raster
+    raster = from_mapping(RasterConfig, raster, f"{where}.raster")
     world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
     return raster, world
 

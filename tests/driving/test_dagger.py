@@ -16,6 +16,7 @@ import torch
 from crchfl_sumo.cli import main
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.labels import SIGNAL_RED, digitize_steer
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.driving.dagger import EXPERT_SAMPLES_FILE, ExpertLabelled, collect, dagger_iterations
@@ -139,6 +140,25 @@ def test_the_command_runs_an_iteration_and_overwrite_starts_afresh(ladder, tmp_p
     (tmp_path / "out" / "iteration-1" / EXPERT_SAMPLES_FILE).write_bytes(b"left from another run")
     assert main([*argv, "--overwrite"]) == 0
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["iterations"] == [record]
+
+
+def test_the_command_refuses_a_data_set_drawn_otherwise_than_the_models(ladder, tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["camera"] = {"raster": {"route_signal": True}, "world": {}}  # one-link heads (the default since)
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    model = build_model(SMALL, seed=0)
+    old_camera = {"raster": {"lamp_min_radius_px": 2.5}, "world": {}}  # written before route_signal: every head
+    save_checkpoint(tmp_path / "model.pt", model.config, model.state_dict(), {"camera": old_camera})
+    argv = ["dagger", str(tmp_path / "model.pt"), str(data), "--out", str(tmp_path / "out"), "--towns",
+            str(ladder / "ladder.sumocfg"), "--tasks", "straight", "--episodes", "1"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "raster.route_signal True against False" in err and str(data) in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+    # the same settings pass the check: the model's copy is the manifest's block
+    save_checkpoint(tmp_path / "model.pt", model.config, model.state_dict(), {"camera": manifest["camera"]})
+    read_manifest(data).check_camera(manifest["camera"], str(data), "model.pt")
 
 
 class _Learner:

@@ -550,10 +550,10 @@ def test_a_model_drives_with_the_cameras_of_its_training_data(ladder, tmp_path):
     save_checkpoint(tmp_path / "with.pt", model.config, model.state_dict(), {"camera": camera})
     renderer = ModelDriver(str(tmp_path / "with.pt")).renderer(net)
     assert renderer.config == raster and renderer.world.config == world
-    # Written without it: today's defaults at the model's image size.
+    # Written without it: today's defaults at the model's image size, every head lit as when it was written.
     save_checkpoint(tmp_path / "without.pt", model.config, model.state_dict())
     renderer = ModelDriver(str(tmp_path / "without.pt")).renderer(net)
-    assert renderer.config == RasterConfig(camera=CameraConfig(height_px=48, width_px=64))
+    assert renderer.config == RasterConfig(camera=CameraConfig(height_px=48, width_px=64), route_signal=False)
     assert renderer.world.config == WorldConfig()
     bad = {"camera": {"raster": {**to_mapping(raster), "lamp_size": 3}, "world": to_mapping(world)}}
     save_checkpoint(tmp_path / "bad.pt", model.config, model.state_dict(), bad)

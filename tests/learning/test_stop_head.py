@@ -14,11 +14,13 @@ from crchfl_sumo.learning.checkpoint import load_model, save_checkpoint
 from crchfl_sumo.learning.model import (
     STOP_RANGE_M,
     build_model,
+    holds_signal_states,
     longitudinal_target,
+    longitudinal_width,
     predict_actions,
     stop_capped_speed,
 )
-from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig, with_data_signals
 from crchfl_sumo.learning.training import train_vehicles
 
 STOP = ModelConfig("compact", 48, 64, stop_head=True)
@@ -141,3 +143,18 @@ def test_a_federated_run_refuses_signal_targets_from_a_data_set_without_signal_s
             read_inputs(from_mapping(RunConfig, config))
         config["dataset"] = str(signalled)
         assert read_inputs(from_mapping(RunConfig, config)).vehicles  # with signal states it loads
+
+
+def test_an_unset_stop_head_is_decided_by_the_training_data():
+    unset = ModelConfig("compact", 48, 64)
+    assert unset.stop_head is None and longitudinal_width(unset) == 1  # a checkpoint without the key: none
+    assert with_data_signals(unset, True).stop_head is True
+    assert with_data_signals(unset, False) == unset  # a data set before format 5: unset, which is none
+    assert with_data_signals(ModelConfig("compact", 48, 64, stop_head=False), True).stop_head is False
+    pedals = ModelConfig("compact", 48, 64, longitudinal="pedals")
+    assert with_data_signals(pedals, True) == pedals
+    assert with_data_signals(ModelConfig("compact", 48, 64, arch="paper"), True).stop_head is None
+    own = ModelConfig("compact", 48, 64, class_path="my.module:Net")
+    assert with_data_signals(own, True) == own  # your own network answers as it was written
+    assert holds_signal_states(torch.tensor([SIGNAL_UNKNOWN, SIGNAL_RED])) is True
+    assert holds_signal_states(torch.tensor([SIGNAL_UNKNOWN, SIGNAL_UNKNOWN])) is False

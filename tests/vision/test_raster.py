@@ -17,6 +17,7 @@ import zlib
 import numpy as np
 import pytest
 
+from crchfl_sumo.core.config import to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.sumo.frame import make_frame
 from crchfl_sumo.vision.camera import CameraConfig, project_vehicle_points
@@ -249,10 +250,11 @@ def test_route_signal_lights_only_the_routes_head_of_a_lanes_two(renderer):
         image = Renderer(world, config).render(frame, ["ego"])[0, CAM_H]
         return [int((image == rgb).all(axis=-1).sum()) for rgb in (LAMP_RED_RGB, LAMP_GREEN_RGB)]
 
-    both = lit(RasterConfig(), 1)
-    assert both[0] > 0 and both[1] > 0  # default: both lamps drawn, 0.7 px apart at 20 m, overlapping
-    assert lit(RasterConfig(), 0) == both  # the route does not matter
-    route = RasterConfig(route_signal=True)
+    every = RasterConfig(route_signal=False)
+    both = lit(every, 1)
+    assert both[0] > 0 and both[1] > 0  # every head: both lamps drawn, 0.7 px apart at 20 m, overlapping
+    assert lit(every, 0) == both  # the route does not matter
+    route = RasterConfig()  # the default
     turn, straight = lit(route, 1), lit(route, 0)
     assert turn[0] > 0 and turn[1] == 0  # turning: only the red head lights
     assert straight[0] == 0 and straight[1] > 0  # going straight: only the green one
@@ -263,6 +265,9 @@ def test_route_signal_lights_only_the_routes_head_of_a_lanes_two(renderer):
         dataclasses.replace(h, lane_id="") for h in geometry.signal_heads]), WorldConfig())
     assert lit(route, 1) == both
     assert camera_settings({"raster": {"route_signal": True}, "world": {}}, "data")[0].route_signal is True
+    # a camera block written before the key existed drew every head; a new one always names it
+    assert camera_settings({"raster": {}, "world": {}}, "data")[0].route_signal is False
+    assert to_mapping(RasterConfig())["route_signal"] is True
 
 
 def test_lamps_face_the_approaching_traffic_only(renderer):
