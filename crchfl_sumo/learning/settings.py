@@ -230,7 +230,7 @@ def with_data_signals(config: ModelConfig, signals_known: bool) -> ModelConfig:
     """``config`` with a stop head where ``stop_head`` is unset and the network is a built-in target-speed one
     whose training data hold signal states (``signals_known``; data sets of format 5 on); else unchanged
     (unset reads as none, so such a model's settings stay as they were). With one-link heads
-    (raster.route_signal) it ran about 5 times fewer red lights (docs/model.md, "A stop head")."""
+    (raster.route_signal) it ran 0.17 red lights per km against 1.18 (docs/model.md, "A stop head")."""
     if config.stop_head is None and signals_known and config.longitudinal == "target_speed" and not config.class_path:
         return dataclasses.replace(config, stop_head=True)
     return config
