@@ -348,7 +348,8 @@ def dagger_command(
     learning_rate: float = FINE_TUNE_LEARNING_RATE, overwrite: bool = False,
 ) -> list[dict]:
     """What `crchfl-sumo dagger` does: ``dagger_iterations`` from ``model`` on the data set it was trained on
-    (checked against it first: the horizon and the camera settings); ``overwrite`` starts afresh, without the earlier iterations' samples."""
+    (checked against it first: the horizon and the camera settings); ``overwrite`` starts afresh, without
+    the earlier iterations' samples."""
     start = load_checkpoint(model)
     manifest = read_manifest(dataset)
     manifest.check_model(start.model_config, str(dataset))

@@ -25,8 +25,7 @@ from crchfl_sumo.driving.policies import ModelPolicy, Policy, RoutePolicy
 from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING
 from crchfl_sumo.sumo.route import RouteGeometry
 from crchfl_sumo.sumo.turns import choice_junctions
-from crchfl_sumo.vision.camera import CameraConfig
-from crchfl_sumo.vision.raster import RasterConfig, Renderer, camera_settings
+from crchfl_sumo.vision.raster import Renderer, camera_settings
 from crchfl_sumo.vision.world import build_world
 
 
@@ -102,11 +101,8 @@ def model_renderer(net_path: str | Path, model_config, extra: dict[str, Any], wh
     """A model's cameras as its training data drew them: the data set's raster and world settings
     (a checkpoint's extra "camera", copied from the manifest), or today's defaults at the model's image
     size for a checkpoint written without them (every head lit, as then)."""
-    camera = extra.get("camera")
-    if not camera:  # written without it (or from a data set that recorded none)
-        size = CameraConfig(height_px=model_config.image_height, width_px=model_config.image_width)
-        raster = RasterConfig(camera=size, route_signal=False)
-        return Renderer(build_world(net_path), raster)
+    size = {"height_px": model_config.image_height, "width_px": model_config.image_width}
+    camera = extra.get("camera") or {"raster": {"camera": size}}  # written without it: read as an old block
     raster, world = camera_settings(camera, f"{where}: extra.camera")
     return Renderer(build_world(net_path, world), raster)
 

@@ -95,8 +95,7 @@ from crchfl_sumo.federation.state import (
 from crchfl_sumo.learning.checkpoint import load_weights_only, save_checkpoint
 from crchfl_sumo.learning.codecs import encoded_fraction
 from crchfl_sumo.learning.evaluation import always_straight
-from crchfl_sumo.learning.model import holds_signal_states, state_size_bytes
-from crchfl_sumo.learning.settings import with_data_commands, with_data_signals
+from crchfl_sumo.learning.model import state_size_bytes, with_training_data
 from crchfl_sumo.learning.strategies import strategy_from
 from crchfl_sumo.learning.trainers import RayTrainer, TorchTrainer
 from crchfl_sumo.links.clock import Clock
@@ -201,12 +200,8 @@ def run_federation_dir(
     before the other files are (tests kill a run there).
     """
     out_dir = Path(out_dir)
-    # [model] commands unset: the lane-change heads where the vehicles' data hold a lane-change command
-    largest = max((int(s.command.max()) for s in inputs.samples.values() if len(s)), default=0)
-    config = dataclasses.replace(config, model=with_data_commands(config.model, largest))
-    # [model] stop_head unset: a stop head where the vehicles' data hold signal states
-    known = any(holds_signal_states(s.signal_state) for s in inputs.samples.values())
-    config = dataclasses.replace(config, model=with_data_signals(config.model, known))
+    # [model] commands and stop_head unset: the vehicles' data decide them
+    config = dataclasses.replace(config, model=with_training_data(config.model, inputs.samples.values()))
     adopt_legacy_state(out_dir)
     if ((out_dir / STATE_FILE).exists() or (out_dir / PREVIOUS_STATE_FILE).exists()) and not resume:
         raise CrchflError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")

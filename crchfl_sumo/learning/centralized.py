@@ -24,8 +24,8 @@ from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
 from crchfl_sumo.learning.evaluation import always_straight
-from crchfl_sumo.learning.model import State, build_model, check_signal_labels, holds_signal_states, model_from_state
-from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig, with_data_commands, with_data_signals
+from crchfl_sumo.learning.model import State, build_model, check_signal_labels, model_from_state, with_training_data
+from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig
 from crchfl_sumo.learning.training import Learner, evaluate
 
 log = logging.getLogger(__name__)
@@ -50,9 +50,8 @@ def train_centralized(
 
     ``drive_settings``: the data set's camera and expert settings (``Manifest.drive_settings``),
     kept in the checkpoint's extra so that a drive renders and steers as the model learned.
-    A new model whose ``commands`` is unset gets the lane-change heads where ``train`` holds a
-    lane-change command (settings.with_data_commands); one whose ``stop_head`` is unset gets a stop
-    head where ``train`` holds signal states (settings.with_data_signals).
+    A new model takes its unset ``commands`` and ``stop_head`` from ``train`` (model.with_training_data):
+    the lane-change heads where it holds a lane change, a stop head where it holds signal states.
 
     After every epoch: evaluates on ``test``, rewrites ``out_dir/metrics.jsonl``
     (one line per epoch: epoch and the test metrics of evaluation.py: loss,
@@ -82,8 +81,7 @@ def train_centralized(
             f"match the data's {train.image_hw[0]} x {train.image_hw[1]}; set them to the data's size"
         )
     if initial_state is None:  # a network of its own takes the data's commands and signals; weights keep theirs
-        model_config = with_data_commands(model_config, int(train.command.max()))
-        model_config = with_data_signals(model_config, holds_signal_states(train.signal_state))
+        model_config = with_training_data(model_config, [train])
     configure_determinism(config.deterministic)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,7 @@ and are normalised inside the network, so uint8 can stay uint8 in memory.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 import torch
@@ -65,6 +66,8 @@ from crchfl_sumo.learning.settings import (
     BranchShape,
     ModelConfig,
     resolved_steer_decoding,
+    with_data_commands,
+    with_data_signals,
 )
 
 State = dict[str, torch.Tensor]  # a model's weights by parameter name, as state_dict() gives them
@@ -359,6 +362,15 @@ def longitudinal_target(
 def holds_signal_states(signal_state: torch.Tensor) -> bool:
     """Whether samples' signal states say anything (a data set of format 5 on), not all unknown."""
     return bool((signal_state != SIGNAL_UNKNOWN).any())
+
+
+def with_training_data(config: ModelConfig, samples: Iterable[Samples]) -> ModelConfig:
+    """``config`` with its unset DATA_DECIDED_KEYS decided by the training ``samples`` (one set, or each
+    vehicle's): the lane-change heads (``with_data_commands``) and the stop head (``with_data_signals``)."""
+    samples = [s for s in samples if len(s)]
+    largest_command = max((int(s.command.max()) for s in samples), default=0)
+    signals_known = any(holds_signal_states(s.signal_state) for s in samples)
+    return with_data_signals(with_data_commands(config, largest_command), signals_known)
 
 
 def check_signal_labels(config: ModelConfig, signal_state: torch.Tensor, where: str) -> None:

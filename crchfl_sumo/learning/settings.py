@@ -221,8 +221,8 @@ class ModelConfig:
 
 
 
-# ModelConfig keys that a new model takes from its training data where they are unset (with_data_commands,
-# with_data_signals): a run's recorded settings hold the decided value
+# ModelConfig keys that a new model takes from its training data where they are unset (model.with_training_data,
+# through with_data_commands and with_data_signals): a run's recorded settings hold the decided value
 DATA_DECIDED_KEYS = ("commands", "stop_head")
 
 

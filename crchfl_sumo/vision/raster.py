@@ -96,8 +96,8 @@ class RasterConfig:
                            ideal reader of arrow lamps: side by side, a lane's heads are too
                            close to tell apart at 64 x 128, so a red and a green one merged);
                            the vehicle's link is SUMO's (Frame.tls_ahead_link). On by default
-                           since 2026-12-06 (with the stop head, 6 to 8 times fewer red lights;
-                           docs/raster.md); a camera block written before has no key and drew
+                           since 2026-12-06 (with the stop head, about 7 times fewer red lights;
+                           docs/model.md); a camera block written before has no key and drew
                            every head (camera_settings reads it so)
     """
 
@@ -467,9 +467,9 @@ def camera_settings(camera: dict, where: str) -> tuple[RasterConfig, WorldConfig
     """(RasterConfig, WorldConfig) of a data set's camera block (Manifest.camera, or a checkpoint's copy of it)."""
     if not isinstance(camera, dict):
         raise CrchflError(f"{where}: expected a table of raster and world settings, got {type(camera).__name__}")
-    # a block written before route_signal existed (or while it was off by default and left out) drew every head
     raster = camera.get("raster", {})
-    raster = {"route_signal": False, **raster} if isinstance(raster, dict) else raster
+    if isinstance(raster, dict):  # written before route_signal (or at its old default, left out): every head lit
+        raster = {"route_signal": False, **raster}
     raster = from_mapping(RasterConfig, raster, f"{where}.raster")
     world = from_mapping(WorldConfig, camera.get("world", {}), f"{where}.world")
     return raster, world

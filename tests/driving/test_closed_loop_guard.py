@@ -5,11 +5,11 @@ Offline accuracy is no evidence that a driver drives: a DAgger iteration once ra
 balanced accuracy from 0.746 to 0.773 while it drove off 20 of 20 straight routes
 (docs/model.md, "DAgger's off-lane labels"). The driver is tests/fixtures/guard_driver.pt, the
 centralized compact model of the documented recipe, since 2026-12-06 with one-link signal heads
-and a stop head (tools/make_guard_driver.py says how it was made). The floors are what it measured when the fixture was made, less a margin for other CPUs'
-arithmetic; after a change that is meant to alter driving (the network, the renderer, the expert),
-rebuild the fixture and set the floors to what it then drives. A broken driver fails the guard
-(checked 2026-12-05 with the fixture swapped): the model of the old DAgger iteration drove 4 of
-the suite's 20 episodes, its bfloat16 start model 11.
+and a stop head (tools/make_guard_driver.py says how it was made). The floors are what it measured
+when the fixture was made, less a margin for other CPUs' arithmetic; after a change that is meant
+to alter driving (the network, the renderer, the expert), rebuild the fixture and set the floors to
+what it then drives. A broken driver fails the guard (checked 2026-12-05 with the fixture swapped):
+the model of the old DAgger iteration drove 4 of the suite's 20 episodes, its bfloat16 start model 11.
 """
 
 from __future__ import annotations
