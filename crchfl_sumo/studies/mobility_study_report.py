@@ -21,7 +21,7 @@ from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.intervals import distinguishable
 from crchfl_sumo.core.result_files import RESULTS_CSV_FILE, RESULTS_MD_FILE
 from crchfl_sumo.studies.statistics import bench_overall, mean_std, paired_by_seed, seed_mean
-from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE
+from crchfl_sumo.studies.sweep import BASE_POINT as BASELINE, STRAIGHT_COLUMNS, always_straight_columns
 
 MB = 2**20
 
@@ -40,7 +40,8 @@ EXTRA_COLUMNS = ("relayed_transfers", "uploads", "downloads_failed", "edge_aggre
 # results.csv's columns other tools read (docs/sweep.md): seeds, the interval, the closed loop, the cells' rate
 STUDY_COLUMNS = ("seeds", "balanced_accuracy_mean", "balanced_accuracy_ci_lo", "balanced_accuracy_ci_hi",
                  "driving_score_mean", "success_rate_mean", "mean_uplink_rate_mbps")
-COLUMNS = ("factor", "key", "value", "point", *STUDY_COLUMNS, *(m[0] for m in METRICS), *EXTRA_COLUMNS)
+COLUMNS = ("factor", "key", "value", "point", *STUDY_COLUMNS, *(m[0] for m in METRICS), *STRAIGHT_COLUMNS,
+           *EXTRA_COLUMNS)
 # The outcomes the findings test for a move beyond noise, with how they are written.
 FINDINGS = (
     ("balanced_accuracy", "balanced accuracy", "{:+.3f}"),
@@ -59,6 +60,8 @@ def seed_outcomes(summaries: dict[int, dict], benches: dict[int, dict]) -> dict[
     for seed, summary in summaries.items():
         for key in (*(m[0] for m in METRICS), *EXTRA_COLUMNS, "mean_uplink_rate_mbps"):
             outcomes.setdefault(key, {})[seed] = summary.get(key)
+        for key, value in always_straight_columns(summary).items():
+            outcomes.setdefault(key, {})[seed] = value
         for key in ("driving_score", "success_rate") if seed in benches else ():
             outcomes.setdefault(key, {})[seed] = bench_overall(benches[seed], key)
     return outcomes
@@ -173,7 +176,17 @@ def markdown_table(rows: Sequence[dict]) -> str:
             _fmt(r["stop_reason"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n\n* the baseline run; every figure is the mean over the point's seeds\n"
+    return "\n".join(lines) + "\n\n* the baseline run; every figure is the mean over the point's seeds\n" + straight_line(rows)
+
+
+def straight_line(rows: Sequence[dict]) -> str:
+    """What the accuracies read against: the always-straight prediction on the study's test set (one data set
+    serves every point, so the baseline's row holds it); empty where the runs recorded none."""
+    base = next((r for r in rows if r["point"] == BASELINE), rows[0] if rows else {})
+    accuracy, balanced = (base.get(key) for key in STRAIGHT_COLUMNS)
+    if accuracy is None or balanced is None:
+        return ""
+    return f"\nAlways straight on the study's test set: accuracy {accuracy:.3f}, balanced accuracy {balanced:.3f}.\n"
 
 
 def plot_factor(factor, rows: Sequence[dict], base: dict | None, out_dir: Path) -> Path:

@@ -85,6 +85,8 @@ SUMMARY_COLUMNS = (
     "sim_time_s",
     "stop_reason",
 )
+# The always-straight prediction on the run's test set, beside the accuracies it reads against
+STRAIGHT_COLUMNS = ("always_straight_accuracy", "always_straight_balanced_accuracy")
 
 
 @dataclass(frozen=True)
@@ -300,7 +302,7 @@ def seed_row(point: Point, rows: list[dict]) -> dict:
     from crchfl_sumo.studies.statistics import mean_std, seed_mean
 
     row: dict[str, Any] = {"point": point.name, **point.values, "seeds": len(rows)}
-    for key in (*SUMMARY_COLUMNS, "wireless_bytes", "wireline_bytes"):
+    for key in (*SUMMARY_COLUMNS, *STRAIGHT_COLUMNS, "wireless_bytes", "wireline_bytes"):
         values = [r.get(key) for r in rows]
         row[key] = seed_mean(values)
         if key in INTERVAL_COLUMNS:
@@ -374,16 +376,24 @@ def table_row(point: Point, summary: dict) -> dict:
     links = summary.get("bytes_by_link", {})
     metrics = {
         **{k: summary.get(k) for k in SUMMARY_COLUMNS},
+        **always_straight_columns(summary),
         "wireless_bytes": links.get("wireless"),
         "wireline_bytes": links.get("wireline"),
     }
     return {"point": point.name, **point.values, **metrics}
 
 
+def always_straight_columns(summary: dict) -> dict:
+    """STRAIGHT_COLUMNS of a run's summary: the always-straight accuracy and balanced accuracy on its test set
+    (None where the run recorded no baseline)."""
+    found = (summary.get("baselines") or {}).get("always_straight") or {}
+    return dict(zip(STRAIGHT_COLUMNS, (found.get("accuracy"), found.get("balanced_accuracy"))))
+
+
 def write_table(out_dir: Path, rows: list[dict], paths: list[str], intervals: bool = False) -> None:
     """results.csv and results.md: one row per point (``intervals``: its seeds and the intervals over them)."""
     extra = ["seeds", *(f"{k}_ci_{end}" for k in INTERVAL_COLUMNS for end in ("lo", "hi"))] if intervals else []
-    columns = ["point", *paths, *extra, *SUMMARY_COLUMNS]
+    columns = ["point", *paths, *extra, *SUMMARY_COLUMNS[:3], *STRAIGHT_COLUMNS, *SUMMARY_COLUMNS[3:]]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)

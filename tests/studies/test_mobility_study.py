@@ -158,6 +158,23 @@ def test_report_rows_table_and_figures_from_hand_made_summaries(tmp_path):
     # s14: accuracy 0.52, balanced 0.32, 5 rounds, 20 handovers, 2 stragglers, 2 MB relayed, 6 MB wasted, 2/20 failed
     assert "| speed | 14.0 | 1 | 0.520 | 0.320 | - | - | - | 5 | 20 | 2 | 2 | 6 | 2/20 | 200 | budget |" in md
     assert "| policy | new_edge * |" in md  # the baseline's rows are marked
+    assert "Always straight" not in md  # these summaries recorded no baseline
+
+
+def test_report_reads_the_accuracies_against_always_straight(tmp_path):
+    study = _study({"name": "policy", "key": "federation.handover_policy", "values": ["new_edge", "miss"]})
+    plan = StudyPlan((Point(BASELINE, {}, {}),), {"policy": (BASELINE, "miss")})
+    straight = {"always_straight": {"accuracy": 0.775, "balanced_accuracy": 1 / 7, "steer_error": 0.07}}
+    summaries = {p: {s: {**_summary(i), "baselines": straight} for s in range(2)}
+                 for i, p in enumerate((BASELINE, "miss"))}
+    rows = study_rows(study.factors, plan, summaries)
+    write_report(tmp_path, study.factors, rows)
+    md = (tmp_path / "results.md").read_text()
+    assert "Always straight on the study's test set: accuracy 0.775, balanced accuracy 0.143." in md
+    with open(tmp_path / "results.csv", newline="") as handle:
+        table = list(csv.DictReader(handle))
+    assert {(t["always_straight_accuracy"], t["always_straight_balanced_accuracy"]) for t in table} == {
+        ("0.775", str(1 / 7))}
 
 
 # ------------------------------------------------------------------ a tiny real study

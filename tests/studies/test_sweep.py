@@ -126,6 +126,9 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
         summary = json.loads((runs / point.name / "summary.json").read_text())
         assert row["cloud_rounds"] == summary["cloud_rounds"] == 2
         assert row["final_accuracy"] == summary["final_accuracy"]
+        straight = summary["baselines"]["always_straight"]  # what the accuracies read against, in every row
+        assert (row["always_straight_accuracy"], row["always_straight_balanced_accuracy"]) == (
+            straight["accuracy"], straight["balanced_accuracy"])
         assert row["wireless_bytes"] == summary["bytes_by_link"]["wireless"] > 0
         assert row["handovers"] == 0  # the constant clock has no mobility
         assert row["relayed_transfers"] == row["relay_bytes"] == row["downloads_failed"] == 0
@@ -136,6 +139,7 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
     with open(out / "results.csv", newline="") as handle:
         table = list(csv.DictReader(handle))
     assert [t["point"] for t in table] == [p.name for p in points]
+    assert [float(t["always_straight_accuracy"]) for t in table] == [r["always_straight_accuracy"] for r in rows]
     assert (out / "results.md").read_text().count("\n") == 2 + len(points)
     assert (out / "plots" / "federation.edge_interval.png").stat().st_size > 0
     # a second rerun runs nothing: every folder is untouched
@@ -297,7 +301,10 @@ def test_a_sweep_with_seeds_gives_each_point_its_means_and_intervals(tmp_path, d
         lo, hi = stats.t.interval(0.95, 1, loc=sum(values) / 2, scale=spread) if spread else (values[0], values[0])
         assert (row["balanced_accuracy_ci_lo"], row["balanced_accuracy_ci_hi"]) == (pytest.approx(lo), pytest.approx(hi))
         assert row["cloud_rounds"] == sum(r["cloud_rounds"] for r in runs) / 2
+        # both seeds test on the same data: the always-straight figures are that test set's
+        assert row["always_straight_accuracy"] == pytest.approx(runs[0]["baselines"]["always_straight"]["accuracy"])
     with open(out / "results.csv", newline="") as handle:
         header = next(csv.reader(handle))
     assert header[:8] == ["point", "federation.edge_interval", "seeds", "balanced_accuracy_ci_lo",
                           "balanced_accuracy_ci_hi", "best_accuracy_ci_lo", "best_accuracy_ci_hi", "best_accuracy"]
+    assert header[9:12] == ["final_accuracy", "always_straight_accuracy", "always_straight_balanced_accuracy"]
