@@ -176,7 +176,8 @@ def markdown_table(rows: Sequence[dict]) -> str:
             _fmt(r["stop_reason"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n\n* the baseline run; every figure is the mean over the point's seeds\n" + straight_line(rows)
+    marks = "\n* the baseline run; every figure is the mean over the point's seeds\n"
+    return "\n".join(lines) + "\n" + marks + straight_line(rows)
 
 
 def straight_line(rows: Sequence[dict]) -> str:
