@@ -63,6 +63,52 @@ def test_train_refuses_signal_labels_from_a_data_set_without_signal_states(tmp_p
         assert not (tmp_path / "t" / "checkpoint.pt").exists()
 
 
+def _town01_copy(data, root):
+    """The data set with its training shards of town01 only (files copied, manifest cut): what --train-towns town01
+    should train on."""
+    import shutil
+
+    root.mkdir()
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["shards"] = [s for s in manifest["shards"] if s["split"] == "test" or s["town"] == "town01"]
+    manifest["samples"] = sum(s["samples"] for s in manifest["shards"])
+    for shard in manifest["shards"]:
+        shutil.copy(data / shard["file"], root / shard["file"])
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
+
+
+def test_train_towns_trains_on_those_towns_shards_only(tmp_path, capsys):
+    import torch
+
+    from crchfl_sumo.learning.checkpoint import load_checkpoint
+
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    common = ["--epochs", "1", "--seed", "1", "--deterministic", "--precision", "fp32"]
+    assert main(["train", str(data), "--out", str(tmp_path / "t"), "--train-towns", "town01", *common]) == 0
+    assert main(["train", str(_town01_copy(data, tmp_path / "d01")), "--out", str(tmp_path / "c"), *common]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "all"), *common]) == 0
+    weights = {name: load_checkpoint(tmp_path / name / "checkpoint.pt").state_dict for name in ("t", "c", "all")}
+    assert all(torch.equal(weights["t"][k], weights["c"][k]) for k in weights["c"])  # the same 12 samples
+    assert not all(torch.equal(weights["t"][k], weights["all"][k]) for k in weights["all"])  # not all 30
+    capsys.readouterr()
+    assert main(["train", str(data), "--out", str(tmp_path / "x"), "--train-towns", "town01,town09"]) == 2
+    err = capsys.readouterr().err
+    assert "--train-towns town01,town09: no train shard of town09" in err and "town01, town02" in err
+    assert "Traceback" not in err and not (tmp_path / "x" / "checkpoint.pt").exists()
+
+
+def test_dagger_refuses_train_towns_the_data_set_lacks_before_driving(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    assert main(["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "1"]) == 0
+    capsys.readouterr()
+    assert main(["dagger", str(tmp_path / "t" / "checkpoint.pt"), str(data), "--out", str(tmp_path / "d"),
+                 "--train-towns", "town03"]) == 2
+    err = capsys.readouterr().err
+    assert "no train shard of town03" in err and "Traceback" not in err
+    assert not list((tmp_path / "d").glob("iteration-*"))
+
+
 def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):
     assert main(["train", str(tmp_path / "none"), "--out", str(tmp_path / "t")]) == 2
     assert "manifest" in capsys.readouterr().err

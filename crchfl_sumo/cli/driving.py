@@ -167,17 +167,24 @@ def add_dagger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue in --out after its last finished epoch (the same command line; --iterations may be "
                    "raised). The same command line again also continues")
+    p.add_argument("--train-towns", default=None,
+                   help="fine-tune on these towns' training shards only (and the labels), separated by commas: "
+                   "those the model was trained on with `train --train-towns` (default: every town)")
 
 
 def run_dagger(args) -> int:
     from crchfl_sumo.driving.dagger import dagger_command
     from crchfl_sumo.driving.dagger_settings import DaggerConfig
 
+    train_towns = comma_list(args.train_towns) if args.train_towns is not None else None
+    if train_towns is None:  # added later: a folder made before it existed still resumes
+        del args.train_towns
     with output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
         config = DaggerConfig(tasks=comma_list(args.tasks), episodes=args.episodes, seed=args.route_seed,
                               corrections_only=not args.all_states)
         records = dagger_command(args.model, args.dataset, args.out, comma_list(args.towns), config,
-                                 args.iterations, args.epochs, args.seed, args.jobs, args.learning_rate, args.overwrite)
+                                 args.iterations, args.epochs, args.seed, args.jobs, args.learning_rate, args.overwrite,
+                                 train_towns=train_towns)
     for record in records:
         straight = record["always_straight"]
         print(

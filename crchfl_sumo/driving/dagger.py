@@ -35,7 +35,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
-from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.dataset import load_samples, town_vehicles
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
@@ -346,15 +346,18 @@ def dagger_command(
     model: str | Path, dataset: str | Path, out_dir: str | Path, towns: Sequence[str], config: DaggerConfig,
     iterations: int = 1, epochs: int = 3, seed: int = 0, jobs: int = 1,
     learning_rate: float = FINE_TUNE_LEARNING_RATE, overwrite: bool = False,
+    train_towns: Sequence[str] | None = None,
 ) -> list[dict]:
     """What `crchfl-sumo dagger` does: ``dagger_iterations`` from ``model`` on the data set it was trained on
-    (checked against it first: the horizon and the camera settings); ``overwrite`` starts afresh, without
-    the earlier iterations' samples."""
+    (checked against it first: the horizon and the camera settings; ``train_towns``: its training shards of
+    those towns only, as `train --train-towns` trained it); ``overwrite`` starts afresh, without the earlier
+    iterations' samples."""
     start = load_checkpoint(model)
     manifest = read_manifest(dataset)
     manifest.check_model(start.model_config, str(dataset))
     manifest.check_camera(start.extra.get("camera"), str(dataset), str(model))  # e.g. raster.route_signal
-    train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
+    train = load_samples(dataset, "train", town_vehicles(dataset, train_towns))
+    test = load_samples(dataset, "test")
     if overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
         for old in sorted(Path(out_dir).glob("iteration-*")):
             shutil.rmtree(old)

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress
 from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
-from crchfl_sumo.data.dataset import load_samples
+from crchfl_sumo.data.dataset import load_samples, town_vehicles
 from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
@@ -233,11 +234,14 @@ def train_command(
     dataset: str | Path, out_dir: str | Path, epochs: int, size: str, arch: str, config: TrainConfig, seed: int,
     resume: bool = False, overwrite: bool = False, progress: Progress | None = None, speed_input: str = "none",
     stop_head: bool | None = None, command_pedals: bool = False, red_hold: bool = False,
+    train_towns: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """What `crchfl-sumo train` does: the model of ``size`` and ``arch`` at the data set's image size and speed
     horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``, ``red_hold``: ModelConfig's),
-    trained on its train shards and evaluated on its test shards; the last epoch's metrics line."""
-    train, test = load_samples(dataset, "train"), load_samples(dataset, "test")
+    trained on its train shards (``train_towns``: those towns' only) and evaluated on its test shards (all of them);
+    the last epoch's metrics line."""
+    train = load_samples(dataset, "train", town_vehicles(dataset, train_towns))
+    test = load_samples(dataset, "test")
     manifest = read_manifest(dataset)
     model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s,
                                stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
