@@ -12,7 +12,7 @@ for example  base=  speed=speed_input:true  pedals=speed_input:true,sampling:ped
 
 Usage: python tools/bench_closed_loop.py DATASET --out DIR [--epochs 6] [--episodes 6]
        [--tasks straight,one_turn] [--towns town01] [--train-towns TOWNS] [--jobs 2]
-       [--steer-decoding argmax] RECIPE...
+       [--steer-decoding argmax] [--seed S] [--bench-seed D] RECIPE...
 
 --train-towns trains on those towns' shards only (the test split stays whole):
 train on town01, drive in town02 to measure generalisation to an unseen town.
@@ -78,7 +78,9 @@ def main() -> None:
     parser.add_argument("--train-towns", default=None, help="train on these towns' shards only (default: all)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--steer-decoding", default="argmax")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seeds the training (default 0)")
+    parser.add_argument("--bench-seed", type=int, default=0,
+                        help="the benchmark draw: its routes, SUMO seeds and warm-ups (default 0)")
     args = parser.parse_args()
     manifest = read_manifest(Path(args.dataset))
     vehicles = None
@@ -101,7 +103,7 @@ def main() -> None:
         )
         best = records[-1]
         summary = run_benchmark(folder / "checkpoint.pt", folder / "bench", episodes=args.episodes, jobs=args.jobs,
-                                towns=tuple(args.towns.split(",")), config=config)
+                                seed=args.bench_seed, towns=tuple(args.towns.split(",")), config=config)
         rows.append((name, best, summary))
     print(f"{len(train)} training samples, {args.epochs} epochs, seed {args.seed}, {args.episodes} episodes per task")
     for name, best, summary in rows:
