@@ -25,6 +25,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
@@ -83,12 +84,11 @@ def main() -> None:
                         help="the benchmark draw: its routes, SUMO seeds and warm-ups (default 0)")
     args = parser.parse_args()
     manifest = read_manifest(Path(args.dataset))
-    vehicles = None
-    if args.train_towns is not None:
-        towns = set(args.train_towns.split(","))
-        vehicles = [s.vehicle for s in manifest.select("train") if s.town in towns]
-        if not vehicles:
-            raise SystemExit(f"--train-towns {args.train_towns}: no training shard of those towns in {args.dataset}")
+    towns = None if args.train_towns is None else tuple(args.train_towns.split(","))
+    try:
+        vehicles = manifest.town_vehicles(towns, args.dataset)
+    except CrchflError as error:
+        raise SystemExit(str(error)) from None
     train, test = load_samples(args.dataset, "train", vehicles), load_samples(args.dataset, "test")
     config = BenchConfig(tasks=tuple(args.tasks.split(",")), steer_decoding=args.steer_decoding)
     rows = []

@@ -48,6 +48,16 @@ def output_folder(
     )
 
 
+def leave_out_at_default(args, options) -> None:
+    """Remove from ``args`` the options added to a command later that are at their default, so that a folder
+    made before they existed still resumes (its settings fingerprint lacks them). ``options``: (names, at
+    default) pairs."""
+    for names, at_default in options:
+        if at_default:
+            for name in names:
+                delattr(args, name)
+
+
 def comma_list(text: str) -> tuple[str, ...]:
     """'a, b,,c' -> ('a', 'b', 'c'): the names of a comma-separated option."""
     return tuple(name.strip() for name in text.split(",") if name.strip())

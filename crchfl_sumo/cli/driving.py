@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument, sumo_output_argument
+from crchfl_sumo.cli.arguments import (
+    comma_list,
+    leave_out_at_default,
+    output_folder,
+    overwrite_argument,
+    sumo_output_argument,
+)
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_DRIVE_S, MAX_EPOCHS, MAX_JOBS, integer_arg, number_arg, seed_arg
@@ -167,7 +173,7 @@ def add_dagger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue in --out after its last finished epoch (the same command line; --iterations may be "
                    "raised). The same command line again also continues")
-    p.add_argument("--train-towns", default=None,
+    p.add_argument("--train-towns", type=comma_list, default=None,
                    help="fine-tune on these towns' training shards only (and the labels), separated by commas: "
                    "those the model was trained on with `train --train-towns` (default: every town)")
 
@@ -176,9 +182,8 @@ def run_dagger(args) -> int:
     from crchfl_sumo.driving.dagger import dagger_command
     from crchfl_sumo.driving.dagger_settings import DaggerConfig
 
-    train_towns = comma_list(args.train_towns) if args.train_towns is not None else None
-    if train_towns is None:  # added later: a folder made before it existed still resumes
-        del args.train_towns
+    train_towns = args.train_towns
+    leave_out_at_default(args, ((("train_towns",), train_towns is None),))
     with output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
         config = DaggerConfig(tasks=comma_list(args.tasks), episodes=args.episodes, seed=args.route_seed,
                               corrections_only=not args.all_states)

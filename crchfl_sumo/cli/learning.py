@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from crchfl_sumo.cli.arguments import comma_list, output_folder, overwrite_argument
+from crchfl_sumo.cli.arguments import comma_list, leave_out_at_default, output_folder, overwrite_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import (
@@ -56,7 +56,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--red-hold", action="store_true",
                    help="while the route's next signal shows red, the target-speed label stops the car before the "
                    "line (model.red_hold; needs a data set of format 5; docs/model.md)")
-    p.add_argument("--train-towns", default=None,
+    p.add_argument("--train-towns", type=comma_list, default=None,
                    help="train on these towns' training shards only, separated by commas (default: every town; "
                    "the test shards stay whole): train in town01, drive in town02 to measure generalisation")
 
@@ -70,17 +70,12 @@ def run_train(args) -> int:
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          class_weighting=args.class_weighting)  # refused before any file
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
-    train_towns = comma_list(args.train_towns) if args.train_towns is not None else None
-    # an option added later is left out of the folder's settings at its default: a folder trained before it
-    # existed still resumes
-    for names, at_default in ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
-                              (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
-                              (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
-                              (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold),
-                              (("train_towns",), train_towns is None)):
-        if at_default:
-            for name in names:
-                delattr(args, name)
+    train_towns = args.train_towns
+    leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
+                                (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
+                                (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
+                                (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold),
+                                (("train_towns",), train_towns is None)))
     with output_folder(args, "train", extendable=("epochs", "precision"), formerly_kept=(("precision", PRECISIONS),)):
         with ProgressBars("sample") as bars:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,

@@ -10,7 +10,6 @@ Two ways to read a data set written by dataset_io:
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -53,23 +52,6 @@ def _selected(root: Path, split: str | None, vehicles: list[str] | None) -> tupl
         if missing:
             raise CrchflError(f"{root}: no {split or ''} shard for vehicle(s) {', '.join(missing)}")
     return manifest, shards
-
-
-def town_vehicles(root: str | Path, towns: Sequence[str] | None, split: str = "train") -> list[str] | None:
-    """The vehicles of ``towns``' shards in ``split``, in manifest order (None: every town, no selection).
-
-    What `train --train-towns` and `dagger --train-towns` select, e.g. to train on Town01 and drive in Town02."""
-    if towns is None:
-        return None
-    shards = read_manifest(root).select(split)
-    held = sorted({s.town for s in shards})
-    unknown = sorted(set(towns) - set(held))
-    if unknown or not towns:
-        raise CrchflError(
-            f"{root}: --train-towns {','.join(towns)}: no {split} shard of {', '.join(unknown) or 'any town'}; "
-            f"its {split} shards are of {', '.join(held)}"
-        )
-    return [s.vehicle for s in shards if s.town in towns]
 
 
 def load_samples(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,6 +98,21 @@ class Manifest:
         return tuple(
             s for s in self.shards if (split is None or s.split == split) and (vehicles is None or s.vehicle in vehicles)
         )
+
+    def town_vehicles(self, towns: Sequence[str] | None, where: str, split: str = "train") -> list[str] | None:
+        """The vehicles of ``towns``' shards in ``split``, in manifest order (None: every town, no selection):
+        what `train --train-towns` and `dagger --train-towns` train on. ``where`` names the data set."""
+        if towns is None:
+            return None
+        shards = self.select(split)
+        held = sorted({s.town for s in shards})
+        unknown = sorted(set(towns) - set(held))
+        if unknown or not towns:
+            raise CrchflError(
+                f"{where}: --train-towns {','.join(towns)}: no {split} shard of {', '.join(unknown) or 'any town'}; "
+                f"its {split} shards are of {', '.join(held)}"
+            )
+        return [s.vehicle for s in shards if s.town in towns]
 
     @property
     def samples(self) -> int:

@@ -35,7 +35,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.result_files import MODEL_FILE, SUMMARY_FILE
-from crchfl_sumo.data.dataset import load_samples, town_vehicles
+from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
@@ -356,7 +356,7 @@ def dagger_command(
     manifest = read_manifest(dataset)
     manifest.check_model(start.model_config, str(dataset))
     manifest.check_camera(start.extra.get("camera"), str(dataset), str(model))  # e.g. raster.route_signal
-    train = load_samples(dataset, "train", town_vehicles(dataset, train_towns))
+    train = load_samples(dataset, "train", manifest.town_vehicles(train_towns, str(dataset)))
     test = load_samples(dataset, "test")
     if overwrite:  # the earlier iterations' samples and models would otherwise be taken up again
         for old in sorted(Path(out_dir).glob("iteration-*")):

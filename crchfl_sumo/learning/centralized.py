@@ -19,7 +19,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import MAX_EPOCHS, check_range, check_seed
 from crchfl_sumo.core.progress import Progress
 from crchfl_sumo.core.result_files import METRICS_LOG_FILE, MODEL_FILE
-from crchfl_sumo.data.dataset import load_samples, town_vehicles
+from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_checkpoint, save_checkpoint
@@ -240,9 +240,9 @@ def train_command(
     horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``, ``red_hold``: ModelConfig's),
     trained on its train shards (``train_towns``: those towns' only) and evaluated on its test shards (all of them);
     the last epoch's metrics line."""
-    train = load_samples(dataset, "train", town_vehicles(dataset, train_towns))
-    test = load_samples(dataset, "test")
     manifest = read_manifest(dataset)
+    train = load_samples(dataset, "train", manifest.town_vehicles(train_towns, str(dataset)))
+    test = load_samples(dataset, "test")
     model_config = ModelConfig(size, *train.image_hw, arch=arch, speed_horizon_s=manifest.speed_horizon_s,
                                stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
                                **SPEED_INPUTS[speed_input])

@@ -95,10 +95,15 @@ def study_rows(factors: Sequence, plan, summaries: dict[str, dict[int, dict]],
     return rows
 
 
+def baseline_row(rows: Sequence[dict]) -> dict | None:
+    """Any factor's row of the baseline run (every factor's curve passes through it); None if no row is."""
+    return next((r for r in rows if r["point"] == BASELINE), None)
+
+
 def findings(factors: Sequence, rows: Sequence[dict]) -> list[dict]:
     """Per factor and outcome: each value against the baseline, paired by seed (paired-t 95 % interval); the
     outcome moves where an interval excludes 0. ``moved``: the values that did, with their differences."""
-    base = next((r for r in rows if r["point"] == BASELINE), None)
+    base = baseline_row(rows)
     found = []
     for factor in factors:
         for key, title, spec in FINDINGS:
@@ -142,7 +147,7 @@ def write_report(out_dir: Path, factors: Sequence, rows: Sequence[dict]) -> list
     atomic_write_text(out_dir / RESULTS_CSV_FILE, buffer.getvalue())
     findings_text = findings_table(findings(factors, rows))
     atomic_write_text(out_dir / RESULTS_MD_FILE, markdown_table(rows) + "\n## Findings\n\n" + findings_text)
-    base = next((r for r in rows if r["point"] == BASELINE), None)  # any factor's row of the baseline run
+    base = baseline_row(rows)
     return [
         plot_factor(factor, [r for r in rows if r["factor"] == factor.name], base, out_dir / "plots") for factor in factors
     ]
@@ -183,7 +188,7 @@ def markdown_table(rows: Sequence[dict]) -> str:
 def straight_line(rows: Sequence[dict]) -> str:
     """What the accuracies read against: the always-straight prediction on the study's test set (one data set
     serves every point, so the baseline's row holds it); empty where the runs recorded none."""
-    base = next((r for r in rows if r["point"] == BASELINE), rows[0] if rows else {})
+    base = baseline_row(rows) or (rows[0] if rows else {})
     accuracy, balanced = (base.get(key) for key in STRAIGHT_COLUMNS)
     if accuracy is None or balanced is None:
         return ""

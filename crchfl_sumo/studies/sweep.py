@@ -87,6 +87,8 @@ SUMMARY_COLUMNS = (
 )
 # The always-straight prediction on the run's test set, beside the accuracies it reads against
 STRAIGHT_COLUMNS = ("always_straight_accuracy", "always_straight_balanced_accuracy")
+# results.csv's and results.md's figures: the always-straight ones right after the three accuracies
+TABLE_COLUMNS = (*SUMMARY_COLUMNS[:3], *STRAIGHT_COLUMNS, *SUMMARY_COLUMNS[3:])
 
 
 @dataclass(frozen=True)
@@ -302,7 +304,7 @@ def seed_row(point: Point, rows: list[dict]) -> dict:
     from crchfl_sumo.studies.statistics import mean_std, seed_mean
 
     row: dict[str, Any] = {"point": point.name, **point.values, "seeds": len(rows)}
-    for key in (*SUMMARY_COLUMNS, *STRAIGHT_COLUMNS, "wireless_bytes", "wireline_bytes"):
+    for key in TABLE_COLUMNS:  # wireless and wireline bytes among them
         values = [r.get(key) for r in rows]
         row[key] = seed_mean(values)
         if key in INTERVAL_COLUMNS:
@@ -393,7 +395,7 @@ def always_straight_columns(summary: dict) -> dict:
 def write_table(out_dir: Path, rows: list[dict], paths: list[str], intervals: bool = False) -> None:
     """results.csv and results.md: one row per point (``intervals``: its seeds and the intervals over them)."""
     extra = ["seeds", *(f"{k}_ci_{end}" for k in INTERVAL_COLUMNS for end in ("lo", "hi"))] if intervals else []
-    columns = ["point", *paths, *extra, *SUMMARY_COLUMNS[:3], *STRAIGHT_COLUMNS, *SUMMARY_COLUMNS[3:]]
+    columns = ["point", *paths, *extra, *TABLE_COLUMNS]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
