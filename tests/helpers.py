@@ -75,7 +75,7 @@ class SumTrainer:
 
         return {"w": torch.zeros(3, dtype=torch.float64)}
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         return [{"w": s["w"] + epochs * len(x) + (seed % 7)} for s, x in zip(states, samples)]
 
     def evaluate(self, state):

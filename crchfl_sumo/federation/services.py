@@ -352,7 +352,10 @@ class StepServices:
         running = {r: RunningAverage(w) for r, w in weights.items()}
         kept: dict[str, State] = {}
         starts = [state.vehicle_models[v] for v in vehicles]
-        trained = self.trainer.train(starts, [samples[v] for v in vehicles], epochs, seed)
+        # a model neither received nor kept is never read: its upload failed (or came late) and a download
+        # replaces it. Its transfers were worked out without it, so skipping its training changes nothing.
+        needed = [i for i, v in enumerate(vehicles) if v in receiver or v in keep]
+        trained = self.trainer.train(starts, [samples[v] for v in vehicles], epochs, seed, needed)
         for v, start, model in zip(vehicles, starts, trained, strict=True):
             if v in receiver:
                 running[receiver[v]].add(self._uploaded(state, v, model, start))

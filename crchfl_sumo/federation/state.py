@@ -7,7 +7,7 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Literal, Mapping, Protocol, Sequence
+from typing import Any, Collection, Iterable, Literal, Mapping, Protocol, Sequence
 
 import torch
 
@@ -33,9 +33,16 @@ class Trainer(Protocol):
 
     def initial_state(self) -> State: ...
 
-    def train(self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int) -> Iterable[State]:
+    def train(
+        self, states: Sequence[State], samples: Sequence[Samples], epochs: int, seed: int,
+        needed: Collection[int] | None = None,
+    ) -> Iterable[State | None]:
         """Each vehicle's new state, in the order of ``states``. An iterator that yields each as it is
-        trained lets the loop fold it into its FedAvg and drop it before the next arrives."""
+        trained lets the loop fold it into its FedAvg and drop it before the next arrives.
+
+        ``needed``: the indices whose states the loop will use (None: all). A trainer may skip the others
+        and yield None in their place (a model whose upload failed and that a download replaces is never
+        read); vehicle i's state must not depend on which others were trained."""
         ...
 
     def evaluate(self, state: State) -> Mapping[str, Any]:

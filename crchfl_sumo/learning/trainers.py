@@ -48,17 +48,21 @@ class TorchTrainer:
     def initial_state(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().cpu().clone() for k, v in build_model(self.model_config, self.seed).state_dict().items()}
 
-    def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
+    def train(self, states, samples, epochs, seed, needed=None) -> Iterator[dict[str, torch.Tensor] | None]:
         """Each vehicle's new state, in order, trained when it is asked for: vehicle i with
-        ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (vmap: all at once)."""
+        ``vehicle_seed(seed, i)``, as ``train_vehicles`` trains it (vmap: all at once). Sequentially, a
+        vehicle not in ``needed`` (None: all) is not trained: None in its place (federation.Trainer)."""
         if resolved_multi_vehicle(self.config, self.model_config, self.device.type) == "vmap":
             if self.proximal_mu:
                 raise CrchflError("a proximal term (strategy fedprox) trains vehicle by vehicle; set "
                                   "train.multi_vehicle = \"sequential\"")
+            # all at once: one batch of every vehicle, whose numerics a smaller batch need not repeat to the bit
             new, _ = train_vehicles(list(states), list(samples), epochs, self.model_config, self.config, seed)
             return iter(new)
+        wanted = wanted_indices(len(states), needed)
         return (
             train_vehicle(state, x, epochs, self.model_config, self.config, vehicle_seed(seed, i), self.proximal_mu)[0]
+            if i in wanted else None
             for i, (state, x) in enumerate(zip(states, samples, strict=True))
         )
 
@@ -100,20 +104,30 @@ class RayTrainer(TorchTrainer):
             refs[key] = (known or {}).get(key) or (obj, self.executor.put(obj))
         return refs[key][1]
 
-    def train(self, states, samples, epochs, seed) -> Iterator[dict[str, torch.Tensor]]:
+    def train(self, states, samples, epochs, seed, needed=None) -> Iterator[dict[str, torch.Tensor] | None]:
+        """As TorchTrainer's, sequentially: a task per vehicle in ``needed`` (None: all), None for the others."""
+        wanted = wanted_indices(len(states), needed)
         sample_refs: dict[int, tuple[Samples, Any]] = {}
         state_refs: dict[int, tuple[Any, Any]] = {}
-        args = [
-            (self._put_once(state, state_refs), self._put_once(x, sample_refs, self._sample_refs), epochs,
-             self.model_config, self.config, vehicle_seed(seed, i), self.threads, self.proximal_mu)
-            for i, (state, x) in enumerate(zip(states, samples, strict=True))
-        ]
+        args = []
+        for i, (state, x) in enumerate(zip(states, samples, strict=True)):
+            state_ref = self._put_once(state, state_refs) if i in wanted else None
+            sample_ref = self._put_once(x, sample_refs, self._sample_refs)  # kept for a vehicle skipped now
+            if i in wanted:
+                args.append((state_ref, sample_ref, epochs, self.model_config, self.config, vehicle_seed(seed, i),
+                             self.threads, self.proximal_mu))
         self._sample_refs = sample_refs  # handles of samples no longer trained on are released
-        return self.executor.imap(train_vehicle_task, args)
+        results = self.executor.imap(train_vehicle_task, args)
+        return (next(results) if i in wanted else None for i in range(len(states)))
 
     def evaluation(self, state) -> Evaluation:
         args = (state, self._test_ref, self.model_config, self.config, self.threads)
         return self.executor.map(evaluate_task, [args])[0]
+
+
+def wanted_indices(count: int, needed) -> frozenset[int]:
+    """The vehicle indices a trainer trains: ``needed``, or all ``count`` with None."""
+    return frozenset(range(count) if needed is None else needed)
 
 
 def train_vehicle_task(state, samples, epochs, model_config, config, seed, threads, proximal_mu=0.0):

@@ -33,7 +33,7 @@ class SumTrainer:
     def initial_state(self):
         return {"w": torch.zeros(2, dtype=torch.float64)}
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         return [{"w": s["w"] + epochs * len(x)} for s, x in zip(states, samples)]
 
     def evaluate(self, state):
@@ -47,7 +47,7 @@ class FixedTrainer(SumTrainer):
     def __init__(self, values_by_count):
         self.values = values_by_count
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         return [{"w": torch.full((2,), float(self.values[len(x)]), dtype=torch.float64)} for x in samples]
 
 
@@ -261,7 +261,7 @@ class CountingTrainer(SumTrainer):
     def _dropped(self):
         self.alive -= 1
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         for s, x in zip(states, samples):
             w = s["w"] + epochs * len(x)
             self.alive += 1
@@ -292,7 +292,7 @@ class OrderedTrainer(SumTrainer):
     def __init__(self, values):
         self.values = values
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         return ({"w": torch.full((2,), float(v), dtype=torch.float64)} for v in self.values[: len(states)])
 
 
@@ -314,7 +314,7 @@ class RecordingTrainer:
         self.inner, self.models = inner, []
         self.initial_state, self.evaluate = inner.initial_state, inner.evaluate
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         for model in self.inner.train(states, samples, epochs, seed):
             self.models.append({k: t.clone() for k, t in model.items()})
             yield model
@@ -370,6 +370,29 @@ def _policy_run(policy, clock, deadline_s=math.inf, values=None, download_handov
     trainer = FixedTrainer({2: 1.0}) if values is None else values
     fed = Federation(setup, clock, trainer)
     return fed.step(initial_state(setup, trainer, 0.0))
+
+
+class NeededTrainer(FixedTrainer):
+    """Records which vehicles each call needs, as a trainer that skips the rest would see them."""
+
+    def __init__(self):
+        super().__init__({2: 1.0})
+        self.needed = []
+
+    def train(self, states, samples, epochs, seed, needed=None):
+        self.needed.append(None if needed is None else sorted(needed))
+        return super().train(states, samples, epochs, seed)
+
+
+def test_the_loop_asks_only_for_the_models_it_reads():
+    # a misses e0's deadline; with its download relayed the release replaces its model: nobody reads it
+    trainer = NeededTrainer()
+    _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer, download_handover="relay")
+    assert trainer.needed == [[1, 2]]  # b and c, of a, b, c
+    # dropped, the download fails: a keeps the model it trained, so it is needed
+    trainer = NeededTrainer()
+    state = _policy_run("wait", _handover_clock(), deadline_s=10.0, values=trainer, download_handover="drop")
+    assert trainer.needed == [[0, 1, 2]] and state.vehicle_models["a"]["w"].tolist() == [1.0, 1.0]
 
 
 def test_new_edge_policy_delivers_to_the_edge_serving_at_the_end_of_the_upload():
@@ -620,7 +643,7 @@ class SampleCountTrainer(SumTrainer):
     def __init__(self):
         self.counts = []
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         self.counts.append([len(x) for x in samples])
         return super().train(states, samples, epochs, seed)
 

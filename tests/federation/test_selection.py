@@ -39,7 +39,7 @@ class ValueTrainer:
     def initial_state(self):
         return {"w": torch.zeros(1, dtype=torch.float64)}
 
-    def train(self, states, samples, epochs, seed):
+    def train(self, states, samples, epochs, seed, needed=None):
         return [{"w": torch.ones(1, dtype=torch.float64)} for _ in states]
 
     def evaluate(self, state):

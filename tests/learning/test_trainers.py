@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import torch
 
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.data.samples import Samples
@@ -62,3 +63,18 @@ def test_ray_trainer_sends_each_distinct_model_and_sample_set_once():
         sent.clear()
         list(remote.train([shared], [first], 1, seed=5))
         assert [id(x) for x in sent] == [id(shared)]  # the samples were sent before
+
+
+def test_trainers_skip_the_vehicles_not_needed_and_train_the_others_to_the_bit():
+    test = _samples(4, seed=1)
+    vehicles = [_samples(6, seed=2), _samples(5, seed=3), _samples(7, seed=5)]
+    local = TorchTrainer(SMALL, CPU, test, seed=0)
+    start = local.initial_state()
+    every = list(local.train([start] * 3, vehicles, 1, seed=4))
+    some = list(local.train([start] * 3, vehicles, 1, seed=4, needed=[0, 2]))
+    assert some[1] is None and all(torch.equal(some[i][k], every[i][k]) for i in (0, 2) for k in every[i])
+    assert not all(torch.equal(every[0][k], every[2][k]) for k in every[0])  # vehicle i keeps its own seed
+    assert list(local.train([start] * 3, vehicles, 1, seed=4, needed=[])) == [None, None, None]
+    with Executor(BackendConfig()) as executor:
+        remote = list(RayTrainer(SMALL, CPU, test, 0, executor).train([start] * 3, vehicles, 1, seed=4, needed=[2]))
+        assert remote[:2] == [None, None] and all(torch.equal(remote[2][k], every[2][k]) for k in every[2])
