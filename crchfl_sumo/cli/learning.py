@@ -9,7 +9,8 @@ from crchfl_sumo.cli.arguments import comma_list, leave_out_at_default, output_f
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import (
-    ARCHS, CLASS_WEIGHTINGS, MAX_RED_WEIGHT, MAX_RED_WINDOW_M, PRECISIONS, SPEED_INPUTS, TrainConfig,
+    ARCHS, CLASS_WEIGHTINGS, MAX_DRAW_WEIGHT, MAX_RED_WINDOW_M, MAX_YIELD_WINDOW_M, PRECISIONS, SPEED_INPUTS,
+    TrainConfig,
 )
 
 
@@ -32,13 +33,23 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the training in --out after its last checkpointed epoch (the same command line; "
                    "--epochs may be raised, and --precision named to continue in the precision the epochs trained in)")
-    p.add_argument("--red-weight", type=number_arg(1, MAX_RED_WEIGHT, "a draw multiplier (1 = off)"),
+    p.add_argument("--red-weight", type=number_arg(1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)"),
                    default=TrainConfig.red_weight,
                    help="draw samples at a red or yellow signal within --red-window-m this many times as often "
                    f"(default {TrainConfig.red_weight:g}: off; needs a data set of format 5)")
     p.add_argument("--red-window-m", type=number_arg(0, MAX_RED_WINDOW_M, "metres before a stop line", lo_open=True),
                    default=TrainConfig.red_window_m,
                    help=f"metres before a stop line that --red-weight covers (default {TrainConfig.red_window_m:g})")
+    p.add_argument("--yield-weight", type=number_arg(1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)"),
+                   default=TrainConfig.yield_weight,
+                   help="draw samples whose nearest junction foe to yield to is within --yield-window-m of the "
+                   f"conflict point this many times as often (default {TrainConfig.yield_weight:g}: off; needs a "
+                   "data set of format 5)")
+    p.add_argument("--yield-window-m", type=number_arg(0, MAX_YIELD_WINDOW_M, "metres from the conflict point",
+                                                       lo_open=True),
+                   default=TrainConfig.yield_window_m,
+                   help="metres of the foe from the conflict point that --yield-weight covers (default "
+                   f"{TrainConfig.yield_window_m:g})")
     p.add_argument("--class-weighting", choices=CLASS_WEIGHTINGS,
                    default=TrainConfig.class_weighting,
                    help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
@@ -68,10 +79,12 @@ def run_train(args) -> int:
     # precision its epochs trained in), which folders marked while it was kept still allow
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
+                         yield_weight=args.yield_weight, yield_window_m=args.yield_window_m,
                          class_weighting=args.class_weighting)  # refused before any file
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
     train_towns = args.train_towns
     leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
+                                (("yield_weight", "yield_window_m"), args.yield_weight == TrainConfig.yield_weight),
                                 (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
                                 (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
                                 (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold),

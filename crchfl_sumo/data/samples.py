@@ -12,6 +12,7 @@ Images stay uint8 in memory (4x smaller than float32); the model normalises them
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -25,7 +26,7 @@ NUM_CAMERAS = len(CAMERA_NAMES)
 NUM_ACTIONS = 3
 # The tensors, in constructor order.
 FIELDS = ("images", "actions", "steer_class", "command", "speed_mps", "target_speed_mps", "signal_state",
-          "signal_distance_m")
+          "signal_distance_m", "yield_gap_m")
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,8 @@ class Samples:
     images: uint8 [N, 4, H, W, 3]; actions: float32 [N, 3]; steer_class: int64 [N];
     command: int64 [N] (0..5, labels.COMMAND_NAMES); speed_mps, target_speed_mps: float32 [N];
     signal_state: int64 [N] (labels.SIGNAL_NAMES; None: all unknown); signal_distance_m: float32 [N]
-    (inf: none; None: all inf).
+    (inf: none; None: all inf); yield_gap_m: float32 [N], how far the nearest junction foe the car must
+    yield to is from the conflict point (negative: in it; inf: none; None: all inf).
     """
 
     images: torch.Tensor
@@ -46,6 +48,7 @@ class Samples:
     target_speed_mps: torch.Tensor
     signal_state: torch.Tensor | None = None
     signal_distance_m: torch.Tensor | None = None
+    yield_gap_m: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.images.shape[0] if self.images.dim() else -1
@@ -53,8 +56,9 @@ class Samples:
         if self.signal_state is None:
             unknown = torch.full((max(n, 0),), SIGNAL_UNKNOWN, dtype=torch.int64, device=device)
             object.__setattr__(self, "signal_state", unknown)
-        if self.signal_distance_m is None:
-            object.__setattr__(self, "signal_distance_m", torch.full((max(n, 0),), float("inf"), device=device))
+        for name in ("signal_distance_m", "yield_gap_m"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, torch.full((max(n, 0),), float("inf"), device=device))
         if self.images.dtype != torch.uint8 or self.images.dim() != 5:
             raise ValueError(f"images must be uint8 [N, 4, H, W, 3], got {self.images.dtype} {tuple(self.images.shape)}")
         if self.images.shape[1] != NUM_CAMERAS or self.images.shape[4] != 3:
@@ -85,11 +89,15 @@ class Samples:
             )
         if n and (int(self.signal_state.min()) < 0 or int(self.signal_state.max()) >= len(SIGNAL_NAMES)):
             raise ValueError(f"signal_state values must lie in 0..{len(SIGNAL_NAMES) - 1}")
-        distance = self.signal_distance_m
-        if distance.dtype != torch.float32 or tuple(distance.shape) != (n,):
-            raise ValueError(f"signal_distance_m must be float32 [{n}], got {distance.dtype} {tuple(distance.shape)}")
-        if n and not bool((distance >= 0).all()):  # NaN fails this too
+        for name in ("signal_distance_m", "yield_gap_m"):
+            distance = getattr(self, name)
+            if distance.dtype != torch.float32 or tuple(distance.shape) != (n,):
+                raise ValueError(f"{name} must be float32 [{n}], got {distance.dtype} {tuple(distance.shape)}")
+        if n and not bool((self.signal_distance_m >= 0).all()):  # NaN fails this too
             raise ValueError("signal_distance_m values must be >= 0 (inf: no signal ahead)")
+        # a foe already in the conflict area has a negative gap (shards.check_label_values: NaN and -inf refused)
+        if n and not bool((self.yield_gap_m > -math.inf).all()):  # NaN fails this too
+            raise ValueError("yield_gap_m values must be numbers or inf (inf: no foe to yield to)")
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -129,6 +137,7 @@ class Samples:
         target_speed_mps: np.ndarray,
         signal_state: np.ndarray | None = None,
         signal_distance_m: np.ndarray | None = None,
+        yield_gap_m: np.ndarray | None = None,
     ) -> Samples:
         """Build from numpy arrays (images are not copied when already uint8 and contiguous; no signal
         columns: unknown)."""
@@ -142,6 +151,7 @@ class Samples:
             None if signal_state is None else torch.from_numpy(np.ascontiguousarray(signal_state, dtype=np.int64)),
             None if signal_distance_m is None
             else torch.from_numpy(np.ascontiguousarray(signal_distance_m, dtype=np.float32)),
+            None if yield_gap_m is None else torch.from_numpy(np.ascontiguousarray(yield_gap_m, dtype=np.float32)),
         )
 
     @staticmethod

@@ -103,6 +103,7 @@ class ExpertLabelled:
         self.speeds: list[float] = []
         self.target_speeds: list[float] = []
         self.signals: list[tuple[str, float]] = []  # (letter, distance) of the next signal, per sample
+        self.yield_gaps: list[float] = []  # the nearest junction foe's distance to the conflict point, per sample
 
     def __call__(self, observation: Observation) -> Action:
         offset = abs(observation.offset_m)
@@ -140,6 +141,8 @@ class ExpertLabelled:
         self.target_speeds.append(target_speed_from_accel(speed_mps, wanted, self.horizon))
         self.signals.append(next_signal(self.expert.route.crossings, observation.progress_m + length_m / 2.0,
                                         observation.frame.tls_states))
+        gap = float(observation.frame.foe_gap_m[observation.ego_row])
+        self.yield_gaps.append(gap if gap >= 0.0 else math.inf)  # NaN: not looked for
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""
@@ -156,6 +159,7 @@ class ExpertLabelled:
             "target_speed_mps": np.asarray(self.target_speeds, dtype=np.float32),
             "signal_state": signal_codes([letter for letter, _ in self.signals]).astype(np.int64),
             "signal_distance_m": np.asarray([d for _, d in self.signals], dtype=np.float32).reshape(-1),
+            "yield_gap_m": np.asarray(self.yield_gaps, dtype=np.float32).reshape(-1),
         }
 
 

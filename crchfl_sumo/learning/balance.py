@@ -19,7 +19,10 @@ Signal emphasis (``TrainConfig.red_weight``, ``red_window_m``): on top of any
 sampling, a sample whose next signal shows red or yellow within the window
 (approaching it, or standing at it) is drawn ``red_weight`` times as often.
 Such samples are few (they decide the red-light runs of docs/measurements.md);
-1 leaves the draws exactly as without it.
+1 leaves the draws exactly as without it. Yield emphasis (``yield_weight``,
+``yield_window_m``) does the same for a sample whose nearest junction foe to
+yield to is within the window of the conflict point (the unprotected left turns
+of the traffic collisions); a sample both near red and near a foe gets both.
 
 Loss weighting (``TrainConfig.class_weighting``), per steer class c with n_c of N samples
 and K classes present:
@@ -76,16 +79,21 @@ def near_red(samples: Samples, window_m: float) -> torch.Tensor:
     return red & (samples.signal_distance_m.cpu() <= window_m)
 
 
+def near_yield(samples: Samples, window_m: float) -> torch.Tensor:
+    """bool [N] (CPU): a junction foe the car must yield to is within ``window_m`` of the conflict point."""
+    return samples.yield_gap_m.cpu() <= window_m
+
+
 def epoch_batches(
     samples: Samples, batch_size: int, sampling: str, generator: torch.Generator,
-    red_weight: float = 1.0, red_window_m: float = 30.0,
+    red_weight: float = 1.0, red_window_m: float = 30.0, yield_weight: float = 1.0, yield_window_m: float = 30.0,
 ) -> list[torch.Tensor]:
     """Index batches (CPU int64) of one epoch by ``sampling`` and the signal emphasis; the last batch
     may be shorter."""
     n = len(samples)
     if n == 0:
         return []
-    if sampling == "uniform" and red_weight == 1.0:
+    if sampling == "uniform" and red_weight == 1.0 and yield_weight == 1.0:
         order = torch.randperm(n, generator=generator)
     else:
         if sampling == "uniform":
@@ -99,6 +107,8 @@ def epoch_batches(
             weights = inverse_frequency(codes, num_codes)
         if red_weight != 1.0:
             weights = torch.where(near_red(samples, red_window_m), weights * red_weight, weights)
+        if yield_weight != 1.0:
+            weights = torch.where(near_yield(samples, yield_window_m), weights * yield_weight, weights)
         order = torch.multinomial(weights, n, replacement=True, generator=generator)
     return list(order.split(batch_size))
 

@@ -300,8 +300,9 @@ MAX_STEER_BINS = 201
 CIL_STEER_BINS = 21
 
 MAX_BATCH_SIZE = 65_536  # samples a batch: four camera images each
-MAX_RED_WEIGHT = 1000.0  # beyond this a few red-light samples would make up nearly every batch
+MAX_DRAW_WEIGHT = 1000.0  # beyond this a few emphasised samples (red lights, yields) would make up nearly every batch
 MAX_RED_WINDOW_M = 500.0  # farther than any camera draws a signal head
+MAX_YIELD_WINDOW_M = 50.0  # the farthest a junction foe is looked for (sumo.simulation.FOE_RANGE_M)
 
 
 @dataclass(frozen=True)
@@ -321,6 +322,8 @@ class TrainConfig:
     red_weight, red_window_m: a sample whose next signal shows red or yellow within ``red_window_m``
         metres (standing at it included) is drawn ``red_weight`` times as often as otherwise (balance.py;
         1 = off; samples with an unknown signal, a format-4 data set's, never are).
+    yield_weight, yield_window_m: the same for a sample whose nearest junction foe to yield to is within
+        ``yield_window_m`` metres of the conflict point (the data set's yield_gap_m; format 5).
     precision: "auto" (default: "bf16" where the device has bfloat16 arithmetic, AVX-512 BF16 or AMX
         on a CPU, else "fp32"), "fp32" (float32 throughout) or "bf16" (the forward pass under
         bfloat16 autocast, on CPU or CUDA; weights, gradients and Adam stay float32). docs/model.md
@@ -342,11 +345,16 @@ class TrainConfig:
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     red_weight: float = 1.0
     red_window_m: float = 30.0
+    yield_weight: float = 1.0
+    yield_window_m: float = 30.0
 
     def __post_init__(self) -> None:
-        check_range(self.red_weight, "train.red_weight", 1, MAX_RED_WEIGHT, "a draw multiplier (1 = off)")
+        check_range(self.red_weight, "train.red_weight", 1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)")
         check_range(self.red_window_m, "train.red_window_m", 0, MAX_RED_WINDOW_M, "metres before a stop line",
                     lo_open=True)
+        check_range(self.yield_weight, "train.yield_weight", 1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)")
+        check_range(self.yield_window_m, "train.yield_window_m", 0, MAX_YIELD_WINDOW_M,
+                    "metres of a junction foe from the conflict point", lo_open=True)
         if not 0 < self.learning_rate <= 10:
             raise CrchflError(f"train.learning_rate: {self.learning_rate} must lie in (0, 10] (paper: 1e-4)")
         for key in ("beta1", "beta2"):

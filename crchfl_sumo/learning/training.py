@@ -162,7 +162,7 @@ class Learner:
         sums = torch.zeros(3, dtype=torch.float64, device=self.device)
         done = 0
         for indices in epoch_batches(samples, self.config.batch_size, self.config.sampling, generator,
-                                     self.config.red_weight, self.config.red_window_m):
+                                     **emphasis(self.config)):
             indices = indices.to(self.device)
             images, steer_class = samples.images[indices], classes[indices]
             target = longitudinal_target(model_config, samples, indices)
@@ -189,6 +189,12 @@ class Learner:
             report(progress, "train", done, len(samples))
         loss_tb_sum, loss_steer_sum, correct = sums.tolist()
         return Metrics.from_sums(loss_tb_sum, loss_steer_sum, correct, len(samples))
+
+
+def emphasis(config: TrainConfig) -> dict[str, float]:
+    """epoch_batches' emphasis of red lights and yields, from ``config``."""
+    return {"red_weight": config.red_weight, "red_window_m": config.red_window_m,
+            "yield_weight": config.yield_weight, "yield_window_m": config.yield_window_m}
 
 
 def train_vehicle(
@@ -275,8 +281,7 @@ def _train_vehicles_vmap(
         generator = torch.Generator().manual_seed(vehicle_seed(seed, v))
         schedules.append(
             [(e, idx) for e in range(epochs)
-             for idx in epoch_batches(samples, batch_size, config.sampling, generator, config.red_weight,
-                                      config.red_window_m)]
+             for idx in epoch_batches(samples, batch_size, config.sampling, generator, **emphasis(config))]
         )
     # Each vehicle's steer-head classes (model.steer_targets), and their weights from its own samples
     # (all ones for "none").

@@ -24,7 +24,7 @@ from crchfl_sumo.data.labels import (
 from crchfl_sumo.data.samples import Samples
 from crchfl_sumo.data.manifest import MANIFEST_NAME
 from crchfl_sumo.data.shards import read_shard, sha256_file
-from crchfl_sumo.learning.balance import epoch_batches, near_red
+from crchfl_sumo.learning.balance import epoch_batches, near_red, near_yield
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.sumo.simulation import Simulation, yield_gap_m
 
@@ -128,6 +128,11 @@ def test_signal_columns_round_trip_through_a_shard_and_old_shards_read_as_unknow
     assert samples.signal_state.tolist() == [SIGNAL_RED, SIGNAL_GREEN, SIGNAL_NONE, SIGNAL_YELLOW]
     assert near_red(samples, 30.0).tolist() == [True, False, False, True]
     assert near_red(samples, 10.0).tolist() == [False, False, False, True]
+    # the yield gap loads too: a foe 7 m from the conflict point, one in it (-1.5 m), none
+    assert samples.yield_gap_m.tolist() == [math.inf, 7.0, math.inf, -1.5]
+    assert near_yield(samples, 30.0).tolist() == [False, True, False, True]
+    assert near_yield(samples, 5.0).tolist() == [False, False, False, True]
+    assert samples.subset([1, 3]).yield_gap_m.tolist() == [7.0, -1.5]
 
     # A format-4 data set: no signal datasets, version 4 in its manifest. It loads, its signal unknown.
     with h5py.File(root / "a.h5", "a") as f:
@@ -143,6 +148,7 @@ def test_signal_columns_round_trip_through_a_shard_and_old_shards_read_as_unknow
     old = load_samples(root, "train")
     assert old.signal_state.tolist() == [SIGNAL_UNKNOWN] * 4
     assert torch.isinf(old.signal_distance_m).all() and not near_red(old, 30.0).any()
+    assert torch.isinf(old.yield_gap_m).all() and not near_yield(old, 30.0).any()
     # ... and a data set of a format this code does not know is refused by name
     raw["version"] = 3
     (root / MANIFEST_NAME).write_text(json.dumps(raw))
@@ -169,13 +175,36 @@ def test_bad_signal_values_in_a_shard_are_refused_by_name(tmp_path):
             f[name][...] = keep
 
 
-def _samples(states, distances) -> Samples:
+def _samples(states, distances, gaps=None) -> Samples:
     n = len(states)
     return Samples.from_numpy(
         np.zeros((n, 4, 2, 2, 3), np.uint8), np.zeros((n, 3), np.float32), np.zeros(n, np.int64),
         np.zeros(n, np.int64), np.zeros(n, np.float32), np.zeros(n, np.float32),
         np.asarray(states, np.int64), np.asarray(distances, np.float32),
+        None if gaps is None else np.asarray(gaps, np.float32),
     )
+
+
+def test_the_yield_weight_draws_samples_near_a_foe_that_many_times_as_often():
+    # 2 of 10 samples near a foe (one in the conflict area), weight 4: each has probability 4 / 16 a draw
+    gaps = [10.0, -2.0] + [math.inf] * 6 + [31.0, 45.0]
+    samples = _samples([SIGNAL_GREEN] * 10, [5.0] * 10, gaps)
+    generator = torch.Generator().manual_seed(0)
+    draws = torch.cat([b for _ in range(400) for b in epoch_batches(
+        samples, 10, "uniform", generator, yield_weight=4.0, yield_window_m=30.0)])
+    shares = [float((draws == i).double().mean()) for i in (0, 1, 2, 8)]
+    assert all(abs(a - b) < 0.02 for a, b in zip(shares, [0.25, 0.25, 1 / 16, 1 / 16]))  # 4000 draws: sd <= 0.007
+    # weight 1 is the plain permutation, draw for draw; a sample near red and near a foe gets both weights
+    a = epoch_batches(samples, 4, "uniform", torch.Generator().manual_seed(3))
+    b = epoch_batches(samples, 4, "uniform", torch.Generator().manual_seed(3), yield_weight=1.0)
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    both = _samples([SIGNAL_RED, SIGNAL_GREEN], [5.0, 5.0], [3.0, math.inf])
+    generator = torch.Generator().manual_seed(1)
+    draws = torch.cat([b for _ in range(2000) for b in epoch_batches(
+        both, 2, "uniform", generator, red_weight=3.0, yield_weight=3.0)])
+    assert abs(float((draws == 0).double().mean()) - 0.9) < 0.02  # 9 / 10; 4000 draws: sd 0.005
+    with pytest.raises(ValueError, match="yield_gap_m values must be numbers or inf"):
+        _samples([SIGNAL_GREEN], [5.0], [math.nan])
 
 
 def test_the_red_weight_draws_near_red_samples_that_many_times_as_often():

@@ -197,7 +197,7 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
              (0.2, 16), (0.2, 10), (0.2, -7), (0.0, 0)]  # in the lane, its heading off
     acted = [
         policy(Observation(SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([math.radians(deg)]),
-                                           length_m=np.array([4.5]), tls_states={}),
+                                           length_m=np.array([4.5]), tls_states={}, foe_gap_m=np.array([np.inf])),
                            "ego", 0, 10.0 * i, images, offset, 3.5))
         for i, (offset, deg) in enumerate(steps)
     ]
@@ -210,7 +210,7 @@ def test_the_expert_takes_the_wheel_off_the_lane_or_its_heading_and_those_states
     assert np.allclose(arrays["actions"], np.array([expert] * 6, np.float32))
 
 
-def test_dagger_samples_carry_the_next_signal_as_the_data_set_does():
+def test_dagger_samples_carry_the_next_signal_and_the_yield_gap_as_the_data_set_does():
     from crchfl_sumo.sumo.route import next_signal
     from crchfl_sumo.sumo.route import Crossing
 
@@ -222,13 +222,15 @@ def test_dagger_samples_carry_the_next_signal_as_the_data_set_does():
     assert next_signal(crossings, 301.0, {"K": "G"}) == ("", math.inf)
     policy = ExpertLabelled(_Learner(), _Expert(), every=1)
     policy.expert.route = SimpleNamespace(**{**vars(_Expert.route), "crossings": crossings})
-    frame = SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([0.0]), length_m=np.array([4.0]),
-                            tls_states={"J": "Gr"})
-    for progress_m in (28.0, 110.0):  # front bumpers at 30 and 112 m
+    # ... and the gap of the nearest junction foe to yield to (a foe 12 m from the conflict point; NaN: not looked for)
+    for progress_m, gap in ((28.0, 12.0), (110.0, np.nan)):  # front bumpers at 30 and 112 m
+        frame = SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([0.0]), length_m=np.array([4.0]),
+                                tls_states={"J": "Gr"}, foe_gap_m=np.array([gap]))
         policy(Observation(frame, "ego", 0, progress_m, np.zeros((4, 48, 64, 3), np.uint8), 0.0, 3.5))
     arrays = policy.arrays()
     assert arrays["signal_state"].tolist() == [SIGNAL_RED, SIGNAL_RED]
     assert np.allclose(arrays["signal_distance_m"], [90.0, 8.0])
+    assert arrays["yield_gap_m"].tolist() == [12.0, math.inf] and arrays["yield_gap_m"].dtype == np.float32
 
 
 def test_the_labeller_steers_by_the_data_sets_pursuit():
