@@ -160,10 +160,11 @@ def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(t
     marker = tmp_path / "out" / ".crchfl-sumo-train.json"
     args = vars(build_parser().parse_args([*argv, "--epochs", "1"]))
     # (nor did --red-weight / --red-window-m / --class-weighting / --speed-input / --stop-head / --command-pedals /
-    # --red-hold / --train-towns exist then; at their defaults, they are left out of the settings)
+    # --red-hold / --train-towns / --yield-weight / --yield-window-m exist then; at their defaults, they are left out
+    # of the settings)
     formerly = {k: v for k, v in sorted(args.items()) if k not in NOT_SETTINGS
                 and k not in ("epochs", "red_weight", "red_window_m", "class_weighting", "speed_input", "stop_head",
-                              "command_pedals", "red_hold", "train_towns")}
+                              "command_pedals", "red_hold", "train_towns", "yield_weight", "yield_window_m")}
     stored = json.loads(marker.read_text())
     assert stored["resume_fingerprint"] != fingerprint(formerly)  # today's leaves precision out
     marker.write_text(json.dumps({**stored, "resume_fingerprint": fingerprint(formerly)}))
