@@ -211,10 +211,11 @@ class TimedTrainer:
         (the loop folds each into its FedAvg between two waits)."""
         with self.watch.part("local training"):
             models = iter(self.inner.train(*args))
+        end = object()  # a vehicle the loop does not need is None: not the end
         while True:
             with self.watch.part("local training", count=False):
-                model = next(models, None)
-            if model is None:
+                model = next(models, end)
+            if model is end:
                 return
             yield model
 

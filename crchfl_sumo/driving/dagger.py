@@ -142,7 +142,7 @@ class ExpertLabelled:
         self.signals.append(next_signal(self.expert.route.crossings, observation.progress_m + length_m / 2.0,
                                         observation.frame.tls_states))
         gap = float(observation.frame.foe_gap_m[observation.ego_row])
-        self.yield_gaps.append(gap if gap >= 0.0 else math.inf)  # NaN: not looked for
+        self.yield_gaps.append(math.inf if math.isnan(gap) else gap)  # NaN: not looked for; negative: in the conflict
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The recorded samples as the numpy arrays of Samples.from_numpy (images uint8 [N, 4, H, W, 3])."""

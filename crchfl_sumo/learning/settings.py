@@ -345,8 +345,9 @@ class TrainConfig:
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     red_weight: float = 1.0
     red_window_m: float = 30.0
-    yield_weight: float = 1.0
-    yield_window_m: float = 30.0
+    # added later: left out of a checkpoint's train_config at their defaults, so older checkpoints still resume
+    yield_weight: float = field(default=1.0, metadata={OMIT_DEFAULT: True})
+    yield_window_m: float = field(default=30.0, metadata={OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
         check_range(self.red_weight, "train.red_weight", 1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)")

@@ -222,15 +222,16 @@ def test_dagger_samples_carry_the_next_signal_and_the_yield_gap_as_the_data_set_
     assert next_signal(crossings, 301.0, {"K": "G"}) == ("", math.inf)
     policy = ExpertLabelled(_Learner(), _Expert(), every=1)
     policy.expert.route = SimpleNamespace(**{**vars(_Expert.route), "crossings": crossings})
-    # ... and the gap of the nearest junction foe to yield to (a foe 12 m from the conflict point; NaN: not looked for)
-    for progress_m, gap in ((28.0, 12.0), (110.0, np.nan)):  # front bumpers at 30 and 112 m
+    # ... and the gap of the nearest junction foe to yield to (12 m from the conflict point, then already in it;
+    # NaN: not looked for)
+    for progress_m, gap in ((28.0, 12.0), (110.0, -1.5), (200.0, np.nan)):  # front bumpers at 30, 112 and 202 m
         frame = SimpleNamespace(speed_mps=np.array([5.0]), heading_rad=np.array([0.0]), length_m=np.array([4.0]),
                                 tls_states={"J": "Gr"}, foe_gap_m=np.array([gap]))
         policy(Observation(frame, "ego", 0, progress_m, np.zeros((4, 48, 64, 3), np.uint8), 0.0, 3.5))
     arrays = policy.arrays()
-    assert arrays["signal_state"].tolist() == [SIGNAL_RED, SIGNAL_RED]
-    assert np.allclose(arrays["signal_distance_m"], [90.0, 8.0])
-    assert arrays["yield_gap_m"].tolist() == [12.0, math.inf] and arrays["yield_gap_m"].dtype == np.float32
+    assert arrays["signal_state"].tolist()[:2] == [SIGNAL_RED, SIGNAL_RED]
+    assert np.allclose(arrays["signal_distance_m"][:2], [90.0, 8.0])
+    assert arrays["yield_gap_m"].tolist() == [12.0, -1.5, math.inf] and arrays["yield_gap_m"].dtype == np.float32
 
 
 def test_the_labeller_steers_by_the_data_sets_pursuit():

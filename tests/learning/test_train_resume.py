@@ -244,3 +244,12 @@ def test_train_feeds_the_speed_as_speed_input_says_and_the_default_leaves_the_co
     assert (tmp_path / "plain" / ".crchfl-sumo-train.json").read_text() == \
         (tmp_path / "none" / ".crchfl-sumo-train.json").read_text()
     assert main([*argv, "--out", str(tmp_path / "longitudinal"), "--epochs", "2", "--resume"]) == 2  # another setting
+
+
+def test_settings_added_later_stay_out_of_a_checkpoints_train_config_at_their_defaults():
+    # a checkpoint written before yield_weight existed stores none of its keys; today's at the defaults must match it
+    from crchfl_sumo.core.config import to_mapping
+
+    assert not {"yield_weight", "yield_window_m"} & set(to_mapping(TrainConfig()))
+    assert to_mapping(TrainConfig(yield_weight=4.0))["yield_weight"] == 4.0
+    assert to_mapping(TrainConfig(yield_window_m=20.0))["yield_window_m"] == 20.0
