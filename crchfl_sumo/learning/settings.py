@@ -16,6 +16,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 from crchfl_sumo.data.expert import DEFAULT_SPEED_HORIZON_S, MAX_SPEED_HORIZON_S
 from crchfl_sumo.data.labels import JUNCTION_COMMANDS, NUM_COMMANDS, NUM_STEER_CLASSES
+from crchfl_sumo.sumo.frame import FOE_RANGE_M
 from crchfl_sumo.vision.camera import MAX_HEIGHT_PX, MAX_WIDTH_PX
 
 MIN_IMAGE_HEIGHT = 48
@@ -302,7 +303,7 @@ CIL_STEER_BINS = 21
 MAX_BATCH_SIZE = 65_536  # samples a batch: four camera images each
 MAX_DRAW_WEIGHT = 1000.0  # beyond this a few emphasised samples (red lights, yields) would make up nearly every batch
 MAX_RED_WINDOW_M = 500.0  # farther than any camera draws a signal head
-MAX_YIELD_WINDOW_M = 50.0  # the farthest a junction foe is looked for (sumo.simulation.FOE_RANGE_M)
+MAX_YIELD_WINDOW_M = FOE_RANGE_M  # the farthest a junction foe is looked for: beyond it no gap is known
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 NO_SIGNAL = ""  # tls_ahead_state / tls_ahead_id for a vehicle with no signal ahead
+FOE_RANGE_M = 50.0  # how far ahead a watched vehicle's junction foes are looked for (Frame.foe_gap_m)
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,7 @@ class Frame:
                                 (SUMO letters: r y g G u o O s; '' if none)
       tls_ahead_dist_m [V] f64  distance to its stop line (inf if none)
       tls_ahead_link  [V] i64   the link index of this vehicle's link at it (-1 if none)
-      foe_gap_m       [V] f64   at a junction within FOE_RANGE_M ahead (sim.py): the distance
+      foe_gap_m       [V] f64   at a junction within FOE_RANGE_M ahead: the distance
                                 to the conflict point of the nearest vehicle this one
                                 must yield to (SUMO's junction foes; inf if none)
       tls_states      dict tls id -> full SUMO state string (one letter a link;

@@ -33,7 +33,7 @@ from types import ModuleType
 import numpy as np
 
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.sumo.frame import Frame, sumo_angle_to_heading_rad
+from crchfl_sumo.sumo.frame import FOE_RANGE_M, Frame, sumo_angle_to_heading_rad
 from crchfl_sumo.sumo.injection import Injector
 from crchfl_sumo.sumo.installation import sumo_binary
 from crchfl_sumo.sumo.scenario import Scenario
@@ -41,7 +41,6 @@ from crchfl_sumo.sumo.scenario import Scenario
 log = logging.getLogger(__name__)
 
 _active_libsumo = False  # libsumo holds one simulation per process
-FOE_RANGE_M = 50.0  # how far ahead a watched vehicle's junction foes are looked for (Frame.foe_gap_m)
 
 
 @dataclass(frozen=True)
