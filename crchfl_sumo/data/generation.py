@@ -50,13 +50,14 @@ from crchfl_sumo.data.expert import (
     target_speeds,
     tracks_from_frames,
 )
-from crchfl_sumo.data.labels import digitize_steer, signal_codes
+from crchfl_sumo.data.labels import SIGNAL_RED, digitize_steer, signal_codes
 from crchfl_sumo.data.manifest import Manifest, label_schema
 from crchfl_sumo.data.recording import record_run, steps_per_sample
 from crchfl_sumo.data.recovery import (
     FORWARD_M,
     draw_perturbations,
     draw_queue_shifts,
+    draw_red_line_shifts,
     gap_ahead,
     recovery_steer,
 )
@@ -167,6 +168,7 @@ def generate_dataset(
                 "lateral_m": sizes.recovery_lateral_m,
                 "yaw_deg": sizes.recovery_yaw_deg,
                 "queue_share": sizes.recovery_queue_share,
+                **({"red_share": sizes.recovery_red_share} if sizes.recovery_red_share else {}),
             },
         },
         compression=sizes.compression,
@@ -204,8 +206,11 @@ def generate_dataset(
                 gap_m = None if sizes.recovery_queue_share == 0 else np.array(
                     [gap_ahead(frames[i], vehicle, expert.stop_speed_mps) for i in frame_rows]
                 )
+                red_line_m = None if sizes.recovery_red_share == 0 else red_line_distances(
+                    [frames[i] for i in frame_rows], vehicle
+                )
                 changes = track_lane_changes(track, net, lane_change_s)
-                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m, changes)
+                labels = sample_labels(track, rows, junctions, sizes, expert, command, rng, gap_m, changes, red_line_m)
             labelled.append((shard, vehicle, rows, labels, RenderJob(vehicle, frame_rows, labels.perturbation)))
         with clock("render"):
             images = render_samples(
@@ -256,6 +261,12 @@ def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray)
     }
 
 
+def red_line_distances(frames: Sequence[Frame], vehicle: str) -> np.ndarray:
+    """Per sample (one frame each) the distance to the stop line of a next signal that shows red; inf otherwise."""
+    signals = signal_columns(frames, vehicle, np.zeros(len(frames)))
+    return np.where(signals["signal_state"] == SIGNAL_RED, signals["signal_distance_m"].astype(np.float64), np.inf)
+
+
 @dataclass(frozen=True)
 class SampleLabels:
     """The labels of one vehicle's samples (R of them): what its shard stores besides images and pose."""
@@ -264,7 +275,7 @@ class SampleLabels:
     steer_class: np.ndarray  # int64 [R]
     command: np.ndarray  # int64 [R]
     speed_mps: np.ndarray  # float32 [R]
-    target_speed_mps: np.ndarray  # float32 [R]; a recovery sample keeps its track's, a queue sample's is 0
+    target_speed_mps: np.ndarray  # float32 [R]; a recovery sample keeps its track's, a queue or red-line sample's is 0
     perturbation: np.ndarray  # float32 [R, 3] (lateral_m, yaw_deg, forward_m)
 
 
@@ -278,12 +289,14 @@ def sample_labels(
     rng: np.random.Generator,
     gap_m: np.ndarray | None = None,
     lane_changes: Sequence[LaneChange] = (),
+    red_line_m: np.ndarray | None = None,
 ) -> SampleLabels:
     """Labels of the samples at track rows ``rows``, recovery draws included (``rng`` draws them).
 
     ``gap_m`` [R]: each sample's gap to a standing leader ahead (recovery.gap_ahead; inf for
     none), which queue samples need; None: no sample has one. ``lane_changes``: the track's
-    (route_commands.track_lane_changes).
+    (route_commands.track_lane_changes). ``red_line_m`` [R]: each sample's distance to a red stop line
+    (red_line_distances), which red-line samples need; None: no sample has one.
     """
     actions, _ = expert_labels(track, expert)
     actions = actions[rows]
@@ -294,9 +307,11 @@ def sample_labels(
     ).astype(np.float32)
     recovered = np.flatnonzero(np.any(perturbation != 0, axis=1))
     actions[recovered, 1] = recovery_steer(track, rows[recovered], perturbation[recovered], expert)
-    perturbation[:, FORWARD_M] = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
+    queue_shifts = draw_queue_shifts(standing, gap_m, sizes.recovery_queue_share, rng)
+    perturbation[:, FORWARD_M] = draw_red_line_shifts(standing, red_line_m, queue_shifts, sizes.recovery_red_share, rng)
     target_speed = target_speeds(track, expert)[rows]
-    target_speed[perturbation[:, FORWARD_M] != 0] = 0.0  # too close to the leader to go, whatever the queue does next
+    # too close to the leader to go, or before a red line: stay, whatever the queue or the light does next
+    target_speed[perturbation[:, FORWARD_M] != 0] = 0.0
     return SampleLabels(
         actions=actions,
         steer_class=digitize_steer(actions[:, 1]),

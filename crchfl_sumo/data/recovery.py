@@ -27,6 +27,19 @@ moved forward along the heading:
 
 and labelled to stay: the standing sample's pedals (holding the brake) and
 a target speed of 0, whatever the queue does next.
+
+Red-line samples are the same idea backwards. SUMO's first car at a red
+light stands about a metre before the line and passes the few metres before
+it at a walking pace, so the data holds few red-light states 2 to 6 m short of
+the line (22 to 30 samples a metre there against 1,261 standing within 2 m,
+paper split); a learner that creeps to its red stops there, its stop head reads
+the red as farther than it is, and it rolls over the line (docs/measurements.md,
+2026-12-06, fifth). A share of the standing samples within RED_LINE_NEAR_M of a
+red line is rendered moved back along the heading:
+
+    back shift b ~ U(RED_BACK_MIN_M, RED_BACK_MAX_M),  pose' = (p - b * (cos h, sin h), h)
+
+and labelled to stay, as queue samples are; its stop-line distance grows by b.
 """
 
 from __future__ import annotations
@@ -54,6 +67,9 @@ PERTURBATION_NAMES = ("lateral_m", "yaw_deg", "forward_m")
 QUEUE_GAP_MAX_M = 5.0  # a standing leader at most this far ahead (bumper to bumper) makes a queue sample
 QUEUE_GAP_MIN_M = 0.5  # the closest a shifted sample stands to its leader ...
 QUEUE_CLOSE_M = 2.0  # ... and the farthest: closer than SUMO's standstill gap (minGap, 2.5 m by default)
+RED_LINE_NEAR_M = 3.0  # a standing sample this close to a red stop line (the first in line) makes a red-line sample
+RED_BACK_MIN_M = 1.0  # how far back such a sample is moved: at least ...
+RED_BACK_MAX_M = 6.0  # ... and at most (a standing car this far before its line is the gap in the data)
 CORRIDOR_HALF_WIDTH_M = 1.5  # a vehicle whose centre is this close to the heading line is in the lane ahead
 SAME_DIRECTION_DEG = 30.0  # ... and heads within this of the vehicle's own heading
 
@@ -95,6 +111,23 @@ def draw_queue_shifts(
     candidates = np.flatnonzero(np.asarray(standing, dtype=bool) & (gap_m > QUEUE_CLOSE_M) & (gap_m <= QUEUE_GAP_MAX_M))
     chosen = np.sort(rng.choice(candidates, size=int(round(share * len(candidates))), replace=False))
     out[chosen] = gap_m[chosen] - rng.uniform(QUEUE_GAP_MIN_M, QUEUE_CLOSE_M, size=len(chosen))
+    return out
+
+
+def draw_red_line_shifts(
+    standing: np.ndarray, red_line_m: np.ndarray | None, forward_m: np.ndarray, share: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Per sample the forward shift [m], float64 [N]: ``forward_m`` (the queue shifts), except that round(share *
+    eligible) of the eligible samples (standing, not queue-shifted, with a red stop line at most RED_LINE_NEAR_M
+    ahead: ``red_line_m``, inf for none; None: no sample has one), drawn without replacement, move back by
+    U(RED_BACK_MIN_M, RED_BACK_MAX_M) (a negative shift)."""
+    out = np.array(forward_m, dtype=np.float64)
+    if share == 0 or red_line_m is None:
+        return out  # no draws: every other draw stays as it was without red-line samples
+    eligible = np.asarray(standing, dtype=bool) & (out == 0) & (np.asarray(red_line_m) <= RED_LINE_NEAR_M)
+    candidates = np.flatnonzero(eligible)
+    chosen = np.sort(rng.choice(candidates, size=int(round(share * len(candidates))), replace=False))
+    out[chosen] = -rng.uniform(RED_BACK_MIN_M, RED_BACK_MAX_M, size=len(chosen))
     return out
 
 

@@ -6,9 +6,10 @@ Also the data side's size bounds that torch-free settings share (a vehicle's sam
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
+from crchfl_sumo.core.config import OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 
@@ -80,6 +81,9 @@ class DatasetConfig:
         2 to 5 m ahead rendered moved closer to it (0.5 to 2 m, nearer than SUMO
         ever stands) and labelled to stay (data/recovery.py); 0 (default) turns
         it off: measured, it did not help (docs/dataset.md).
+    recovery_red_share: share of the standing samples within 3 m of a red
+        stop line rendered moved 1 to 6 m back from it and labelled to stay
+        (data/recovery.py); 0 (default) turns it off.
     lane_change_s: how long SUMO takes to move a data vehicle over to another
         lane (its --lanechange.duration; SUMO's default 0 jumps in one step), so
         that the track, the images and the steer labels of a lane change are a
@@ -99,9 +103,11 @@ class DatasetConfig:
     recovery_yaw_deg: float = 15.0
     recovery_queue_share: float = 0.0
     lane_change_s: float = 3.0
+    # added later: left out of a written config at its default, so folders written before still resume
+    recovery_red_share: float = field(default=0.0, metadata={OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
-        for name in ("recovery_share", "recovery_queue_share"):
+        for name in ("recovery_share", "recovery_queue_share", "recovery_red_share"):
             if not 0 <= getattr(self, name) <= 1:
                 raise CrchflError(f"dataset.{name} must lie in [0, 1], got {getattr(self, name)}")
         if not 0 <= self.recovery_lateral_m <= 2:

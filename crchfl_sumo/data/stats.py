@@ -40,7 +40,8 @@ def dataset_stats(root: str | Path, verify: bool = True) -> dict[str, Any]:
     SPEED_BINS, throttle_mean, brake_mean, steer_mean, speed_mean,
     standing_share (speed below the expert's stop_speed_mps), hard_brake_share
     (brake >= 0.8), recovery_share (samples rendered from a pose off the track),
-    queue_share (standing samples rendered moved towards the leader).
+    queue_share (standing samples rendered moved towards the leader), red_line_share (standing samples
+    rendered moved back from a red stop line).
     """
     root = Path(root)
     manifest = read_manifest(root)
@@ -97,7 +98,8 @@ def _label_summary(
         "standing_share": mean((speed_mps < stop_speed_mps).astype(np.float64)),
         "hard_brake_share": mean((actions[:, 2] >= 0.8).astype(np.float64)),
         "recovery_share": mean(np.any(perturbation[:, [LATERAL_M, YAW_DEG]] != 0, axis=1).astype(np.float64)),
-        "queue_share": mean((perturbation[:, FORWARD_M] != 0).astype(np.float64)),
+        "queue_share": mean((perturbation[:, FORWARD_M] > 0).astype(np.float64)),
+        "red_line_share": mean((perturbation[:, FORWARD_M] < 0).astype(np.float64)),
     }
 
 
@@ -182,7 +184,8 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
             f"{file}#{row}  throttle {throttle:.2f}  steer {steer:+.3f} (class {steer_class}: "
             f"{STEER_CLASS_VALUES[steer_class]:+.3f})  brake {brake:.2f}  {command}"
             + (f"  off {lateral_m:+.2f} m {yaw_deg:+.1f} deg" if lateral_m or yaw_deg else "")
-            + (f"  {forward_m:.2f} m nearer the leader" if forward_m else "")
+            + (f"  {forward_m:.2f} m nearer the leader" if forward_m > 0 else "")
+            + (f"  {-forward_m:.2f} m back from the red line" if forward_m < 0 else "")
             + f"   [{' | '.join(CAMERA_NAMES)}]"
         )
         cv2.putText(caption, text, (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)

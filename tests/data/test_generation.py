@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -88,8 +90,6 @@ def test_dataset_of_a_plain_multi_lane_sumocfg_needs_no_hand_written_file(tmp_pa
 
 
 def test_a_failed_first_run_leaves_no_manifest_that_blocks_a_mended_rerun(tmp_path, monkeypatch):
-    import dataclasses
-
     from crchfl_sumo.data import generation
 
     scenario = paper_scenario()
@@ -281,12 +281,24 @@ def test_sample_labels_perturb_only_moving_samples_and_relabel_their_steer():
     assert np.array_equal(queued.actions, labels.actions)  # standing: throttle 0, steer 0, the hold brake
     assert np.array_equal(queued.perturbation[:, :2], labels.perturbation[:, :2])  # drawn first, unchanged
 
+    # A red line 1 m ahead of every sample: with red-line samples, the standing ones move 1 to 6 m back from it,
+    # labelled to stay; the moving ones keep their labels; with queue samples too, a queue sample stays one.
+    red = dataclasses.replace(sizes, recovery_queue_share=0.0, recovery_red_share=1.0)
+    backed = sample_labels(track, rows, [square], red, ExpertConfig(), CommandConfig(), np.random.default_rng(1),
+                           red_line_m=np.full(len(rows), 1.0))
+    back = backed.perturbation[:, 2]
+    assert np.all((back[standing] >= -6.0) & (back[standing] <= -1.0)) and not back[~standing].any()
+    assert not backed.target_speed_mps[standing].any()
+    assert backed.target_speed_mps[~standing].tolist() == labels.target_speed_mps[~standing].tolist()
+    both = sample_labels(track, rows, [square], dataclasses.replace(red, recovery_queue_share=1.0), ExpertConfig(),
+                         CommandConfig(), np.random.default_rng(1), gap_m=np.full(len(rows), 2.5),
+                         red_line_m=np.full(len(rows), 1.0))
+    assert np.array_equal(both.perturbation, queued.perturbation)
+
 
 def test_a_frames_samples_rendered_together_are_those_rendered_one_by_one():
     """render_samples draws a frame's samples in one call; each image must equal that of the sample alone,
     drawn from a frame in which only its own vehicle's pose is perturbed."""
-    import dataclasses
-
     from crchfl_sumo.data.recording import record_run
     from crchfl_sumo.data.recovery import camera_pose
     from crchfl_sumo.data.rendering import RenderJob, render_samples

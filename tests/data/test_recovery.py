@@ -10,9 +10,12 @@ from crchfl_sumo.data.expert import ExpertConfig, Track, expert_actions
 from crchfl_sumo.data.recovery import (
     QUEUE_CLOSE_M,
     QUEUE_GAP_MIN_M,
+    RED_BACK_MAX_M,
+    RED_BACK_MIN_M,
     camera_pose,
     draw_perturbations,
     draw_queue_shifts,
+    draw_red_line_shifts,
     gap_ahead,
     perturbed_pose,
     recovery_steer,
@@ -165,3 +168,20 @@ def test_queue_shifts_move_eligible_standing_samples_closer_than_sumo_stands():
     rng = np.random.default_rng(5)
     assert not draw_queue_shifts(standing, gap, 0.0, rng).any()
     assert rng.uniform() == np.random.default_rng(5).uniform()
+
+
+def test_red_line_shifts_move_eligible_standing_samples_back_from_their_red_line():
+    standing = np.array([True, True, True, True, False, True])
+    red_line_m = np.array([1.0, 2.9, 3.5, np.inf, 1.0, 1.0])
+    queue = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.2])  # the last one is a queue sample already
+    shifts = draw_red_line_shifts(standing, red_line_m, queue, 1.0, np.random.default_rng(0))
+    # Eligible: standing, within 3 m of a red line, not queue-shifted (rows 0 and 1); they move 1 to 6 m back.
+    assert np.all((shifts[:2] <= -RED_BACK_MIN_M) & (shifts[:2] >= -RED_BACK_MAX_M))
+    assert shifts[2:].tolist() == [0.0, 0.0, 0.0, 1.2]
+    assert np.array_equal(shifts, draw_red_line_shifts(standing, red_line_m, queue, 1.0, np.random.default_rng(0)))
+    assert np.count_nonzero(draw_red_line_shifts(standing, red_line_m, queue, 0.5, np.random.default_rng(0)) < 0) == 1
+    # Share 0, or no red line known, draws nothing: the generator is left as it was.
+    for share, lines in ((0.0, red_line_m), (1.0, None)):
+        rng = np.random.default_rng(5)
+        assert draw_red_line_shifts(standing, lines, queue, share, rng).tolist() == queue.tolist()
+        assert rng.uniform() == np.random.default_rng(5).uniform()

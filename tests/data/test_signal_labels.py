@@ -16,7 +16,7 @@ from helpers import netconvert, one_car_scenario
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import load_samples
-from crchfl_sumo.data.generation import signal_columns
+from crchfl_sumo.data.generation import red_line_distances, signal_columns
 from crchfl_sumo.data.labels import (
     SIGNAL_GREEN, SIGNAL_GREEN_MINOR, SIGNAL_NAMES, SIGNAL_NONE, SIGNAL_OFF, SIGNAL_RED, SIGNAL_UNKNOWN, SIGNAL_YELLOW,
     signal_codes,
@@ -86,6 +86,12 @@ def test_the_signal_ahead_of_an_approach_to_red_then_green(red_light):
     shifted = signal_columns(frames, "ego", np.full(len(frames), 3.0))
     assert np.allclose(shifted["signal_distance_m"][on_approach],
                        np.maximum(columns["signal_distance_m"][on_approach] - 3.0, 0.0))
+    # a red-line sample drawn 4 m back is 4 m farther; red_line_distances gives the red ones' lines only
+    backed = signal_columns(frames, "ego", np.full(len(frames), -4.0))
+    assert np.allclose(backed["signal_distance_m"][on_approach], columns["signal_distance_m"][on_approach] + 4.0)
+    lines = red_line_distances(frames, "ego")
+    shows_red = columns["signal_state"] == SIGNAL_RED  # the frame at RED_S too
+    assert np.allclose(lines[shows_red], columns["signal_distance_m"][shows_red]) and np.isinf(lines[~shows_red]).all()
 
 
 def test_signal_codes_and_the_yield_gap_by_hand():
