@@ -327,3 +327,12 @@ def test_a_manifest_refuses_a_model_of_another_target_speed_horizon():
     with pytest.raises(CrchflError, match="set model.speed_horizon_s = 2.0"):
         manifest.check_horizon(1.0, "DIR")
     assert Manifest("paper", 0, 0.25, 48, 64).speed_horizon_s == 1.0  # the expert's default
+
+
+def test_label_summary_tells_queue_samples_from_red_line_samples():
+    from crchfl_sumo.data.stats import _label_summary
+
+    n = 4
+    perturbation = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0, 1.5], [0, 0, -3.0]], dtype=np.float32)  # on track, lateral, queue, red line
+    summary = _label_summary(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n), perturbation, 0.1)
+    assert (summary["recovery_share"], summary["queue_share"], summary["red_line_share"]) == (0.25, 0.25, 0.25)
