@@ -30,9 +30,9 @@ a target speed of 0, whatever the queue does next.
 
 Red-line samples are the same idea backwards. SUMO's first car at a red
 light stands about a metre before the line and passes the few metres before
-it at a walking pace, so the data holds few red-light states 2 to 6 m short of
-the line (22 to 30 samples a metre there against 1,261 standing within 2 m,
-paper split); a learner that creeps to its red stops there, its stop head reads
+it at a walking pace, so the data holds few red-light states 2 to 8 m short of
+the line (about 100 in the paper split's training shards against 1,261 standing
+within 2 m); a learner that creeps to its red stops there, its stop head reads
 the red as farther than it is, and it rolls over the line (docs/measurements.md,
 2026-12-06, fifth). A share of the standing samples within RED_LINE_NEAR_M of a
 red line is rendered moved back along the heading:
@@ -40,6 +40,7 @@ red line is rendered moved back along the heading:
     back shift b ~ U(RED_BACK_MIN_M, RED_BACK_MAX_M),  pose' = (p - b * (cos h, sin h), h)
 
 and labelled to stay, as queue samples are; its stop-line distance grows by b.
+The shift is straight back, as the last metres before a stop line are.
 """
 
 from __future__ import annotations
