@@ -118,6 +118,8 @@ def test_recovery_settings_are_checked():
     assert DatasetConfig().recovery_share == 0.25
     with pytest.raises(CrchflError, match="dataset.recovery_share"):
         from_mapping(DatasetConfig, {"recovery_share": 1.5})
+    with pytest.raises(CrchflError, match="dataset.recovery_red_share"):
+        from_mapping(DatasetConfig, {"recovery_red_share": -0.1})
     with pytest.raises(CrchflError, match="dataset.recovery_lateral_m"):
         from_mapping(DatasetConfig, {"recovery_lateral_m": -1.0})
     with pytest.raises(CrchflError, match="dataset.recovery_yaw_deg"):
