@@ -168,6 +168,7 @@ def generate_dataset(
                 "lateral_m": sizes.recovery_lateral_m,
                 "yaw_deg": sizes.recovery_yaw_deg,
                 "queue_share": sizes.recovery_queue_share,
+                # only where set: the header of a data set without red-line samples stays as written before
                 **({"red_share": sizes.recovery_red_share} if sizes.recovery_red_share else {}),
             },
         },
@@ -251,11 +252,11 @@ def multi_lane(net) -> bool:
 def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray) -> dict[str, np.ndarray]:
     """Per sample (one frame each): the next signal's state code and stop-line distance, and the yield gap
     (ShardData's signal_state, signal_distance_m, yield_gap_m). A sample drawn ``forward_m`` ahead of its
-    track (a queue sample) is that much nearer the stop line."""
+    track (a queue sample; a red-line sample's is negative) is that much nearer the stop line."""
     rows = [frame.index_of(vehicle) for frame in frames]
-    distance = np.array([frame.tls_ahead_dist_m[r] for frame, r in zip(frames, rows)], dtype=np.float64)
+    state, distance = _next_signals(frames, rows)
     return {
-        "signal_state": signal_codes([frame.tls_ahead_state[r] for frame, r in zip(frames, rows)]),
+        "signal_state": state,
         "signal_distance_m": np.maximum(distance - np.asarray(forward_m, dtype=np.float64), 0.0).astype(np.float32),
         "yield_gap_m": np.array([frame.foe_gap_m[r] for frame, r in zip(frames, rows)], dtype=np.float32),
     }
@@ -263,8 +264,15 @@ def signal_columns(frames: Sequence[Frame], vehicle: str, forward_m: np.ndarray)
 
 def red_line_distances(frames: Sequence[Frame], vehicle: str) -> np.ndarray:
     """Per sample (one frame each) the distance to the stop line of a next signal that shows red; inf otherwise."""
-    signals = signal_columns(frames, vehicle, np.zeros(len(frames)))
-    return np.where(signals["signal_state"] == SIGNAL_RED, signals["signal_distance_m"].astype(np.float64), np.inf)
+    state, distance = _next_signals(frames, [frame.index_of(vehicle) for frame in frames])
+    return np.where(state == SIGNAL_RED, distance, np.inf)
+
+
+def _next_signals(frames: Sequence[Frame], rows: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame the state code (int8) and stop-line distance (float64, inf: none) of the next signal of the
+    vehicle in row ``rows[i]`` of frame i."""
+    state = signal_codes([frame.tls_ahead_state[r] for frame, r in zip(frames, rows)])
+    return state, np.array([frame.tls_ahead_dist_m[r] for frame, r in zip(frames, rows)], dtype=np.float64)
 
 
 @dataclass(frozen=True)
