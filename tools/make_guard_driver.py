@@ -2,7 +2,7 @@
 (tests/driving/test_closed_loop_guard.py), from a centralized checkpoint.
 
 The guard's driver is the centralized compact model of the documented recipe (since 2026-12-06 the
-defaults give it one-link signal heads and a stop head):
+defaults give it one-link signal heads and a stop head, and red-line samples in the data set):
 
     crchfl-sumo dataset paper --out DATA --seed 0
     crchfl-sumo train DATA --out TRAIN --epochs 6 --seed 0 --precision fp32

@@ -165,6 +165,29 @@ def to_mapping(obj: Any) -> Any:
     return obj
 
 
+def changed_keys(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two mappings (nested ones compared key by key; a key
+    one of them lacks counts): what a refusal to resume names, so that the user sees which setting moved."""
+    changed = []
+    for key in sorted(set(old) | set(new), key=str):
+        a, b, name = old.get(key, _MISSING), new.get(key, _MISSING), f"{prefix}{key}"
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            changed += changed_keys(a, b, f"{name}.")
+        elif a != b:
+            changed.append(name)
+    return changed
+
+
+def changed_keys_text(old: Mapping[str, Any], new: Mapping[str, Any], shown: int = 4) -> str:
+    """changed_keys as words: the first ``shown`` keys, and how many more."""
+    keys = changed_keys(old, new)
+    more = f" and {len(keys) - shown} more" if len(keys) > shown else ""
+    return ", ".join(keys[:shown]) + more
+
+
+_MISSING = object()  # a key one side lacks: unequal to any value
+
+
 def _convert(hint: Any, value: Any, where: str) -> Any:
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)

@@ -6,10 +6,9 @@ Also the data side's size bounds that torch-free settings share (a vehicle's sam
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
-from crchfl_sumo.core.config import OMIT_DEFAULT
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.numbers import check_range
 
@@ -83,7 +82,9 @@ class DatasetConfig:
         it off: measured, it did not help (docs/dataset.md).
     recovery_red_share: share of the standing samples within 3 m of a red
         stop line rendered moved 1 to 6 m back from it and labelled to stay
-        (data/recovery.py); 0 (default) turns it off.
+        (data/recovery.py); 0 turns it off. The default 0.5 fills the gap
+        that made models cross on red after creeping up to the line
+        (docs/model.md, "Red-line samples").
     lane_change_s: how long SUMO takes to move a data vehicle over to another
         lane (its --lanechange.duration; SUMO's default 0 jumps in one step), so
         that the track, the images and the steer labels of a lane change are a
@@ -103,8 +104,9 @@ class DatasetConfig:
     recovery_yaw_deg: float = 15.0
     recovery_queue_share: float = 0.0
     lane_change_s: float = 3.0
-    # added later: left out of a written config at its default, so folders written before still resume
-    recovery_red_share: float = field(default=0.0, metadata={OMIT_DEFAULT: True})
+    # Written out even at its default: a folder started when the default was 0 (a reproduce.json that
+    # leaves the key out) is refused on resume instead of mixing two recipes.
+    recovery_red_share: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("recovery_share", "recovery_queue_share", "recovery_red_share"):

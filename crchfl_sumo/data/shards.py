@@ -37,6 +37,7 @@ import h5py
 import numpy as np
 
 from crchfl_sumo.core.atomic import atomic_path, remove_stale_temporaries
+from crchfl_sumo.core.config import changed_keys_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.labels import (
     ACTION_NAMES, COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, SIGNAL_NAMES, SIGNAL_UNKNOWN,
@@ -393,7 +394,9 @@ class DatasetWriter:
                 if old.shards:
                     raise CrchflError(
                         f"{self.root / MANIFEST_NAME}: this folder holds a data set made with other settings "
-                        f"(scenario {old.scenario!r}, seed {old.seed}); choose another --out folder or delete this one"
+                        f"(scenario {old.scenario!r}, seed {old.seed}; they differ in "
+                        f"{changed_keys_text(old.header(), header.header())}: a default may have changed since); "
+                        "choose another --out folder or delete this one"
                     )
                 log.info("%s: replacing the manifest of an earlier run that wrote no shard", self.root)
             for entry in old.shards:

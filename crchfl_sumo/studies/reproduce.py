@@ -30,7 +30,7 @@ from typing import Any, Mapping
 
 from crchfl_sumo.core.atomic import atomic_write_text, remove_stale_temporaries
 from crchfl_sumo.core.backend import BackendConfig, Executor
-from crchfl_sumo.core.config import to_mapping, toml_text
+from crchfl_sumo.core.config import changed_keys_text, to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
@@ -183,9 +183,10 @@ def _start(config: ReproduceConfig, out_dir: Path, resume: bool) -> None:
             )
         earlier = json.loads(path.read_text(encoding="utf-8"))
         if earlier.get("config") != settings:
+            moved = changed_keys_text(earlier.get("config") or {}, settings)
             raise CrchflError(
-                f"{path}: started with other settings (see its 'config'); resume with the same preset, "
-                "--seeds and --config, or choose another --out"
+                f"{path}: started with other settings (its 'config' differs in {moved}: a default may have "
+                "changed since); resume with the same preset, --seeds and --config, or choose another --out"
             )
         return
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -147,7 +147,8 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     perturbed = np.flatnonzero(np.any(data.perturbation != 0, axis=1))
     assert len(perturbed) == 1 and perturbed[0] != 0
     assert abs(data.perturbation[perturbed[0], 0]) <= 1.0 and abs(data.perturbation[perturbed[0], 1]) <= 15.0
-    assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0, "queue_share": 0.0}
+    assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0, "queue_share": 0.0,
+                                       "red_share": 0.5}
     assert full.labels["command"]["lookahead_m"] == 25.0
     assert full.png_bytes_per_sample > 0
 
@@ -163,7 +164,7 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     for entry in full.shards:
         assert (tmp_path / "cut" / entry.file).read_bytes() == (tmp_path / "full" / entry.file).read_bytes()
     assert len(load_samples(tmp_path / "cut", split="train")) == 11
-    with pytest.raises(CrchflError, match="other settings"):
+    with pytest.raises(CrchflError, match="other settings .*they differ in seed: "):
         generate_dataset(scenario, tmp_path / "cut", seed=4, sizes=sizes, raster=RASTER)
 
 

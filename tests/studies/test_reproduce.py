@@ -243,8 +243,16 @@ def test_tiny_reproduction_of_every_scheme_end_to_end(tmp_path):
     assert json.loads((out / "timings.json").read_text()) == timings
     assert again == summary and (out / "report.md").read_text() == report
     # resuming with other settings is refused
-    with pytest.raises(CrchflError, match="other settings"):
+    with pytest.raises(CrchflError, match=r"other settings \(its 'config' differs in seeds:"):
         reproduce_command(out_dir=out, config_path=path, seeds=3, resume=True)
+    # so is a folder started before a data set setting had its present default (its config lacks the key)
+    started = json.loads((out / "reproduce.json").read_text())
+    red_share = started["config"]["generate"]["dataset"].pop("recovery_red_share")
+    (out / "reproduce.json").write_text(json.dumps(started))
+    with pytest.raises(CrchflError, match=r"differs in generate\.dataset\.recovery_red_share:"):
+        reproduce_command(out_dir=out, config_path=path, resume=True)
+    started["config"]["generate"]["dataset"]["recovery_red_share"] = red_share
+    (out / "reproduce.json").write_text(json.dumps(started))
     # a run killed midway is not recorded as finished: it resumes from its checkpoint, to the same files
     metrics = (out / "runs" / "hfl" / "seed-0" / "metrics.jsonl").read_text()
     del timings["runs/hfl/seed-0"]
