@@ -58,7 +58,7 @@ from crchfl_sumo.core.atomic import (
 )
 from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.background import BackgroundSaver
-from crchfl_sumo.core.config import to_mapping
+from crchfl_sumo.core.config import changed_keys_text, to_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.core.progress import Progress, report
@@ -495,10 +495,12 @@ def _load_state(path: Path, resolved: dict, sizes, backend: BackendConfig) -> tu
     payload, path = read_latest(path, _read_checkpoint, "checkpoint", "delete the folder to start afresh")
     stored = payload["resolved"]
     stored_config = resolved_as_today(stored.get("config", {}), f"{path}: config", backend)
-    if {**stored, "config": stored_config} != resolved:
+    stored = {**stored, "config": stored_config}
+    if stored != resolved:
         raise CrchflError(_precision_refusal(path, stored, stored_config, resolved) or (
-            f"{path}: written by a run with other settings or data; resume with the original config "
-            "(see config.json there) or choose another --out"
+            f"{path}: written by a run with other settings or data (they differ in "
+            f"{changed_keys_text(stored, resolved)}); resume with the original config (see config.json there) "
+            "or choose another --out"
         ))
     marks = payload["logs"]
     return FederationState.from_payload(payload["state"], *restore_logs(path.parent, marks, sizes)), marks

@@ -45,7 +45,7 @@ from typing import Any
 
 from crchfl_sumo.core.atomic import atomic_write_text
 from crchfl_sumo.core.backend import BackendConfig, Executor
-from crchfl_sumo.core.config import from_mapping, loads_toml, read_toml, set_path, toml_text
+from crchfl_sumo.core.config import changed_keys_text, from_mapping, loads_toml, read_toml, set_path, toml_text
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.result_files import CONFIG_JSON_FILE, RESULTS_CSV_FILE, RESULTS_MD_FILE, SUMMARY_FILE
@@ -267,8 +267,8 @@ def finished_summary(run_dir: Path, mapping: dict) -> dict | None:
             wanted["model"][key] = model[key]
     if finished != wanted:
         raise CrchflError(
-            f"{run_dir} holds a run made with other settings than this sweep's point (see its config.json); "
-            "sweep into another --out or delete that folder"
+            f"{run_dir} holds a run made with other settings than this sweep's point (its config.json differs "
+            f"in {changed_keys_text(finished, wanted)}); sweep into another --out or delete that folder"
         )
     return summary
 

@@ -139,7 +139,8 @@ def test_resume_with_other_settings_is_refused(tmp_path, dataset):
     with pytest.raises(Killed):
         run_federation_dir(config, inputs, tmp_path / "out", trainer=SumTrainer(), after_checkpoint=kill_after(1))
     other = from_mapping(RunConfig, run_config(dataset, edge_interval=3))
-    with pytest.raises(CrchflError, match="other settings"):
+    with pytest.raises(CrchflError, match=r"other settings or data \(they differ in "
+                       r"config\.federation\.edge_interval, hyper\.edge_interval\)"):
         run_federation_dir(other, inputs, tmp_path / "out", trainer=SumTrainer(), resume=True)
 
 

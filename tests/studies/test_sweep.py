@@ -161,7 +161,7 @@ def test_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path, datas
     assert {p.name: (runs / p.name / "summary.json").stat().st_mtime_ns for p in points} == before
     # the same folder with another base config: its finished runs are not taken for this sweep's
     other = {**base, "ledger": {"nominal_model_mb": 20.0}}
-    with pytest.raises(CrchflError, match="other settings"):
+    with pytest.raises(CrchflError, match=r"other settings .*differs in ledger\.nominal_model_mb"):
         run_sweep(other, params, out, BackendConfig(num_cpus=2))
 
 
