@@ -245,21 +245,26 @@ def for_scenario(study: Study, name_or_path: str) -> tuple[Study, list[str]]:
 
 
 def make_data(data: StudyData, out_dir: Path) -> Path:
-    """The study's data set in ``out_dir`` (generated once; a finished one is reused)."""
+    """The study's data set in ``out_dir``: generated, or finished where a generation was cut off; a finished
+    one, or one placed there that the study did not plan (other shard names), is used as it is."""
     from crchfl_sumo.data.generation import generate_dataset
-    from crchfl_sumo.data.settings import DatasetConfig, TownSplit
+    from crchfl_sumo.data.manifest import read_manifest
+    from crchfl_sumo.data.settings import DatasetConfig, TownSplit, shard_plan
     from crchfl_sumo.sumo.scenario import load_scenario
 
-    if not (out_dir / "manifest.json").is_file():
-        scenario = load_scenario(data.scenario)
-        sizes = DatasetConfig(
-            sample_period_s=data.sample_period_s,
-            towns=tuple(
-                TownSplit(t.name, (data.train_samples,) * len(t.data_vehicles), (data.test_samples,) * len(t.test_vehicles))
-                for t in scenario.towns
-            )
+    scenario = load_scenario(data.scenario)
+    sizes = DatasetConfig(
+        sample_period_s=data.sample_period_s,
+        towns=tuple(
+            TownSplit(t.name, (data.train_samples,) * len(t.data_vehicles), (data.test_samples,) * len(t.test_vehicles))
+            for t in scenario.towns
         )
-        generate_dataset(scenario, out_dir, seed=data.seed, sizes=sizes)
+    )
+    if (out_dir / "manifest.json").is_file():
+        present = {shard.file for shard in read_manifest(out_dir).shards}
+        if not present < {shard.file for shard in shard_plan(sizes)}:  # finished, or not of this plan
+            return out_dir
+    generate_dataset(scenario, out_dir, seed=data.seed, sizes=sizes)  # resumes: writes only the missing shards
     return out_dir
 
 

@@ -279,3 +279,24 @@ def test_a_tiny_study_runs_in_a_plain_sumocfg(grid_dir, tmp_path):
     bench = json.loads((tmp_path / "study" / "bench" / BASELINE / "seed-0" / "summary.json").read_text())
     assert set(bench["results"]) == {"grid"}  # driven in the scenario it learned in
     assert json.loads((tmp_path / "study" / "study.json").read_text())["bench_towns"] == list(study.bench_towns)
+
+
+@pytest.mark.slow
+def test_a_data_set_cut_off_while_generating_is_finished_not_used_half_made(tmp_path):
+    from crchfl_sumo.data.manifest import MANIFEST_NAME
+    from crchfl_sumo.studies.mobility_study import make_data
+
+    data = StudyData("paper", 1, 1, 0)
+    out = make_data(data, tmp_path / "data")
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    files = [shard["file"] for shard in manifest["shards"]]
+    assert len(files) == 7  # the paper scenario's 5 data and 2 test vehicles, one shard each
+    whole = {name: (out / name).read_bytes() for name in files}
+    # a generation cut off before its last shard: the manifest lists the others, the shard is not there
+    manifest["shards"] = [shard for shard in manifest["shards"] if shard["file"] != files[-1]]
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
+    (out / files[-1]).unlink()
+    make_data(data, out)
+    again = json.loads((out / MANIFEST_NAME).read_text())
+    assert [shard["file"] for shard in again["shards"]] == files
+    assert {name: (out / name).read_bytes() for name in files} == whole
