@@ -165,6 +165,9 @@ def to_mapping(obj: Any) -> Any:
     return obj
 
 
+_MISSING = object()  # a key one side lacks: unequal to any value
+
+
 def changed_keys(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
     """The dotted keys whose values differ between two mappings (nested ones compared key by key; a key
     one of them lacks counts): what a refusal to resume names, so that the user sees which setting moved."""
@@ -183,9 +186,6 @@ def changed_keys_text(old: Mapping[str, Any], new: Mapping[str, Any], shown: int
     keys = changed_keys(old, new)
     more = f" and {len(keys) - shown} more" if len(keys) > shown else ""
     return ", ".join(keys[:shown]) + more
-
-
-_MISSING = object()  # a key one side lacks: unequal to any value
 
 
 def _convert(hint: Any, value: Any, where: str) -> Any:

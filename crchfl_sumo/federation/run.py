@@ -497,7 +497,7 @@ def _load_state(path: Path, resolved: dict, sizes, backend: BackendConfig) -> tu
     stored_config = resolved_as_today(stored.get("config", {}), f"{path}: config", backend)
     stored = {**stored, "config": stored_config}
     if stored != resolved:
-        raise CrchflError(_precision_refusal(path, stored, stored_config, resolved) or (
+        raise CrchflError(_precision_refusal(path, stored, resolved) or (
             f"{path}: written by a run with other settings or data (they differ in "
             f"{changed_keys_text(stored, resolved)}); resume with the original config (see config.json there) "
             "or choose another --out"
@@ -506,9 +506,10 @@ def _load_state(path: Path, resolved: dict, sizes, backend: BackendConfig) -> tu
     return FederationState.from_payload(payload["state"], *restore_logs(path.parent, marks, sizes)), marks
 
 
-def _precision_refusal(path: Path, stored: dict, stored_config: Any, resolved: dict) -> str | None:
+def _precision_refusal(path: Path, stored: dict, resolved: dict) -> str | None:
     """The refusal of a run that differs from the stored one in its training precision alone ("auto"
     decided on another machine, or another precision asked for); None when something else differs."""
+    stored_config = stored["config"]
     train = stored_config.get("train") if isinstance(stored_config, dict) else None
     here = resolved["config"]["train"]["precision"]
     if not isinstance(train, dict) or train.get("precision") == here:

@@ -248,7 +248,7 @@ def make_data(data: StudyData, out_dir: Path) -> Path:
     """The study's data set in ``out_dir``: generated, or finished where a generation was cut off; a finished
     one, or one placed there that the study did not plan (other shard names), is used as it is."""
     from crchfl_sumo.data.generation import generate_dataset
-    from crchfl_sumo.data.manifest import read_manifest
+    from crchfl_sumo.data.manifest import MANIFEST_NAME, read_manifest
     from crchfl_sumo.data.settings import DatasetConfig, TownSplit, shard_plan
     from crchfl_sumo.sumo.scenario import load_scenario
 
@@ -260,7 +260,7 @@ def make_data(data: StudyData, out_dir: Path) -> Path:
             for t in scenario.towns
         )
     )
-    if (out_dir / "manifest.json").is_file():
+    if (out_dir / MANIFEST_NAME).is_file():
         present = {shard.file for shard in read_manifest(out_dir).shards}
         if not present < {shard.file for shard in shard_plan(sizes)}:  # finished, or not of this plan
             return out_dir
