@@ -174,7 +174,8 @@ def is_correction(learner: Action, expert: Action, inside_junction: bool = False
     Inside a junction also where the learner brakes harder than the expert: the data set's
     left-turners wait inside the junction where SUMO knows they are safe, and a learner that
     copies them stops wherever it happens to be, often in the oncoming lane (drive-bench's
-    Town01 traffic failures, docs/model.md). The expert clears the junction once in it.
+    Town01 traffic failures, docs/model.md). The expert clears the junction once in it, except
+    that short of a turn's internal stop it waits there while a foe comes (RoutePolicy).
     """
     braking_apart = expert[2] - learner[2]
     return (braking_apart > CORRECTION_BRAKE or abs(expert[1] - learner[1]) > CORRECTION_STEER

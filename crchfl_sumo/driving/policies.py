@@ -27,6 +27,7 @@ from crchfl_sumo.sumo.route import (
     YELLOW_LETTERS,
     Crossing,
     RouteGeometry,
+    internal_stop_ahead,
     next_crossing,
     point_at,
     project_points,
@@ -80,7 +81,10 @@ class RoutePolicyConfig:
     comfort_decel_mps2      deceleration planned for stopping at a light
     stop_gap_m              the front bumper stops this far before the stop line
     yield_radius_m          on a minor green ('g') it waits while a vehicle within this distance of
-                            the junction's middle moves towards it (or any vehicle is inside it)
+                            the junction's middle moves towards it (or any vehicle is inside it);
+                            inside a junction, short of a turn's internal stop (SUMO's internal
+                            junction), it waits there while also a junction foe it must yield to is
+                            within this distance of their conflict point
     hold_short_m            standing this close to a stop line it must stop at (red, or a minor
                             green it yields on), it holds the brake instead of creeping up to the
                             line; 0 (default) creeps. A labeller of a learner's states (DAgger) sets
@@ -133,7 +137,8 @@ LOOKAHEAD_STEPS = 2.0
 
 
 class RoutePolicy:
-    """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane.
+    """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane,
+    yields on a minor green at the stop line and, inside the junction, at a turn's internal stop.
 
     Its pedals come from the expert's own mapping (expert.pedals) of the
     acceleration it wants, its steer from the expert's curvature mapping, so
@@ -177,22 +182,43 @@ class RoutePolicy:
         if gap < math.inf:
             wanted = min(wanted, max(0.0, (gap - cfg.standstill_gap_m) / max(cfg.headway_s, 1e-3)))
         accel = cfg.speed_gain_per_s * (wanted - v)
-        index = next_crossing(self.route.crossings, s + half_length)
+        front = s + half_length
+        index = next_crossing(self.route.crossings, front)
         if index >= 0:
             crossing = self.route.crossings[index]
             letter = signal_letter(crossing, frame.tls_states)
-            room = crossing.s_start_m - (s + half_length) - cfg.stop_gap_m
+            room = crossing.s_start_m - front - cfg.stop_gap_m
             needed = v * v / (2.0 * room) if room > 0.3 else math.inf
             # Stop for red; for yellow only when that takes no more than a comfortable deceleration;
             # on a minor green ('g': yield) while other traffic is in or heading into the junction.
             yield_now = letter == "g" and self._junction_busy(observation, crossing)
             if letter in RED_LETTERS or yield_now or (letter in YELLOW_LETTERS and needed <= cfg.comfort_decel_mps2):
-                if room <= 0.3 or (v < self.expert.stop_speed_mps and room <= cfg.hold_short_m):
-                    accel = -max_decel
-                else:
-                    creep = cfg.speed_gain_per_s * (math.sqrt(cfg.comfort_decel_mps2 * room) - v)
-                    accel = min(accel, creep, -needed if needed >= 0.5 * cfg.comfort_decel_mps2 else math.inf)
+                accel = self._stopping(accel, room, v, max_decel)
+        index = internal_stop_ahead(self.route.crossings, front)
+        if index >= 0:
+            # Inside the junction short of its internal stop, as SUMO's own left-turners wait: a turn without
+            # priority ('G') waits there while traffic it must yield to comes; past the stop, it clears.
+            crossing = self.route.crossings[index]
+            if signal_letter(crossing, frame.tls_states) != "G" and self._foe_coming(observation, crossing):
+                accel = self._stopping(accel, crossing.s_internal_stop_m - front - cfg.stop_gap_m, v, max_decel)
         return float(np.clip(accel, -max_decel, max_accel))
+
+    def _stopping(self, accel: float, room: float, v: float, max_decel: float) -> float:
+        """The acceleration that stops the front bumper ``room`` metres ahead (or holds it there), at most ``accel``."""
+        cfg = self.config
+        if room <= 0.3 or (v < self.expert.stop_speed_mps and room <= cfg.hold_short_m):
+            return -max_decel
+        needed = v * v / (2.0 * room)
+        creep = cfg.speed_gain_per_s * (math.sqrt(cfg.comfort_decel_mps2 * room) - v)
+        return min(accel, creep, -needed if needed >= 0.5 * cfg.comfort_decel_mps2 else math.inf)
+
+    def _foe_coming(self, observation: Observation, crossing: Crossing) -> bool:
+        """Is a junction foe the ego must yield to (SUMO's, Frame.foe_gap_m) within yield_radius_m of the
+        conflict point and not through it, while the junction is busy (_junction_busy)? Both, so that a foe
+        standing at its own red light does not alone hold the ego inside the junction."""
+        frame, row = observation.frame, observation.ego_row
+        gap = float(frame.foe_gap_m[row])
+        return gap < self.config.yield_radius_m and self._junction_busy(observation, crossing)
 
     def _junction_busy(self, observation: Observation, crossing: Crossing) -> bool:
         """Is another vehicle inside the junction, or moving towards it, other than those in the ego's lane?"""

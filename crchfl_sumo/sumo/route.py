@@ -31,6 +31,9 @@ class Crossing:
     tls_id     signal controlling the link ('' at an unsignalised junction)
     link_index index of the link in the signal's state string (-1 if none)
     direction  SUMO link direction: s straight, l left, r right, t turn (L/R partly)
+    s_internal_stop_m  arc position where the link waits inside the junction for the traffic it crosses
+               (the end of its first internal lane, SUMO's internal junction: left turns at the towns'
+               T junctions, 5.2 m past the stop line); nan where the link has none
     """
 
     s_start_m: float
@@ -38,6 +41,7 @@ class Crossing:
     tls_id: str
     link_index: int
     direction: str
+    s_internal_stop_m: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -186,6 +190,7 @@ def route_geometry(net, edges: Sequence[str], lane_index: int = 0) -> RouteGeome
                 tls_id=tls,
                 link_index=int(connection.getTLLinkIndex()) if tls else -1,
                 direction=str(connection.getDirection()),
+                s_internal_stop_m=float(s[lane_end_vertex[first]]) if last > first else math.nan,
             )
         )
     return RouteGeometry(
@@ -422,6 +427,15 @@ def inside_crossing(crossings: Sequence[Crossing], centre_s_m: float, length_m: 
     """Has a vehicle's front bumper passed a stop line on its route, with its centre not yet out of that junction?"""
     front_s_m = centre_s_m + length_m / 2.0
     return any(c.s_start_m < front_s_m and centre_s_m < c.s_end_m for c in crossings)
+
+
+def internal_stop_ahead(crossings: Sequence[Crossing], front_s_m: float) -> int:
+    """Index of the crossing whose stop line the front bumper has passed and whose internal stop
+    (Crossing.s_internal_stop_m) it has not yet reached (-1 if none)."""
+    for index, crossing in enumerate(crossings):
+        if crossing.s_start_m < front_s_m < crossing.s_internal_stop_m:  # False for nan: no internal stop
+            return index
+    return -1
 
 
 def next_crossing(crossings: Sequence[Crossing], front_s_m: float) -> int:

@@ -1,15 +1,18 @@
-"""The reference driver (RoutePolicy) on hand-made routes, by hand: its look-ahead at long steps."""
+"""The reference driver (RoutePolicy) on hand-made routes, by hand: its look-ahead at long steps, and its wait\nat a turn's internal stop."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from crchfl_sumo.core.resources import scenarios_dir
 from crchfl_sumo.driving.dynamics import VehicleState, bicycle_step
-from crchfl_sumo.driving.policies import RoutePolicy
-from crchfl_sumo.sumo.route import RouteGeometry
+from crchfl_sumo.driving.policies import Observation, RoutePolicy
+from crchfl_sumo.sumo.frame import make_frame
+from crchfl_sumo.sumo.route import Crossing, RouteGeometry, internal_stop_ahead, read_net, route_geometry
 
 
 def _route(points) -> RouteGeometry:
@@ -35,3 +38,52 @@ def test_pure_pursuit_looks_two_steps_ahead(step_s, look_m):
         assert abs(after.heading_rad) < 0.002  # level: 0.2 - 4 / 20.13
     else:
         assert after.heading_rad == pytest.approx(-0.197, abs=1e-3)  # swung to the other side
+
+
+# --- waiting at a turn's internal stop ---------------------------------------------------------------
+
+
+def test_a_left_turn_at_a_town01_t_junction_has_its_internal_stop_where_its_first_internal_lane_ends():
+    net = read_net(scenarios_dir() / "town01" / "town01.net.xml")
+    left = route_geometry(net, ["W3_W2", "W2_E2"]).crossings[0]
+    first_internal = net.getLane(":W2_1_0").getLength()  # SUMO's internal junction follows it
+    assert left.direction == "l" and first_internal == pytest.approx(5.23)
+    assert left.s_internal_stop_m == pytest.approx(left.s_start_m + first_internal, abs=0.01)  # SUMO rounds lengths
+    assert left.s_end_m == pytest.approx(left.s_internal_stop_m + net.getLane(":W2_6_0").getLength(), abs=0.01)
+    straight = route_geometry(net, ["W3_W2", "W2_W1"]).crossings[0]  # one internal lane: no internal stop
+    assert straight.direction == "s" and math.isnan(straight.s_internal_stop_m)
+    crossings = [left, straight]
+    assert internal_stop_ahead(crossings, left.s_start_m) == -1  # on the stop line: not yet in
+    assert internal_stop_ahead(crossings, left.s_start_m + 0.1) == 0
+    assert internal_stop_ahead(crossings, left.s_internal_stop_m) == -1  # reached it: past
+    assert internal_stop_ahead([straight], straight.s_start_m + 1.0) == -1
+
+
+def _inside_the_turn(front_m: float, foe_gap_m: float, letter: str = "g", foe_speed_mps: float = 10.0):
+    """The ego at 3 m/s on a straight 60 m route whose junction spans 20 to 36 m with its internal stop at
+    25 m; a crossing vehicle 20 m beside the junction's middle (28 m) drives towards it at ``foe_speed_mps``;
+    SUMO reports the ego's nearest foe ``foe_gap_m`` from their conflict point."""
+    route = _route([(0.0, 0.0), (60.0, 0.0)])
+    route = dataclasses.replace(route, crossings=(Crossing(20.0, 36.0, "J", 0, "l", s_internal_stop_m=25.0),))
+    frame = make_frame(
+        ids=["ego", "foe"], x_m=[front_m - 2.25, 28.0], y_m=[0.0, 20.0], heading_rad=[0.0, -math.pi / 2],
+        speed_mps=[3.0, foe_speed_mps], foe_gap_m=[foe_gap_m, math.inf], tls_states={"J": letter},
+    )
+    return RoutePolicy(route), Observation(frame, "ego", 0, front_m - 2.25, None)  # make_frame's 4.5 m car
+
+
+def test_inside_a_turn_the_reference_waits_at_the_internal_stop_while_a_foe_comes_by_hand():
+    # front at 22 m: 25 - 22 - 1 m (stop gap) = 2 m of room; stopping from 3 m/s there needs 9 / 4 = 2.25 m/s^2
+    # (more than half the comfortable 2.5), creeping wants 1.5 x (sqrt(2.5 x 2) - 3) = -1.15: it brakes 2.25.
+    policy, waiting = _inside_the_turn(22.0, foe_gap_m=12.0)
+    assert policy.wanted_accel_mps2(waiting) == pytest.approx(-2.25)
+    free_accel = 2.6  # make_frame's maximum: cruising to 8 m/s from 3 wants 1.5 x 5
+    for front, gap, letter, foe_speed in (
+        (22.0, math.inf, "g", 10.0),  # SUMO reports no foe to yield to
+        (22.0, 40.0, "g", 10.0),  # beyond yield_radius_m (30 m) of the conflict point
+        (22.0, 12.0, "G", 10.0),  # a priority green: the foes yield
+        (22.0, 12.0, "g", 0.0),  # the foe stands (at its own red, say) and nothing moves towards the junction
+        (25.5, 12.0, "g", 10.0),  # past the internal stop: it clears the junction
+    ):
+        policy, observation = _inside_the_turn(front, gap, letter, foe_speed)
+        assert policy.wanted_accel_mps2(observation) == pytest.approx(free_accel), (front, gap, letter, foe_speed)
