@@ -143,6 +143,7 @@ class RoutePolicy:
     Its pedals come from the expert's own mapping (expert.pedals) of the
     acceleration it wants, its steer from the expert's curvature mapping, so
     the loop's inverse mappings return exactly what it planned.
+    ``wait_at_internal_stop`` False: inside a junction it always clears it (DAgger's labeller).
     """
 
     def __init__(
@@ -150,10 +151,12 @@ class RoutePolicy:
         route: RouteGeometry,
         config: RoutePolicyConfig = RoutePolicyConfig(),
         expert: ExpertConfig = ExpertConfig(),
+        wait_at_internal_stop: bool = True,
     ) -> None:
         self.route = route
         self.config = config
         self.expert = expert
+        self.wait_at_internal_stop = wait_at_internal_stop
 
     def steer(
         self, x_m: float, y_m: float, heading_rad: float, speed_mps: float, progress_m: float, step_s: float = 0.0
@@ -194,7 +197,7 @@ class RoutePolicy:
             yield_now = letter == "g" and self._junction_busy(observation, crossing)
             if letter in RED_LETTERS or yield_now or (letter in YELLOW_LETTERS and needed <= cfg.comfort_decel_mps2):
                 accel = self._stopping(accel, room, v, max_decel)
-        index = internal_stop_ahead(self.route.crossings, front)
+        index = internal_stop_ahead(self.route.crossings, front) if self.wait_at_internal_stop else -1
         if index >= 0:
             # Inside the junction short of its internal stop, as SUMO's own left-turners wait: a turn without
             # priority ('G') waits there while traffic it must yield to comes; past the stop, it clears.

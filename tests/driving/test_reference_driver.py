@@ -87,3 +87,14 @@ def test_inside_a_turn_the_reference_waits_at_the_internal_stop_while_a_foe_come
     ):
         policy, observation = _inside_the_turn(front, gap, letter, foe_speed)
         assert policy.wanted_accel_mps2(observation) == pytest.approx(free_accel), (front, gap, letter, foe_speed)
+
+
+def test_dagger_labels_with_an_expert_that_clears_the_junction_instead():
+    from crchfl_sumo.data.expert import ExpertConfig
+    from crchfl_sumo.driving.dagger import labeller
+    from crchfl_sumo.driving.dagger_settings import DaggerConfig
+
+    reference, waiting = _inside_the_turn(22.0, foe_gap_m=12.0)
+    assert reference.wanted_accel_mps2(waiting) == pytest.approx(-2.25)
+    expert = labeller(reference.route, DaggerConfig(), ExpertConfig())
+    assert expert.wanted_accel_mps2(waiting) == pytest.approx(2.6)  # it drives on, as with no foe at all
