@@ -195,9 +195,11 @@ def labeller_config(route_expert: RoutePolicyConfig, data_expert: ExpertConfig) 
 def labeller(route: RouteGeometry, config: DaggerConfig, data_expert: ExpertConfig) -> RoutePolicy:
     """The route expert that labels a learner's drive of ``route``: labeller_config's, and one that clears a
     junction once in it. Labels that wait at a turn's internal stop, as the reference driver does, drove
-    no better: 3 seeds x 3 draws, success -0.8 points [-1.8, +0.1], traffic -3.3 [-6.8, +0.1] against
-    clearing, less than a fine-tune's own batch order moves them (docs/measurements.md, 2026-12-06, seventh)."""
-    return RoutePolicy(route, labeller_config(config.expert, data_expert), expert=data_expert, wait_at_internal_stop=False)
+    no better: 3 seeds x 3 draws, success -0.8 points [-1.8, +0.1] (less than the -1.4 a fine-tune's batch
+    order alone moves it), traffic -3.3 [-6.8, +0.1], not distinguishable (docs/measurements.md,
+    2026-12-06, seventh)."""
+    settings = labeller_config(config.expert, data_expert)
+    return RoutePolicy(route, settings, expert=data_expert, wait_at_internal_stop=False)
 
 
 def labelled_drives(

@@ -82,9 +82,10 @@ class RoutePolicyConfig:
     stop_gap_m              the front bumper stops this far before the stop line
     yield_radius_m          on a minor green ('g') it waits while a vehicle within this distance of
                             the junction's middle moves towards it (or any vehicle is inside it);
-                            inside a junction, short of a turn's internal stop (SUMO's internal
-                            junction), it waits there while also a junction foe it must yield to is
-                            within this distance of their conflict point
+                            inside a junction, not on a major green ('G'), short of a turn's internal
+                            stop (SUMO's internal junction) and able to stop there, it waits there
+                            while also a junction foe it must yield to is within this distance of
+                            their conflict point
     hold_short_m            standing this close to a stop line it must stop at (red, or a minor
                             green it yields on), it holds the brake instead of creeping up to the
                             line; 0 (default) creeps. A labeller of a learner's states (DAgger) sets
@@ -138,7 +139,8 @@ LOOKAHEAD_STEPS = 2.0
 
 class RoutePolicy:
     """Pure pursuit on the route's centre line, stops at red lights and behind vehicles in its lane,
-    yields on a minor green at the stop line and, inside the junction, at a turn's internal stop.
+    yields on a minor green at the stop line and, inside a junction without a major green, at a turn's
+    internal stop.
 
     Its pedals come from the expert's own mapping (expert.pedals) of the
     acceleration it wants, its steer from the expert's curvature mapping, so
@@ -200,10 +202,14 @@ class RoutePolicy:
         index = internal_stop_ahead(self.route.crossings, front) if self.wait_at_internal_stop else -1
         if index >= 0:
             # Inside the junction short of its internal stop, as SUMO's own left-turners wait: a turn without
-            # priority ('G') waits there while traffic it must yield to comes; past the stop, it clears.
+            # priority ('G'; an unsignalised one too) waits there while traffic it must yield to comes, if it
+            # can still stop there; past the stop, or too fast to stop short of it, it clears the junction.
             crossing = self.route.crossings[index]
-            if signal_letter(crossing, frame.tls_states) != "G" and self._foe_coming(observation, crossing):
-                accel = self._stopping(accel, crossing.s_internal_stop_m - front - cfg.stop_gap_m, v, max_decel)
+            room = crossing.s_internal_stop_m - front - cfg.stop_gap_m
+            can_stop = v < self.expert.stop_speed_mps or v * v <= 2.0 * max_decel * max(room, 0.0)
+            yields = signal_letter(crossing, frame.tls_states) != "G"
+            if can_stop and yields and self._foe_coming(observation, crossing):
+                accel = self._stopping(accel, room, v, max_decel)
         return float(np.clip(accel, -max_decel, max_accel))
 
     def _stopping(self, accel: float, room: float, v: float, max_decel: float) -> float:

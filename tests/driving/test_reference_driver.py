@@ -1,4 +1,5 @@
-"""The reference driver (RoutePolicy) on hand-made routes, by hand: its look-ahead at long steps, and its wait\nat a turn's internal stop."""
+"""The reference driver (RoutePolicy) on hand-made routes, by hand: its look-ahead at long steps, and its wait
+at a turn's internal stop."""
 
 from __future__ import annotations
 
@@ -59,15 +60,18 @@ def test_a_left_turn_at_a_town01_t_junction_has_its_internal_stop_where_its_firs
     assert internal_stop_ahead([straight], straight.s_start_m + 1.0) == -1
 
 
-def _inside_the_turn(front_m: float, foe_gap_m: float, letter: str = "g", foe_speed_mps: float = 10.0):
-    """The ego at 3 m/s on a straight 60 m route whose junction spans 20 to 36 m with its internal stop at
+def _inside_the_turn(
+    front_m: float, foe_gap_m: float, letter: str = "g", foe_speed_mps: float = 10.0, speed_mps: float = 3.0
+):
+    """The ego at ``speed_mps`` on a straight 60 m route whose junction spans 20 to 36 m with its internal stop at
     25 m; a crossing vehicle 20 m beside the junction's middle (28 m) drives towards it at ``foe_speed_mps``;
     SUMO reports the ego's nearest foe ``foe_gap_m`` from their conflict point."""
     route = _route([(0.0, 0.0), (60.0, 0.0)])
     route = dataclasses.replace(route, crossings=(Crossing(20.0, 36.0, "J", 0, "l", s_internal_stop_m=25.0),))
     frame = make_frame(
         ids=["ego", "foe"], x_m=[front_m - 2.25, 28.0], y_m=[0.0, 20.0], heading_rad=[0.0, -math.pi / 2],
-        speed_mps=[3.0, foe_speed_mps], foe_gap_m=[foe_gap_m, math.inf], tls_states={"J": letter},
+        speed_mps=[speed_mps, foe_speed_mps], foe_gap_m=[foe_gap_m, math.inf],
+        tls_states={"J": letter} if letter else {},
     )
     return RoutePolicy(route), Observation(frame, "ego", 0, front_m - 2.25, None)  # make_frame's 4.5 m car
 
@@ -77,16 +81,21 @@ def test_inside_a_turn_the_reference_waits_at_the_internal_stop_while_a_foe_come
     # (more than half the comfortable 2.5), creeping wants 1.5 x (sqrt(2.5 x 2) - 3) = -1.15: it brakes 2.25.
     policy, waiting = _inside_the_turn(22.0, foe_gap_m=12.0)
     assert policy.wanted_accel_mps2(waiting) == pytest.approx(-2.25)
-    free_accel = 2.6  # make_frame's maximum: cruising to 8 m/s from 3 wants 1.5 x 5
-    for front, gap, letter, foe_speed in (
-        (22.0, math.inf, "g", 10.0),  # SUMO reports no foe to yield to
-        (22.0, 40.0, "g", 10.0),  # beyond yield_radius_m (30 m) of the conflict point
-        (22.0, 12.0, "G", 10.0),  # a priority green: the foes yield
-        (22.0, 12.0, "g", 0.0),  # the foe stands (at its own red, say) and nothing moves towards the junction
-        (25.5, 12.0, "g", 10.0),  # past the internal stop: it clears the junction
+    policy, unsignalised = _inside_the_turn(22.0, foe_gap_m=12.0, letter="")  # no signal: SUMO's foe decides
+    assert policy.wanted_accel_mps2(unsignalised) == pytest.approx(-2.25)
+    policy, standing = _inside_the_turn(23.9, foe_gap_m=12.0, speed_mps=0.0)  # 0.1 m of room left: it holds
+    assert policy.wanted_accel_mps2(standing) == -4.5  # make_frame's max_decel
+    free_accel = 2.6  # make_frame's maximum: cruising to 8 m/s from 3 (or 5) wants 1.5 x 5 (or 3)
+    for front, gap, letter, foe_speed, speed in (
+        (22.0, math.inf, "g", 10.0, 3.0),  # SUMO reports no foe to yield to
+        (22.0, 40.0, "g", 10.0, 3.0),  # beyond yield_radius_m (30 m) of the conflict point
+        (22.0, 12.0, "G", 10.0, 3.0),  # a priority green: the foes yield
+        (22.0, 12.0, "g", 0.0, 3.0),  # the foe stands (at its own red, say) and nothing moves towards the junction
+        (25.5, 12.0, "g", 10.0, 3.0),  # past the internal stop: it clears the junction
+        (22.0, 12.0, "g", 10.0, 5.0),  # too fast to stop in 2 m (25 / 4 = 6.25 m/s^2 > 4.5): it clears
     ):
-        policy, observation = _inside_the_turn(front, gap, letter, foe_speed)
-        assert policy.wanted_accel_mps2(observation) == pytest.approx(free_accel), (front, gap, letter, foe_speed)
+        policy, observation = _inside_the_turn(front, gap, letter, foe_speed, speed)
+        assert policy.wanted_accel_mps2(observation) == pytest.approx(free_accel), (front, letter, foe_speed, speed)
 
 
 def test_dagger_labels_with_an_expert_that_clears_the_junction_instead():
