@@ -24,23 +24,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from crchfl_sumo.data.labels import steer_bin_values
+from crchfl_sumo.core.result_files import EPISODES_FILE
 from crchfl_sumo.driving.dagger import labeller
 from crchfl_sumo.driving.dagger_settings import DaggerConfig
 from crchfl_sumo.driving.drive_bench import BenchConfig, drive_episodes
 from crchfl_sumo.driving.drive_bench_tasks import Episode
 from crchfl_sumo.driving.drivers import driver_for
+from crchfl_sumo.learning.model import steer_values
 from crchfl_sumo.learning.settings import DEFAULT_BRAKE_GAIN, DEFAULT_STEER_DECODING
 
 
 def bench_episode(bench_dir: Path, town: str, task: str, index: int) -> Episode:
     """The episode (town, task, index) as the benchmark in ``bench_dir`` drew it."""
-    records = json.loads((bench_dir / "episodes.json").read_text())
+    records = json.loads((bench_dir / EPISODES_FILE).read_text())
     for record in records:
         if (record["town"], record["task"], record["index"]) == (town, task, index):
             fields = {f.name: record[f.name] for f in dataclasses.fields(Episode)}
             return Episode(**{**fields, "edges": tuple(fields["edges"])})
-    raise SystemExit(f"{bench_dir}/episodes.json has no episode {town} {task} {index}")
+    raise SystemExit(f"{bench_dir / EPISODES_FILE} has no episode {town} {task} {index}")
 
 
 @dataclasses.dataclass
@@ -60,7 +61,7 @@ class TracedDriver:
     def policy(self, route, net):
         model_policy = self.driver.policy(route, net)
         expert = labeller(route, DaggerConfig(), self.driver.expert())
-        values = steer_bin_values(model_policy.model.config.steer_bins)
+        values = steer_values(model_policy.model.config)
 
         def traced(observation):
             action = model_policy(observation)
