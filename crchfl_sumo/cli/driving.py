@@ -138,8 +138,15 @@ def run_drive_bench(args) -> int:
 
 
 def add_dagger(p: argparse.ArgumentParser) -> None:
-    from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
+    from crchfl_sumo.driving.dagger_settings import (
+        FINE_TUNE_CLASS_WEIGHTING,
+        FINE_TUNE_LEARNING_RATE,
+        KEEP_START_WEIGHTING,
+        MAX_ITERATIONS,
+        DaggerConfig,
+    )
     from crchfl_sumo.driving.drive_bench_tasks import TASK_NAMES
+    from crchfl_sumo.learning.settings import CLASS_WEIGHTINGS
 
     p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
     p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")
@@ -165,6 +172,10 @@ def add_dagger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--learning-rate", type=number_arg(0, 1, "a learning rate", lo_open=True),
                    default=FINE_TUNE_LEARNING_RATE,
                    help=f"fine-tuning learning rate (default {FINE_TUNE_LEARNING_RATE:g})")
+    p.add_argument("--class-weighting", choices=(KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS),
+                   default=FINE_TUNE_CLASS_WEIGHTING,
+                   help=f"steer class weights of the fine-tuning (default {FINE_TUNE_CLASS_WEIGHTING}; "
+                   f"{KEEP_START_WEIGHTING}: the start model's, as before 2026-12-06; docs/model.md)")
     p.add_argument("--all-states", action="store_true",
                    help="label every visited state (default: only those where the expert brakes harder or steers "
                    "elsewhere than the model)")
@@ -180,16 +191,18 @@ def add_dagger(p: argparse.ArgumentParser) -> None:
 
 def run_dagger(args) -> int:
     from crchfl_sumo.driving.dagger import dagger_command
-    from crchfl_sumo.driving.dagger_settings import DaggerConfig
+    from crchfl_sumo.driving.dagger_settings import KEEP_START_WEIGHTING, DaggerConfig
 
-    train_towns = args.train_towns
-    leave_out_at_default(args, ((("train_towns",), train_towns is None),))
+    train_towns, class_weighting = args.train_towns, args.class_weighting
+    # a folder started before the option resumes with --class-weighting start (what it fine-tuned with)
+    leave_out_at_default(args, ((("train_towns",), train_towns is None),
+                                (("class_weighting",), class_weighting == KEEP_START_WEIGHTING)))
     with output_folder(args, "dagger", extendable=("iterations",)):  # --resume --iterations N goes on to N
         config = DaggerConfig(tasks=comma_list(args.tasks), episodes=args.episodes, seed=args.route_seed,
                               corrections_only=not args.all_states)
         records = dagger_command(args.model, args.dataset, args.out, comma_list(args.towns), config,
                                  args.iterations, args.epochs, args.seed, args.jobs, args.learning_rate, args.overwrite,
-                                 train_towns=train_towns)
+                                 train_towns=train_towns, class_weighting=class_weighting)
     for record in records:
         straight = record["always_straight"]
         print(

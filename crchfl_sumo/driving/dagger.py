@@ -40,7 +40,13 @@ from crchfl_sumo.data.expert import ExpertConfig, target_speed_from_accel
 from crchfl_sumo.data.labels import digitize_steer, signal_codes
 from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.data.samples import FIELDS, Samples
-from crchfl_sumo.driving.dagger_settings import FINE_TUNE_LEARNING_RATE, MAX_ITERATIONS, DaggerConfig
+from crchfl_sumo.driving.dagger_settings import (
+    FINE_TUNE_CLASS_WEIGHTING,
+    FINE_TUNE_LEARNING_RATE,
+    KEEP_START_WEIGHTING,
+    MAX_ITERATIONS,
+    DaggerConfig,
+)
 from crchfl_sumo.driving.drive import drive
 from crchfl_sumo.driving.drive_bench import SUMO_LOG_DIR, episode_log
 from crchfl_sumo.driving.drive_bench_tasks import Episode, draw_episodes, task_by_name, without_traffic
@@ -48,7 +54,7 @@ from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.centralized import train_centralized
 from crchfl_sumo.learning.checkpoint import load_checkpoint
-from crchfl_sumo.learning.settings import TrainConfig
+from crchfl_sumo.learning.settings import CLASS_WEIGHTINGS, TrainConfig
 from crchfl_sumo.sumo.route import RouteGeometry, inside_crossing, next_signal, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
@@ -301,13 +307,15 @@ def dagger_iterations(
     seed: int = 0,
     jobs: int = 1,
     learning_rate: float = FINE_TUNE_LEARNING_RATE,
+    class_weighting: str = FINE_TUNE_CLASS_WEIGHTING,
 ) -> list[dict]:
     """DAgger from ``checkpoint``: per iteration, the current model drives, the expert labels, the model is fine-tuned.
 
     Iteration k (1, 2, ...) draws its routes with seed ``config.seed + k``, adds the
     labelled samples to ``train`` and to the earlier iterations' samples, and fine-tunes
     the current model on them all for ``epochs`` with the start checkpoint's training
-    settings but ``learning_rate`` (training seed ``seed + k``). Each iteration's folder
+    settings but ``learning_rate`` and ``class_weighting`` (KEEP_START_WEIGHTING: the start's; training seed
+    ``seed + k``). Each iteration's folder
     ``out_dir``/iteration-k holds expert_samples.npz, metrics.jsonl and checkpoint.pt;
     ``out_dir``/checkpoint.pt is the last iteration's model and ``out_dir``/summary.json
     lists the iterations. A rerun goes on after the last finished epoch. Returns the
@@ -317,10 +325,15 @@ def dagger_iterations(
     check_range(epochs, "dagger: epochs", 1, MAX_EPOCHS, "a number of epochs")
     check_seed(seed, "dagger: seed")
     check_range(learning_rate, "dagger: learning_rate", 0, 1, "a learning rate", lo_open=True)
+    if class_weighting not in (KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS):
+        raise CrchflError(f"dagger: class_weighting {class_weighting!r} is unknown; use one of "
+                          f"{', '.join(map(repr, (KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS)))}")
     out_dir = Path(out_dir)
     start = load_checkpoint(checkpoint)
     train_config = from_mapping(TrainConfig, start.extra.get("train_config", {}), where=f"{checkpoint}: train_config")
-    train_config = dataclasses.replace(train_config, learning_rate=learning_rate)
+    train_config = dataclasses.replace(train_config, learning_rate=learning_rate,
+                                       class_weighting=train_config.class_weighting if class_weighting ==
+                                       KEEP_START_WEIGHTING else class_weighting)
     drive_settings = {key: start.extra[key] for key in DRIVE_SETTINGS if key in start.extra}
     current, collected, records = Path(checkpoint), [], []
     for iteration in range(1, iterations + 1):
@@ -349,8 +362,8 @@ def dagger_iterations(
     summary = {
         "start_checkpoint": str(checkpoint), "towns": list(towns), "tasks": list(config.tasks),
         "episodes": config.episodes, "every": config.every, "corrections_only": config.corrections_only,
-        "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "learning_rate": learning_rate, "seed": seed,
-        "iterations": records,
+        "hold_short_m": config.expert.hold_short_m, "epochs": epochs, "learning_rate": learning_rate,
+        "class_weighting": train_config.class_weighting, "seed": seed, "iterations": records,
     }
     write_json(out_dir / SUMMARY_FILE, summary)
     return records
@@ -360,7 +373,7 @@ def dagger_command(
     model: str | Path, dataset: str | Path, out_dir: str | Path, towns: Sequence[str], config: DaggerConfig,
     iterations: int = 1, epochs: int = 3, seed: int = 0, jobs: int = 1,
     learning_rate: float = FINE_TUNE_LEARNING_RATE, overwrite: bool = False,
-    train_towns: Sequence[str] | None = None,
+    train_towns: Sequence[str] | None = None, class_weighting: str = FINE_TUNE_CLASS_WEIGHTING,
 ) -> list[dict]:
     """What `crchfl-sumo dagger` does: ``dagger_iterations`` from ``model`` on the data set it was trained on
     (checked against it first: the horizon and the camera settings; ``train_towns``: its training shards of
@@ -376,4 +389,4 @@ def dagger_command(
         for old in sorted(Path(out_dir).glob("iteration-*")):
             shutil.rmtree(old)
     return dagger_iterations(model, train, test, out_dir, towns, config, iterations, epochs, seed, jobs,
-                             learning_rate)
+                             learning_rate, class_weighting)

@@ -18,6 +18,12 @@ HOLD_SHORT_M = 10.0
 # Fine-tuning a tenth as fast as the recipe trains: at the recipe's 1e-3, three epochs left one of
 # three models off the road, depending on the order of the samples alone (docs/model.md).
 FINE_TUNE_LEARNING_RATE = 1e-4
+# The fine-tuning's steer class weights: "start" keeps the start model's (learning.settings.TrainConfig). The
+# labels are corrections, nearly all of them steer classes other than straight, and the start's sqrt_inverse
+# weights raised them further: a strong start model then left the route in T junctions it crossed straight
+# (docs/measurements.md, 2026-12-06, eighth).
+KEEP_START_WEIGHTING = "start"
+FINE_TUNE_CLASS_WEIGHTING = "none"
 MAX_ITERATIONS = 100
 
 

@@ -68,8 +68,9 @@ def test_an_iteration_fine_tunes_on_the_data_and_the_experts_labels_and_a_rerun_
     assert record["balanced_accuracy"] == first["balanced_accuracy"]
     # Fine-tuned from the start model with its own training settings; out/checkpoint.pt is the last iteration's.
     before, after = load_checkpoint(checkpoint), load_checkpoint(out / "iteration-1" / "checkpoint.pt")
-    # the start model's recipe, fine-tuned a tenth as fast
-    assert after.extra["train_config"] == {**before.extra["train_config"], "learning_rate": 1e-4}
+    # the start model's recipe, fine-tuned a tenth as fast and with the steer classes unweighted
+    assert after.extra["train_config"] == {**before.extra["train_config"], "learning_rate": 1e-4,
+                                           "class_weighting": "none"}
     assert after.extra["train_config"]["batch_size"] == 4
     assert not _states_equal(before.state_dict, after.state_dict)
     assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-1" / "checkpoint.pt").read_bytes()
@@ -84,6 +85,26 @@ def test_an_iteration_fine_tunes_on_the_data_and_the_experts_labels_and_a_rerun_
     second = np.load(out / "iteration-2" / EXPERT_SAMPLES_FILE)["actions"]
     assert records[1]["training_samples"] == 12 + len(actions) + len(second)
     assert (out / "checkpoint.pt").read_bytes() == (out / "iteration-2" / "checkpoint.pt").read_bytes()
+
+
+def test_class_weighting_changes_only_the_fine_tunings_loss(start, ladder, tmp_path):
+    checkpoint, train, test = start
+    towns = (str(ladder / "ladder.sumocfg"),)
+    assert load_checkpoint(checkpoint).extra["train_config"]["class_weighting"] == "sqrt_inverse"
+    dagger_iterations(checkpoint, train, test, tmp_path / "kept", towns, ROUND, iterations=1, epochs=1, seed=7,
+                      class_weighting="start")
+    dagger_iterations(checkpoint, train, test, tmp_path / "none", towns, ROUND, iterations=1, epochs=1, seed=7)
+    with pytest.raises(CrchflError, match="class_weighting 'equal' is unknown"):
+        dagger_iterations(checkpoint, train, test, tmp_path / "bad", towns, ROUND, class_weighting="equal")
+    kept, unweighted = (load_checkpoint(tmp_path / name / "checkpoint.pt") for name in ("kept", "none"))
+    assert kept.extra["train_config"]["class_weighting"] == "sqrt_inverse"
+    assert unweighted.extra["train_config"] == {**kept.extra["train_config"], "class_weighting": "none"}
+    assert [json.loads((tmp_path / name / "summary.json").read_text())["class_weighting"]
+            for name in ("kept", "none")] == ["sqrt_inverse", "none"]
+    # the start model drove both: the same labels; only the loss's weights differ, and with them the weights
+    labels = [(tmp_path / name / "iteration-1" / EXPERT_SAMPLES_FILE).read_bytes() for name in ("kept", "none")]
+    assert labels[0] == labels[1]
+    assert not _states_equal(kept.state_dict, unweighted.state_dict)
 
 
 def test_the_samples_do_not_depend_on_how_many_processes_drive(start, ladder):
@@ -129,13 +150,15 @@ def test_the_command_runs_an_iteration_and_overwrite_starts_afresh(ladder, tmp_p
     model = build_model(SMALL, seed=0)
     save_checkpoint(tmp_path / "model.pt", model.config, model.state_dict())
     argv = ["dagger", str(tmp_path / "model.pt"), str(data), "--out", str(tmp_path / "out"), "--towns",
-            str(ladder / "ladder.sumocfg"), "--tasks", "straight", "--episodes", "1", "--all-states"]
+            str(ladder / "ladder.sumocfg"), "--tasks", "straight", "--episodes", "1", "--all-states",
+            "--class-weighting", "inverse"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     (record,) = summary["iterations"]
     assert f"+{record['expert_samples']} expert-labelled samples ({10 + record['expert_samples']} in all)" in printed
     assert summary["corrections_only"] is False and summary["learning_rate"] == 1e-4
+    assert summary["class_weighting"] == "inverse"  # --class-weighting reached the fine-tuning
     # --overwrite drives and trains again rather than taking up what the folder holds
     (tmp_path / "out" / "iteration-1" / EXPERT_SAMPLES_FILE).write_bytes(b"left from another run")
     assert main([*argv, "--overwrite"]) == 0
