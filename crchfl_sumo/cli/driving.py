@@ -140,13 +140,13 @@ def run_drive_bench(args) -> int:
 def add_dagger(p: argparse.ArgumentParser) -> None:
     from crchfl_sumo.driving.dagger_settings import (
         FINE_TUNE_CLASS_WEIGHTING,
+        FINE_TUNE_CLASS_WEIGHTINGS,
         FINE_TUNE_LEARNING_RATE,
         KEEP_START_WEIGHTING,
         MAX_ITERATIONS,
         DaggerConfig,
     )
     from crchfl_sumo.driving.drive_bench_tasks import TASK_NAMES
-    from crchfl_sumo.learning.settings import CLASS_WEIGHTINGS
 
     p.add_argument("model", help="checkpoint.pt of a trained model (crchfl-sumo train)")
     p.add_argument("dataset", type=Path, help="the data set it was trained on (manifest.json and shards)")
@@ -172,7 +172,7 @@ def add_dagger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--learning-rate", type=number_arg(0, 1, "a learning rate", lo_open=True),
                    default=FINE_TUNE_LEARNING_RATE,
                    help=f"fine-tuning learning rate (default {FINE_TUNE_LEARNING_RATE:g})")
-    p.add_argument("--class-weighting", choices=(KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS),
+    p.add_argument("--class-weighting", choices=FINE_TUNE_CLASS_WEIGHTINGS,
                    default=FINE_TUNE_CLASS_WEIGHTING,
                    help=f"steer class weights of the fine-tuning (default {FINE_TUNE_CLASS_WEIGHTING}; "
                    f"{KEEP_START_WEIGHTING}: the start model's, as before 2026-12-06; docs/model.md)")

@@ -42,6 +42,7 @@ from crchfl_sumo.data.manifest import DRIVE_SETTINGS, read_manifest
 from crchfl_sumo.data.samples import FIELDS, Samples
 from crchfl_sumo.driving.dagger_settings import (
     FINE_TUNE_CLASS_WEIGHTING,
+    FINE_TUNE_CLASS_WEIGHTINGS,
     FINE_TUNE_LEARNING_RATE,
     KEEP_START_WEIGHTING,
     MAX_ITERATIONS,
@@ -54,7 +55,7 @@ from crchfl_sumo.driving.drivers import ModelDriver, single_torch_thread
 from crchfl_sumo.driving.policies import Action, ModelPolicy, Observation, RoutePolicy, RoutePolicyConfig
 from crchfl_sumo.learning.centralized import train_centralized
 from crchfl_sumo.learning.checkpoint import load_checkpoint
-from crchfl_sumo.learning.settings import CLASS_WEIGHTINGS, TrainConfig
+from crchfl_sumo.learning.settings import TrainConfig
 from crchfl_sumo.sumo.route import RouteGeometry, inside_crossing, next_signal, point_at, read_net, route_geometry
 from crchfl_sumo.sumo.scenario import load_scenario
 from crchfl_sumo.vision.camera import CAMERA_NAMES
@@ -314,26 +315,25 @@ def dagger_iterations(
     Iteration k (1, 2, ...) draws its routes with seed ``config.seed + k``, adds the
     labelled samples to ``train`` and to the earlier iterations' samples, and fine-tunes
     the current model on them all for ``epochs`` with the start checkpoint's training
-    settings but ``learning_rate`` and ``class_weighting`` (KEEP_START_WEIGHTING: the start's; training seed
-    ``seed + k``). Each iteration's folder
-    ``out_dir``/iteration-k holds expert_samples.npz, metrics.jsonl and checkpoint.pt;
-    ``out_dir``/checkpoint.pt is the last iteration's model and ``out_dir``/summary.json
-    lists the iterations. A rerun goes on after the last finished epoch. Returns the
+    settings but ``learning_rate`` and ``class_weighting`` (KEEP_START_WEIGHTING: the start's), training
+    seed ``seed + k``. Each iteration's folder ``out_dir``/iteration-k holds expert_samples.npz,
+    metrics.jsonl and checkpoint.pt; ``out_dir``/checkpoint.pt is the last iteration's model and
+    ``out_dir``/summary.json lists the iterations. A rerun goes on after the last finished epoch. Returns the
     summary's iteration records.
     """
     check_range(iterations, "dagger: iterations", 1, MAX_ITERATIONS, "a number of iterations")
     check_range(epochs, "dagger: epochs", 1, MAX_EPOCHS, "a number of epochs")
     check_seed(seed, "dagger: seed")
     check_range(learning_rate, "dagger: learning_rate", 0, 1, "a learning rate", lo_open=True)
-    if class_weighting not in (KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS):
+    if class_weighting not in FINE_TUNE_CLASS_WEIGHTINGS:
         raise CrchflError(f"dagger: class_weighting {class_weighting!r} is unknown; use one of "
-                          f"{', '.join(map(repr, (KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS)))}")
+                          f"{', '.join(map(repr, FINE_TUNE_CLASS_WEIGHTINGS))}")
     out_dir = Path(out_dir)
     start = load_checkpoint(checkpoint)
     train_config = from_mapping(TrainConfig, start.extra.get("train_config", {}), where=f"{checkpoint}: train_config")
-    train_config = dataclasses.replace(train_config, learning_rate=learning_rate,
-                                       class_weighting=train_config.class_weighting if class_weighting ==
-                                       KEEP_START_WEIGHTING else class_weighting)
+    train_config = dataclasses.replace(train_config, learning_rate=learning_rate)
+    if class_weighting != KEEP_START_WEIGHTING:
+        train_config = dataclasses.replace(train_config, class_weighting=class_weighting)
     drive_settings = {key: start.extra[key] for key in DRIVE_SETTINGS if key in start.extra}
     current, collected, records = Path(checkpoint), [], []
     for iteration in range(1, iterations + 1):

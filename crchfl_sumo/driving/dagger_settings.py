@@ -9,6 +9,7 @@ from crchfl_sumo.driving.drive import DriveConfig
 from crchfl_sumo.driving.drive_bench import STUCK_S
 from crchfl_sumo.driving.drive_bench_tasks import task_by_name
 from crchfl_sumo.driving.policies import RoutePolicyConfig
+from crchfl_sumo.learning.settings import CLASS_WEIGHTINGS
 
 # A learner standing within this of a stop line it must stop at is labelled to hold: the data set's
 # drivers never creep towards a red light, so a creep label there is one the data never gave.
@@ -23,6 +24,7 @@ FINE_TUNE_LEARNING_RATE = 1e-4
 # weights raised them further: a strong start model then left the route in T junctions it crossed straight
 # (docs/measurements.md, 2026-12-06, eighth).
 KEEP_START_WEIGHTING = "start"
+FINE_TUNE_CLASS_WEIGHTINGS = (KEEP_START_WEIGHTING, *CLASS_WEIGHTINGS)
 FINE_TUNE_CLASS_WEIGHTING = "none"
 MAX_ITERATIONS = 100
 
