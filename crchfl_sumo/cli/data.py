@@ -41,6 +41,9 @@ def run_dataset(args) -> int:
 def add_dataset_stats(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="data set folder (with manifest.json)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
+    p.add_argument("--scenario", default=None,
+                   help="the scenario whose junctions the turn commands are counted at (default: the one the "
+                        "manifest names; give it for a folder scenario)")
     overwrite_argument(p)
 
 
@@ -52,7 +55,13 @@ def run_dataset_stats(args) -> int:
     beside = args.out is None or args.out.resolve() == args.dir.resolve()
     with output_folder(args, "dataset-stats", out=args.dir if args.out is None else args.out,
                        beside=("dataset",) if beside else ()):
-        stats = write_dataset_stats(args.dir, args.out)
+        stats = write_dataset_stats(args.dir, args.out, args.scenario)
         files = ", ".join(f"{k}: {v}" for k, v in stats["files"].items())
     print(f"{stats['samples']} samples; steer classes (train) {stats['train']['steer_class_counts']}; {files}")
+    junctions = stats["junction_commands"]
+    if junctions is not None:
+        missing = junctions["missing"]
+        shown = ", ".join(missing[:12]) + (", ..." if len(missing) > 12 else "")
+        print(f"junction turn commands (train): {len(missing)} of the {junctions['offered']} the junctions offer "
+              f"have no sample" + (f": {shown}" if missing else ""))
     return 0

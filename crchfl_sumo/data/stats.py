@@ -18,9 +18,12 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.figures import pyplot, save_figure
 from crchfl_sumo.core.json_files import write_json
 from crchfl_sumo.data.expert import ExpertConfig
-from crchfl_sumo.data.labels import COMMAND_NAMES, NUM_COMMANDS, NUM_STEER_CLASSES, STEER_CLASS_VALUES
+from crchfl_sumo.data.labels import (
+    COMMAND_NAMES, LEFT, NUM_COMMANDS, NUM_STEER_CLASSES, RIGHT, STEER_CLASS_VALUES, STRAIGHT,
+)
 from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.data.recovery import FORWARD_M, LATERAL_M, YAW_DEG
+from crchfl_sumo.data.route_commands import command_from_turn
 from crchfl_sumo.data.shards import LABEL_SHAPES, open_shard, read_shard
 from crchfl_sumo.vision.camera import CAMERA_NAMES
 
@@ -199,8 +202,85 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
     return out_png
 
 
-def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None) -> dict[str, Any]:
-    """Stats JSON, summary figure and mosaic into ``out_dir`` (default: the data set folder).
+TURN_COMMANDS = (LEFT, RIGHT, STRAIGHT)
+
+
+def offered_commands(net) -> dict[str, set[int]]:
+    """Junction id -> the turn commands (LEFT, RIGHT, STRAIGHT) its connections offer, for every junction
+    where some approach has a choice (sumo.turns.choice_junctions); U-turns are no command."""
+    from crchfl_sumo.sumo.turns import choice_junctions
+
+    offered = {}
+    for junction in choice_junctions(net):
+        commands = set()
+        for edge in net.getNode(junction.id).getIncoming():
+            if edge.getFunction() == "internal":
+                continue
+            (ax, ay), (bx, by) = edge.getShape()[-2:]
+            for out, connections in edge.getOutgoing().items():
+                if out.getFunction() == "internal" or all(c.getDirection() == "t" for c in connections):
+                    continue
+                (cx, cy), (dx, dy) = out.getShape()[:2]
+                turn = np.arctan2(dy - cy, dx - cx) - np.arctan2(by - ay, bx - ax)
+                commands.add(int(command_from_turn(np.angle(np.exp(1j * turn)))))
+        offered[junction.id] = commands
+    return offered
+
+
+def junction_commands(net, x_m: np.ndarray, y_m: np.ndarray, command: np.ndarray) -> dict[str, Any]:
+    """The samples of each turn command at each junction with a choice, and the commands those junctions
+    offer that no sample shows.
+
+    A sample with a turn command counts at the choice junction whose centre is nearest: its command starts
+    CommandConfig.lookahead_m (25 m) before its junction and ends as the vehicle leaves it. Keys:
+    ``junctions`` (id -> {left, right, straight: samples, offered: [names]}), ``offered`` (junction-command
+    pairs in all), ``missing`` (["JUNCTION COMMAND", ...]: offered, no sample).
+    """
+    offered = offered_commands(net)
+    ids = sorted(offered)
+    table = {j: {COMMAND_NAMES[c]: 0 for c in TURN_COMMANDS} for j in ids}
+    turning = np.isin(command, TURN_COMMANDS)
+    if ids and turning.any():
+        centres = np.array([np.mean(net.getNode(j).getShape(), axis=0) for j in ids])
+        points = np.stack([x_m[turning], y_m[turning]], axis=1)
+        nearest = np.argmin(np.linalg.norm(points[:, None, :] - centres[None, :, :], axis=2), axis=1)
+        for j, c in zip(nearest, command[turning]):
+            table[ids[j]][COMMAND_NAMES[int(c)]] += 1
+    missing = [f"{j} {COMMAND_NAMES[c]}" for j in ids for c in TURN_COMMANDS
+               if c in offered[j] and not table[j][COMMAND_NAMES[c]]]
+    for j in ids:
+        table[j]["offered"] = [COMMAND_NAMES[c] for c in TURN_COMMANDS if c in offered[j]]
+    return {"junctions": table, "offered": sum(len(v) for v in offered.values()), "missing": missing}
+
+
+def dataset_junction_commands(root: str | Path, scenario: str | Path | None = None) -> dict[str, Any] | None:
+    """``junction_commands`` of the training split on the network of ``scenario`` (default: the one the
+    manifest names); None, with a log line, where that scenario cannot be found."""
+    from crchfl_sumo.sumo.route import read_net
+    from crchfl_sumo.sumo.scenario import load_scenario
+
+    root = Path(root)
+    manifest = read_manifest(root)
+    try:
+        net_path = load_scenario(scenario if scenario is not None else manifest.scenario).net_path
+    except CrchflError as exc:
+        log.info("no junction commands: %s (name its scenario with dataset-stats --scenario)", exc)
+        return None
+    xs, ys, commands = [], [], []
+    for entry in manifest.select("train"):
+        data = read_shard(root, entry, verify=False, images=False, image_hw=(manifest.image_height, manifest.image_width))
+        xs.append(data.x_m)
+        ys.append(data.y_m)
+        commands.append(data.command)
+    if not xs:
+        return None
+    return junction_commands(read_net(net_path), np.concatenate(xs), np.concatenate(ys), np.concatenate(commands))
+
+
+def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None,
+                        scenario: str | Path | None = None) -> dict[str, Any]:
+    """Stats JSON (with ``junction_commands``: dataset_junction_commands), summary figure and mosaic into
+    ``out_dir`` (default: the data set folder).
 
     Returns the statistics with the written paths under 'files'.
     """
@@ -208,6 +288,7 @@ def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None) -> 
     out_dir = Path(out_dir) if out_dir is not None else root
     out_dir.mkdir(parents=True, exist_ok=True)
     stats = dataset_stats(root)
+    stats["junction_commands"] = dataset_junction_commands(root, scenario)
     files = {"figure": str(plot_stats(stats, out_dir / "dataset_stats.png"))}
     if stats["train"]["samples"]:
         files["mosaic"] = str(write_mosaic(root, out_dir / "dataset_mosaic.png"))

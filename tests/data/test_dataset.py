@@ -336,3 +336,23 @@ def test_label_summary_tells_queue_samples_from_red_line_samples():
     perturbation = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0, 1.5], [0, 0, -3.0]], dtype=np.float32)  # on track, lateral, queue, red line
     summary = _label_summary(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n), perturbation, 0.1)
     assert (summary["recovery_share"], summary["queue_share"], summary["red_line_share"]) == (0.25, 0.25, 0.25)
+
+
+def test_junction_commands_count_turn_samples_at_the_nearest_junction_and_name_the_missing():
+    from crchfl_sumo.core.resources import scenarios_dir
+    from crchfl_sumo.data.labels import FOLLOW, LEFT, STRAIGHT
+    from crchfl_sumo.data.stats import junction_commands
+    from crchfl_sumo.sumo.route import read_net
+
+    net = read_net(scenarios_dir() / "town02" / "town02.net.xml")
+    # Town02: eight T-junctions (A to H), each offering left, right and straight; its four corners offer none
+    empty = junction_commands(net, np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+    assert empty["offered"] == 24 and len(empty["missing"]) == 24
+    assert sorted(empty["junctions"]) == list("ABCDEFGH")
+    gx, gy = net.getNode("G").getCoord()
+    x = np.array([gx, gx + 10.0, gx, 0.0])
+    y = np.array([gy, gy, gy - 10.0, 0.0])  # three samples at G, one at the corner SW (0, 0)
+    got = junction_commands(net, x, y, np.array([STRAIGHT, STRAIGHT, LEFT, FOLLOW]))
+    assert got["junctions"]["G"] == {"left": 1, "right": 0, "straight": 2, "offered": ["left", "right", "straight"]}
+    assert "G right" in got["missing"] and "G straight" not in got["missing"] and "G left" not in got["missing"]
+    assert len(got["missing"]) == 22
