@@ -134,6 +134,12 @@ def test_dataset_stats_writes_beside_its_data_set_and_refuses_another_commands_f
     assert main(["dataset-stats", str(data), "--out", str(trained)]) == 2
     assert "dataset-stats --out" in capsys.readouterr().err and sorted(p.name for p in trained.iterdir()) == [
         ".crchfl-sumo-train.json"]
+    # the scenario whose junctions are counted: an unknown one is refused, naming it, before anything is written
+    assert main(["dataset-stats", str(data), "--out", str(tmp_path / "s"), "--scenario", "no_such_town"]) == 2
+    assert "no_such_town" in capsys.readouterr().err and not (tmp_path / "s").exists()
+    assert main(["dataset-stats", str(data), "--out", str(tmp_path / "s"), "--scenario", "town02"]) == 0
+    out = capsys.readouterr().out
+    assert "junction turn commands (train):" in out and "of the 24 the junctions offer" in out
 
 
 def test_run_with_an_unknown_key_exits_2_naming_it(tmp_path, capsys):

@@ -52,6 +52,10 @@ def run_dataset_stats(args) -> int:
 
     if not args.dir.is_dir():
         raise CrchflError(f"{args.dir}: no data set folder there; give the folder `crchfl-sumo dataset` wrote")
+    if args.scenario is not None:
+        from crchfl_sumo.sumo.scenario import load_scenario
+
+        load_scenario(args.scenario)  # an unknown one is refused before any folder is written
     beside = args.out is None or args.out.resolve() == args.dir.resolve()
     with output_folder(args, "dataset-stats", out=args.dir if args.out is None else args.out,
                        beside=("dataset",) if beside else ()):

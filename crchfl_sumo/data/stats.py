@@ -254,18 +254,22 @@ def junction_commands(net, x_m: np.ndarray, y_m: np.ndarray, command: np.ndarray
 
 
 def dataset_junction_commands(root: str | Path, scenario: str | Path | None = None) -> dict[str, Any] | None:
-    """``junction_commands`` of the training split on the network of ``scenario`` (default: the one the
-    manifest names); None, with a log line, where that scenario cannot be found."""
+    """``junction_commands`` of the training split on the network of ``scenario``; without one, of the
+    scenario the manifest names, or None (with a log line) where that cannot be found. A ``scenario``
+    given that cannot be found raises CrchflError."""
     from crchfl_sumo.sumo.route import read_net
     from crchfl_sumo.sumo.scenario import load_scenario
 
     root = Path(root)
     manifest = read_manifest(root)
-    try:
-        net_path = load_scenario(scenario if scenario is not None else manifest.scenario).net_path
-    except CrchflError as exc:
-        log.info("no junction commands: %s (name its scenario with dataset-stats --scenario)", exc)
-        return None
+    if scenario is not None:
+        net_path = load_scenario(scenario).net_path
+    else:
+        try:
+            net_path = load_scenario(manifest.scenario).net_path
+        except CrchflError as exc:
+            log.info("no junction commands: %s (name its scenario with dataset-stats --scenario)", exc)
+            return None
     xs, ys, commands = [], [], []
     for entry in manifest.select("train"):
         data = read_shard(root, entry, verify=False, images=False, image_hw=(manifest.image_height, manifest.image_width))
@@ -286,9 +290,9 @@ def write_dataset_stats(root: str | Path, out_dir: str | Path | None = None,
     """
     root = Path(root)
     out_dir = Path(out_dir) if out_dir is not None else root
-    out_dir.mkdir(parents=True, exist_ok=True)
     stats = dataset_stats(root)
-    stats["junction_commands"] = dataset_junction_commands(root, scenario)
+    stats["junction_commands"] = dataset_junction_commands(root, scenario)  # before any write: it may refuse
+    out_dir.mkdir(parents=True, exist_ok=True)
     files = {"figure": str(plot_stats(stats, out_dir / "dataset_stats.png"))}
     if stats["train"]["samples"]:
         files["mosaic"] = str(write_mosaic(root, out_dir / "dataset_mosaic.png"))
