@@ -241,9 +241,10 @@ def junction_commands(net, x_m: np.ndarray, y_m: np.ndarray, command: np.ndarray
     table = {j: {COMMAND_NAMES[c]: 0 for c in TURN_COMMANDS} for j in ids}
     turning = np.isin(command, TURN_COMMANDS)
     if ids and turning.any():
+        from scipy.spatial import cKDTree
+
         centres = np.array([np.mean(net.getNode(j).getShape(), axis=0) for j in ids])
-        points = np.stack([x_m[turning], y_m[turning]], axis=1)
-        nearest = np.argmin(np.linalg.norm(points[:, None, :] - centres[None, :, :], axis=2), axis=1)
+        _, nearest = cKDTree(centres).query(np.stack([x_m[turning], y_m[turning]], axis=1))
         for j, c in zip(nearest, command[turning]):
             table[ids[j]][COMMAND_NAMES[int(c)]] += 1
     missing = [f"{j} {COMMAND_NAMES[c]}" for j in ids for c in TURN_COMMANDS
