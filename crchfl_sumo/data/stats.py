@@ -7,6 +7,7 @@ handful of samples (one per steer class where the data set has one).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -205,53 +206,52 @@ def write_mosaic(root: str | Path, out_png: Path, split: str = "train", min_widt
 TURN_COMMANDS = (LEFT, RIGHT, STRAIGHT)
 
 
-def offered_commands(net) -> dict[str, set[int]]:
-    """Junction id -> the turn commands (LEFT, RIGHT, STRAIGHT) its connections offer, for every junction
-    where some approach has a choice (sumo.turns.choice_junctions); U-turns are no command."""
-    from crchfl_sumo.sumo.turns import choice_junctions
-
-    offered = {}
-    for junction in choice_junctions(net):
-        commands = set()
-        for edge in net.getNode(junction.id).getIncoming():
-            if edge.getFunction() == "internal":
+def offered_commands(net, junction_id: str) -> set[int]:
+    """The turn commands (LEFT, RIGHT, STRAIGHT) the junction's connections offer, each read off the turn from
+    the incoming edge's last direction to the outgoing edge's first (route_commands.command_from_turn);
+    U-turns are no command."""
+    commands = set()
+    for edge in net.getNode(junction_id).getIncoming():
+        if edge.getFunction() == "internal":
+            continue
+        (ax, ay), (bx, by) = edge.getShape()[-2:]
+        for out, connections in edge.getOutgoing().items():
+            if out.getFunction() == "internal" or all(c.getDirection() == "t" for c in connections):
                 continue
-            (ax, ay), (bx, by) = edge.getShape()[-2:]
-            for out, connections in edge.getOutgoing().items():
-                if out.getFunction() == "internal" or all(c.getDirection() == "t" for c in connections):
-                    continue
-                (cx, cy), (dx, dy) = out.getShape()[:2]
-                turn = np.arctan2(dy - cy, dx - cx) - np.arctan2(by - ay, bx - ax)
-                commands.add(int(command_from_turn(np.angle(np.exp(1j * turn)))))
-        offered[junction.id] = commands
-    return offered
+            (cx, cy), (dx, dy) = out.getShape()[:2]
+            turn = math.remainder(math.atan2(dy - cy, dx - cx) - math.atan2(by - ay, bx - ax), 2 * math.pi)
+            commands.add(int(command_from_turn(turn)))
+    return commands
 
 
 def junction_commands(net, x_m: np.ndarray, y_m: np.ndarray, command: np.ndarray) -> dict[str, Any]:
-    """The samples of each turn command at each junction with a choice, and the commands those junctions
-    offer that no sample shows.
+    """The samples of each turn command at each junction with a choice (sumo.turns.choice_junctions), and
+    the commands those junctions offer that no sample shows.
 
     A sample with a turn command counts at the choice junction whose centre is nearest: its command starts
     CommandConfig.lookahead_m (25 m) before its junction and ends as the vehicle leaves it. Keys:
     ``junctions`` (id -> {left, right, straight: samples, offered: [names]}), ``offered`` (junction-command
     pairs in all), ``missing`` (["JUNCTION COMMAND", ...]: offered, no sample).
     """
-    offered = offered_commands(net)
-    ids = sorted(offered)
-    table = {j: {COMMAND_NAMES[c]: 0 for c in TURN_COMMANDS} for j in ids}
-    turning = np.isin(command, TURN_COMMANDS)
-    if ids and turning.any():
-        from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree
 
-        centres = np.array([np.mean(net.getNode(j).getShape(), axis=0) for j in ids])
+    from crchfl_sumo.sumo.turns import choice_junctions
+
+    junctions = choice_junctions(net)
+    counts = np.zeros((len(junctions), len(TURN_COMMANDS)), dtype=np.int64)
+    turning = np.isin(command, TURN_COMMANDS)
+    if junctions and turning.any():
+        centres = np.array([j.shape_m.mean(axis=0) for j in junctions])
         _, nearest = cKDTree(centres).query(np.stack([x_m[turning], y_m[turning]], axis=1))
-        for j, c in zip(nearest, command[turning]):
-            table[ids[j]][COMMAND_NAMES[int(c)]] += 1
-    missing = [f"{j} {COMMAND_NAMES[c]}" for j in ids for c in TURN_COMMANDS
-               if c in offered[j] and not table[j][COMMAND_NAMES[c]]]
-    for j in ids:
-        table[j]["offered"] = [COMMAND_NAMES[c] for c in TURN_COMMANDS if c in offered[j]]
-    return {"junctions": table, "offered": sum(len(v) for v in offered.values()), "missing": missing}
+        np.add.at(counts, (nearest, [TURN_COMMANDS.index(int(c)) for c in command[turning]]), 1)
+    table, missing, offered_in_all = {}, [], 0
+    for junction, row in zip(junctions, counts):
+        offered = [c for c in TURN_COMMANDS if c in offered_commands(net, junction.id)]
+        offered_in_all += len(offered)
+        missing += [f"{junction.id} {COMMAND_NAMES[c]}" for c in offered if not row[TURN_COMMANDS.index(c)]]
+        table[junction.id] = {**{COMMAND_NAMES[c]: int(n) for c, n in zip(TURN_COMMANDS, row)},
+                              "offered": [COMMAND_NAMES[c] for c in offered]}
+    return {"junctions": table, "offered": offered_in_all, "missing": missing}
 
 
 def dataset_junction_commands(root: str | Path, scenario: str | Path | None = None) -> dict[str, Any] | None:
