@@ -191,16 +191,28 @@ def _difference_words(d: Mapping[str, Any], scale: float = 100.0) -> str:
     return text
 
 
+# How the report names the closed-loop keys of summary.json "differences".
+CLOSED_LOOP_WORDS = {"success_rate": "closed-loop success", "driving_score": "driving score"}
+
+
 def _differences(diff: Mapping[str, Any], schemes: Mapping[str, Any]) -> list[str]:
     """CRCHFL against each scheme, paired by seed, in words; and when HFL's models are SFL's."""
     if not diff:
         return []
-    lines = ["", "CRCHFL minus each other scheme, paired by seed (the same data, start and traffic), with the "
-             "paired-t 95 % interval and p-value:", ""]
+    lines = ["", "CRCHFL minus each other model, paired by seed (the same data, start and traffic), with the "
+             "paired-t 95 % interval and p-value; the closed loop's success rate and driving score over all of a "
+             "seed's benchmark episodes, and then paired by episode (the same seed and route):", ""]
     for pair, keys in diff.items():
         other = NAMES.get(pair.split("-", 1)[1], pair)
-        parts = [f"{key.replace('_', ' ')} {_difference_words(d)}" for key, d in keys.items()]
-        lines.append(f"- over {other} ({keys[next(iter(keys))]['n']} seeds): " + "; ".join(parts) + ".")
+        by_seed = {key: d for key, d in keys.items() if key != "by_episode"}
+        parts = [f"{CLOSED_LOOP_WORDS.get(key, key.replace('_', ' '))} {_difference_words(d)}"
+                 for key, d in by_seed.items()]
+        line = f"- over {other} ({by_seed[next(iter(by_seed))]['n']} seeds): " + "; ".join(parts) + "."
+        if keys.get("by_episode"):
+            episodes = keys["by_episode"]
+            line += f" By episode ({episodes[next(iter(episodes))]['n']} pairs): " + "; ".join(
+                f"{CLOSED_LOOP_WORDS.get(key, key)} {_difference_words(d)}" for key, d in episodes.items()) + "."
+        lines.append(line)
     if ((schemes.get("hfl") or {}).get("hyper") or {}).get("cloud_interval") == 1 and "sfl" in schemes:
         lines += ["", "HFL runs here with cloud_interval 1: its two-tier sample-weighted average is then the flat "
                   "one of SFL, so the two train the same models round for round and differ only in the bytes "

@@ -12,6 +12,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.result_files import (
     CONFIG_JSON_FILE,
     DRIVE_METRICS_FILE,
+    EPISODES_FILE,
     METRICS_LOG_FILE,
     SUMMARY_FILE,
     TIMINGS_FILE,
@@ -61,8 +62,9 @@ def _ordered(names: Iterable[str], order: Sequence[str]) -> list[str]:
 
 
 def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
-    """label -> the drive-bench summary.json of ``bench_dir/LABEL``, or {"seeds": {seed: summary}} where
-    the benchmark drove every seed's model (``bench_dir/LABEL/seed-S/summary.json``)."""
+    """label -> the drive-bench summary.json of ``bench_dir/LABEL``, or {"seeds": {seed: summary}, "episodes":
+    {seed: episode records}} where the benchmark drove every seed's model (``bench_dir/LABEL/seed-S/``; a seed
+    without episodes.json has no records)."""
     bench: dict[str, dict[str, Any]] = {}
     if not bench_dir.is_dir():
         return bench
@@ -70,9 +72,13 @@ def read_benchmarks(bench_dir: Path) -> dict[str, dict[str, Any]]:
         if (folder / SUMMARY_FILE).is_file():
             bench[folder.name] = read_json(folder / SUMMARY_FILE)
         elif folder.is_dir():
-            seeds = {seed: read_json(path / SUMMARY_FILE) for seed, path in seed_folders(folder).items()}
-            if seeds:
-                bench[folder.name] = {"seeds": seeds}
+            found = seed_folders(folder)
+            if found:
+                bench[folder.name] = {
+                    "seeds": {seed: read_json(path / SUMMARY_FILE) for seed, path in found.items()},
+                    "episodes": {seed: read_json(path / EPISODES_FILE) for seed, path in found.items()
+                                 if (path / EPISODES_FILE).is_file()},
+                }
     return {label: bench[label] for label in _ordered(bench, MODEL_LABELS)}
 
 

@@ -79,6 +79,43 @@ def differences(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") 
     return out
 
 
+# The closed-loop figures compared model by model: each over all the benchmark episodes of a seed's model, or per
+# episode (summary.json "differences" and its "by_episode").
+BENCH_DIFFERENCE_KEYS = ("success_rate", "driving_score")
+
+
+def bench_differences(bench: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") -> dict[str, Any]:
+    """``PAIR[KEY]`` = ours - other over each seed's benchmark (success rate and driving score over all its
+    episodes), paired by seed; ``PAIR["by_episode"][KEY]`` = the same paired by episode (the same seed, town,
+    task, index and route; every seed's model drove the same episodes). For every other label whose every
+    seed's model drove (``bench_all_seeds``), PAIR ``ours-other``; none without ours."""
+    mine = bench.get(ours) or {}
+    if "seeds" not in mine:
+        return {}
+    out: dict[str, Any] = {}
+    for other, found in bench.items():
+        if other == ours or "seeds" not in found:
+            continue
+        pair = {key: paired_by_seed({s: bench_overall(r, key) for s, r in found["seeds"].items()},
+                                    {s: bench_overall(r, key) for s, r in mine["seeds"].items()})
+                for key in BENCH_DIFFERENCE_KEYS}
+        theirs = _episodes_by_key(found.get("episodes") or {})
+        both = [k for k in _episodes_by_key(mine.get("episodes") or {}).items() if k[0] in theirs]
+        if both:
+            pair["by_episode"] = {
+                key: paired_difference([float(theirs[k][field]) for k, _ in both], [float(r[field]) for _, r in both])
+                for key, field in (("success_rate", "success"), ("driving_score", "driving_score"))
+            }
+        out[f"{ours}-{other}"] = pair
+    return out
+
+
+def _episodes_by_key(episodes: Mapping[Any, Sequence[Mapping[str, Any]]]) -> dict[tuple, Mapping[str, Any]]:
+    """(seed, town, task, index, route) -> the episode's record."""
+    return {(seed, r["town"], r["task"], r["index"], tuple(r["edges"])): r
+            for seed, records in episodes.items() for r in records}
+
+
 def relative_gain_percent(ours: float | None, theirs: float | None) -> float | None:
     """How much higher ``ours`` is than ``theirs``, in percent of ``theirs``: 100 (a - b) / b."""
     if ours is None or theirs is None or theirs == 0:
@@ -336,6 +373,11 @@ def budget_curve(results: Mapping[str, Any]) -> dict[str, Any]:
             "bytes_to_accuracy": to_accuracy, "bytes_to_accuracy_seeds": to_accuracy_seeds}
 
 
+def _merged(first: Mapping[str, Mapping[str, Any]], second: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """PAIR -> the keys of both (a pair in one only keeps its own)."""
+    return {pair: {**first.get(pair, {}), **second.get(pair, {})} for pair in {**first, **second}}
+
+
 def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
     """summary.json: per scheme cloud_rounds, accuracies and losses (mean, std), bytes, closed loop."""
     schemes = {name: scheme_stats(runs) for name, runs in results["schemes"].items()}
@@ -359,7 +401,7 @@ def build_summary(results: Mapping[str, Any]) -> dict[str, Any]:
         "seeds": reproduce.get("seeds"),
         "schemes": schemes,
         "gains": gains(schemes),
-        "differences": differences(schemes),
+        "differences": _merged(differences(schemes), bench_differences(results["drive_bench"])),
         "baselines": baselines(results),
         "model": next((run["summary"].get("model") for runs in results["schemes"].values() for run in runs.values()),
                       None),

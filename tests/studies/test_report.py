@@ -307,3 +307,40 @@ def test_a_benchmark_of_every_seed_gives_all_episodes_and_the_spread_over_seeds(
     from crchfl_sumo.studies.report import format_summary
 
     assert "driving score 70.0, success 75 %" in format_summary(summary, results).splitlines()[0]
+
+
+def _fake_episodes(folder: Path, outcomes) -> None:
+    """episodes.json beside a benchmark's summary: (index, success, driving score) per episode, on Town01's
+    navigation suite, the route named by its index."""
+    (folder / "episodes.json").write_text(json.dumps([
+        {"town": "town01", "task": "navigation", "index": i, "edges": [f"e{i}"], "success": ok, "driving_score": score}
+        for i, ok, score in outcomes
+    ]))
+
+
+def test_the_closed_loop_is_compared_by_seed_and_by_episode(results):
+    for label, seed, success, score, outcomes in (
+        ("crchfl", 0, 0.5, 0.6, [(0, True, 0.9), (1, False, 0.3)]),
+        ("crchfl", 1, 1.0, 0.8, [(0, True, 1.0), (1, True, 0.6)]),
+        ("hfl", 0, 0.25, 0.5, [(0, False, 0.5), (1, False, 0.3)]),
+        ("hfl", 1, 0.5, 0.6, [(0, True, 1.0), (1, False, 0.2), (5, True, 1.0)]),  # episode 5: CRCHFL did not drive it
+    ):
+        _fake_bench(results / "drive_bench" / label / f"seed-{seed}", success, score, 2.0, 0)
+        _fake_episodes(results / "drive_bench" / label / f"seed-{seed}", outcomes)
+    _fake_bench(results / "drive_bench" / "reference", 1.0, 1.0, 2.5, 0)
+    summary = report_command(results)
+    pair = summary["differences"]["crchfl-hfl"]
+    assert pair["balanced_accuracy"]["mean"] == pytest.approx(0.03)  # the offline keys stay
+    # by seed: success 0.5 - 0.25 and 1.0 - 0.5, score 0.6 - 0.5 and 0.8 - 0.6
+    assert pair["success_rate"]["mean"] == pytest.approx(0.375) and pair["success_rate"]["n"] == 2
+    assert pair["driving_score"]["mean"] == pytest.approx(0.15)
+    # by episode, the 4 episodes both drove: success 1, 0, 0, 1; score 0.4, 0, 0, 0.4 (sd 0.23094, t(0.975, 3) 3.182446)
+    episodes = pair["by_episode"]
+    assert episodes["success_rate"]["mean"] == pytest.approx(0.5) and episodes["success_rate"]["n"] == 4
+    half = 3.182446 * (0.4 / math.sqrt(3)) / 2
+    assert episodes["driving_score"]["ci95"] == pytest.approx([0.2 - half, 0.2 + half], abs=1e-5)
+    assert "crchfl-reference" not in summary["differences"]  # one model, no seeds to pair
+    assert summary["differences"]["crchfl-sfl"].keys() == {"balanced_accuracy", "best_accuracy"}  # SFL did not drive
+    report = (results / "report.md").read_text()
+    assert "closed-loop success +37.50 points" in report
+    assert "By episode (4 pairs): closed-loop success +50.00 points" in report
