@@ -98,10 +98,13 @@ def format_summary(summary: Mapping[str, Any], out_dir: str | Path) -> str:
         lines.append(f"always straight: balanced accuracy {_fmt(straight.get('balanced_accuracy'))}, "
                      f"accuracy {_fmt(straight.get('accuracy'))}")
     for pair, keys in (summary.get("differences") or {}).items():
+        other = NAMES.get(pair.split("-", 1)[1], pair)
         d = keys.get("balanced_accuracy") or {}
         if d.get("n", 0) >= 2:
-            lines.append(f"CRCHFL minus {NAMES.get(pair.split('-', 1)[1], pair)}, balanced accuracy: "
-                         f"{_difference_words(d)}")
+            lines.append(f"CRCHFL minus {other}, balanced accuracy: {_difference_words(d)}")
+        d = (keys.get("by_episode") or {}).get("success_rate") or {}
+        if d.get("n", 0) >= 2:
+            lines.append(f"CRCHFL minus {other}, closed-loop success by episode: {_difference_words(d)}")
     if summary.get("budget_curve"):
         lines.append(lead_sentence(summary.get("budget_differences") or {}))
     best = summary["gains"].get("best_accuracy", {})

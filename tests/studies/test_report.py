@@ -344,3 +344,8 @@ def test_the_closed_loop_is_compared_by_seed_and_by_episode(results):
     report = (results / "report.md").read_text()
     assert "closed-loop success +37.50 points" in report
     assert "By episode (4 pairs): closed-loop success +50.00 points" in report
+    from crchfl_sumo.studies.report import format_summary
+
+    terminal = format_summary(summary, results)
+    assert "CRCHFL minus HFL, closed-loop success by episode: +50.00 points" in terminal
+    assert "CRCHFL minus SFL, closed-loop" not in terminal
