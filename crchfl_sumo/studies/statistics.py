@@ -82,6 +82,7 @@ def differences(schemes: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") 
 # The closed-loop figures compared model by model: each over all the benchmark episodes of a seed's model, or per
 # episode (summary.json "differences" and its "by_episode").
 BENCH_DIFFERENCE_KEYS = ("success_rate", "driving_score")
+EPISODE_FIELDS = {"success_rate": "success", "driving_score": "driving_score"}  # key -> an episode record's field
 
 
 def bench_differences(bench: Mapping[str, Mapping[str, Any]], ours: str = "crchfl") -> dict[str, Any]:
@@ -99,12 +100,14 @@ def bench_differences(bench: Mapping[str, Mapping[str, Any]], ours: str = "crchf
         pair = {key: paired_by_seed({s: bench_overall(r, key) for s, r in found["seeds"].items()},
                                     {s: bench_overall(r, key) for s, r in mine["seeds"].items()})
                 for key in BENCH_DIFFERENCE_KEYS}
-        theirs = _episodes_by_key(found.get("episodes") or {})
-        both = [k for k in _episodes_by_key(mine.get("episodes") or {}).items() if k[0] in theirs]
-        if both:
+        my_episodes = _episodes_by_key(mine.get("episodes") or {})
+        their_episodes = _episodes_by_key(found.get("episodes") or {})
+        shared = [episode for episode in my_episodes if episode in their_episodes]
+        if shared:
             pair["by_episode"] = {
-                key: paired_difference([float(theirs[k][field]) for k, _ in both], [float(r[field]) for _, r in both])
-                for key, field in (("success_rate", "success"), ("driving_score", "driving_score"))
+                key: paired_difference([float(their_episodes[e][field]) for e in shared],
+                                       [float(my_episodes[e][field]) for e in shared])
+                for key, field in EPISODE_FIELDS.items()
             }
         out[f"{ours}-{other}"] = pair
     return out
