@@ -20,7 +20,7 @@ from crchfl_sumo.core.intervals import distinguishable, paired_difference, t_int
 ALL = "all"  # the row that pools every cell
 
 
-def _key(record: Mapping[str, Any]) -> tuple:
+def episode_key(record: Mapping[str, Any]) -> tuple:
     """What makes two records the same episode: its draw, town, task, index and route."""
     return (record.get("draw", 0), record["town"], record["task"], record["index"], tuple(record["edges"]))
 
@@ -40,12 +40,12 @@ def success_stats(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 def paired_episodes(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> list[tuple]:
     """Each record of ``a`` with the record of ``b`` of the same episode; a CrchflError if they drove others."""
-    by_key_b = {_key(r): r for r in b}
-    if len(by_key_b) != len(b) or {_key(r) for r in a} != set(by_key_b):
+    by_key_b = {episode_key(r): r for r in b}
+    if len(by_key_b) != len(b) or {episode_key(r) for r in a} != set(by_key_b):
         raise CrchflError(
             "the two benchmarks drove different episodes; run both with the same --seed, --episodes, --towns and --tasks"
         )
-    return [(r, by_key_b[_key(r)]) for r in a]
+    return [(r, by_key_b[episode_key(r)]) for r in a]
 
 
 def compare_episodes(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:

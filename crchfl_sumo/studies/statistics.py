@@ -11,6 +11,7 @@ import numpy as np
 from crchfl_sumo.accounting.ledger import GIB, gb_label
 from crchfl_sumo.accounting.schedules import STAGES
 from crchfl_sumo.core.intervals import paired_difference, t_interval
+from crchfl_sumo.driving.drive_bench_compare import episode_key
 from crchfl_sumo.driving.drive_bench_score import pool_task_summaries
 
 # Section IV-B of the paper: CRCHFL's Accuracy over HFL's and SFL's under 20 GB.
@@ -93,14 +94,14 @@ def bench_differences(bench: Mapping[str, Mapping[str, Any]], ours: str = "crchf
     mine = bench.get(ours) or {}
     if "seeds" not in mine:
         return {}
+    my_seeds = {key: {s: bench_overall(r, key) for s, r in mine["seeds"].items()} for key in BENCH_DIFFERENCE_KEYS}
+    my_episodes = _episodes_by_key(mine.get("episodes") or {})
     out: dict[str, Any] = {}
     for other, found in bench.items():
         if other == ours or "seeds" not in found:
             continue
-        pair = {key: paired_by_seed({s: bench_overall(r, key) for s, r in found["seeds"].items()},
-                                    {s: bench_overall(r, key) for s, r in mine["seeds"].items()})
+        pair = {key: paired_by_seed({s: bench_overall(r, key) for s, r in found["seeds"].items()}, my_seeds[key])
                 for key in BENCH_DIFFERENCE_KEYS}
-        my_episodes = _episodes_by_key(mine.get("episodes") or {})
         their_episodes = _episodes_by_key(found.get("episodes") or {})
         shared = [episode for episode in my_episodes if episode in their_episodes]
         if shared:
@@ -114,9 +115,8 @@ def bench_differences(bench: Mapping[str, Mapping[str, Any]], ours: str = "crchf
 
 
 def _episodes_by_key(episodes: Mapping[Any, Sequence[Mapping[str, Any]]]) -> dict[tuple, Mapping[str, Any]]:
-    """(seed, town, task, index, route) -> the episode's record."""
-    return {(seed, r["town"], r["task"], r["index"], tuple(r["edges"])): r
-            for seed, records in episodes.items() for r in records}
+    """drive_bench_compare.episode_key (the seed as the draw) -> the episode's record."""
+    return {episode_key({**r, "draw": seed}): r for seed, records in episodes.items() for r in records}
 
 
 def relative_gain_percent(ours: float | None, theirs: float | None) -> float | None:
