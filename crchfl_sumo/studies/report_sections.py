@@ -277,33 +277,40 @@ def _experiment_e(summary: Mapping[str, Any], figures: Mapping[str, str]) -> lis
     return lines
 
 
+# The figures the budget curve's sentence speaks of, in its order
+LEAD_FIGURES = {"balanced_accuracy": "balanced accuracy", "driving_score": "closed-loop driving score"}
+
+
 def lead_sentence(differences: Mapping[str, Any]) -> str:
-    """One sentence: at which budgets CRCHFL's balanced accuracy is ahead of (or behind) each scheme beyond noise
-    (the paired 95 % interval excludes 0), and where it is not distinguishable."""
-    parts = []
-    for pair, by_budget in differences.items():
-        other = NAMES.get(pair.split("-", 1)[1], pair)
-        ahead, behind, even = [], [], []
-        for label, keys in by_budget.items():
-            d = keys.get("balanced_accuracy") or {}
-            if d.get("mean") is None:
-                continue
-            if not distinguishable(d.get("ci95")):
-                even.append(label)
-            else:
-                (ahead if d["mean"] > 0 else behind).append(label)
-        words = []
-        if ahead:
-            words.append(f"ahead beyond noise at {', '.join(ahead)} GB")
-        if behind:
-            words.append(f"behind beyond noise at {', '.join(behind)} GB")
-        if even:
-            words.append(f"not distinguishable at 95 % at {', '.join(even)} GB")
-        if words:
-            parts.append(f"over {other}, " + "; ".join(words))
-    if not parts:
+    """One sentence: at which budgets CRCHFL's balanced accuracy and driving score are ahead of (or behind)
+    each scheme beyond noise (the paired 95 % interval excludes 0), and where they are not distinguishable."""
+    clauses = []
+    for key, figure in LEAD_FIGURES.items():
+        parts = []
+        for pair, by_budget in differences.items():
+            words = _budget_words({label: keys.get(key) or {} for label, keys in by_budget.items()})
+            if words:
+                parts.append(f"over {NAMES.get(pair.split('-', 1)[1], pair)} " + ", ".join(words))
+        if parts:
+            clauses.append(f"{figure} " + "; ".join(parts))
+    if not clauses:
         return "CRCHFL against the other schemes by budget: no paired seeds to compare."
-    return "CRCHFL's balanced accuracy, paired by seed: " + "; ".join(parts) + "."
+    return "CRCHFL against the other schemes, paired by seed: " + "; ".join(clauses) + "."
+
+
+def _budget_words(by_budget: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The budgets where one paired difference is ahead, behind, or not distinguishable, in words."""
+    ahead, behind, even = [], [], []
+    for label, d in by_budget.items():
+        if d.get("mean") is None:
+            continue
+        if not distinguishable(d.get("ci95")):
+            even.append(label)
+        else:
+            (ahead if d["mean"] > 0 else behind).append(label)
+    return [f"{what} at {', '.join(labels)} GB" for what, labels in
+            (("ahead beyond noise", ahead), ("behind beyond noise", behind), ("not distinguishable at 95 %", even))
+            if labels]
 
 
 def _experiment_d(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list[str]:

@@ -349,3 +349,29 @@ def test_the_closed_loop_is_compared_by_seed_and_by_episode(results):
     terminal = format_summary(summary, results)
     assert "CRCHFL minus HFL, closed-loop success by episode: +50.00 points" in terminal
     assert "CRCHFL minus SFL, closed-loop" not in terminal
+
+
+def test_the_budget_sentence_says_where_crchfl_leads_in_accuracy_and_in_driving():
+    from crchfl_sumo.studies.report_sections import lead_sentence
+
+    def d(mean, lo, hi):
+        return {"mean": mean, "ci95": [lo, hi], "p": 0.01, "n": 3}
+
+    differences = {
+        "crchfl-hfl": {
+            "2.5": {"balanced_accuracy": d(0.15, -0.1, 0.4), "driving_score": d(0.26, 0.24, 0.28)},
+            "5": {"balanced_accuracy": d(0.13, 0.11, 0.16), "driving_score": d(-0.2, -0.3, -0.1)},
+        },
+        "crchfl-sfl": {
+            "2.5": {"balanced_accuracy": d(0.15, 0.1, 0.2)},  # no benchmark at 2.5 GB
+            "5": {"balanced_accuracy": d(-0.02, -0.03, -0.01), "driving_score": d(0.0, -0.1, 0.1)},
+        },
+    }
+    assert lead_sentence(differences) == (
+        "CRCHFL against the other schemes, paired by seed: "
+        "balanced accuracy over HFL ahead beyond noise at 5 GB, not distinguishable at 95 % at 2.5 GB; "
+        "over SFL ahead beyond noise at 2.5 GB, behind beyond noise at 5 GB; "
+        "closed-loop driving score over HFL ahead beyond noise at 2.5 GB, behind beyond noise at 5 GB; "
+        "over SFL not distinguishable at 95 % at 5 GB."
+    )
+    assert lead_sentence({}) == "CRCHFL against the other schemes by budget: no paired seeds to compare."

@@ -387,7 +387,7 @@ def test_tiny_budget_curve_end_to_end(tmp_path):
             assert list(summary["bytes_to_accuracy_seeds"][scheme][target].values()) == by_seed
             assert targets[target] == (None if None in by_seed else pytest.approx(sum(by_seed) / 2))
     report = (out / "report.md").read_text()
-    assert "## Experiment E" in report and "CRCHFL's balanced accuracy, paired by seed: over HFL" in report
+    assert "## Experiment E" in report and "CRCHFL against the other schemes, paired by seed: balanced accuracy over HFL" in report
     assert (out / summary["figures"]["budget"]).is_file()
 
 
