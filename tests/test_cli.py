@@ -117,7 +117,8 @@ def test_train_on_a_missing_data_set_exits_2(tmp_path, capsys):
 def test_train_refuses_a_red_or_yield_weight_out_of_range_before_writing(tmp_path, capsys):
     data = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
     for flag, value in (("--red-weight", "0.5"), ("--red-weight", "nan"), ("--red-window-m", "0"),
-                        ("--yield-weight", "0.5"), ("--yield-weight", "inf"), ("--yield-window-m", "51")):
+                        ("--yield-weight", "0.5"), ("--yield-weight", "inf"), ("--yield-window-m", "51"),
+                        ("--ema-decay", "1"), ("--ema-decay", "-0.1")):
         assert main(["train", str(data), "--out", str(tmp_path / "t"), flag, value]) == 2
         assert flag in capsys.readouterr().err  # named with its range
     assert not (tmp_path / "t").exists()

@@ -54,6 +54,11 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    default=TrainConfig.class_weighting,
                    help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
                    "multi-lane grid 'none' kept the straight head straight (docs/measurements.md)")
+    p.add_argument("--ema-decay", type=number_arg(0, 1, "a decay per step (0 = off)", hi_open=True),
+                   default=TrainConfig.ema_decay,
+                   help="keep, evaluate and save an exponential moving average of the weights over the steps, with "
+                   f"this decay per step (default {TrainConfig.ema_decay:g}: off; 0.998 averages about the last 500 "
+                   "steps; docs/model.md)")
     p.add_argument("--speed-input", choices=tuple(SPEED_INPUTS), default="none",
                    help="the ego's speed as an input of the throttle/brake branch (longitudinal) or of both branches; "
                    "default none (the paper's); measured in docs/measurements.md")
@@ -80,12 +85,13 @@ def run_train(args) -> int:
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          yield_weight=args.yield_weight, yield_window_m=args.yield_window_m,
-                         class_weighting=args.class_weighting)  # refused before any file
+                         class_weighting=args.class_weighting, ema_decay=args.ema_decay)  # refused before any file
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
     train_towns = args.train_towns
     leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                                 (("yield_weight", "yield_window_m"), args.yield_weight == TrainConfig.yield_weight),
                                 (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
+                                (("ema_decay",), args.ema_decay == TrainConfig.ema_decay),
                                 (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
                                 (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold),
                                 (("train_towns",), train_towns is None)))

@@ -75,9 +75,9 @@ def check_range(
 # --- argparse type= functions ---------------------------------------------------------------------
 
 
-def number_arg(lo: float, hi: float, what: str, lo_open: bool = False) -> Callable[[str], float]:
-    """argparse type: a finite float in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); ``what`` names the unit."""
-    wanted = f"{what} in {range_text(lo, hi, lo_open)}"
+def number_arg(lo: float, hi: float, what: str, lo_open: bool = False, hi_open: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite float in ``[lo, hi]`` (``lo_open``/``hi_open`` exclude an end); ``what`` names the unit."""
+    wanted = f"{what} in {range_text(lo, hi, lo_open, hi_open)}"
 
     def parse(text: str) -> float:
         try:
@@ -86,7 +86,7 @@ def number_arg(lo: float, hi: float, what: str, lo_open: bool = False) -> Callab
             raise argparse.ArgumentTypeError(f"{text!r} is not a number; give {wanted}") from None
         if not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"{text} is not a finite number; give {wanted}")
-        if not in_range(value, lo, hi, lo_open):
+        if not in_range(value, lo, hi, lo_open, hi_open):
             raise argparse.ArgumentTypeError(f"{text} is out of range; give {wanted}")
         return value
 

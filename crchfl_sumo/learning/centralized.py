@@ -111,7 +111,7 @@ def train_centralized(
         )
         train_metrics = trainer.train_epoch(train_on_device, generator, per_epoch)
         train_time_s = time.perf_counter() - start_s
-        test_metrics = evaluate(trainer.model, test_on_device, config).record()
+        test_metrics = evaluate(trainer.kept_model, test_on_device, config).record()
         record = {
             "epoch": epoch,
             **{k: v for k, v in test_metrics.items() if k != "samples"},
@@ -135,10 +135,13 @@ def train_centralized(
             "records": records,
             "samples": [len(train), len(test)],
         }
+        if trainer.average is not None:  # the checkpoint's weights are the average; a resume needs both
+            resume_state["trained_weights"] = trainer.model.state_dict()
+            resume_state["average"] = trainer.average.state_dict()
         save_checkpoint(
             checkpoint_path,
             model_config,
-            trainer.model.state_dict(),
+            trainer.kept_model.state_dict(),
             {
                 "epoch": epoch, "seed": seed, "train_config": to_mapping(config), "metrics": record,
                 "resume": resume_state, **(drive_settings or {}),
@@ -149,6 +152,7 @@ def train_centralized(
 
 
 RESUME_KEYS = {"optimizers", "generator", "records", "samples"}
+AVERAGE_RESUME_KEYS = {"trained_weights", "average"}  # besides, with train.ema_decay
 
 
 def _centralized_settings(train_config: Any) -> Any:
@@ -188,8 +192,12 @@ def _resume_training(
         )
     if len(records) > epochs:
         raise CrchflError(f"{used}: holds {len(records)} epochs already; ask for --epochs {len(records)} or more")
-    trainer.model.load_state_dict(checkpoint.state_dict)
     try:
+        if trainer.average is None:
+            trainer.model.load_state_dict(checkpoint.state_dict)
+        else:
+            trainer.model.load_state_dict(state["trained_weights"])
+            trainer.average.load_state_dict(state["average"])
         for optimizer, optimizer_state in zip(trainer.optimizers, state["optimizers"]):
             optimizer.load_state_dict(optimizer_state)
         generator.set_state(state["generator"])
@@ -215,7 +223,8 @@ def _resumable_checkpoint(path: Path) -> Checkpoint:
     check_weights(checkpoint.model_config, checkpoint.state_dict, str(path))
     state = checkpoint.extra.get("resume")
     if not (
-        isinstance(state, dict) and set(state) == RESUME_KEYS
+        isinstance(state, dict) and set(state) in (RESUME_KEYS, RESUME_KEYS | AVERAGE_RESUME_KEYS)
+        and all(isinstance(state.get(key, {}), dict) for key in AVERAGE_RESUME_KEYS)
         and isinstance(state["optimizers"], list) and len(state["optimizers"]) == 2
         and all(isinstance(o, dict) for o in state["optimizers"])
         and isinstance(state["generator"], torch.Tensor) and state["generator"].dtype == torch.uint8

@@ -329,6 +329,10 @@ class TrainConfig:
         on a CPU, else "fp32"), "fp32" (float32 throughout) or "bf16" (the forward pass under
         bfloat16 autocast, on CPU or CUDA; weights, gradients and Adam stay float32). docs/model.md
         measures both.
+    ema_decay: 0 (default) keeps the trained weights; above 0 a training keeps, evaluates and hands on
+        an exponential moving average of the weights over its steps instead (torch.optim.swa_utils;
+        0.998 averages about the last 500 steps). Sequential training only (not ``multi_vehicle``
+        "vmap"); docs/model.md.
     """
 
     learning_rate: float = 1e-3
@@ -349,6 +353,7 @@ class TrainConfig:
     # added later: left out of a checkpoint's train_config at their defaults, so older checkpoints still resume
     yield_weight: float = field(default=1.0, metadata={OMIT_DEFAULT: True})
     yield_window_m: float = field(default=30.0, metadata={OMIT_DEFAULT: True})
+    ema_decay: float = field(default=0.0, metadata={OMIT_DEFAULT: True})
 
     def __post_init__(self) -> None:
         check_range(self.red_weight, "train.red_weight", 1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)")
@@ -357,6 +362,8 @@ class TrainConfig:
         check_range(self.yield_weight, "train.yield_weight", 1, MAX_DRAW_WEIGHT, "a draw multiplier (1 = off)")
         check_range(self.yield_window_m, "train.yield_window_m", 0, MAX_YIELD_WINDOW_M,
                     "metres of a junction foe from the conflict point", lo_open=True)
+        # 1 would never move the average from the first step's weights
+        check_range(self.ema_decay, "train.ema_decay", 0, 1, "a decay per step (0 = off)", hi_open=True)
         if not 0 < self.learning_rate <= 10:
             raise CrchflError(f"train.learning_rate: {self.learning_rate} must lie in (0, 10] (paper: 1e-4)")
         for key in ("beta1", "beta2"):

@@ -34,6 +34,7 @@ import torch
 from torch import nn
 from torch.func import functional_call, grad, vmap
 from torch.nn import functional as F
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from crchfl_sumo.core.cpus import pinned_threads
 from crchfl_sumo.core.errors import CrchflError
@@ -117,7 +118,8 @@ class Learner:
     (The federation's Trainer, TorchTrainer and RayTrainer train many
     vehicles' models; a Learner is one model.) The model is owned by the
     learner and updated in place; ``state()`` gives
-    a CPU copy of its weights.
+    a CPU copy of the weights it keeps (``kept_model``: the model, or its
+    moving average with ``train.ema_decay``).
     """
 
     def __init__(self, model: nn.Module, config: TrainConfig, proximal_mu: float = 0.0) -> None:
@@ -138,13 +140,23 @@ class Learner:
         parts = [getattr(model, name, None) for name in ("branch_throttle_brake", "branch_steer")]
         parts = parts if all(isinstance(part, nn.Module) for part in parts) else [model]
         self.optimizers = tuple(torch.optim.Adam(part.parameters(), **adam) for part in parts)
+        # train.ema_decay: a moving average of the weights, updated after every step, is what the training keeps
+        self.average = (AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
+                        if config.ema_decay else None)
 
     @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 
+    @property
+    def kept_model(self) -> nn.Module:
+        """The network a training keeps, evaluates and hands on: the average of the weights where
+        ``train.ema_decay`` asks for one, else the trained model itself."""
+        return self.model if self.average is None else self.average.module
+
     def state(self) -> State:
-        return {name: t.detach().cpu().clone() for name, t in self.model.state_dict().items()}
+        """A CPU copy of the kept model's weights."""
+        return {name: t.detach().cpu().clone() for name, t in self.kept_model.state_dict().items()}
 
     @pinned_threads()  # each torch thread on a CPU of its own (core/cpus.py)
     def train_epoch(self, samples: Samples, generator: torch.Generator, progress: Progress | None = None) -> Metrics:
@@ -180,6 +192,8 @@ class Learner:
             loss.backward()
             for optimizer in self.optimizers:
                 optimizer.step()
+            if self.average is not None:
+                self.average.update_parameters(self.model)
             n = len(indices)
             with torch.no_grad():
                 # accuracy on the paper's classes, whatever the head's bins
@@ -245,6 +259,9 @@ def train_vehicles(
             "use multi_vehicle = 'sequential' or model.norm = 'group'"
         )
     if states and resolved_multi_vehicle(config, model_config, resolve_device(config.device).type) == "vmap":
+        if config.ema_decay:
+            raise CrchflError("train.ema_decay: the vectorised training (multi_vehicle 'vmap') keeps no average of "
+                              "the weights; set train.multi_vehicle = 'sequential' or train.ema_decay = 0")
         return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed)
     results = [
         train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i))

@@ -160,11 +160,12 @@ def test_train_resume_continues_a_folder_marked_while_precision_had_to_be_kept(t
     marker = tmp_path / "out" / ".crchfl-sumo-train.json"
     args = vars(build_parser().parse_args([*argv, "--epochs", "1"]))
     # (nor did --red-weight / --red-window-m / --class-weighting / --speed-input / --stop-head / --command-pedals /
-    # --red-hold / --train-towns / --yield-weight / --yield-window-m exist then; at their defaults, they are left out
+    # --red-hold / --train-towns / --yield-weight / --yield-window-m / --ema-decay exist then; at their defaults, they are left out
     # of the settings)
     formerly = {k: v for k, v in sorted(args.items()) if k not in NOT_SETTINGS
                 and k not in ("epochs", "red_weight", "red_window_m", "class_weighting", "speed_input", "stop_head",
-                              "command_pedals", "red_hold", "train_towns", "yield_weight", "yield_window_m")}
+                              "command_pedals", "red_hold", "train_towns", "yield_weight", "yield_window_m",
+                              "ema_decay")}
     stored = json.loads(marker.read_text())
     assert stored["resume_fingerprint"] != fingerprint(formerly)  # today's leaves precision out
     marker.write_text(json.dumps({**stored, "resume_fingerprint": fingerprint(formerly)}))
@@ -253,3 +254,35 @@ def test_settings_added_later_stay_out_of_a_checkpoints_train_config_at_their_de
     assert not {"yield_weight", "yield_window_m"} & set(to_mapping(TrainConfig()))
     assert to_mapping(TrainConfig(yield_weight=4.0))["yield_weight"] == 4.0
     assert to_mapping(TrainConfig(yield_window_m=20.0))["yield_window_m"] == 20.0
+
+
+EMA = TrainConfig(device="cpu", deterministic=True, sampling="class_balanced", ema_decay=0.9)
+
+
+def test_with_a_moving_average_the_checkpoint_holds_the_average_and_a_resume_ends_as_the_whole(data, tmp_path):
+    whole_dir, stopped_dir = tmp_path / "whole", tmp_path / "stopped"
+    whole_records = train_centralized(*data, 3, whole_dir, SMALL, EMA, seed=5)
+    train_centralized(*data, 2, stopped_dir, SMALL, EMA, seed=5)
+    records = train_centralized(*data, 3, stopped_dir, SMALL, EMA, seed=5, resume=True)
+    _assert_same_as_whole(records, stopped_dir, (whole_records, load_checkpoint(whole_dir / "checkpoint.pt").state_dict))
+    checkpoint = load_checkpoint(whole_dir / "checkpoint.pt")
+    resume = checkpoint.extra["resume"]
+    # the drivable weights are the average, not the last step's; the last step's travel with the resume state
+    assert any(not torch.equal(checkpoint.state_dict[k], resume["trained_weights"][k]) for k in checkpoint.state_dict)
+    assert all(torch.equal(checkpoint.state_dict[k], resume["average"]["module." + k]) for k in checkpoint.state_dict)
+    assert checkpoint.extra["train_config"]["ema_decay"] == 0.9
+    # a training without the average cannot continue it
+    with pytest.raises(CrchflError, match="other settings"):
+        train_centralized(*data, 4, stopped_dir, SMALL, CPU, seed=5, resume=True)
+
+
+def test_train_takes_the_moving_average_and_a_folder_without_it_still_resumes(tmp_path):
+    dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
+    argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--precision", "fp32"]
+    assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "1", "--ema-decay", "0.99"]) == 0
+    assert load_checkpoint(tmp_path / "ema" / "checkpoint.pt").extra["train_config"]["ema_decay"] == 0.99
+    assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "2", "--resume"]) == 2  # another setting
+    assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "2", "--resume", "--ema-decay", "0.99"]) == 0
+    # at its default the key stays out of the checkpoint, as before it existed
+    assert main([*argv, "--out", str(tmp_path / "plain"), "--epochs", "1"]) == 0
+    assert "ema_decay" not in load_checkpoint(tmp_path / "plain" / "checkpoint.pt").extra["train_config"]

@@ -102,6 +102,38 @@ def test_vmap_trainer_equals_the_sequential_loop_on_ragged_vehicles(model_config
                 assert math.isnan(a.loss) and math.isnan(b.loss)
 
 
+def test_the_moving_average_is_the_hand_computed_one_over_the_steps():
+    # 70 samples at batch 32: three steps. Record the trained weights after each; the kept weights are
+    # e1 = w1, e2 = d e1 + (1 - d) w2, e3 = d e2 + (1 - d) w3 (the average starts at the first step's weights).
+    decay = 0.75
+    trainer = Learner(build_model(SMALL, seed=0), TrainConfig(device="cpu", precision="fp32", ema_decay=decay))
+    after_steps = []
+    trainer.optimizers[-1].register_step_post_hook(
+        lambda *_: after_steps.append({k: v.detach().clone() for k, v in trainer.model.state_dict().items()}))
+    trainer.train_epoch(_samples(70, seed=1), torch.Generator().manual_seed(0))
+    assert len(after_steps) == 3
+    kept = trainer.state()
+    for name, value in kept.items():
+        expected = after_steps[0][name]
+        for weights in after_steps[1:]:
+            expected = decay * expected + (1 - decay) * weights[name]
+        assert torch.allclose(value, expected, rtol=0, atol=1e-6), name
+    assert _max_difference(kept, after_steps[-1]) > 1e-4  # the average is not the last step
+    assert trainer.kept_model is not trainer.model
+    plain = Learner(build_model(SMALL, seed=0), CPU)  # without: the trained model itself
+    assert plain.kept_model is plain.model and plain.average is None
+
+
+def test_the_moving_average_is_refused_where_the_vehicles_train_vectorised():
+    vehicles = [_samples(20, seed=3), _samples(12, seed=4)]
+    state = build_model(SMALL, seed=0).state_dict()
+    with pytest.raises(CrchflError, match="train.ema_decay: the vectorised training"):
+        train_vehicles([state, state], vehicles, 1, SMALL, TrainConfig(device="cpu", multi_vehicle="vmap",
+                                                                     ema_decay=0.9), seed=0)
+    with pytest.raises(CrchflError, match=r"train.ema_decay: 1 is out of range; give a decay per step \(0 = off\) in \[0, 1\)"):
+        TrainConfig(ema_decay=1.0)
+
+
 def test_train_vehicles_is_reproducible_and_seed_dependent():
     vehicles = [_samples(20, seed=3), _samples(12, seed=4)]
     state = build_model(SMALL, seed=0).state_dict()
