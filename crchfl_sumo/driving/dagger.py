@@ -331,7 +331,9 @@ def dagger_iterations(
     out_dir = Path(out_dir)
     start = load_checkpoint(checkpoint)
     train_config = from_mapping(TrainConfig, start.extra.get("train_config", {}), where=f"{checkpoint}: train_config")
-    train_config = dataclasses.replace(train_config, learning_rate=learning_rate)
+    # the fine-tune keeps its last step, as measured (docs/measurements.md, 2026-12-07, third): a start model
+    # trained with train.ema_decay does not pass its moving average on to the fine-tune
+    train_config = dataclasses.replace(train_config, learning_rate=learning_rate, ema_decay=0.0)
     if class_weighting != KEEP_START_WEIGHTING:
         train_config = dataclasses.replace(train_config, class_weighting=class_weighting)
     drive_settings = {key: start.extra[key] for key in DRIVE_SETTINGS if key in start.extra}

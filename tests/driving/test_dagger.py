@@ -107,6 +107,19 @@ def test_class_weighting_changes_only_the_fine_tunings_loss(start, ladder, tmp_p
     assert not _states_equal(kept.state_dict, unweighted.state_dict)
 
 
+def test_the_fine_tune_keeps_its_last_step_though_the_start_model_averaged_its_weights(start, ladder, tmp_path):
+    _, train, test = start
+    averaged = tmp_path / "averaged"
+    train_centralized(train, test, 1, averaged, SMALL,
+                      TrainConfig(device="cpu", deterministic=True, batch_size=4, ema_decay=0.9), seed=0)
+    assert load_checkpoint(averaged / "checkpoint.pt").extra["train_config"]["ema_decay"] == 0.9
+    dagger_iterations(averaged / "checkpoint.pt", train, test, tmp_path / "dagger", (str(ladder / "ladder.sumocfg"),),
+                      ROUND, iterations=1, epochs=1, seed=7)
+    tuned = load_checkpoint(tmp_path / "dagger" / "checkpoint.pt")
+    assert "ema_decay" not in tuned.extra["train_config"] and set(tuned.extra["resume"]) == {
+        "optimizers", "generator", "records", "samples"}
+
+
 def test_the_samples_do_not_depend_on_how_many_processes_drive(start, ladder):
     checkpoint, _, _ = start
     towns = (str(ladder / "ladder.sumocfg"),)
