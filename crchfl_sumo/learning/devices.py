@@ -71,11 +71,12 @@ def resolved_multi_vehicle(config: TrainConfig, model_config: ModelConfig, devic
 
     On a GPU one vectorised step for all vehicles launches a step's kernels once instead of once a
     vehicle (a step there is bound by launching, not arithmetic: 1.42x on an H200); on a CPU the
-    sequential loop is faster (docs/benchmarks.md). BatchNorm cannot be vmapped, so it stays sequential.
+    sequential loop is faster (docs/benchmarks.md). BatchNorm cannot be vmapped, and the vectorised step
+    keeps no moving average of the weights (``train.ema_decay``), so either stays sequential.
     """
     if config.multi_vehicle != "auto":
         return config.multi_vehicle
-    return "vmap" if device_type == "cuda" and vmappable(model_config) else "sequential"
+    return "vmap" if device_type == "cuda" and vmappable(model_config) and not config.ema_decay else "sequential"
 
 
 def vmappable(model_config: ModelConfig) -> bool:

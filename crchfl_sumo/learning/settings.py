@@ -331,8 +331,8 @@ class TrainConfig:
         measures both.
     ema_decay: 0 (default) keeps the trained weights; above 0 a training keeps, evaluates and hands on
         an exponential moving average of the weights over its steps instead (torch.optim.swa_utils;
-        0.998 averages about the last 500 steps). Sequential training only (not ``multi_vehicle``
-        "vmap"); docs/model.md.
+        0.998 averages about the last 500 steps). Sequential training only: ``multi_vehicle`` "auto"
+        then trains sequentially, "vmap" is refused; docs/model.md.
     """
 
     learning_rate: float = 1e-3
@@ -384,6 +384,9 @@ class TrainConfig:
             raise CrchflError(
                 f"train.multi_vehicle: {self.multi_vehicle!r} is unknown; use one of {', '.join(map(repr, MULTI_VEHICLE_METHODS))}"
             )
+        if self.multi_vehicle == "vmap" and self.ema_decay:
+            raise CrchflError("train.ema_decay: the vectorised training (multi_vehicle 'vmap') keeps no average of "
+                              "the weights; set train.multi_vehicle = 'sequential' or train.ema_decay = 0")
         if self.sampling not in SAMPLINGS:
             raise CrchflError(f"train.sampling: {self.sampling!r} is unknown; use one of {', '.join(map(repr, SAMPLINGS))}")
         if self.precision not in PRECISIONS:

@@ -259,9 +259,6 @@ def train_vehicles(
             "use multi_vehicle = 'sequential' or model.norm = 'group'"
         )
     if states and resolved_multi_vehicle(config, model_config, resolve_device(config.device).type) == "vmap":
-        if config.ema_decay:
-            raise CrchflError("train.ema_decay: the vectorised training (multi_vehicle 'vmap') keeps no average of "
-                              "the weights; set train.multi_vehicle = 'sequential' or train.ema_decay = 0")
         return _train_vehicles_vmap(states, vehicle_samples, epochs, model_config, config, seed)
     results = [
         train_vehicle(state, samples, epochs, model_config, config, vehicle_seed(seed, i))

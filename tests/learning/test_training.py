@@ -350,6 +350,8 @@ def test_auto_multi_vehicle_vmaps_on_a_gpu_only(method, device, norm, expected):
 
     model_config = ModelConfig("compact", 48, 64, norm=norm)
     assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method), model_config, device) == expected
+    if method == "auto":  # the vectorised step keeps no moving average of the weights
+        assert resolved_multi_vehicle(TrainConfig(multi_vehicle=method, ema_decay=0.9), model_config, device) == "sequential"
 
 
 def test_auto_multi_vehicle_on_the_cpu_trains_as_the_sequential_loop_bit_for_bit():
