@@ -171,12 +171,12 @@ def markdown_table(rows: Sequence[dict]) -> str:
             _fmt(r.get("driving_score_mean"), "{:.3f}"),
             _fmt(r.get("success_rate_mean"), "{:.3f}"),
             _fmt(r.get("mean_uplink_rate_mbps"), "{:.1f}"),
-            _fmt(r["cloud_rounds"]),
-            _fmt(r["handovers"]),
-            _fmt(r["stragglers"]),
+            _count(r["cloud_rounds"]),
+            _count(r["handovers"]),
+            _count(r["stragglers"]),
             _fmt(_scaled(r["relay_bytes"], MB), "{:.0f}"),
             _fmt(_scaled(r["wasted_bytes"], MB), "{:.0f}"),
-            f"{_fmt(r['uploads_failed'])}/{_fmt(r['uploads'])}",
+            f"{_count(r['uploads_failed'])}/{_count(r['uploads'])}",
             _fmt(r["sim_time_s"], "{:.0f}"),
             _fmt(r["stop_reason"]),
         ]
@@ -237,6 +237,11 @@ def _fmt(value: Any, spec: str = "{}") -> str:
     if value is None:
         return "-"
     return spec.format(value) if _is_number(value) else str(value)
+
+
+def _count(value: Any) -> str:
+    """A count, or the mean of a count over seeds: whole numbers as they are, other means to one decimal."""
+    return _fmt(value, "{:.0f}" if _is_number(value) and float(value).is_integer() else "{:.1f}")
 
 
 def _is_number(value: Any) -> bool:
