@@ -177,7 +177,6 @@ def test_report_reads_the_accuracies_against_always_straight(tmp_path):
         ("0.775", str(1 / 7))}
 
 
-
 def test_table_gives_a_count_averaged_over_seeds_to_one_decimal():
     study = _study({"name": "policy", "key": "federation.handover_policy", "values": ["new_edge", "miss"]})
     plan = StudyPlan((Point(BASELINE, {}, {}),), {"policy": (BASELINE, "miss")})
@@ -187,6 +186,7 @@ def test_table_gives_a_count_averaged_over_seeds_to_one_decimal():
     assert "| policy | miss | 2 | 0.515 | 0.315 [" in md
     assert "| 4.5 | 15 | 1.5 | 2 | 4 | 1.5/20 | 150 | budget |" in md
     assert "| policy | new_edge * | 2 | 0.500 | 0.300 [0.300, 0.300] | - | - | - | 3 | 0 | 0 | 0 | 0 | 0/20 | 0 |" in md
+
 
 # ------------------------------------------------------------------ a tiny real study
 
