@@ -15,11 +15,16 @@ Prints, last, the two named lines:
 Two recipes trained with several seeds: give each side's checkpoints separated by commas, the
 k-th of A and of B trained with the same seed. Every model drives the same draws; the tool prints
 each model's success, strict success, driving score and red lights per km, and per figure B - A
-paired by seed (crchfl_sumo.driving.drive_bench_compare.compare_models), ending with the named lines
+paired by seed (crchfl_sumo.driving.drive_bench_compare.compare_models), then every cell over all
+seeds paired by episode (seed, draw, town, task and route), ending with the named lines
     closed-loop success B-A over seeds: +X points [LO, HI] (p P)
     closed-loop strict success B-A over seeds: ...
     closed-loop driving score B-A over seeds: ...
     closed-loop red lights per km B-A over seeds: ...
+    closed-loop success B-A by episode over seeds: +X points [LO, HI] (p P)
+    closed-loop driving score B-A by episode over seeds: ...
+A draw folder that already holds an episodes.json is read, not driven again: benchmarks run
+elsewhere can be compared by placing them as OUT/{a,b}/model-K/draw-SEED/episodes.json.
 
 Usage: python tools/bench_checkpoints.py A.pt[,A2.pt,...] B.pt[,B2.pt,...] --out DIR [--seeds 0,8461]
        [--episodes 10] [--towns town01,town02] [--tasks straight,one_turn,navigation,navigation_traffic]
@@ -57,8 +62,9 @@ def _estimate(difference: dict, scale: float, digits: int, unit: str = "") -> st
     return f"{scale * difference['mean']:+.{digits}f}{unit}{interval}{p}"
 
 
-def named_line(what: str, difference: dict, scale: float) -> str:
-    return f"closed-loop {what} B-A: {_estimate(difference, scale, 1, ' points' if what == 'success' else '')}"
+def named_line(what: str, difference: dict, scale: float, where: str = "") -> str:
+    unit = " points" if what == "success" else ""
+    return f"closed-loop {what} B-A{where}: {_estimate(difference, scale, 1, unit)}"
 
 
 # How each MODEL_FIGURES figure is printed: its name in the named lines, the scale and the unit.
@@ -93,15 +99,20 @@ def compare_seeds(models_a: list[str], models_b: list[str], args, seeds, towns, 
     table = seeds_table(comparison, labels)
     (args.out / "comparison.json").write_text(json.dumps({"a": models_a, "b": models_b, "seeds": seeds,
                                                           **comparison}, indent=1) + "\n")
-    (args.out / "comparison.md").write_text(table)
+    cells = comparison_table(comparison["by_episode"], *labels)
+    (args.out / "comparison.md").write_text(table + "\n" + cells)
     print(f"A = {models_a}, B = {models_b}; draws {seeds}, {args.episodes} episodes per task, town and draw")
     for side, label in zip("ab", labels):
         c = comparison[side]
         lo, hi = c["success_ci95"]
         print(f"{label}: success {100 * c['success_rate']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}] of {c['episodes']}")
     print(table)
+    print(cells)
     for figure in MODEL_FIGURES:
         print(seeds_line(figure, comparison["differences"][figure]))
+    pooled = comparison["by_episode"][ALL]
+    print(named_line("success", pooled["success_difference"], 100, " by episode over seeds"))
+    print(named_line("driving score", pooled["driving_score_difference"], 100, " by episode over seeds"))
 
 
 def main() -> None:

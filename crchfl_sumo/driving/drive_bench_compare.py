@@ -20,9 +20,15 @@ from crchfl_sumo.core.intervals import distinguishable, paired_difference, t_int
 ALL = "all"  # the row that pools every cell
 
 
+# A record's tag naming the seed its model was trained with (compare_models): the k-th model of each
+# recipe drives the same episodes, so pooled over seeds an episode is one seed's, not one index's.
+SEED_SLOT = "seed_slot"
+
+
 def episode_key(record: Mapping[str, Any]) -> tuple:
-    """What makes two records the same episode: its draw, town, task, index and route."""
-    return (record.get("draw", 0), record["town"], record["task"], record["index"], tuple(record["edges"]))
+    """What makes two records the same episode: its model's seed slot, its draw, town, task, index and route."""
+    return (record.get(SEED_SLOT, 0), record.get("draw", 0), record["town"], record["task"], record["index"],
+            tuple(record["edges"]))
 
 
 def success_stats(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -129,7 +135,9 @@ def model_figures(records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequence[Mapping[str, Any]]]) -> dict:
     """Recipe A's and B's models (one episode list per model; the k-th of each trained with the same seed)
     on the same episodes: per recipe the pooled success with its Wilson interval and each model's
-    MODEL_FIGURES, and per figure B - A paired by seed (core.intervals.paired_difference)."""
+    MODEL_FIGURES, per figure B - A paired by seed (core.intervals.paired_difference), and under
+    ``by_episode`` the episodes of all seeds paired one by one (compare_episodes, each record tagged
+    with its SEED_SLOT so that seed 0's and seed 1's episode 3 stay two pairs)."""
     if len(a) != len(b) or not a:
         raise CrchflError(f"compare the same seeds: {len(a)} models of A against {len(b)} of B")
     for models_a, models_b in zip(a, b):
@@ -148,4 +156,5 @@ def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequenc
         figure: paired_difference([m[figure] for m in sides["a"]["models"]], [m[figure] for m in sides["b"]["models"]])
         for figure in MODEL_FIGURES
     }
-    return {**sides, "differences": differences}
+    tagged_a, tagged_b = ([{**r, SEED_SLOT: k} for k, m in enumerate(models) for r in m] for models in (a, b))
+    return {**sides, "differences": differences, "by_episode": compare_episodes(tagged_a, tagged_b)}

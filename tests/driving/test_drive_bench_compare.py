@@ -62,6 +62,11 @@ def test_recipes_compared_model_by_model_paired_by_seed():
     assert d["success"]["mean"] == pytest.approx(0.25) and d["success"]["n"] == 2  # (0 + 0.5) / 2
     assert d["strict_success"]["mean"] == pytest.approx(0.25)  # (0.5 + 0) / 2
     assert d["red_lights_per_km"]["mean"] == pytest.approx(0.5)  # (-1 + 2) / 2
+    # over seeds, episode by episode: 4 pairs, not 2 (both seeds drove episodes 0 and 1 of the same draw)
+    pooled = result["by_episode"][ALL]
+    assert pooled["success_difference"]["n"] == 4
+    assert pooled["success_difference"]["mean"] == pytest.approx(0.25)  # (0 + 0 + 1 + 0) / 4
+    assert pooled["driving_score_difference"]["mean"] == pytest.approx(0.125)  # (0.2 + 0 + 0.7 - 0.4) / 4
     with pytest.raises(CrchflError, match="the same seeds"):
         compare_models(a, b[:1])
     with pytest.raises(CrchflError, match="same --seed"):
