@@ -62,9 +62,11 @@ def _estimate(difference: dict, scale: float, digits: int, unit: str = "") -> st
     return f"{scale * difference['mean']:+.{digits}f}{unit}{interval}{p}"
 
 
-def named_line(what: str, difference: dict, scale: float, where: str = "") -> str:
-    unit = " points" if what == "success" else ""
-    return f"closed-loop {what} B-A{where}: {_estimate(difference, scale, 1, unit)}"
+def named_lines(pooled: dict, where: str = "") -> str:
+    """The two named lines of the pooled cell (compare_episodes' ALL): success and driving score B - A."""
+    return "\n".join(f"closed-loop {what} B-A{where}: {_estimate(pooled[key], 100, 1, unit)}"
+                     for what, key, unit in (("success", "success_difference", " points"),
+                                             ("driving score", "driving_score_difference", "")))
 
 
 # How each MODEL_FIGURES figure is printed: its name in the named lines, the scale and the unit.
@@ -110,9 +112,7 @@ def compare_seeds(models_a: list[str], models_b: list[str], args, seeds, towns, 
     print(cells)
     for figure in MODEL_FIGURES:
         print(seeds_line(figure, comparison["differences"][figure]))
-    pooled = comparison["by_episode"][ALL]
-    print(named_line("success", pooled["success_difference"], 100, " by episode over seeds"))
-    print(named_line("driving score", pooled["driving_score_difference"], 100, " by episode over seeds"))
+    print(named_lines(comparison["by_episode"][ALL], " by episode over seeds"))
 
 
 def main() -> None:
@@ -144,8 +144,7 @@ def main() -> None:
     (args.out / "comparison.md").write_text(table)
     print(f"A = {args.a}, B = {args.b}; draws {seeds}, {args.episodes} episodes per task, town and draw")
     print(table)
-    print(named_line("success", comparison[ALL]["success_difference"], 100))
-    print(named_line("driving score", comparison[ALL]["driving_score_difference"], 100))
+    print(named_lines(comparison[ALL]))
 
 
 if __name__ == "__main__":

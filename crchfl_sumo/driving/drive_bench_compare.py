@@ -140,8 +140,9 @@ def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequenc
     with its SEED_SLOT so that seed 0's and seed 1's episode 3 stay two pairs)."""
     if len(a) != len(b) or not a:
         raise CrchflError(f"compare the same seeds: {len(a)} models of A against {len(b)} of B")
-    for models_a, models_b in zip(a, b):
-        paired_episodes(models_a, models_b)  # refuses models that drove other episodes
+    # paired episode by episode first: compare_episodes refuses a model that drove other episodes
+    tagged_a, tagged_b = ([{**r, SEED_SLOT: k} for k, m in enumerate(models) for r in m] for models in (a, b))
+    by_episode = compare_episodes(tagged_a, tagged_b)
     sides = {}
     for name, models in (("a", a), ("b", b)):
         pooled = [r for m in models for r in m]
@@ -156,5 +157,4 @@ def compare_models(a: Sequence[Sequence[Mapping[str, Any]]], b: Sequence[Sequenc
         figure: paired_difference([m[figure] for m in sides["a"]["models"]], [m[figure] for m in sides["b"]["models"]])
         for figure in MODEL_FIGURES
     }
-    tagged_a, tagged_b = ([{**r, SEED_SLOT: k} for k, m in enumerate(models) for r in m] for models in (a, b))
-    return {**sides, "differences": differences, "by_episode": compare_episodes(tagged_a, tagged_b)}
+    return {**sides, "differences": differences, "by_episode": by_episode}
