@@ -7,9 +7,9 @@ from pathlib import Path
 
 from crchfl_sumo.cli.arguments import comma_list, leave_out_at_default, output_folder, overwrite_argument
 from crchfl_sumo.cli.progress_bars import ProgressBars
-from crchfl_sumo.core.numbers import MAX_EPOCHS, integer_arg, number_arg, seed_arg
+from crchfl_sumo.core.numbers import MAX_EPOCHS, auto_or, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import (
-    ARCHS, CLASS_WEIGHTINGS, MAX_DRAW_WEIGHT, MAX_RED_WINDOW_M, MAX_YIELD_WINDOW_M, PRECISIONS, SPEED_INPUTS,
+    ARCHS, AUTO_EMA_DECAY, CLASS_WEIGHTINGS, MAX_DRAW_WEIGHT, MAX_RED_WINDOW_M, MAX_YIELD_WINDOW_M, PRECISIONS, SPEED_INPUTS,
     TrainConfig,
 )
 
@@ -54,11 +54,11 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    default=TrainConfig.class_weighting,
                    help=f"weights of the steer classes in the loss (default {TrainConfig.class_weighting}); on the "
                    "multi-lane grid 'none' kept the straight head straight (docs/measurements.md)")
-    p.add_argument("--ema-decay", type=number_arg(0, 1, "a decay per step (0 = off)", hi_open=True),
-                   default=TrainConfig.ema_decay,
+    p.add_argument("--ema-decay", type=auto_or(number_arg(0, 1, "a decay per step (0 = off)", hi_open=True)),
+                   default="auto",
                    help="keep, evaluate and save an exponential moving average of the weights over the steps, with "
-                   f"this decay per step (default {TrainConfig.ema_decay:g}: off; 0.998 averages about the last 500 "
-                   "steps; docs/model.md)")
+                   f"this decay per step; 0: off (default auto: {AUTO_EMA_DECAY:g}, about the last 500 steps, or the "
+                   "last two epochs' steps where they are fewer; a folder resumed keeps its own; docs/model.md)")
     p.add_argument("--speed-input", choices=tuple(SPEED_INPUTS), default="none",
                    help="the ego's speed as an input of the throttle/brake branch (longitudinal) or of both branches; "
                    "default none (the paper's); measured in docs/measurements.md")
@@ -85,13 +85,14 @@ def run_train(args) -> int:
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          yield_weight=args.yield_weight, yield_window_m=args.yield_window_m,
-                         class_weighting=args.class_weighting, ema_decay=args.ema_decay)  # refused before any file
+                         class_weighting=args.class_weighting,
+                         ema_decay=0.0 if args.ema_decay == "auto" else args.ema_decay)  # refused before any file
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
-    train_towns = args.train_towns
+    train_towns, auto_ema = args.train_towns, args.ema_decay == "auto"
     leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                                 (("yield_weight", "yield_window_m"), args.yield_weight == TrainConfig.yield_weight),
                                 (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),
-                                (("ema_decay",), args.ema_decay == TrainConfig.ema_decay),
+                                (("ema_decay",), auto_ema),
                                 (("speed_input",), speed_input == "none"), (("stop_head",), args.stop_head is None),
                                 (("command_pedals",), not args.command_pedals), (("red_hold",), not args.red_hold),
                                 (("train_towns",), train_towns is None)))
@@ -100,7 +101,7 @@ def run_train(args) -> int:
             last = train_command(args.dataset, args.out, args.epochs, args.size, args.arch, config, args.seed,
                                  resume=args.resume, overwrite=args.overwrite, progress=bars, speed_input=speed_input,
                                  stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
-                                 train_towns=train_towns)
+                                 train_towns=train_towns, auto_ema=auto_ema)
         straight = last["always_straight"]
     print(
         f"epoch {last['epoch']}: test loss {last['loss']:.4f}, accuracy {last['accuracy']:.3f} "

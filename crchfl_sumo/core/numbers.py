@@ -94,6 +94,21 @@ def number_arg(lo: float, hi: float, what: str, lo_open: bool = False, hi_open: 
     return parse
 
 
+def auto_or(parse: Callable[[str], float]) -> Callable[[str], float | str]:
+    """argparse type: "auto", or a number as ``parse`` (number_arg's) takes it."""
+
+    def parse_auto(text: str) -> float | str:
+        if text == "auto":
+            return text
+        try:
+            return parse(text)
+        except argparse.ArgumentTypeError as error:
+            raise argparse.ArgumentTypeError(f"{error}, or auto") from None
+
+    parse_auto.__name__ = parse.__name__
+    return parse_auto
+
+
 def integer_arg(lo: int, hi: int, what: str) -> Callable[[str], int]:
     """argparse type: an integer in ``[lo, hi]``; ``what`` as in "give {what} in 1 .. 10"."""
     wanted = f"{what} in {lo} .. {hi}"

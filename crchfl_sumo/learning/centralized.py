@@ -26,11 +26,10 @@ from crchfl_sumo.learning.checkpoint import Checkpoint, check_weights, load_chec
 from crchfl_sumo.learning.devices import configure_determinism, resolve_device
 from crchfl_sumo.learning.evaluation import always_straight
 from crchfl_sumo.learning.model import State, build_model, check_signal_labels, model_from_state, with_training_data
-from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig
+from crchfl_sumo.learning.settings import SPEED_INPUTS, ModelConfig, TrainConfig, auto_ema_decay
 from crchfl_sumo.learning.training import Learner, evaluate
 
 log = logging.getLogger(__name__)
-
 
 
 def train_centralized(
@@ -92,13 +91,13 @@ def train_centralized(
     trainer = Learner(model.to(device), config)
     generator = torch.Generator().manual_seed(seed)
     checkpoint_path = out_dir / MODEL_FILE
-    if not (resume or overwrite) and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
+    if not (resume or overwrite) and _holds_checkpoint(checkpoint_path):
         raise CrchflError(
             f"{out_dir}: holds a training's checkpoint; pass --resume to continue it, --overwrite to train "
             "afresh over it, or choose another --out"
         )
     records: list[dict] = []
-    if resume and (checkpoint_path.exists() or previous_path(checkpoint_path).exists()):
+    if resume and _holds_checkpoint(checkpoint_path):
         records = _resume_training(checkpoint_path, trainer, generator, seed, epochs, (len(train), len(test)))
         atomic_write_text(out_dir / METRICS_LOG_FILE, "".join(json.dumps(r) + "\n" for r in records))  # as checkpointed
     train_on_device, test_on_device = train.to(device), test.to(device)
@@ -243,12 +242,13 @@ def train_command(
     dataset: str | Path, out_dir: str | Path, epochs: int, size: str, arch: str, config: TrainConfig, seed: int,
     resume: bool = False, overwrite: bool = False, progress: Progress | None = None, speed_input: str = "none",
     stop_head: bool | None = None, command_pedals: bool = False, red_hold: bool = False,
-    train_towns: Sequence[str] | None = None,
+    train_towns: Sequence[str] | None = None, auto_ema: bool = False,
 ) -> dict[str, Any]:
     """What `crchfl-sumo train` does: the model of ``size`` and ``arch`` at the data set's image size and speed
     horizon (and the speed as the input ``speed_input`` names: SPEED_INPUTS; ``stop_head``, ``command_pedals``, ``red_hold``: ModelConfig's),
     trained on its train shards (``train_towns``: those towns' only) and evaluated on its test shards (all of them);
-    the last epoch's metrics line."""
+    the last epoch's metrics line. ``auto_ema``: `train`'s default moving average (auto_ema_decay) in place of
+    ``config.ema_decay``; a folder resumed keeps the one its checkpoint trained with (0 before the default)."""
     manifest = read_manifest(dataset)
     train = load_samples(dataset, "train", manifest.town_vehicles(train_towns, str(dataset)))
     test = load_samples(dataset, "test")
@@ -256,8 +256,26 @@ def train_command(
                                stop_head=stop_head, command_pedals=command_pedals, red_hold=red_hold,
                                **SPEED_INPUTS[speed_input])
     check_signal_labels(model_config, train.signal_state, str(dataset))
+    if auto_ema:
+        checkpoint_path = Path(out_dir) / MODEL_FILE
+        resumed = resume and _holds_checkpoint(checkpoint_path)
+        config = dataclasses.replace(config, ema_decay=_checkpointed_ema_decay(checkpoint_path) if resumed
+                                     else auto_ema_decay(len(train), config.batch_size))
     records = train_centralized(
         train, test, epochs, out_dir, model_config, config, seed, progress=progress,
         drive_settings=manifest.drive_settings(f"{dataset}/manifest.json"), resume=resume, overwrite=overwrite,
     )
     return records[-1]
+
+
+def _holds_checkpoint(path: Path) -> bool:
+    """Whether a training wrote the checkpoint ``path``, or its previous copy (core.atomic)."""
+    return path.exists() or previous_path(path).exists()
+
+
+def _checkpointed_ema_decay(path: Path) -> float:
+    """The ``ema_decay`` the checkpoint at ``path`` (or its previous copy) trained with (absent: 0, as before
+    `train` averaged by default)."""
+    checkpoint, _ = read_latest(path, _resumable_checkpoint, "checkpoint", "delete the folder to train afresh")
+    train_config = checkpoint.extra.get("train_config")
+    return float(train_config.get("ema_decay", 0.0)) if isinstance(train_config, dict) else 0.0

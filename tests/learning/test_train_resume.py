@@ -277,12 +277,33 @@ def test_with_a_moving_average_the_checkpoint_holds_the_average_and_a_resume_end
 
 
 def test_train_takes_the_moving_average_and_a_folder_without_it_still_resumes(tmp_path):
+    import shutil
+
     dataset = write_dataset(tmp_path / "data", PAPER_VEHICLES, samples=(6, 6, 6, 6, 6), test_samples=5)
     argv = ["train", str(dataset), "--seed", "3", "--device", "cpu", "--precision", "fp32"]
     assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "1", "--ema-decay", "0.99"]) == 0
     assert load_checkpoint(tmp_path / "ema" / "checkpoint.pt").extra["train_config"]["ema_decay"] == 0.99
     assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "2", "--resume"]) == 2  # another setting
     assert main([*argv, "--out", str(tmp_path / "ema"), "--epochs", "2", "--resume", "--ema-decay", "0.99"]) == 0
-    # at its default the key stays out of the checkpoint, as before it existed
+    # the default averages: 30 samples in batches of 32 are one step an epoch, so the last two epochs' steps
     assert main([*argv, "--out", str(tmp_path / "plain"), "--epochs", "1"]) == 0
-    assert "ema_decay" not in load_checkpoint(tmp_path / "plain" / "checkpoint.pt").extra["train_config"]
+    assert load_checkpoint(tmp_path / "plain" / "checkpoint.pt").extra["train_config"]["ema_decay"] == 0.5
+    # 0 turns it off, and the key stays out of the checkpoint, as before it existed
+    assert main([*argv, "--out", str(tmp_path / "off"), "--epochs", "1", "--ema-decay", "0"]) == 0
+    assert "ema_decay" not in load_checkpoint(tmp_path / "off" / "checkpoint.pt").extra["train_config"]
+    # a folder trained before the default (no average; its marker that of the default's command line) resumes at
+    # the default without one; a folder of the default resumes with its own
+    marker = ".crchfl-sumo-train.json"
+    shutil.copy(tmp_path / "plain" / marker, tmp_path / "off" / marker)
+    for folder, decay in (("off", None), ("plain", 0.5)):
+        assert main([*argv, "--out", str(tmp_path / folder), "--epochs", "2", "--resume"]) == 0
+        checkpoint = load_checkpoint(tmp_path / folder / "checkpoint.pt")
+        assert (checkpoint.extra["epoch"], checkpoint.extra["train_config"].get("ema_decay")) == (2, decay)
+
+
+def test_trains_default_moving_average_spans_at_most_the_last_two_epochs():
+    from crchfl_sumo.learning.settings import auto_ema_decay
+
+    assert auto_ema_decay(12_584, 32) == 0.998  # the paper data set: 394 steps an epoch, 1 - 0.5 / 394 > 0.998
+    assert auto_ema_decay(5_856, 32) == 1 - 0.5 / 183  # its Town01 shards: 183 steps an epoch
+    assert auto_ema_decay(30, 32) == 0.5 and auto_ema_decay(64, 32) == 0.75
