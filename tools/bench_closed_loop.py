@@ -9,6 +9,8 @@ figures.
 
 Recipes are NAME=KEY:VALUE,KEY:VALUE with keys of ModelConfig or TrainConfig,
 for example  base=  speed=speed_input:true  pedals=speed_input:true,sampling:pedal_balanced
+A recipe that names no ema_decay keeps `train`'s default moving average (settings.auto_ema_decay);
+ema_decay:0 trains without it.
 
 Usage: python tools/bench_closed_loop.py DATASET --out DIR [--epochs 6] [--episodes 6]
        [--tasks straight,one_turn] [--towns town01] [--train-towns TOWNS] [--jobs 2]
@@ -29,7 +31,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.dataset import load_samples
 from crchfl_sumo.data.manifest import read_manifest
 from crchfl_sumo.driving.drive_bench import BenchConfig, run_benchmark
-from crchfl_sumo.learning.settings import ModelConfig, TrainConfig
+from crchfl_sumo.learning.settings import ModelConfig, TrainConfig, auto_ema_decay
 from crchfl_sumo.learning.centralized import train_centralized
 
 MODEL_KEYS = {f.name for f in dataclasses.fields(ModelConfig)}
@@ -98,7 +100,8 @@ def main() -> None:
             train, test, args.epochs, folder,
             ModelConfig(**{"image_height": 64, "image_width": 128, "speed_horizon_s": manifest.speed_horizon_s,
                            **model_overrides}),
-            TrainConfig(**train_overrides), args.seed,
+            TrainConfig(**{"ema_decay": auto_ema_decay(len(train), TrainConfig(**train_overrides).batch_size),
+                           **train_overrides}), args.seed,
             drive_settings=manifest.drive_settings(f"{args.dataset}/manifest.json"), overwrite=True,
         )
         best = records[-1]
