@@ -9,8 +9,8 @@ from crchfl_sumo.cli.arguments import comma_list, leave_out_at_default, output_f
 from crchfl_sumo.cli.progress_bars import ProgressBars
 from crchfl_sumo.core.numbers import MAX_EPOCHS, auto_or, integer_arg, number_arg, seed_arg
 from crchfl_sumo.learning.settings import (
-    ARCHS, AUTO_EMA_DECAY, CLASS_WEIGHTINGS, MAX_DRAW_WEIGHT, MAX_RED_WINDOW_M, MAX_YIELD_WINDOW_M, PRECISIONS, SPEED_INPUTS,
-    TrainConfig,
+    ARCHS, AUTO_EMA_DECAY, CLASS_WEIGHTINGS, MAX_DRAW_WEIGHT, MAX_RED_WINDOW_M, MAX_YIELD_WINDOW_M, PRECISIONS,
+    SPEED_INPUTS, TrainConfig,
 )
 
 
@@ -86,7 +86,8 @@ def run_train(args) -> int:
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          yield_weight=args.yield_weight, yield_window_m=args.yield_window_m,
                          class_weighting=args.class_weighting,
-                         ema_decay=0.0 if args.ema_decay == "auto" else args.ema_decay)  # refused before any file
+                         # refused before any file; "auto" is resolved from the data (train_command)
+                         ema_decay=0.0 if args.ema_decay == "auto" else args.ema_decay)
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
     train_towns, auto_ema = args.train_towns, args.ema_decay == "auto"
     leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
