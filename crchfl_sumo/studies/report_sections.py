@@ -343,7 +343,8 @@ def _closed_loop(summary: Mapping[str, Any], figures: Mapping[str, str]) -> list
         return []
     lines = [
         "", "## Closed loop: each scheme's best model drives", "",
-        "The model of the seed with the highest balanced accuracy (its best_model.pt; centralized: the last "
+        "The model of the seed with the highest balanced accuracy (its best_model.pt, final_model.pt where its "
+        "vehicles labelled with DAgger; centralized: the last "
         "epoch of the seed that ended best) drives each route in SUMO; the reference is the scripted driver.",
     ]
     for route, labels in summary["closed_loop"].items():

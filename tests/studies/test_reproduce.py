@@ -106,6 +106,23 @@ def test_a_seed_names_its_own_model():
     assert model_for(Path("r"), "centralized_dagger", 1) == Path("r/centralized_dagger/seed-1/checkpoint.pt")
 
 
+def test_a_run_whose_vehicles_labelled_with_dagger_drives_its_last_model(tmp_path):
+    import json
+
+    from crchfl_sumo.studies.reproduce import model_for
+
+    for seed, summary in ((0, {"balanced_accuracy": 0.7, "dagger_rounds": [3, 6]}), (1, {"balanced_accuracy": 0.6}),
+                          (2, {"balanced_accuracy": 0.5, "dagger_rounds": []})):
+        (tmp_path / "runs" / "hfl" / f"seed-{seed}").mkdir(parents=True)
+        (tmp_path / "runs" / "hfl" / f"seed-{seed}" / "summary.json").write_text(json.dumps(summary))
+    runs = tmp_path / "runs" / "hfl"
+    # the best offline round cannot judge what the labels teach: a [dagger] run's last cloud model drives
+    assert model_for(tmp_path, "hfl", 0) == runs / "seed-0" / "final_model.pt"
+    assert model_for(tmp_path, "hfl") == runs / "seed-0" / "final_model.pt"  # the seed of the best balanced accuracy
+    assert model_for(tmp_path, "hfl", 1) == runs / "seed-1" / "best_model.pt"
+    assert model_for(tmp_path, "hfl", 2) == runs / "seed-2" / "best_model.pt"  # no labelling round happened
+
+
 def test_dagger_refines_every_centralized_seed_and_drives_beside_it():
     from crchfl_sumo.studies.reproduce_plan import bench_parts, dagger_parts, drive_labels
 
