@@ -416,9 +416,8 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
 
 def run_model_file(summary: Mapping[str, Any]) -> str:
     """The model of a federated run (its summary.json) that drives: its best cloud model, or its last where its
-    vehicles labelled with DAgger (``dagger_rounds``). The offline test set holds none of the states those labels
-    teach: in 6 of 12 such runs the best offline round was not the last, and the last drove as well or better
-    (+14.7 points of success [+10.3, +19.0] where HFL labelled after every round; docs/beyond_paper.md)."""
+    vehicles labelled with DAgger (``dagger_rounds``): the offline test set holds none of the states those labels
+    teach, and the last drove as well as the best offline round or better (docs/beyond_paper.md)."""
     return FINAL_MODEL_FILE if summary.get("dagger_rounds") else BEST_MODEL_FILE
 
 
