@@ -80,16 +80,16 @@ def add_train(p: argparse.ArgumentParser) -> None:
 def run_train(args) -> int:
     from crchfl_sumo.learning.centralized import train_command
 
+    auto_ema = args.ema_decay == "auto"  # resolved from the data or the resumed checkpoint (train_command)
     # --resume --epochs N continues to N; --precision may change too (the checkpoint checks it against the
     # precision its epochs trained in), which folders marked while it was kept still allow
     config = TrainConfig(device=args.device, deterministic=args.deterministic, precision=args.precision,
                          red_weight=args.red_weight, red_window_m=args.red_window_m,
                          yield_weight=args.yield_weight, yield_window_m=args.yield_window_m,
                          class_weighting=args.class_weighting,
-                         # refused before any file; "auto" is resolved from the data (train_command)
-                         ema_decay=0.0 if args.ema_decay == "auto" else args.ema_decay)
+                         ema_decay=0.0 if auto_ema else args.ema_decay)  # refused before any file
     speed_input, stop_head, command_pedals, red_hold = args.speed_input, args.stop_head, args.command_pedals, args.red_hold
-    train_towns, auto_ema = args.train_towns, args.ema_decay == "auto"
+    train_towns = args.train_towns
     leave_out_at_default(args, ((("red_weight", "red_window_m"), args.red_weight == TrainConfig.red_weight),
                                 (("yield_weight", "yield_window_m"), args.yield_weight == TrainConfig.yield_weight),
                                 (("class_weighting",), args.class_weighting == TrainConfig.class_weighting),

@@ -33,7 +33,7 @@ from crchfl_sumo.core.backend import BackendConfig, Executor
 from crchfl_sumo.core.config import changed_keys_text, to_mapping, toml_text
 from crchfl_sumo.core.cpus import WAIT_POLICY, available_cpus, threads_per_part
 from crchfl_sumo.core.errors import CrchflError
-from crchfl_sumo.core.json_files import write_json
+from crchfl_sumo.core.json_files import read_json, write_json
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.progress import Progress, report
 from crchfl_sumo.core.result_files import BEST_MODEL_FILE, FINAL_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
@@ -400,7 +400,7 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
     folder = Path(out_dir) / (label if centralized else f"runs/{label}")
     if seed is not None:
         summary_path = folder / f"seed-{seed}" / SUMMARY_FILE
-        summary = json.loads(summary_path.read_text(encoding="utf-8")) if summary_path.exists() else {}
+        summary = read_json(summary_path) if not centralized and summary_path.exists() else {}
         return folder / f"seed-{seed}" / (MODEL_FILE if centralized else run_model_file(summary))
     summaries = {}
     for path in sorted(folder.glob(f"seed-*/{SUMMARY_FILE}")):
