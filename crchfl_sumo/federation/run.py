@@ -429,6 +429,13 @@ def mark_model_file(gb: float) -> str:
     return f"best_model_within_{gb_label(gb)}gb.pt"
 
 
+def run_model_file(summary: Mapping[str, Any]) -> str:
+    """The model of a run (its summary.json) that drives: its best cloud model, or its last where its vehicles
+    labelled with DAgger (``dagger_rounds``): the offline test set holds none of the states those labels teach,
+    and the last drove as well as the best offline round or better (docs/beyond_paper.md)."""
+    return FINAL_MODEL_FILE if summary.get("dagger_rounds") else BEST_MODEL_FILE
+
+
 def budget_mark_results(config: RunConfig, setup: LoopInputs, state: FederationState) -> dict[float, tuple]:
     """Per budget mark [GB]: (the best metrics line within it, its model, whether the run has passed the
     mark); line and model are None if no evaluation was within it; a mark not passed has the best so far."""

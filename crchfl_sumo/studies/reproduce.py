@@ -36,7 +36,7 @@ from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.json_files import read_json, write_json
 from crchfl_sumo.core.outputs import prepare_output_dir
 from crchfl_sumo.core.progress import Progress, report
-from crchfl_sumo.core.result_files import BEST_MODEL_FILE, FINAL_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
+from crchfl_sumo.core.result_files import BEST_MODEL_FILE, MODEL_FILE, SUMMARY_FILE, TIMINGS_FILE
 from crchfl_sumo.studies.reproduce_plan import (
     CENTRALIZED,
     CENTRALIZED_DAGGER,
@@ -396,6 +396,8 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
     """The model that drives for ``label``: the run_model_file of the scheme's best seed (or of ``seed``);
     for the centralized bound, the last epoch's checkpoint of the seed that ended best (or of ``seed``);
     for the centralized bound refined by DAgger, its last iteration's, chosen the same way."""
+    from crchfl_sumo.federation.run import run_model_file
+
     centralized = label in (CENTRALIZED, CENTRALIZED_DAGGER)
     folder = Path(out_dir) / (label if centralized else f"runs/{label}")
     if seed is not None:
@@ -404,7 +406,7 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
         return folder / f"seed-{seed}" / (MODEL_FILE if centralized else run_model_file(summary))
     summaries = {}
     for path in sorted(folder.glob(f"seed-*/{SUMMARY_FILE}")):
-        summaries[int(path.parent.name.split("-", 1)[1])] = json.loads(path.read_text(encoding="utf-8"))
+        summaries[int(path.parent.name.split("-", 1)[1])] = read_json(path)
     if label == CENTRALIZED_DAGGER:  # the last iteration's model of the seed that ended best
         last = {seed: summary["iterations"][-1] for seed, summary in summaries.items()}
         return folder / f"seed-{best_seed(last)}" / MODEL_FILE
@@ -412,13 +414,6 @@ def model_for(out_dir: Path, label: str, seed: int | None = None) -> Path:
         return folder / f"seed-{best_seed(summaries, 'final_balanced_accuracy')}" / MODEL_FILE
     seed = best_seed(summaries)
     return folder / f"seed-{seed}" / run_model_file(summaries[seed])
-
-
-def run_model_file(summary: Mapping[str, Any]) -> str:
-    """The model of a federated run (its summary.json) that drives: its best cloud model, or its last where its
-    vehicles labelled with DAgger (``dagger_rounds``): the offline test set holds none of the states those labels
-    teach, and the last drove as well as the best offline round or better (docs/beyond_paper.md)."""
-    return FINAL_MODEL_FILE if summary.get("dagger_rounds") else BEST_MODEL_FILE
 
 
 def budget_model_for(config: ReproduceConfig, out_dir: Path, scheme: str, budget_gb: float, seed: int) -> Path:
