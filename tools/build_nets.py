@@ -13,7 +13,7 @@ scale200 (four copies of Town01 with 200 data vehicles and eight edge sites):
     <name>.net.xml      netconvert's network
     vtypes.add.xml      vehicle types
     <name>.bg.rou.xml   background vehicles (randomTrips.py + duarouter, fixed seed)
-    <name>.ego.rou.xml  named data / test / link vehicles on closed loops
+    <name>.ego.rou.xml  named data / test / link vehicles on closed loops (paper scenarios: data walks)
     <name>.sumocfg      SUMO configuration (step length 0.25 s, fixed seed)
     scenario.toml       edge sites and towns, read by crchfl_sumo.sumo.scenario
 
@@ -72,6 +72,14 @@ class Town:
     """One hand-described town and how the named vehicles loop through it.
 
     loops: vehicle id -> closed node sequence (first node == last node).
+    paper_walks: data vehicle id -> the closed walk it drives in the paper scenarios
+        instead of its loop (first node == last node, nodes may repeat). The loops turn
+        left and right at signals but cross most T-junctions only along their turns; a
+        walk is the vehicle's loop and one more cycle through one of its nodes, chosen
+        so that the town's data vehicles together take nearly every turn and every
+        straight pass the town's signals offer (33 of Town01's 36, all 24 of Town02's;
+        docs/measurements.md, "2026-12-07, eighth"). The single-town scenarios keep the
+        loops: their named vehicles are the benchmarks' traffic.
     background_vehicles: how many randomTrips vehicles roam the town.
     intermediate: randomTrips' intermediate waypoints per background trip.
     link_node: where the connecting road of paper_linked meets this town:
@@ -86,6 +94,7 @@ class Town:
     background_vehicles: int
     intermediate: int
     link_node: tuple[str, float, float, str, str]
+    paper_walks: dict[str, list[str]] = field(default_factory=dict)
 
 
 TOWN01 = Town(
@@ -104,6 +113,14 @@ TOWN01 = Town(
     background_vehicles=30,
     intermediate=160,
     link_node=("L", 394.4, 164.3, "SE", "NE"),
+    paper_walks={
+        # adds straight at E1, E2, M3, N1, N2, N3, W1, W2; left at E3, W3; right at S1, S2
+        "t01_data_0": ["S1", "W1", "E1", "E2", "E3", "M3", "W3", "W2", "W1", "S1", "SW", "NW", "N1", "N2", "N3",
+                       "NE", "SE", "S2", "E1", "E2", "W2", "W3", "M3", "N2", "N1", "NW", "SW", "S1"],
+        # adds straight at E2, N3, S1, S2, W2, W3; left at E1, E3; right at M3, N1, N2
+        "t01_data_1": ["S2", "SE", "NE", "N3", "E3", "E2", "W2", "W1", "E1", "E2", "E3", "M3", "N2", "N3", "NE",
+                       "SE", "S2", "S1", "SW", "NW", "N1", "W3", "W2", "W1", "E1", "S2"],
+    },
 )
 
 TOWN02 = Town(
@@ -124,6 +141,14 @@ TOWN02 = Town(
     background_vehicles=15,
     intermediate=260,
     link_node=("L", 0.0, 57.3, "SW", "A"),
+    paper_walks={
+        # each adds movements its loop lacks, e.g. straight at A, D, G (data_0), B, C, F (data_1), A, C, F, H (data_2)
+        "t02_data_0": ["NW", "NE", "D", "C", "F", "G", "B", "C", "F", "E", "D", "NE", "NW", "A", "SW", "H", "G",
+                       "B", "A", "NW"],
+        "t02_data_1": ["H", "SE", "E", "D", "C", "F", "G", "H", "SW", "A", "B", "C", "D", "E", "F", "G", "H"],
+        "t02_data_2": ["G", "F", "C", "B", "G", "F", "E", "SE", "H", "SW", "A", "NW", "NE", "D", "C", "B", "A",
+                       "SW", "H", "G"],
+    },
 )
 
 # Placement of the towns in the two-town networks: Town02 sits 205.6 m east of
@@ -756,7 +781,7 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
         def prefixed_loops(town: Town, linked: bool) -> dict[str, list[str]]:
             out = {}
             for vid, nodes in town.loops.items():
-                nodes = [f"{town.prefix}_{n}" for n in nodes]
+                nodes = [f"{town.prefix}_{n}" for n in town.paper_walks.get(vid, nodes)]
                 out[vid] = expand_splits(nodes, town) if linked else nodes
             return out
 

@@ -171,6 +171,8 @@ def generate_dataset(
                 # only where set: the header of a data set without red-line samples stays as written before
                 **({"red_share": sizes.recovery_red_share} if sizes.recovery_red_share else {}),
             },
+            # only where not 1: the header of a data set that samples standing vehicles like moving ones stays as before
+            **({"standing_sample_every": sizes.standing_sample_every} if sizes.standing_sample_every != 1 else {}),
         },
         compression=sizes.compression,
     )
@@ -187,6 +189,7 @@ def generate_dataset(
         frames, sampled = record_run(
             scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m,
             sumo_options=(*options, "--lanechange.duration", f"{lane_change_s:g}") if lane_change_s else options,
+            standing_every=sizes.standing_sample_every,
         )
     with clock("label"):
         tracks = tracks_from_frames(frames)

@@ -16,6 +16,7 @@ import math
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
+from crchfl_sumo.data.settings import STANDING_SPEED_MPS
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.scenario import Scenario
 from crchfl_sumo.sumo.simulation import Simulation
@@ -46,6 +47,7 @@ def record_run(
     around_m: float | None = None,
     ahead_m: float = 0.0,
     sumo_options: tuple[str, ...] = (),
+    standing_every: int = 1,
 ) -> tuple[list[Frame], dict[str, list[int]]]:
     """Simulate until each vehicle in ``needed`` has its samples, then FUTURE_S more and until each
     has driven ``ahead_m`` past its last sample (or left the network).
@@ -53,6 +55,8 @@ def record_run(
     Returns every step's Frame (every vehicle, or with ``around_m`` only the
     needed vehicles and those within it of one) and, per vehicle, the indices
     of its sampled frames. ``sumo_options``: more of SUMO's options (its own output files).
+    ``standing_every`` (DatasetConfig.standing_sample_every): a vehicle slower than
+    STANDING_SPEED_MPS is sampled only at every so many sampling steps; 1: like a moving one.
     """
     step_s = scenario.step_length_s
     every = steps_per_sample(scenario, sample_period_s)
@@ -73,9 +77,13 @@ def record_run(
             frame = sim.step()
             frames.append(frame)
             present = set(frame.ids.tolist())
-            if round(frame.t_s / step_s) % every == 0:
+            step_no = round(frame.t_s / step_s)
+            if step_no % every == 0:
                 for vehicle, rows in sampled.items():
-                    if vehicle in present and len(rows) < needed[vehicle]:
+                    if vehicle in present and len(rows) < needed[vehicle] and (
+                        step_no % (every * standing_every) == 0
+                        or frame.speed_mps[frame.index_of(vehicle)] >= STANDING_SPEED_MPS
+                    ):
                         rows.append(len(frames) - 1)
             for vehicle in needed:
                 if vehicle in present:

@@ -140,15 +140,18 @@ def test_generate_then_resume_after_interruption_is_identical(tmp_path):
     assert np.allclose(np.diff(data.t_s), 0.25)
     assert data.images.shape == (6, 4, 24, 48, 3) and data.images.std() > 10  # not blank
     assert np.array_equal(data.steer_class, digitize_steer(data.actions[:, 1]))
-    assert data.actions[0, 2] == 0.9 and data.actions[1, 0] == 1.0  # inserted at rest, then pulls away
-    assert data.speed_mps.dtype == np.float32 and data.speed_mps[0] == 0.0 and data.speed_mps[1] > 0
+    # Inserted at rest at 0.25 s, off a whole second: that standing step is not sampled (standing_sample_every
+    # 4: 0, 1, 2 ... s), so the first sample already pulls away (it stands there with standing_sample_every 1).
+    assert data.t_s[0] == 0.5 and data.actions[0, 0] == 1.0
+    assert data.speed_mps.dtype == np.float32 and np.all(data.speed_mps > 0)
     assert data.command.dtype == np.int64 and set(data.command.tolist()) <= {0, 1, 2, 3}
-    # Default recovery share 0.25 of the moving samples (5 of 6 here: the first stands): round(1.25) = 1.
+    # Default recovery share 0.25 of the moving samples (all 6 here): round(1.5) = 2.
     perturbed = np.flatnonzero(np.any(data.perturbation != 0, axis=1))
-    assert len(perturbed) == 1 and perturbed[0] != 0
-    assert abs(data.perturbation[perturbed[0], 0]) <= 1.0 and abs(data.perturbation[perturbed[0], 1]) <= 15.0
+    assert len(perturbed) == 2
+    assert np.all(np.abs(data.perturbation[perturbed, 0]) <= 1.0) and np.all(np.abs(data.perturbation[perturbed, 1]) <= 15.0)
     assert full.labels["recovery"] == {"share": 0.25, "lateral_m": 1.0, "yaw_deg": 15.0, "queue_share": 0.0,
                                        "red_share": 0.5}
+    assert full.labels["standing_sample_every"] == 4
     assert full.labels["command"]["lookahead_m"] == 25.0
     assert full.png_bytes_per_sample > 0
 
