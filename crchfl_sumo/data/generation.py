@@ -189,7 +189,7 @@ def generate_dataset(
         frames, sampled = record_run(
             scenario, seed, needed, sizes.sample_period_s, progress, neighbourhood_m(raster), command.path_ahead_m,
             sumo_options=(*options, "--lanechange.duration", f"{lane_change_s:g}") if lane_change_s else options,
-            standing_every=sizes.standing_sample_every,
+            standing_every=sizes.standing_sample_every, stop_speed_mps=expert.stop_speed_mps,
         )
     with clock("label"):
         tracks = tracks_from_frames(frames)

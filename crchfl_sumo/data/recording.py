@@ -16,7 +16,7 @@ import math
 
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.core.progress import Progress, report
-from crchfl_sumo.data.settings import STANDING_SPEED_MPS
+from crchfl_sumo.data.expert import ExpertConfig
 from crchfl_sumo.sumo.frame import Frame
 from crchfl_sumo.sumo.scenario import Scenario
 from crchfl_sumo.sumo.simulation import Simulation
@@ -48,6 +48,7 @@ def record_run(
     ahead_m: float = 0.0,
     sumo_options: tuple[str, ...] = (),
     standing_every: int = 1,
+    stop_speed_mps: float = ExpertConfig.stop_speed_mps,
 ) -> tuple[list[Frame], dict[str, list[int]]]:
     """Simulate until each vehicle in ``needed`` has its samples, then FUTURE_S more and until each
     has driven ``ahead_m`` past its last sample (or left the network).
@@ -55,8 +56,9 @@ def record_run(
     Returns every step's Frame (every vehicle, or with ``around_m`` only the
     needed vehicles and those within it of one) and, per vehicle, the indices
     of its sampled frames. ``sumo_options``: more of SUMO's options (its own output files).
-    ``standing_every`` (DatasetConfig.standing_sample_every): a vehicle slower than
-    STANDING_SPEED_MPS is sampled only at every so many sampling steps; 1: like a moving one.
+    ``standing_every`` (DatasetConfig.standing_sample_every): a vehicle slower than ``stop_speed_mps``
+    (the expert's: where its labels call it standing) is sampled only at every so many sampling steps;
+    1: like a moving one.
     """
     step_s = scenario.step_length_s
     every = steps_per_sample(scenario, sample_period_s)
@@ -82,7 +84,7 @@ def record_run(
                 for vehicle, rows in sampled.items():
                     if vehicle in present and len(rows) < needed[vehicle] and (
                         step_no % (every * standing_every) == 0
-                        or frame.speed_mps[frame.index_of(vehicle)] >= STANDING_SPEED_MPS
+                        or frame.speed_mps[frame.index_of(vehicle)] >= stop_speed_mps
                     ):
                         rows.append(len(frames) - 1)
             for vehicle in needed:

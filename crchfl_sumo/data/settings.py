@@ -15,7 +15,6 @@ from crchfl_sumo.core.numbers import check_range
 MAX_SAMPLES_PER_VEHICLE = 100_000  # the paper's largest is 2928; more only fills the disk (98 KB each)
 MAX_SAMPLE_PERIOD_S = 60.0  # samples a minute apart are no driving sequence (paper: 0.25 s)
 PAPER_SAMPLE_PERIOD_S = 0.25  # the paper's: four samples a second (dataset.DatasetConfig's default)
-STANDING_SPEED_MPS = 0.1  # a data vehicle slower than this stands (as expert.ExpertConfig.stop_speed_mps)
 MAX_STANDING_SAMPLE_EVERY = 1000  # longer than any wait at a signal, at any sample period
 
 
@@ -93,8 +92,8 @@ class DatasetConfig:
         smooth sideways move. 3 s is 42 m at the towns' 13.9 m/s, about the
         30 m over which a planned route changes lanes (sumo/route.py). It changes
         nothing on roads of one lane per direction (Town01, Town02).
-    standing_sample_every: a standing data vehicle (slower than
-        STANDING_SPEED_MPS) is sampled at one sampling step in this many (those
+    standing_sample_every: a standing data vehicle (slower than the expert's
+        stop_speed_mps, 0.1 m/s) is sampled at one sampling step in this many (those
         at whole multiples of it since the run's start); 1 samples it like a
         moving one. The default 4 (once a second at the paper's 0.25 s) keeps a
         red light's wait from filling a vehicle's sample count with

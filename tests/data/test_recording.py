@@ -5,9 +5,11 @@ import pytest
 from crchfl_sumo.core.config import from_mapping
 from crchfl_sumo.core.errors import CrchflError
 from crchfl_sumo.data.recording import record_run
-from crchfl_sumo.data.settings import STANDING_SPEED_MPS, DatasetConfig
+from crchfl_sumo.data.expert import ExpertConfig
+from crchfl_sumo.data.settings import DatasetConfig
 from crchfl_sumo.sumo.scenario import load_scenario
 
+STANDING_SPEED_MPS = ExpertConfig.stop_speed_mps
 VEHICLE = "t01_data_0"  # departs standing and waits at a red light within its first minute
 
 
