@@ -778,7 +778,8 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
                            plains[town.name], lambda net, loops=town.loops: ego_routes_xml(net, loops), trips[town.name],
                            [entry], prefixed=False, work=work, out_root=out_root)
 
-        def prefixed_loops(town: Town, linked: bool) -> dict[str, list[str]]:
+        def prefixed_routes(town: Town, linked: bool) -> dict[str, list[str]]:
+            """Each named vehicle's node sequence in the paper scenarios: its walk, else its loop."""
             out = {}
             for vid, nodes in town.loops.items():
                 nodes = [f"{town.prefix}_{n}" for n in town.paper_walks.get(vid, nodes)]
@@ -800,7 +801,7 @@ def build_all(out_root: Path = SCENARIOS_DIR) -> None:
         for name, linked in (("paper", False), ("paper_linked", True)):
             placed_towns = [placed(plains[t.name], t.prefix, *PAPER_OFFSETS_M[t.name]) for t in towns]
             plain = merged(*placed_towns)
-            loops = {vid: nodes for t in towns for vid, nodes in prefixed_loops(t, linked).items()}
+            loops = {vid: nodes for t in towns for vid, nodes in prefixed_routes(t, linked).items()}
             all_trips = [trip for t in towns for trip in mapped_trips(trips[t.name], edge_mapper(t, linked), t.prefix)]
             data = {t.name: list(t.data_vehicles) for t in towns}
             if linked:

@@ -57,8 +57,8 @@ def record_run(
     needed vehicles and those within it of one) and, per vehicle, the indices
     of its sampled frames. ``sumo_options``: more of SUMO's options (its own output files).
     ``standing_every`` (DatasetConfig.standing_sample_every): a vehicle slower than ``stop_speed_mps``
-    (the expert's: where its labels call it standing) is sampled only at every so many sampling steps;
-    1: like a moving one.
+    (the expert's standing speed; its labels also ask for no acceleration) is sampled only at every so
+    many sampling steps; 1: like a moving one.
     """
     step_s = scenario.step_length_s
     every = steps_per_sample(scenario, sample_period_s)
